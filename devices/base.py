@@ -1,0 +1,103 @@
+"""The interface every haptic input device implements (after CHAI3D's generic device).
+
+Positions and velocities cross this interface in the *scene* frame, in SI (m, m/s); forces in N.
+A device converts from its own frame and units with a :class:`Workspace`.
+
+Two clocking modes (``DeviceInfo.drives_clock``):
+
+* ``False`` (scripted, keyboard): the engine's own 1 kHz timer calls :meth:`Device.read` and
+  :meth:`Device.set_force` each tick.
+* ``True`` (OMNI): the device's scheduler calls the servo step; the engine hands it a callback
+  through :meth:`Device.run_servo`.
+"""
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    name: str  # "omni", "keyboard", "scripted"
+    model: str  # human-readable model / source
+    force_limit_n: float  # the largest force magnitude the device may be commanded
+    rate_hz: float  # nominal servo rate
+    drives_clock: bool  # True: the device's scheduler calls the servo step
+
+
+@dataclass
+class DeviceState:
+    t_s: float = 0.0  # device time of the sample
+    position_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # needle tip, scene frame
+    velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    buttons: int = 0
+    axis: np.ndarray | None = None  # unit vector from tip toward the handle, if the device knows it
+    done: bool = False  # the source has ended (end of a trajectory, quit key)
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Device frame (mm) -> scene frame (m): p = scale * Rz(rotation) * p_dev + offset."""
+
+    offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    rotation_z_deg: float = 0.0
+
+    @classmethod
+    def from_config(cls, ws) -> "Workspace":
+        return cls(tuple(ws.offset_mm), float(ws.scale), float(ws.rotation_z_deg))
+
+    def _rot(self) -> np.ndarray:
+        a = math.radians(self.rotation_z_deg)
+        c, s = math.cos(a), math.sin(a)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    def position_to_scene(self, p_dev_mm) -> np.ndarray:
+        return (self.scale * (self._rot() @ np.asarray(p_dev_mm, float)) + np.asarray(self.offset_mm)) * 1e-3
+
+    def vector_to_scene(self, v_dev_mm) -> np.ndarray:
+        """A velocity or displacement (mm or mm/s) into the scene frame (m or m/s)."""
+        return self.scale * (self._rot() @ np.asarray(v_dev_mm, float)) * 1e-3
+
+    def force_to_device(self, f_scene_n) -> np.ndarray:
+        """A scene-frame force into the device frame (rotation only: forces are not scaled)."""
+        return self._rot().T @ np.asarray(f_scene_n, float)
+
+
+class Device(abc.ABC):
+    """open / read / set_force / close; see the module doc for the clocking modes."""
+
+    info: DeviceInfo
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Connect. Raises UserError (one line) if the device or its library is missing."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Command zero force and disconnect. Safe to call twice."""
+
+    @abc.abstractmethod
+    def read(self) -> DeviceState:
+        """The latest state. Raises DeviceFault if the device reports an error or stops updating."""
+
+    @abc.abstractmethod
+    def set_force(self, force_n: np.ndarray) -> None:
+        """Command a force (N, scene frame). The caller has already made it finite and clamped."""
+
+    def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop) -> None:
+        """For ``drives_clock`` devices: call ``step(state) -> force`` from the device's scheduler
+        at its rate until ``stop`` (a threading.Event) is set or the device faults."""
+        raise NotImplementedError(f"{self.info.name} does not drive the clock")
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False

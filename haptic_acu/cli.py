@@ -1,0 +1,64 @@
+"""The ``haptic-acu`` command: one console script, one sub-command per job.
+
+Each sub-command lives in its own module, which exposes ``register(subparsers)``; that adds the
+sub-command's parser and sets ``func`` to a function taking the parsed args and returning the
+exit status. Bad input raises :class:`~haptic_acu.errors.UserError`, printed here as one line on
+stderr with no traceback (exit status 2).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from . import __version__
+from .errors import DeviceFault, UserError
+
+# name -> module providing register(subparsers); imported only when needed.
+COMMANDS = {
+    "fit": "haptic_acu.fit_cmd",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own errors: one line, status 2
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = _Parser(prog="haptic-acu", description="Haptic simulator of acupuncture needle insertion.")
+    parser.add_argument("--version", action="version", version=f"haptic-acu {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name, module in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=f"(see haptic-acu {name} --help)")
+            continue
+        importlib.import_module(module).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    only = next((a for a in argv if a in COMMANDS), None)
+    parser = build_parser(only)
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as e:
+        print(f"haptic-acu {args.command}: error: {e}", file=sys.stderr)
+        return e.exit_status
+    except DeviceFault as e:
+        print(f"haptic-acu {args.command}: device fault: {e}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print(f"haptic-acu {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,242 @@
+"""Configuration: TOML files under ``config/`` loaded into frozen dataclasses.
+
+Units are in the key names (``thickness_mm``, ``k_virtual_n_per_mm``); the loader converts nothing,
+the model converts to SI where it uses a value. Every key is required and no unknown key is
+accepted: a typo is an error, not a silently ignored setting. Any problem raises
+:class:`~haptic_acu.errors.UserError` with one line naming the file and the dotted key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import UserError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+DEFAULT_CONFIG = CONFIG_DIR / "tissue.toml"
+LAYER_NAMES = ("skin", "fat", "muscle")
+
+
+@dataclass(frozen=True)
+class BodyParams:
+    """The body the layers wrap: a limb-like shape whose skin surface is fitted by SH."""
+
+    semi_axes_mm: tuple[float, float, float]  # skin surface ellipsoid (x along the limb, y, z)
+    bulge: float  # relative amplitude of a smooth asymmetric bump (makes it not quite an ellipsoid)
+    lmax: int  # SH degree of every boundary's expansion
+    fit_samples: int  # points sampled on each boundary for the least-squares fit
+    skin_coefficients: str  # "" for the built-in shape, else a .npz written by `haptic-acu fit`
+
+
+@dataclass(frozen=True)
+class LayerParams:
+    """One tissue layer (Table 2, plus the parameters of ours the model needs)."""
+
+    thickness_mm: float  # Table 2
+    k_virtual_n_per_mm: float  # Table 2: K, virtual (normal) spring per particle
+    damping_n_s_per_m_per_mm: float  # Table 2: d, read per mm of needle in the layer (MODEL.md s3)
+    rings: int  # Table 2: w, rings of the hexagonal net (ring 1 is the contact point)
+    spring_length_mm: float  # Table 2: L, surface-spring spacing
+    k_surface_n_per_mm: float  # ours: surface-spring stiffness
+    pretension: float  # ours: surface springs' rest length is (1 - pretension) * spacing
+    puncture_threshold_um: float  # ours: ring-w mean deflection at which the surface breaks
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class NeedleParams:
+    hole_radius_mm: float  # re-entry within this distance of a hole meets no new surface force
+    lateral_constraint: bool  # resist tip motion off the insertion line once the skin is pierced
+    lateral_stiffness_n_per_mm: float
+    bone_stiffness_n_per_mm: float  # penalty wall at the muscle/bone boundary
+
+
+@dataclass(frozen=True)
+class SpringbackParams:
+    eta_rate_per_frame: float  # eq. 9's eta_r: eta drops by this each visual frame
+    eta_min: float  # floor of eta (0: full return to the rest shape)
+    margin_rings: int  # undeformed rings added around the net so the centroid stays put
+
+
+@dataclass(frozen=True)
+class SolverParams:
+    sweeps_per_tick: int  # Gauss-Seidel-Newton sweeps of the force net per servo tick
+    static_tolerance_um: float  # convergence tolerance of a full static solve
+
+
+@dataclass(frozen=True)
+class SafetyParams:
+    force_limit_n: float  # commanded force magnitude never exceeds this (OMNI nominal max 3.3 N)
+
+
+@dataclass(frozen=True)
+class SceneParams:
+    target_depth_mm: tuple[float, float]  # depth range the acupoint's needling aims for
+    max_hand_speed_m_per_s: float  # trajectory jumps faster than this are refused
+
+
+@dataclass(frozen=True)
+class WorkspaceParams:
+    """Device frame -> scene frame: p_scene = scale * R_z(rotation) * p_device + offset."""
+
+    offset_mm: tuple[float, float, float]
+    scale: float
+    rotation_z_deg: float
+
+
+@dataclass(frozen=True)
+class TissueConfig:
+    path: str
+    body: BodyParams
+    skin: LayerParams
+    fat: LayerParams
+    muscle: LayerParams
+    needle: NeedleParams
+    springback: SpringbackParams
+    solver: SolverParams
+    safety: SafetyParams
+    scene: SceneParams
+    workspace: WorkspaceParams
+
+    @property
+    def layers(self) -> tuple[LayerParams, LayerParams, LayerParams]:
+        return (self.skin, self.fat, self.muscle)
+
+
+# Keys whose value must be > 0 (by field name, in any section).
+_POSITIVE = {
+    "thickness_mm", "k_virtual_n_per_mm", "spring_length_mm", "k_surface_n_per_mm",
+    "puncture_threshold_um", "hole_radius_mm", "lateral_stiffness_n_per_mm",
+    "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
+    "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
+}
+_NON_NEGATIVE = {"damping_n_s_per_m_per_mm", "bulge", "eta_rate_per_frame", "eta_min",
+                 "margin_rings", "lmax", "pretension"}
+_SECTIONS = {
+    "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,
+    "needle": NeedleParams, "springback": SpringbackParams, "solver": SolverParams,
+    "safety": SafetyParams, "scene": SceneParams, "workspace": WorkspaceParams,
+}
+
+
+def _fail(path: Path, key: str, msg: str) -> typing.NoReturn:
+    raise UserError(f"{path}: key '{key}': {msg}")
+
+
+def _convert(path: Path, key: str, value, tp):
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, list) or len(value) != len(args):
+            _fail(path, key, f"expected a list of {len(args)} numbers, got {value!r}")
+        return tuple(_convert(path, f"{key}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            _fail(path, key, f"expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            _fail(path, key, f"expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            _fail(path, key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            _fail(path, key, f"expected a finite number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            _fail(path, key, f"expected a string, got {value!r}")
+        return value
+    raise TypeError(tp)  # pragma: no cover - schema error, not user input
+
+
+def _section(path: Path, name: str, cls, table) -> object:
+    if not isinstance(table, dict):
+        _fail(path, name, "expected a table")
+    hints = typing.get_type_hints(cls)
+    fields = [f for f in dataclasses.fields(cls) if f.name != "name"]
+    known = {f.name for f in fields}
+    for key in table:
+        if key not in known:
+            _fail(path, f"{name}.{key}", f"unknown key (known: {', '.join(sorted(known))})")
+    values = {}
+    for f in fields:
+        key = f"{name}.{f.name}"
+        if f.name not in table:
+            _fail(path, key, "missing")
+        v = _convert(path, key, table[f.name], hints[f.name])
+        for item in (v if isinstance(v, tuple) else (v,)):
+            if isinstance(item, (int, float)) and not isinstance(item, bool):
+                if f.name in _POSITIVE and not item > 0:
+                    _fail(path, key, f"must be > 0, got {item!r}")
+                if f.name in _NON_NEGATIVE and not item >= 0:
+                    _fail(path, key, f"must be >= 0, got {item!r}")
+        values[f.name] = v
+    if cls is LayerParams:
+        values["name"] = name
+    return cls(**values)
+
+
+def _check_relations(path: Path, cfg: TissueConfig) -> None:
+    for layer in cfg.layers:
+        if layer.rings < 2:
+            _fail(path, f"{layer.name}.rings", f"w must be >= 2, got {layer.rings}")
+        if layer.rings > 40:
+            _fail(path, f"{layer.name}.rings", f"w must be <= 40, got {layer.rings}")
+        if not layer.pretension < 0.5:
+            _fail(path, f"{layer.name}.pretension", f"must be < 0.5, got {layer.pretension}")
+    if cfg.body.lmax > 40:
+        _fail(path, "body.lmax", f"must be <= 40, got {cfg.body.lmax}")
+    need = (cfg.body.lmax + 1) ** 2
+    if cfg.body.fit_samples < 2 * need:
+        _fail(path, "body.fit_samples", f"must be >= 2*(lmax+1)^2 = {2 * need}, got {cfg.body.fit_samples}")
+    total = sum(layer.thickness_mm for layer in cfg.layers)
+    if total >= 0.9 * min(cfg.body.semi_axes_mm):
+        _fail(path, "body.semi_axes_mm", f"smallest semi-axis must exceed the layers' total thickness {total} mm by 10%")
+    if cfg.body.bulge >= 0.2:
+        _fail(path, "body.bulge", f"must be < 0.2, got {cfg.body.bulge}")
+    if not cfg.springback.eta_min < 1:
+        _fail(path, "springback.eta_min", f"must be < 1, got {cfg.springback.eta_min}")
+    lo, hi = cfg.scene.target_depth_mm
+    if not 0 <= lo < hi:
+        _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")
+
+
+def load_config(path: str | Path | None = None) -> TissueConfig:
+    """Load and validate a tissue config (default ``config/tissue.toml``)."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"{path}: config file not found") from None
+    except OSError as e:
+        raise UserError(f"{path}: cannot read config: {e.strerror}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a UTF-8 text file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: invalid TOML: {e}") from None
+    for key in data:
+        if key not in _SECTIONS:
+            _fail(path, key, f"unknown section (known: {', '.join(_SECTIONS)})")
+    sections = {}
+    for name, cls in _SECTIONS.items():
+        if name not in data:
+            _fail(path, name, "missing section")
+        sections[name] = _section(path, name, cls, data[name])
+    cfg = TissueConfig(path=str(path), **sections)
+    _check_relations(path, cfg)
+    if cfg.body.skin_coefficients:
+        p = Path(cfg.body.skin_coefficients)
+        if not p.is_absolute():
+            p = path.parent / p
+        if not p.is_file():
+            _fail(path, "body.skin_coefficients", f"file not found: {p}")
+        cfg = dataclasses.replace(cfg, body=dataclasses.replace(cfg.body, skin_coefficients=str(p)))
+    return cfg

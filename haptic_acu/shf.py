@@ -1,0 +1,231 @@
+"""Real spherical harmonics and SH surfaces (the paper's eq. 1-5; MODEL.md section 1).
+
+Convention, used everywhere in this package:
+
+* ``theta`` is the polar angle (0 at +z), ``phi`` the azimuth from +x, both in radians.
+* Real orthonormal harmonics: the integral of Y_lm^2 over the unit sphere is 1.
+  With N_lm P_l^m the orthonormalised associated Legendre function *including* the
+  Condon-Shortley phase (-1)^m,
+
+      Y_l0  = N_l0 P_l^0(cos theta)
+      Y_lm  = sqrt(2) N_lm P_l^m(cos theta) cos(m phi)     m > 0
+      Y_l-m = sqrt(2) N_lm P_l^m(cos theta) sin(m phi)     m > 0
+
+  so Y_lm = sqrt(2) Re Y_l^m and Y_l-m = sqrt(2) Im Y_l^m for scipy's complex ``sph_harm_y``.
+* Column (coefficient index) of (l, m) is ``l*l + l + m`` (the paper's j - 1).
+
+P_l^m comes from the standard stable three-term recurrences on the normalised functions, never
+from eq. 2's derivative formula. The kernels are numba-compiled with ``nogil=True`` so the visual
+thread can evaluate surfaces beside the servo thread; the scalar ones allocate nothing, so the servo
+step can call them every tick.
+"""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_INV_SQRT_4PI = 1.0 / math.sqrt(4.0 * math.pi)
+_SQRT2 = math.sqrt(2.0)
+
+
+def n_coeffs(lmax: int) -> int:
+    """Number of coefficients of an expansion to degree ``lmax``: (lmax+1)^2."""
+    return (lmax + 1) ** 2
+
+
+def lmax_of(ncoeffs: int) -> int:
+    """Degree of an expansion with ``ncoeffs`` coefficients; ValueError if not a square."""
+    lmax = int(round(math.sqrt(ncoeffs))) - 1
+    if lmax < 0 or (lmax + 1) ** 2 != ncoeffs:
+        raise ValueError(f"{ncoeffs} coefficients is not (lmax+1)^2 for any lmax")
+    return lmax
+
+
+@nb.njit(cache=True, nogil=True)
+def _basis_row(lmax, theta, phi, out):
+    """Fill ``out[(lmax+1)^2]`` with every Y_lm at one direction."""
+    x = math.cos(theta)
+    s = math.sin(theta)
+    pmm = _INV_SQRT_4PI  # normalised P_0^0
+    for m in range(lmax + 1):
+        if m > 0:
+            # P_m^m from P_{m-1}^{m-1}; the minus sign is the Condon-Shortley phase.
+            pmm = -math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * s * pmm
+        cm = math.cos(m * phi)
+        sm = math.sin(m * phi)
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            if l == m:
+                p = pmm
+            elif l == m + 1:
+                p = math.sqrt(2.0 * m + 3.0) * x * pmm
+            else:
+                a = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
+                b = math.sqrt(((l - 1.0) * (l - 1.0) - m * m) / (4.0 * (l - 1.0) * (l - 1.0) - 1.0))
+                p = a * (x * p_lm1 - b * p_lm2)
+            if l > m:
+                p_lm2 = p_lm1
+                p_lm1 = p
+            base = l * l + l
+            if m == 0:
+                out[base] = p
+            else:
+                out[base + m] = _SQRT2 * p * cm
+                out[base - m] = _SQRT2 * p * sm
+
+
+@nb.njit(cache=True, nogil=True)
+def _basis_matrix(lmax, theta, phi, out):
+    for i in range(theta.shape[0]):
+        _basis_row(lmax, theta[i], phi[i], out[i])
+
+
+@nb.njit(cache=True, nogil=True)
+def eval_point(coeffs, lmax, theta, phi):
+    """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing."""
+    x = math.cos(theta)
+    s = math.sin(theta)
+    pmm = _INV_SQRT_4PI
+    total = 0.0
+    for m in range(lmax + 1):
+        if m > 0:
+            pmm = -math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * s * pmm
+        cm = math.cos(m * phi)
+        sm = math.sin(m * phi)
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            if l == m:
+                p = pmm
+            elif l == m + 1:
+                p = math.sqrt(2.0 * m + 3.0) * x * pmm
+            else:
+                a = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
+                b = math.sqrt(((l - 1.0) * (l - 1.0) - m * m) / (4.0 * (l - 1.0) * (l - 1.0) - 1.0))
+                p = a * (x * p_lm1 - b * p_lm2)
+            if l > m:
+                p_lm2 = p_lm1
+                p_lm1 = p
+            base = l * l + l
+            if m == 0:
+                total += coeffs[base] * p
+            else:
+                total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
+    return total
+
+
+@nb.njit(cache=True, nogil=True)
+def direction_of(px, py, pz, cx, cy, cz):
+    """(theta, phi, rho) of point p seen from centre c; the direction of c itself is the +z pole."""
+    dx = px - cx
+    dy = py - cy
+    dz = pz - cz
+    rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if rho == 0.0:
+        return 0.0, 0.0, 0.0
+    ct = dz / rho
+    if ct > 1.0:
+        ct = 1.0
+    elif ct < -1.0:
+        ct = -1.0
+    return math.acos(ct), math.atan2(dy, dx), rho
+
+
+@nb.njit(cache=True, nogil=True)
+def radius_toward(coeffs, lmax, centre, p):
+    """Radius of the surface (about ``centre``) in the direction of point ``p``, and |p - centre|."""
+    theta, phi, rho = direction_of(p[0], p[1], p[2], centre[0], centre[1], centre[2])
+    return eval_point(coeffs, lmax, theta, phi), rho
+
+
+@nb.njit(cache=True, nogil=True)
+def depth_below(coeffs, lmax, centre, p):
+    """Signed radial distance of ``p`` below the surface: r(direction of p) - |p - c|.
+
+    Positive inside (below the surface), negative outside, zero on it.
+    """
+    r, rho = radius_toward(coeffs, lmax, centre, p)
+    return r - rho
+
+
+def _as_angles(theta, phi):
+    theta = np.ascontiguousarray(np.asarray(theta, dtype=np.float64).ravel())
+    phi = np.ascontiguousarray(np.asarray(phi, dtype=np.float64).ravel())
+    if theta.shape != phi.shape:
+        raise ValueError(f"theta has {theta.size} values but phi has {phi.size}")
+    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(phi))):
+        raise ValueError("theta and phi must be finite (found NaN or infinity)")
+    return theta, phi
+
+
+def real_sph_harm(lmax: int, theta, phi) -> np.ndarray:
+    """Real orthonormal harmonics, shape (n, (lmax+1)^2), column l*l + l + m (see module doc)."""
+    lmax = int(lmax)
+    if lmax < 0:
+        raise ValueError(f"lmax must be >= 0, got {lmax}")
+    theta, phi = _as_angles(theta, phi)
+    out = np.empty((theta.size, n_coeffs(lmax)))
+    _basis_matrix(lmax, theta, phi, out)
+    return out
+
+
+def fit(theta, phi, values, lmax: int) -> np.ndarray:
+    """Least-squares SH coefficients (eq. 4) of samples ``values`` at directions (theta, phi).
+
+    ``values`` is (n,) for a radial surface r(theta, phi) or (n, 3) for a parametric x/y/z one;
+    the result is ((lmax+1)^2,) or ((lmax+1)^2, 3). Uses ``numpy.linalg.lstsq``, which releases
+    the GIL (scipy's does not), so a fit can run beside the servo thread.
+    """
+    theta, phi = _as_angles(theta, phi)
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim not in (1, 2) or values.shape[0] != theta.size or (values.ndim == 2 and values.shape[1] != 3):
+        raise ValueError(f"values must have shape ({theta.size},) or ({theta.size}, 3), got {values.shape}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError("values must be finite (found NaN or infinity)")
+    k = n_coeffs(int(lmax))
+    if theta.size < k:
+        raise ValueError(f"{theta.size} samples are too few for lmax {lmax}: need at least (lmax+1)^2 = {k}")
+    basis = real_sph_harm(lmax, theta, phi)
+    coeffs, _, rank, _ = np.linalg.lstsq(basis, values, rcond=None)
+    if rank < k:
+        raise ValueError(f"samples do not determine a degree-{lmax} expansion (rank {rank} < {k}); spread them over the sphere")
+    return coeffs
+
+
+def evaluate(coeffs, theta, phi) -> np.ndarray:
+    """Reconstruct (eq. 5): r(theta, phi) for (K,) coefficients, or x/y/z for (K, 3)."""
+    coeffs = np.asarray(coeffs, dtype=np.float64)
+    if coeffs.ndim not in (1, 2) or (coeffs.ndim == 2 and coeffs.shape[1] != 3):
+        raise ValueError(f"coefficients must have shape (K,) or (K, 3), got {coeffs.shape}")
+    lmax = lmax_of(coeffs.shape[0])
+    shape = np.shape(theta)
+    theta, phi = _as_angles(theta, phi)
+    if coeffs.ndim == 1:
+        out = np.empty(theta.size)
+        _eval_many(np.ascontiguousarray(coeffs), lmax, theta, phi, out)
+        return out.reshape(shape)
+    return (real_sph_harm(lmax, theta, phi) @ coeffs).reshape(shape + (3,))
+
+
+@nb.njit(cache=True, nogil=True)
+def _eval_many(coeffs, lmax, theta, phi, out):
+    for i in range(theta.shape[0]):
+        out[i] = eval_point(coeffs, lmax, theta[i], phi[i])
+
+
+def grid(n_theta: int, n_phi: int) -> tuple[np.ndarray, np.ndarray]:
+    """A (n_theta, n_phi) grid of directions: cell-centred in theta (no pole rows), uniform in phi."""
+    theta = (np.arange(n_theta) + 0.5) * (np.pi / n_theta)
+    phi = np.arange(n_phi) * (2.0 * np.pi / n_phi)
+    return np.meshgrid(theta, phi, indexing="ij")
+
+
+def unit_vectors(theta, phi) -> np.ndarray:
+    """Unit direction vectors, shape theta.shape + (3,)."""
+    theta = np.asarray(theta, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64)
+    st = np.sin(theta)
+    return np.stack([st * np.cos(phi), st * np.sin(phi), np.cos(theta)], axis=-1)
