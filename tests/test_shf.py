@@ -1,0 +1,213 @@
+"""Real spherical harmonics and SH surfaces (haptic_acu.shf) against scipy, quadrature and geometry."""
+import math
+
+import numpy as np
+import pytest
+from scipy.special import sph_harm_y
+
+from haptic_acu import shf
+
+SQRT2 = math.sqrt(2.0)
+
+
+def random_directions(n, seed):
+    """Uniform random directions as (theta in [0, pi], phi in [0, 2 pi), unit vectors)."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    return np.arccos(np.clip(u[:, 2], -1, 1)), np.arctan2(u[:, 1], u[:, 0]) % (2 * np.pi), u
+
+
+def scipy_real_basis(lmax, theta, phi):
+    """The real basis built from scipy's complex Y_l^m (Condon-Shortley phase included):
+    Y_l0 = Y_l^0, Y_lm = sqrt(2) Re Y_l^m, Y_l-m = sqrt(2) Im Y_l^m for m > 0; column l*l + l + m."""
+    out = np.empty((theta.size, (lmax + 1) ** 2))
+    for l in range(lmax + 1):
+        out[:, l * l + l] = sph_harm_y(l, 0, theta, phi).real
+        for m in range(1, l + 1):
+            y = sph_harm_y(l, m, theta, phi)
+            out[:, l * l + l + m] = SQRT2 * y.real
+            out[:, l * l + l - m] = SQRT2 * y.imag
+    return out
+
+
+def test_real_sph_harm_matches_scipy_to_degree_20():
+    theta, phi, _ = random_directions(400, seed=1)
+    # Include the poles and points a hair away from them.
+    theta = np.concatenate([theta, [0.0, np.pi, 1e-9, np.pi - 1e-9, np.pi / 2]])
+    phi = np.concatenate([phi, [0.3, 1.7, 4.0, 5.5, 0.0]])
+    ours = shf.real_sph_harm(20, theta, phi)
+    ref = scipy_real_basis(20, theta, phi)
+    assert ours.shape == (theta.size, 441)
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("lmax", [0, 1, 7, 20])
+def test_orthonormal_by_exact_quadrature(lmax):
+    # Products of two degree-<=lmax harmonics are polynomials of degree <= 2 lmax in cos(theta)
+    # (times sin^2k theta, which is polynomial in cos) and trigonometric of degree <= 2 lmax in phi:
+    # Gauss-Legendre with lmax+2 nodes and 2 lmax + 2 equal phi steps integrate them exactly.
+    x, w = np.polynomial.legendre.leggauss(lmax + 2)
+    n_phi = 2 * lmax + 2
+    theta = np.repeat(np.arccos(x), n_phi)
+    phi = np.tile(np.arange(n_phi) * 2 * np.pi / n_phi, x.size)
+    weights = np.repeat(w, n_phi) * (2 * np.pi / n_phi)
+    basis = shf.real_sph_harm(lmax, theta, phi)
+    gram = basis.T @ (basis * weights[:, None])
+    np.testing.assert_allclose(gram, np.eye((lmax + 1) ** 2), rtol=0, atol=1e-12)
+
+
+def test_fit_recovers_band_limited_radial_function():
+    lmax = 10
+    rng = np.random.default_rng(2)
+    coeffs = rng.normal(size=(lmax + 1) ** 2) / (1 + np.arange((lmax + 1) ** 2)) ** 0.5
+    coeffs[0] = 10.0
+    theta, phi, _ = random_directions(600, seed=3)
+    values = scipy_real_basis(lmax, theta, phi) @ coeffs  # sampled with scipy's harmonics
+    fitted = shf.fit(theta, phi, values, lmax)
+    np.testing.assert_allclose(fitted, coeffs, rtol=0, atol=1e-8)
+    # and the reconstruction (eq. 5) reproduces the function at fresh directions
+    t2, p2, _ = random_directions(300, seed=4)
+    np.testing.assert_allclose(shf.evaluate(fitted, t2, p2), scipy_real_basis(lmax, t2, p2) @ coeffs,
+                               rtol=0, atol=1e-8)
+
+
+def test_ellipsoid_fit_error_falls_with_degree():
+    semi = np.array([1.3, 0.8, 1.0])
+
+    def radius(u):  # an ellipsoid's radius about its centre: not band-limited
+        return 1.0 / np.sqrt(((u / semi) ** 2).sum(axis=-1))
+
+    theta, phi, u = random_directions(2000, seed=5)
+    t2, p2, u2 = random_directions(2000, seed=6)  # judge the fit away from the samples
+    errors = []
+    for lmax in (2, 4, 8, 12):
+        c = shf.fit(theta, phi, radius(u), lmax)
+        errors.append(np.sqrt(np.mean((shf.evaluate(c, t2, p2) - radius(u2)) ** 2)))
+    assert all(b < 0.5 * a for a, b in zip(errors, errors[1:])), errors
+    assert errors[-1] < 1e-4 * semi.min()
+
+
+def test_eval_point_agrees_with_evaluate_and_scipy():
+    lmax = 12
+    rng = np.random.default_rng(7)
+    coeffs = rng.normal(size=(lmax + 1) ** 2)
+    theta, phi, _ = random_directions(200, seed=8)
+    ref = scipy_real_basis(lmax, theta, phi) @ coeffs
+    pointwise = np.array([shf.eval_point(coeffs, lmax, t, p) for t, p in zip(theta, phi)])
+    np.testing.assert_allclose(pointwise, ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(shf.evaluate(coeffs, theta, phi), ref, rtol=0, atol=1e-10)
+    # evaluate keeps the input's shape
+    assert shf.evaluate(coeffs, theta.reshape(20, 10), phi.reshape(20, 10)).shape == (20, 10)
+
+
+def test_sphere_radius_and_depth_below_match_geometry():
+    # A sphere of radius R about c: only Y_00 = 1/sqrt(4 pi) is present, with coefficient R sqrt(4 pi).
+    R, lmax = 0.07, 6
+    centre = np.array([0.01, -0.02, 0.03])
+    coeffs = np.zeros((lmax + 1) ** 2)
+    coeffs[0] = R * math.sqrt(4 * math.pi)
+    rng = np.random.default_rng(9)
+    for p in centre + rng.uniform(-0.15, 0.15, size=(100, 3)):
+        dist = np.linalg.norm(p - centre)
+        assert shf.depth_below(coeffs, lmax, centre, p) == pytest.approx(R - dist, abs=1e-14)
+        r, rho = shf.radius_toward(coeffs, lmax, centre, p)
+        assert r == pytest.approx(R, abs=1e-14) and rho == pytest.approx(dist, abs=1e-14)
+    # the centre itself: depth is the full radius
+    assert shf.depth_below(coeffs, lmax, centre, centre.copy()) == pytest.approx(R, abs=1e-14)
+
+
+def test_depth_below_uses_direction_from_the_centre():
+    # A non-spherical surface: depth_below(p) = r(direction of p - c) - |p - c| with the
+    # direction computed here independently.
+    lmax = 8
+    rng = np.random.default_rng(10)
+    coeffs = 0.002 * rng.normal(size=(lmax + 1) ** 2)
+    coeffs[0] = 0.05 * math.sqrt(4 * math.pi)
+    centre = np.array([0.0, 0.0, -0.05])
+    for p in rng.uniform(-0.08, 0.08, size=(50, 3)):
+        d = p - centre
+        rho = np.linalg.norm(d)
+        theta, phi = math.acos(d[2] / rho), math.atan2(d[1], d[0]) % (2 * math.pi)
+        r = (scipy_real_basis(lmax, np.array([theta]), np.array([phi])) @ coeffs)[0]
+        assert shf.depth_below(coeffs, lmax, centre, p) == pytest.approx(r - rho, abs=1e-12)
+
+
+def test_parametric_fit_of_a_sphere_recovers_its_points():
+    R = 0.04
+    centre = np.array([0.1, -0.2, 0.3])
+    theta, phi, u = random_directions(300, seed=11)
+    coeffs = shf.fit(theta, phi, centre + R * u, lmax=4)
+    assert coeffs.shape == (25, 3)
+    # x, y, z of a sphere in this basis (CS phase): Y_11 = -sqrt(3/4pi) sin(t) cos(p),
+    # Y_1-1 = -sqrt(3/4pi) sin(t) sin(p), Y_10 = sqrt(3/4pi) cos(t); constants sit on Y_00.
+    expected = np.zeros((25, 3))
+    expected[0] = centre * math.sqrt(4 * math.pi)
+    s = R * math.sqrt(4 * math.pi / 3)
+    expected[3, 0], expected[1, 1], expected[2, 2] = -s, -s, s
+    np.testing.assert_allclose(coeffs, expected, rtol=0, atol=1e-12)
+    t2, p2, u2 = random_directions(100, seed=12)
+    np.testing.assert_allclose(shf.evaluate(coeffs, t2, p2), centre + R * u2, rtol=0, atol=1e-12)
+
+
+def test_bad_inputs_raise_value_error():
+    theta, phi, _ = random_directions(30, seed=13)
+    values = np.ones(30)
+    with pytest.raises(ValueError, match="too few"):
+        shf.fit(theta, phi, values, lmax=5)  # needs 36
+    bad = values.copy()
+    bad[4] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        shf.fit(theta, phi, bad, lmax=2)
+    t_bad = theta.copy()
+    t_bad[0] = np.inf
+    with pytest.raises(ValueError, match="finite"):
+        shf.fit(t_bad, phi, values, lmax=2)
+    with pytest.raises(ValueError):
+        shf.fit(theta, phi[:-1], values, lmax=2)  # theta/phi mismatch
+    with pytest.raises(ValueError):
+        shf.fit(theta, phi, values[:-1], lmax=2)  # values/theta mismatch
+    with pytest.raises(ValueError):
+        shf.fit(theta, phi, np.ones((30, 2)), lmax=2)  # neither (n,) nor (n, 3)
+    with pytest.raises(ValueError):
+        shf.fit(theta, phi, values, lmax=-1)
+    with pytest.raises(ValueError):
+        shf.real_sph_harm(-1, theta, phi)
+    with pytest.raises(ValueError, match="rank"):  # enough samples but all in one direction
+        shf.fit(np.full(30, 0.4), np.full(30, 1.0), values, lmax=2)
+    with pytest.raises(ValueError):
+        shf.evaluate(np.ones(10), theta, phi)  # 10 is not (lmax+1)^2
+    with pytest.raises(ValueError):
+        shf.lmax_of(0)
+
+
+def test_finite_and_correct_at_the_poles():
+    lmax = 20
+    theta = np.array([0.0, 1e-300, 1e-12, np.pi - 1e-12, np.pi, np.pi])
+    phi = np.array([0.0, 2.0, 5.0, 1.0, 0.0, 3.0])
+    basis = shf.real_sph_harm(lmax, theta, phi)
+    assert np.all(np.isfinite(basis))
+    # Exactly at a pole only m = 0 survives, with Y_l0 = sqrt((2l+1)/4pi) (+-1)^l, whatever phi is.
+    for row, sign in ((basis[0], 1.0), (basis[4], -1.0), (basis[5], -1.0)):
+        for l in range(lmax + 1):
+            for m in range(-l, l + 1):
+                want = math.sqrt((2 * l + 1) / (4 * math.pi)) * sign ** l if m == 0 else 0.0
+                assert row[l * l + l + m] == pytest.approx(want, abs=1e-12)
+    coeffs = np.random.default_rng(14).normal(size=(lmax + 1) ** 2)
+    values = [shf.eval_point(coeffs, lmax, t, p) for t, p in zip(theta, phi)]
+    assert np.all(np.isfinite(values))
+    np.testing.assert_allclose(values, basis @ coeffs, rtol=0, atol=1e-10)
+    # a point straight above or below the centre
+    centre = np.zeros(3)
+    for z in (0.5, -0.5):
+        assert np.isfinite(shf.depth_below(coeffs, lmax, centre, np.array([0.0, 0.0, z])))
+
+
+def test_grid_and_unit_vectors():
+    th, ph = shf.grid(6, 8)
+    assert th.shape == ph.shape == (6, 8)
+    assert 0 < th.min() and th.max() < np.pi  # no pole rows
+    u = shf.unit_vectors(th, ph)
+    np.testing.assert_allclose(np.linalg.norm(u, axis=-1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(u[..., 2], np.cos(th), atol=1e-15)
+    np.testing.assert_allclose(np.arctan2(u[..., 1], u[..., 0]) % (2 * np.pi), ph, atol=1e-12)
