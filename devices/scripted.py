@@ -1,0 +1,125 @@
+"""A device that plays a trajectory file (headless replay, CI, reproducible demos).
+
+The file (format: :mod:`haptic_acu.trajectory`) is streamed through a cursor, never loaded whole,
+so a recording of any length can be replayed. Its times are session times: the tip holds the
+first sample's position until ``t_s`` reaches it, moves linearly between samples, and holds the
+last position after it, with ``DeviceState.done`` set from the moment ``t`` reaches the last
+sample's time (``duration_s``). Velocity is the interpolant's backward difference over one
+1 ms servo tick (see :mod:`haptic_acu.trajectory`).
+
+Clocking (``drives_clock`` is False: the engine calls ``read`` / ``set_force`` each tick):
+
+* ``read_at(t_s)``: the state at a session time the caller supplies. The simplest contract, and
+  the one to use when the engine keeps its own clock.
+* headless (``realtime=False``): the device keeps a simulated clock; the engine calls
+  ``advance(dt)`` once per tick (dt = 1 ms, summed without drift) and ``read()`` returns the state
+  at that clock. The first ``read()`` before any ``advance`` is at t = 0.
+* real time (``realtime=True``): ``read()`` uses wall-clock time since the first ``read()``
+  (``time.perf_counter``); ``advance`` is ignored.
+
+``seek(t_s)`` sets the clock (a backward seek re-reads the file from its start). ``set_force``
+commands nothing (there is no motor): it keeps the last force, the count of commands and the
+largest magnitude seen, for tests and summaries.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from haptic_acu.trajectory import (
+    DEFAULT_MAX_HAND_SPEED_M_PER_S,
+    SERVO_TICK_S,
+    TrajectoryInfo,
+    TrajectoryReader,
+)
+
+from .base import Device, DeviceInfo, DeviceState
+
+
+class ScriptedDevice(Device):
+    """Replays ``path``. ``force_limit_n`` defaults to a large value: nothing here can be hurt;
+    pass the config's ``safety.force_limit_n`` to make the engine clamp as for a real device."""
+
+    def __init__(self, path, max_hand_speed_m_per_s: float = DEFAULT_MAX_HAND_SPEED_M_PER_S,
+                 realtime: bool = False, force_limit_n: float = 1000.0):
+        self.path = Path(path)
+        # reads and checks the header now: a missing or malformed file fails at construction
+        self._reader = TrajectoryReader(self.path, max_hand_speed_m_per_s)
+        self.realtime = bool(realtime)
+        self.info = DeviceInfo(name="scripted", model=f"trajectory file {self.path.name}",
+                               force_limit_n=float(force_limit_n), rate_hz=1000.0, drives_clock=False)
+        self.trajectory_info: TrajectoryInfo | None = None
+        self._cursor = None
+        self._clock = 0.0
+        self._clock_c = 0.0  # Kahan compensation of the summed ticks
+        self._wall0: float | None = None
+        self.last_force_n = np.zeros(3)
+        self.max_force_n = 0.0
+        self.force_commands = 0
+
+    # -- Device interface ----------------------------------------------------------------------
+    def open(self) -> None:
+        """Validate the whole file (streaming it once) and position the cursor at its start."""
+        self.trajectory_info = self._reader.validate()
+        self._cursor = self._reader.cursor(SERVO_TICK_S)
+        self._clock = self._clock_c = 0.0
+        self._wall0 = None
+
+    def close(self) -> None:
+        self._cursor = None
+
+    def read(self) -> DeviceState:
+        if self.realtime:
+            now = time.perf_counter()
+            if self._wall0 is None:
+                self._wall0 = now
+            return self.read_at(now - self._wall0)
+        return self.read_at(self._clock)
+
+    def read_at(self, t_s: float) -> DeviceState:
+        """The tip at session time ``t_s`` (s): position (m), velocity (m/s), ``done``."""
+        if self._cursor is None:
+            raise RuntimeError("ScriptedDevice: call open() first")
+        pos, vel, done = self._cursor.sample(t_s)
+        return DeviceState(t_s=float(t_s), position_m=pos, velocity_m_s=vel, done=done)
+
+    def set_force(self, force_n) -> None:
+        f = np.array(force_n, dtype=np.float64).reshape(3)
+        self.last_force_n = f
+        self.max_force_n = max(self.max_force_n, float(np.linalg.norm(f)))
+        self.force_commands += 1
+
+    # -- clock -----------------------------------------------------------------------------------
+    def advance(self, dt_s: float) -> None:
+        """Move the simulated clock on by ``dt_s`` (headless mode)."""
+        if not (dt_s >= 0 and math.isfinite(dt_s)):
+            raise ValueError(f"dt must be finite and >= 0, got {dt_s}")
+        y = dt_s - self._clock_c
+        t = self._clock + y
+        self._clock_c = (t - self._clock) - y
+        self._clock = t
+
+    def seek(self, t_s: float) -> None:
+        """Set the clock to ``t_s`` (headless), or shift the wall-clock origin (real time)."""
+        if self.realtime:
+            self._wall0 = time.perf_counter() - float(t_s)
+        else:
+            self._clock, self._clock_c = float(t_s), 0.0
+
+    @property
+    def time_s(self) -> float:
+        """The clock ``read()`` would use now."""
+        if self.realtime:
+            return 0.0 if self._wall0 is None else time.perf_counter() - self._wall0
+        return self._clock
+
+    @property
+    def duration_s(self) -> float:
+        """Session time of the last sample (after ``open``)."""
+        if self.trajectory_info is None:
+            raise RuntimeError("ScriptedDevice: call open() first")
+        return self.trajectory_info.t_last_s
+
