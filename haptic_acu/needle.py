@@ -1,0 +1,578 @@
+"""The needle in layered tissue: per-layer state machine, Table 1 forces, holes, safety.
+
+One servo tick is one call of :func:`step_kernel` (numba, ``nogil``, allocation-free): SH collision
+of the tip against all four boundaries, the pressed layer's force net, puncture, the damping of the
+layers passed, the lateral constraint, the bone wall, and the safety clamp. :class:`NeedleModel` is the
+thin Python object that owns the arrays.
+
+States per layer and insertion site: UNTOUCHED -> PRESSING (a force net is active) -> PUNCTURED.
+The needle presses at most one layer at a time, the first one not yet punctured (the "front").
+Force on the needle (and so on the hand), Table 1:
+
+    pressing layer k:  F_k (net reaction along its normal) + damping of the layers above
+    inside layer k:    -(sum_{j<k} d_j h_j + d_k h) v_axial a        (a: insertion axis, into tissue)
+
+with h_j the thickness of a passed layer and h the depth into the current one, d read per mm of
+needle in the layer (MODEL.md section 3). Damping needs v along the axis and opposes it (it pulls
+back on withdrawal).
+
+Compression. When layer k breaks the tip is its dent depth below that layer's rest surface, and the
+tissue beneath has been pushed down with it. The model keeps that compression as an offset ``o``
+along the insertion axis: collision and depths use the tip lifted by ``o``. On withdrawal ``o`` never
+exceeds the tip's depth below the entry point, so the skin is dragged back up with the needle (it
+tents) and the needle leaves the tissue exactly when it is back at the entry point.
+
+Holes. Every puncture records a hole (point on that layer's surface, layer, axis). When the tip
+later touches a layer within ``hole_radius`` of one of its holes it goes straight in (no surface
+force, no net); elsewhere it meets a new net. The hole list persists across insertions.
+
+Lateral constraint. Once the skin is pierced the tip is pulled back to the insertion line through
+the entry point along the axis by a spring (``lateral_stiffness``), as a needle in tissue cannot
+slide sideways. Bone: a penalty wall at the muscle/bone boundary.
+
+Safety. A non-finite tip position or velocity gives zero force and latches a fault; the output is
+always finite and its magnitude never exceeds ``force_limit``.
+
+Threading (see :mod:`haptic_acu.engine`): each layer has two net buffers ("slots"). ``owner`` per slot
+is 0 free, 1 servo (pressing), 2 visual (springback after puncture). The servo builds into a slot it
+owns or a free one, hands a slot over by setting owner 2 after copying the displaced positions onto the
+curved surface, and never touches an owner-2 slot again unless both slots are owner 2, when it takes
+the older one back (its generation counter changes, which tells the visual loop to drop it).
+"""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from . import shf
+from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
+                       ring_w_mean_deflection, sync_curved)
+from .tissue import Tissue, boundary_radii
+
+UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
+STATE_NAMES = ("untouched", "pressing", "punctured")
+N_LAYERS = 3
+N_SLOTS = 2
+MAX_HOLES = 64
+
+# layer parameter columns (lp[k, :])
+LP_K, LP_KS, LP_L, LP_PRE, LP_THRESH, LP_W, LP_D, LP_THICK = range(8)
+# needle parameter entries (npar[:])
+NP_HOLE_R, NP_LAT_ON, NP_K_LAT, NP_K_BONE, NP_LIMIT, NP_SWEEPS = range(6)
+# integer state (si[:])
+SI_STATE = 0  # 3 entries: layer states
+SI_SLOT = 3  # 3 entries: slot in use per layer
+SI_OWNER = 6  # 6 entries: owner per (layer, slot)
+SI_GEN = 12  # 6 entries: generation per (layer, slot)
+SI_INSERTED = 18
+SI_FAULT = 19
+SI_NHOLES = 20
+SI_SWEEP = 21  # 3 entries: sweep counters per layer (alternate sweep direction)
+SI_TICK = 24
+SI_SIZE = 25
+# float state (sf[:])
+SF_OFFSET = 0
+SF_AXIS = 1  # 3
+SF_ENTRY = 4  # 3
+SF_SIZE = 7
+# diagnostics out (diag[:])
+D_FX, D_FY, D_FZ = 0, 1, 2
+D_F_SURFACE = 3  # magnitude of the pressed layer's surface force (N)
+D_F_DAMP = 4  # axial damping force (N, signed along -a)
+D_F_LATERAL = 5
+D_F_BONE = 6
+D_LAYER = 7  # layer the tip is in: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone
+D_DEPTH = 8  # depth into that layer (m)
+D_FRONT = 9  # first layer not punctured (3: all)
+D_RINGW = 10  # ring-w mean deflection of the pressed net (m)
+D_DZ1 = 11  # N1 deflection of the pressed net (m)
+D_PUNCTURE = 12  # layer punctured this tick, or -1
+D_FAULT = 13
+D_DEPTH_SKIN = 14  # tip depth below the skin along the insertion (effective, m)
+D_CLAMPED = 15  # 1 if the safety clamp scaled the force this tick
+D_F_LAYER = 16  # 3 entries: force attributed to each layer (surface or damping), N
+D_SIZE = 19
+
+
+@nb.njit(cache=True, nogil=True)
+def _surface_at(coeffs_k, lmax, ux, uy, uz):
+    """Point (relative to the centre) of a radial SH surface in direction u (any length)."""
+    th, ph, rr = shf.direction_of(ux, uy, uz, 0.0, 0.0, 0.0)
+    r = shf.eval_point(coeffs_k, lmax, th, ph)
+    return ux / rr * r, uy / rr * r, uz / rr * r
+
+
+@nb.njit(cache=True, nogil=True)
+def surface_normal(coeffs_k, lmax, centre, p, out):
+    """Outward unit normal of a radial SH surface at its point toward ``p`` (central differences
+    along two tangents). Allocation-free."""
+    dx = p[0] - centre[0]
+    dy = p[1] - centre[1]
+    dz = p[2] - centre[2]
+    m = math.sqrt(dx * dx + dy * dy + dz * dz)
+    dx /= m
+    dy /= m
+    dz /= m
+    if abs(dx) < 0.9:
+        ax, ay, az = 1.0, 0.0, 0.0
+    else:
+        ax, ay, az = 0.0, 1.0, 0.0
+    t1x = dy * az - dz * ay
+    t1y = dz * ax - dx * az
+    t1z = dx * ay - dy * ax
+    m1 = math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+    t1x /= m1
+    t1y /= m1
+    t1z /= m1
+    t2x = dy * t1z - dz * t1y
+    t2y = dz * t1x - dx * t1z
+    t2z = dx * t1y - dy * t1x
+    h = 1e-4
+    ax_, ay_, az_ = _surface_at(coeffs_k, lmax, dx + h * t1x, dy + h * t1y, dz + h * t1z)
+    bx_, by_, bz_ = _surface_at(coeffs_k, lmax, dx - h * t1x, dy - h * t1y, dz - h * t1z)
+    cx_, cy_, cz_ = _surface_at(coeffs_k, lmax, dx + h * t2x, dy + h * t2y, dz + h * t2z)
+    ex_, ey_, ez_ = _surface_at(coeffs_k, lmax, dx - h * t2x, dy - h * t2y, dz - h * t2z)
+    s1x = ax_ - bx_
+    s1y = ay_ - by_
+    s1z = az_ - bz_
+    s2x = cx_ - ex_
+    s2y = cy_ - ey_
+    s2z = cz_ - ez_
+    nx = s1y * s2z - s1z * s2y
+    ny = s1z * s2x - s1x * s2z
+    nz = s1x * s2y - s1y * s2x
+    nm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    sgn = 1.0 if (nx * dx + ny * dy + nz * dz) > 0 else -1.0
+    out[0] = sgn * nx / nm
+    out[1] = sgn * ny / nm
+    out[2] = sgn * nz / nm
+
+
+@nb.njit(cache=True, nogil=True)
+def _take_slot(si, k):
+    """Pick the slot to build layer k's new net in: the one in use if the servo owns it, else a free
+    one, else (both in springback) the older one."""
+    cur = si[SI_SLOT + k]
+    if si[SI_OWNER + 2 * k + cur] == 1:
+        return cur
+    for s in range(N_SLOTS):
+        if si[SI_OWNER + 2 * k + s] == 0:
+            return s
+    if si[SI_GEN + 2 * k] <= si[SI_GEN + 2 * k + 1]:
+        return 0
+    return 1
+
+
+@nb.njit(cache=True, nogil=True)
+def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, axes, nbr, ring, plane,
+                si, sf, holes, radii, scratch, diag):
+    """One servo tick. ``p``/``v``: tip position (m) and velocity (m/s), scene frame. Writes the force
+    on the needle into ``diag[0:3]`` and diagnostics into the rest of ``diag`` (see D_* indices).
+
+    ``xf, X0f, X0, x, rest_len, axes`` are tuples of 6 arrays indexed ``2*layer + slot``; ``nbr, ring,
+    plane`` tuples of 3 indexed by layer.
+    """
+    for i in range(D_SIZE):
+        diag[i] = 0.0
+    diag[D_PUNCTURE] = -1.0
+    diag[D_LAYER] = -1.0
+    si[SI_TICK] += 1
+    # ---- safety: non-finite input latches a fault and zero force -------------------------------
+    ok = True
+    for k in range(3):
+        if not (math.isfinite(p[k]) and math.isfinite(v[k])):
+            ok = False
+    if not ok:
+        si[SI_FAULT] = 1
+    if si[SI_FAULT] != 0:
+        diag[D_FAULT] = 1.0
+        return
+
+    o = sf[SF_OFFSET]
+    a0 = sf[SF_AXIS]
+    a1 = sf[SF_AXIS + 1]
+    a2 = sf[SF_AXIS + 2]
+    inserted = si[SI_INSERTED] != 0
+    s_p = 0.0
+    if inserted:
+        s_p = ((p[0] - sf[SF_ENTRY]) * a0 + (p[1] - sf[SF_ENTRY + 1]) * a1 + (p[2] - sf[SF_ENTRY + 2]) * a2)
+        if s_p < -1e-6:
+            # Back above the entry point: the needle has left the tissue. Holes stay.
+            inserted = False
+            si[SI_INSERTED] = 0
+            o = 0.0
+            for k in range(N_LAYERS):
+                si[SI_STATE + k] = UNTOUCHED
+        elif o > s_p:
+            o = max(s_p, 0.0)  # withdrawal: the skin tents up with the needle
+    sf[SF_OFFSET] = o
+    q = scratch[0:3]
+    q[0] = p[0] - o * a0
+    q[1] = p[1] - o * a1
+    q[2] = p[2] - o * a2
+
+    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+    front = N_LAYERS
+    for k in range(N_LAYERS):
+        if si[SI_STATE + k] != PUNCTURED:
+            front = k
+            break
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    nrm = scratch[3:6]
+    # ---- the front layer: contact, net, puncture --------------------------------------------------
+    if front < N_LAYERS:
+        k = front
+        w = int(lp[k, LP_W])
+        n = 1 + 3 * w * (w - 1)
+        st = si[SI_STATE + k]
+        if st == UNTOUCHED and radii[k] - rho >= 0.0:
+            # First touch of layer k: contact point on its surface radially toward the tip.
+            cpt = scratch[6:9]
+            for c in range(3):
+                cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
+            hole = -1
+            hr2 = npar[NP_HOLE_R] * npar[NP_HOLE_R]
+            for h in range(min(si[SI_NHOLES], MAX_HOLES)):
+                if int(holes[h, 3]) == k:
+                    d2 = (holes[h, 0] - cpt[0]) ** 2 + (holes[h, 1] - cpt[1]) ** 2 + (holes[h, 2] - cpt[2]) ** 2
+                    if d2 <= hr2:
+                        hole = h
+                        break
+            if hole >= 0:
+                si[SI_STATE + k] = PUNCTURED
+                st = PUNCTURED
+                if k == 0:
+                    inserted = True
+                    si[SI_INSERTED] = 1
+                    for c in range(3):
+                        sf[SF_ENTRY + c] = holes[hole, c]
+                        sf[SF_AXIS + c] = holes[hole, 4 + c]
+                    a0 = sf[SF_AXIS]
+                    a1 = sf[SF_AXIS + 1]
+                    a2 = sf[SF_AXIS + 2]
+            else:
+                s = _take_slot(si, k)
+                si[SI_SLOT + k] = s
+                si[SI_OWNER + 2 * k + s] = 1
+                si[SI_GEN + 2 * k + s] += 1
+                idx = 2 * k + s
+                surface_normal(coeffs[k], lmax, centre, cpt, nrm)
+                build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], plane[k], nbr[k], n, lp[k, LP_PRE],
+                          X0[idx], x[idx], X0f[idx], xf[idx], rest_len[idx], axes[idx])
+                si[SI_STATE + k] = PRESSING
+                st = PRESSING
+        if st == PRESSING:
+            s = si[SI_SLOT + k]
+            idx = 2 * k + s
+            ax = axes[idx]
+            xfk = xf[idx]
+            X0fk = X0f[idx]
+            # N1 follows the tip.
+            rx = q[0] - X0fk[0, 0]
+            ry = q[1] - X0fk[0, 1]
+            rz = q[2] - X0fk[0, 2]
+            dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
+            if dz1 <= 0.0:
+                si[SI_STATE + k] = UNTOUCHED  # lifted off: the net goes, nothing broke
+                si[SI_OWNER + idx] = 0
+            else:
+                lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
+                sweeps = int(npar[NP_SWEEPS])
+                if lat2 > (0.5 * lp[k, LP_L]) ** 2:
+                    # Slid half a spacing sideways: re-centre the net under the tip, keeping its
+                    # ring-mean deflection profile as the warm start.
+                    wr = scratch[16:16 + w]
+                    for j in range(w):
+                        wr[j] = 0.0
+                    cnt = scratch[16 + 40:16 + 40 + w]
+                    for j in range(w):
+                        cnt[j] = 0.0
+                    for i in range(n):
+                        r_i = ring[k][i] - 1
+                        wr[r_i] += -((xfk[i, 0] - X0fk[i, 0]) * ax[0] + (xfk[i, 1] - X0fk[i, 1]) * ax[1]
+                                     + (xfk[i, 2] - X0fk[i, 2]) * ax[2])
+                        cnt[r_i] += 1.0
+                    cpt = scratch[6:9]
+                    for c in range(3):
+                        cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
+                    surface_normal(coeffs[k], lmax, centre, cpt, nrm)
+                    build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], plane[k], nbr[k], n, lp[k, LP_PRE],
+                              X0[idx], x[idx], X0f[idx], xf[idx], rest_len[idx], axes[idx])
+                    si[SI_GEN + idx] += 1
+                    for i in range(n):
+                        r_i = ring[k][i] - 1
+                        dz = wr[r_i] / cnt[r_i]
+                        for c in range(3):
+                            xfk[i, c] = X0fk[i, c] - dz * ax[c]
+                    sweeps *= 2
+                    rx = q[0] - X0fk[0, 0]
+                    ry = q[1] - X0fk[0, 1]
+                    rz = q[2] - X0fk[0, 2]
+                    dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
+                for c in range(3):
+                    xfk[0, c] = q[c]
+                for it in range(sweeps):
+                    relax(xfk, X0fk, rest_len[idx], nbr[k], ring[k], n, w, ax, lp[k, LP_K], lp[k, LP_KS],
+                          lp[k, LP_L], si[SI_SWEEP + k] % 2)
+                    si[SI_SWEEP + k] += 1
+                rw = ring_w_mean_deflection(xfk, X0fk, ring[k], n, w, ax)
+                diag[D_RINGW] = rw
+                diag[D_DZ1] = dz1
+                if rw > lp[k, LP_THRESH]:
+                    # Puncture: virtual springs go, surface force vanishes, net handed to springback.
+                    si[SI_STATE + k] = PUNCTURED
+                    sync_curved(x[idx], X0[idx], xfk, X0fk, n)
+                    si[SI_OWNER + idx] = 2
+                    diag[D_PUNCTURE] = k
+                    if k == 0:
+                        # The insertion axis: from the contact point to the tip at the break.
+                        m = math.sqrt(rx * rx + ry * ry + rz * rz)
+                        if m > 1e-4:
+                            a0, a1, a2 = rx / m, ry / m, rz / m
+                        else:
+                            a0, a1, a2 = -ax[0], -ax[1], -ax[2]
+                        sf[SF_AXIS] = a0
+                        sf[SF_AXIS + 1] = a1
+                        sf[SF_AXIS + 2] = a2
+                        for c in range(3):
+                            sf[SF_ENTRY + c] = X0fk[0, c]
+                        inserted = True
+                        si[SI_INSERTED] = 1
+                    # Record the hole.
+                    h = si[SI_NHOLES] % MAX_HOLES
+                    for c in range(3):
+                        holes[h, c] = X0fk[0, c]
+                    holes[h, 3] = k
+                    holes[h, 4] = a0
+                    holes[h, 5] = a1
+                    holes[h, 6] = a2
+                    si[SI_NHOLES] += 1
+                    # The tissue beneath stays compressed by the dent: lift the tip's frame.
+                    comp = rx * a0 + ry * a1 + rz * a2
+                    if comp > 0.0:
+                        o += comp
+                    sf[SF_OFFSET] = o
+                    q[0] = p[0] - o * a0
+                    q[1] = p[1] - o * a1
+                    q[2] = p[2] - o * a2
+                    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+                    front = k + 1
+                else:
+                    fo = scratch[9:12]
+                    force_on(0, xfk, X0fk, rest_len[idx], nbr[k], ax, lp[k, LP_K], lp[k, LP_KS], fo)
+                    fn = fo[0] * ax[0] + fo[1] * ax[1] + fo[2] * ax[2]
+                    if fn < 0.0:
+                        fn = 0.0  # a surface only pushes
+                    fx += fn * ax[0]
+                    fy += fn * ax[1]
+                    fz += fn * ax[2]
+                    diag[D_F_SURFACE] = fn
+                    diag[D_F_LAYER + k] = fn
+
+    # ---- damping of the layers passed (Table 1) --------------------------------------------------
+    if inserted:
+        v_ax = v[0] * a0 + v[1] * a1 + v[2] * a2
+        total_d = 0.0
+        for j in range(N_LAYERS):
+            if si[SI_STATE + j] == PUNCTURED:
+                h = radii[j] - rho
+                thick = radii[j] - radii[j + 1]
+                if h < 0.0:
+                    h = 0.0
+                if h > thick:
+                    h = thick
+                cj = lp[j, LP_D] * h
+                total_d += cj
+                diag[D_F_LAYER + j] += -cj * v_ax
+        fd = -total_d * v_ax
+        fx += fd * a0
+        fy += fd * a1
+        fz += fd * a2
+        diag[D_F_DAMP] = fd
+        # ---- lateral constraint ---------------------------------------------------------------------
+        if npar[NP_LAT_ON] != 0.0:
+            ex = p[0] - sf[SF_ENTRY]
+            ey = p[1] - sf[SF_ENTRY + 1]
+            ez = p[2] - sf[SF_ENTRY + 2]
+            t = ex * a0 + ey * a1 + ez * a2
+            lx = ex - t * a0
+            ly = ey - t * a1
+            lz = ez - t * a2
+            kl = npar[NP_K_LAT]
+            fx -= kl * lx
+            fy -= kl * ly
+            fz -= kl * lz
+            diag[D_F_LATERAL] = kl * math.sqrt(lx * lx + ly * ly + lz * lz)
+        diag[D_DEPTH_SKIN] = s_p - o if s_p - o > 0.0 else 0.0
+    # ---- bone wall -------------------------------------------------------------------------------
+    if front >= N_LAYERS and radii[3] - rho > 0.0:
+        pen = radii[3] - rho
+        kb = npar[NP_K_BONE]
+        fx += kb * pen * (q[0] - centre[0]) / rho
+        fy += kb * pen * (q[1] - centre[1]) / rho
+        fz += kb * pen * (q[2] - centre[2]) / rho
+        diag[D_F_BONE] = kb * pen
+
+    # ---- where the tip is ----------------------------------------------------------------------
+    layer = -1
+    if rho <= radii[0]:
+        layer = 3
+        for j in range(N_LAYERS):
+            if rho > radii[j + 1]:
+                layer = j
+                break
+    if layer > front - 1 and front < N_LAYERS:
+        layer = front - 1  # pressing a surface is not being inside that layer
+    diag[D_LAYER] = layer
+    if layer >= 0:
+        dep = radii[layer] - rho
+        if layer < N_LAYERS:
+            thick = radii[layer] - radii[layer + 1]
+            if dep > thick:
+                dep = thick
+        diag[D_DEPTH] = dep if dep > 0.0 else 0.0
+    diag[D_FRONT] = front
+
+    # ---- safety clamp (no fastmath here: isfinite must work) -----------------------------------
+    if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+        si[SI_FAULT] = 1
+        diag[D_FAULT] = 1.0
+        return
+    mag = math.sqrt(fx * fx + fy * fy + fz * fz)
+    lim = npar[NP_LIMIT]
+    if mag > lim:
+        sc = lim / mag
+        fx *= sc
+        fy *= sc
+        fz *= sc
+        diag[D_CLAMPED] = 1.0
+    diag[D_FX] = fx
+    diag[D_FY] = fy
+    diag[D_FZ] = fz
+
+
+class NeedleModel:
+    """The layered needle-tissue model for one scene: owns every array the servo step touches.
+
+    ``step(p, v)`` runs one servo tick and returns the force on the needle (N, a view into
+    ``diag``; copy it if you keep it). Build it once, call :meth:`warm_up` before real-time loops.
+    """
+
+    def __init__(self, cfg, tissue: Tissue | None = None):
+        self.cfg = cfg
+        self.tissue = tissue if tissue is not None else Tissue.from_config(cfg)
+        t = self.tissue
+        self.lmax = t.lmax
+        self.coeffs = t.coeffs
+        self.centre = t.centre
+        self.params = [NetParams.from_layer(layer) for layer in cfg.layers]
+        self.lp = np.zeros((N_LAYERS, 8))
+        for k, (layer, prm) in enumerate(zip(cfg.layers, self.params)):
+            self.lp[k] = [prm.k_virtual, prm.k_surface, prm.spacing_m, prm.pretension, prm.threshold_m,
+                          prm.w, layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3]
+        nd = cfg.needle
+        self.npar = np.array([nd.hole_radius_mm * 1e-3, 1.0 if nd.lateral_constraint else 0.0,
+                              nd.lateral_stiffness_n_per_mm * 1e3, nd.bone_stiffness_n_per_mm * 1e3,
+                              cfg.safety.force_limit_n, float(cfg.solver.sweeps_per_tick)])
+        margin = cfg.springback.margin_rings
+        self.lattices = [lattice(prm.w + margin) for prm in self.params]
+        self.n = [n_particles(prm.w) for prm in self.params]
+        xf, X0f, X0, x, rl, ax = [], [], [], [], [], []
+        for k in range(N_LAYERS):
+            n_all = self.lattices[k].ring.size
+            for _ in range(N_SLOTS):
+                xf.append(np.zeros((self.n[k], 3)))
+                X0f.append(np.zeros((self.n[k], 3)))
+                X0.append(np.zeros((n_all, 3)))
+                x.append(np.zeros((n_all, 3)))
+                rl.append(np.zeros((self.n[k], 6)))
+                ax.append(np.array([0.0, 0.0, 1.0]))
+        self.xf, self.X0f, self.X0, self.x = tuple(xf), tuple(X0f), tuple(X0), tuple(x)
+        self.rest_len, self.axes = tuple(rl), tuple(ax)
+        self.nbr = tuple(np.ascontiguousarray(lat.nbr) for lat in self.lattices)
+        self.ring = tuple(np.ascontiguousarray(lat.ring) for lat in self.lattices)
+        self.plane = tuple(np.ascontiguousarray(lat.plane) for lat in self.lattices)
+        self.si = np.zeros(SI_SIZE, dtype=np.int64)
+        self.sf = np.zeros(SF_SIZE)
+        self.holes = np.zeros((MAX_HOLES, 7))
+        self.radii = np.zeros(4)
+        self.scratch = np.zeros(16 + 80)
+        self.diag = np.zeros(D_SIZE)
+        self._p = np.zeros(3)
+        self._v = np.zeros(3)
+        self.reset(keep_holes=False)
+
+    def reset(self, keep_holes: bool = True) -> None:
+        """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False."""
+        nh = self.si[SI_NHOLES]
+        self.si[:] = 0
+        self.sf[:] = 0.0
+        self.sf[SF_AXIS + 2] = -1.0
+        if keep_holes:
+            self.si[SI_NHOLES] = nh
+        else:
+            self.holes[:] = 0.0
+        self.diag[:] = 0.0
+
+    def step(self, p, v) -> np.ndarray:
+        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N)."""
+        self._p[:] = p
+        self._v[:] = v
+        step_kernel(self._p, self._v, self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.xf, self.X0f,
+                    self.X0, self.x, self.rest_len, self.axes, self.nbr, self.ring, self.plane, self.si, self.sf,
+                    self.holes, self.radii, self.scratch, self.diag)
+        return self.diag[0:3]
+
+    def warm_up(self) -> None:
+        """Compile (or load from cache) every kernel the servo step calls, then reset."""
+        self.step(np.array([0.0, 0.0, 1e-3]), np.zeros(3))
+        self.step(np.array([0.0, 0.0, -1e-4]), np.zeros(3))
+        self.reset(keep_holes=False)
+
+    # -- read-outs ------------------------------------------------------------------------------
+    @property
+    def states(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.si[SI_STATE:SI_STATE + N_LAYERS])
+
+    @property
+    def fault(self) -> bool:
+        return bool(self.si[SI_FAULT])
+
+    @property
+    def inserted(self) -> bool:
+        return bool(self.si[SI_INSERTED])
+
+    @property
+    def axis(self) -> np.ndarray:
+        return self.sf[SF_AXIS:SF_AXIS + 3].copy()
+
+    @property
+    def entry(self) -> np.ndarray:
+        return self.sf[SF_ENTRY:SF_ENTRY + 3].copy()
+
+    @property
+    def holes_list(self) -> np.ndarray:
+        return self.holes[: min(int(self.si[SI_NHOLES]), MAX_HOLES)].copy()
+
+    def active_slot(self, k: int) -> int:
+        return 2 * k + int(self.si[SI_SLOT + k])
+
+    def owner(self, idx: int) -> int:
+        return int(self.si[SI_OWNER + idx])
+
+    def generation(self, idx: int) -> int:
+        return int(self.si[SI_GEN + idx])
+
+    def net_positions(self, idx: int) -> np.ndarray:
+        """Current curved-surface positions of slot ``idx``'s particles (force net + margin)."""
+        k = idx // 2
+        n = self.n[k]
+        if self.owner(idx) == 1:
+            out = self.X0[idx].copy()
+            out[:n] += self.xf[idx] - self.X0f[idx]
+            return out
+        return self.x[idx].copy()
