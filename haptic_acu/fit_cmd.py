@@ -103,7 +103,7 @@ def _fit_mesh(mesh, lmax, out, config_path) -> int:
     try:
         coeffs = shf.fit(theta, phi, rho, lmax)
     except ValueError as e:
-        raise UserError(f"{mesh}: {e}") from None
+        raise UserError(f"{mesh}: cannot fit the vertices' distances from their centroid: {e}") from None
     resid = shf.evaluate(coeffs, theta, phi) - rho
     rms = float(np.sqrt(np.mean(resid ** 2)))
     worst = int(np.argmax(np.abs(resid)))
