@@ -207,7 +207,7 @@ def load_coefficients(path) -> tuple[np.ndarray, np.ndarray]:
         with np.load(path, allow_pickle=False) as z:
             c = np.asarray(z["coeffs_mm"], dtype=np.float64) * 1e-3
             centre = np.asarray(z["centre_mm"], dtype=np.float64) * 1e-3
-    except (OSError, ValueError, KeyError) as e:
+    except (OSError, ValueError, KeyError, TypeError) as e:  # TypeError: a .npy, not an .npz
         raise UserError(f"{path}: not a coefficients file written by 'haptic-acu fit' ({e})") from None
     if c.ndim != 1 or not np.all(np.isfinite(c)) or centre.shape != (3,):
         raise UserError(f"{path}: malformed coefficients (need finite coeffs_mm (K,) and centre_mm (3,))")

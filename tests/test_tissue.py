@@ -161,6 +161,10 @@ def test_coefficient_file_round_trip_and_errors(tmp_path):
     np.savez(wrong, coeffs_mm=np.ones(10), centre_mm=np.zeros(3))  # 10 is not (lmax+1)^2
     with pytest.raises(UserError, match="wrong.npz"):
         load_coefficients(wrong)
+    npy = tmp_path / "plain.npy"  # np.load gives an array, not an archive
+    np.save(npy, coeffs)
+    with pytest.raises(UserError, match="plain.npy"):
+        load_coefficients(npy)
     nokey = tmp_path / "nokey.npz"
     np.savez(nokey, something=np.ones(4))
     with pytest.raises(UserError, match="nokey.npz"):
