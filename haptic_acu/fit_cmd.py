@@ -24,7 +24,10 @@ MAX_LMAX = 40  # the config's limit on body.lmax; a fit for a config need not go
 
 def register(sub) -> None:
     p = sub.add_parser("fit", help="build the default tissue, or fit a mesh's surface with spherical harmonics",
-                       description=__doc__.split("\n\n")[0])
+                       description="Without MESH.obj: build the config's layered tissue and report its fit. "
+                                   "With MESH.obj: fit the mesh's vertices (mm) radially about their centroid "
+                                   "and report the radial fit error; --out writes the coefficients for "
+                                   "body.skin_coefficients.")
     p.add_argument("mesh", nargs="?", metavar="MESH.obj", help="OBJ mesh of a body surface, in mm")
     p.add_argument("--lmax", type=int, help="SH degree of the mesh fit (default: the config's body.lmax)")
     p.add_argument("--out", metavar="FILE.npz", help="write the mesh fit's coefficients here")
