@@ -298,27 +298,23 @@ def _relax_one(i, xf, X0f, rest_len, nbr, ring_i, w, axis, kv, ks, max_step):
             dx = xf[j, 0] - xf[i, 0]
             dy = xf[j, 1] - xf[i, 1]
             dz = xf[j, 2] - xf[i, 2]
-            ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if ln <= 0.0:
+            l2 = dx * dx + dy * dy + dz * dz
+            if l2 <= 0.0:
                 continue
-            l0 = rest_len[i, k]
-            s = ks * (ln - l0) / ln
+            inv = 1.0 / math.sqrt(l2)
+            s = ks * (1.0 - rest_len[i, k] * inv)  # tension / length
             fx += s * dx
             fy += s * dy
             fz += s * dz
-            ux = dx / ln
-            uy = dy / ln
-            uz = dz / ln
-            geo = ks * (1.0 - l0 / ln)
-            if geo < 0.0:
-                geo = 0.0  # a compressed spring adds no lateral stiffness (keeps H positive)
-            axial = ks - geo
-            h00 += geo + axial * ux * ux
-            h01 += axial * ux * uy
-            h02 += axial * ux * uz
-            h11 += geo + axial * uy * uy
-            h12 += axial * uy * uz
-            h22 += geo + axial * uz * uz
+            geo = s if s > 0.0 else 0.0  # a compressed spring adds no lateral stiffness (keeps H positive)
+            # H += geo*I + (ks - geo) u u^T with u = d/|d|: (ks - geo)/|d|^2 d d^T
+            c = (ks - geo) * inv * inv
+            h00 += geo + c * dx * dx
+            h01 += c * dx * dy
+            h02 += c * dx * dz
+            h11 += geo + c * dy * dy
+            h12 += c * dy * dz
+            h22 += geo + c * dz * dz
     if ring_i == w:
         # Outer ring: held laterally, free along the axis: a 1D Newton step along n.
         hn = (ax0 * (h00 * ax0 + h01 * ax1 + h02 * ax2) + ax1 * (h01 * ax0 + h11 * ax1 + h12 * ax2)
@@ -394,31 +390,64 @@ def dent_on_grid(theta, phi, centre, X0, x, n, support_m, out):
 
     Each particle's radial deflection |X0_i - c| - |x_i - c| is its dent (the paper's tie between
     dZ and the SH radius); between particles it is interpolated with compactly supported Shepard
-    weights of radius ``support_m``; far from the net the dent is 0.
+    weights of radius ``support_m``; away from the net the dent is 0. Runs in the visual loop.
     """
+    u = np.empty((n, 3))
+    r0 = np.empty(n)
+    dr = np.empty(n)
+    cx = 0.0
+    cy = 0.0
+    cz = 0.0
+    for i in range(n):
+        rx = X0[i, 0] - centre[0]
+        ry = X0[i, 1] - centre[1]
+        rz = X0[i, 2] - centre[2]
+        r0[i] = math.sqrt(rx * rx + ry * ry + rz * rz)
+        u[i, 0] = rx / r0[i]
+        u[i, 1] = ry / r0[i]
+        u[i, 2] = rz / r0[i]
+        px = x[i, 0] - centre[0]
+        py = x[i, 1] - centre[1]
+        pz = x[i, 2] - centre[2]
+        dr[i] = r0[i] - math.sqrt(px * px + py * py + pz * pz)
+        cx += u[i, 0]
+        cy += u[i, 1]
+        cz += u[i, 2]
+    cm = math.sqrt(cx * cx + cy * cy + cz * cz)
+    cx /= cm
+    cy /= cm
+    cz /= cm
+    # angular radius of the net's cap, plus the support
+    cap = 0.0
+    rmin = 1e300
+    for i in range(n):
+        d = cx * u[i, 0] + cy * u[i, 1] + cz * u[i, 2]
+        a = math.acos(min(1.0, max(-1.0, d)))
+        if a > cap:
+            cap = a
+        if r0[i] < rmin:
+            rmin = r0[i]
+    cos_cap = math.cos(min(math.pi, cap + 1.5 * support_m / rmin))
     for g in range(theta.shape[0]):
         st = math.sin(theta[g])
         ux = st * math.cos(phi[g])
         uy = st * math.sin(phi[g])
         uz = math.cos(theta[g])
+        out[g] = 0.0
+        if ux * cx + uy * cy + uz * cz < cos_cap:
+            continue
         wsum = 0.0
         acc = 0.0
         for i in range(n):
-            rx = X0[i, 0] - centre[0]
-            ry = X0[i, 1] - centre[1]
-            rz = X0[i, 2] - centre[2]
-            r0 = math.sqrt(rx * rx + ry * ry + rz * rz)
             # distance on the surface ~ chord between unit directions times the radius
-            cx = ux - rx / r0
-            cy = uy - ry / r0
-            cz = uz - rz / r0
-            dist = r0 * math.sqrt(cx * cx + cy * cy + cz * cz)
-            if dist < support_m:
-                q = 1.0 - (dist / support_m) ** 2
+            ddx = ux - u[i, 0]
+            ddy = uy - u[i, 1]
+            ddz = uz - u[i, 2]
+            d2 = (ddx * ddx + ddy * ddy + ddz * ddz) * r0[i] * r0[i]
+            if d2 < support_m * support_m:
+                q = 1.0 - d2 / (support_m * support_m)
                 wgt = q * q
-                px = x[i, 0] - centre[0]
-                py = x[i, 1] - centre[1]
-                pz = x[i, 2] - centre[2]
-                acc += wgt * (r0 - math.sqrt(px * px + py * py + pz * pz))
+                acc += wgt * dr[i]
                 wsum += wgt
-        out[g] = acc / wsum if wsum > 0.0 else 0.0
+        if wsum > 0.0:
+            out[g] = acc / wsum

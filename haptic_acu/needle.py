@@ -166,13 +166,16 @@ def _take_slot(si, k):
 
 
 @nb.njit(cache=True, nogil=True)
-def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, axes, nbr, ring, plane,
-                si, sf, holes, radii, scratch, diag):
+def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
+                offs, si, sf, holes, radii, scratch, diag):
     """One servo tick. ``p``/``v``: tip position (m) and velocity (m/s), scene frame. Writes the force
     on the needle into ``diag[0:3]`` and diagnostics into the rest of ``diag`` (see D_* indices).
 
-    ``xf, X0f, X0, x, rest_len, axes`` are tuples of 6 arrays indexed ``2*layer + slot``; ``nbr, ring,
-    plane`` tuples of 3 indexed by layer.
+    Every net lives in a few packed arrays (one call unboxes few arguments): ``pos`` holds, for each
+    slot ``idx = 2*layer + slot``, the blocks xf, X0f (n rows) and X0, x (n_all rows) starting at
+    ``offs[4*idx + 0..3]``; ``rest_all`` its rest lengths from ``offs[24 + idx]``; ``axes[idx]`` its
+    axis; the lattice of layer k (``nbr_all``, ``ring_all``, ``plane_all``) starts at ``offs[30 + k]``
+    and has ``offs[33 + k]`` rows. See :class:`NeedleModel` for the layout.
     """
     for i in range(D_SIZE):
         diag[i] = 0.0
@@ -228,6 +231,11 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
         k = front
         w = int(lp[k, LP_W])
         n = 1 + 3 * w * (w - 1)
+        t0 = offs[30 + k]
+        n_all = offs[33 + k]
+        nbrk = nbr_all[t0:t0 + n_all]
+        ringk = ring_all[t0:t0 + n_all]
+        planek = plane_all[t0:t0 + n_all]
         st = si[SI_STATE + k]
         if st == UNTOUCHED and radii[k] - rho >= 0.0:
             # First touch of layer k: contact point on its surface radially toward the tip.
@@ -261,16 +269,22 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
                 si[SI_GEN + 2 * k + s] += 1
                 idx = 2 * k + s
                 surface_normal(coeffs[k], lmax, centre, cpt, nrm)
-                build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], plane[k], nbr[k], n, lp[k, LP_PRE],
-                          X0[idx], x[idx], X0f[idx], xf[idx], rest_len[idx], axes[idx])
+                build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], planek, nbrk, n, lp[k, LP_PRE],
+                          pos[offs[4 * idx + 2]:offs[4 * idx + 2] + n_all],
+                          pos[offs[4 * idx + 3]:offs[4 * idx + 3] + n_all],
+                          pos[offs[4 * idx + 1]:offs[4 * idx + 1] + n], pos[offs[4 * idx]:offs[4 * idx] + n],
+                          rest_all[offs[24 + idx]:offs[24 + idx] + n], axes[idx])
                 si[SI_STATE + k] = PRESSING
                 st = PRESSING
         if st == PRESSING:
             s = si[SI_SLOT + k]
             idx = 2 * k + s
             ax = axes[idx]
-            xfk = xf[idx]
-            X0fk = X0f[idx]
+            xfk = pos[offs[4 * idx]:offs[4 * idx] + n]
+            X0fk = pos[offs[4 * idx + 1]:offs[4 * idx + 1] + n]
+            X0k = pos[offs[4 * idx + 2]:offs[4 * idx + 2] + n_all]
+            xk = pos[offs[4 * idx + 3]:offs[4 * idx + 3] + n_all]
+            rlk = rest_all[offs[24 + idx]:offs[24 + idx] + n]
             # N1 follows the tip.
             rx = q[0] - X0fk[0, 0]
             ry = q[1] - X0fk[0, 1]
@@ -292,7 +306,7 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
                     for j in range(w):
                         cnt[j] = 0.0
                     for i in range(n):
-                        r_i = ring[k][i] - 1
+                        r_i = ringk[i] - 1
                         wr[r_i] += -((xfk[i, 0] - X0fk[i, 0]) * ax[0] + (xfk[i, 1] - X0fk[i, 1]) * ax[1]
                                      + (xfk[i, 2] - X0fk[i, 2]) * ax[2])
                         cnt[r_i] += 1.0
@@ -300,11 +314,11 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
                     for c in range(3):
                         cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
                     surface_normal(coeffs[k], lmax, centre, cpt, nrm)
-                    build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], plane[k], nbr[k], n, lp[k, LP_PRE],
-                              X0[idx], x[idx], X0f[idx], xf[idx], rest_len[idx], axes[idx])
+                    build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], planek, nbrk, n, lp[k, LP_PRE],
+                              X0k, xk, X0fk, xfk, rlk, ax)
                     si[SI_GEN + idx] += 1
                     for i in range(n):
-                        r_i = ring[k][i] - 1
+                        r_i = ringk[i] - 1
                         dz = wr[r_i] / cnt[r_i]
                         for c in range(3):
                             xfk[i, c] = X0fk[i, c] - dz * ax[c]
@@ -316,16 +330,16 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
                 for c in range(3):
                     xfk[0, c] = q[c]
                 for it in range(sweeps):
-                    relax(xfk, X0fk, rest_len[idx], nbr[k], ring[k], n, w, ax, lp[k, LP_K], lp[k, LP_KS],
+                    relax(xfk, X0fk, rlk, nbrk, ringk, n, w, ax, lp[k, LP_K], lp[k, LP_KS],
                           lp[k, LP_L], si[SI_SWEEP + k] % 2)
                     si[SI_SWEEP + k] += 1
-                rw = ring_w_mean_deflection(xfk, X0fk, ring[k], n, w, ax)
+                rw = ring_w_mean_deflection(xfk, X0fk, ringk, n, w, ax)
                 diag[D_RINGW] = rw
                 diag[D_DZ1] = dz1
                 if rw > lp[k, LP_THRESH]:
                     # Puncture: virtual springs go, surface force vanishes, net handed to springback.
                     si[SI_STATE + k] = PUNCTURED
-                    sync_curved(x[idx], X0[idx], xfk, X0fk, n)
+                    sync_curved(xk, X0k, xfk, X0fk, n)
                     si[SI_OWNER + idx] = 2
                     diag[D_PUNCTURE] = k
                     if k == 0:
@@ -363,7 +377,7 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, xf, X0f, X0, x, rest_len, 
                     front = k + 1
                 else:
                     fo = scratch[9:12]
-                    force_on(0, xfk, X0fk, rest_len[idx], nbr[k], ax, lp[k, LP_K], lp[k, LP_KS], fo)
+                    force_on(0, xfk, X0fk, rlk, nbrk, ax, lp[k, LP_K], lp[k, LP_KS], fo)
                     fn = fo[0] * ax[0] + fo[1] * ax[1] + fo[2] * ax[2]
                     if fn < 0.0:
                         fn = 0.0  # a surface only pushes
@@ -481,21 +495,46 @@ class NeedleModel:
         margin = cfg.springback.margin_rings
         self.lattices = [lattice(prm.w + margin) for prm in self.params]
         self.n = [n_particles(prm.w) for prm in self.params]
-        xf, X0f, X0, x, rl, ax = [], [], [], [], [], []
+        # Packed storage (see step_kernel); the tuples below are views into it.
+        self.n_all = [lat.ring.size for lat in self.lattices]
+        self.offs = np.zeros(36, dtype=np.int64)
+        rows = 0
+        rl_rows = 0
         for k in range(N_LAYERS):
-            n_all = self.lattices[k].ring.size
-            for _ in range(N_SLOTS):
-                xf.append(np.zeros((self.n[k], 3)))
-                X0f.append(np.zeros((self.n[k], 3)))
-                X0.append(np.zeros((n_all, 3)))
-                x.append(np.zeros((n_all, 3)))
-                rl.append(np.zeros((self.n[k], 6)))
-                ax.append(np.array([0.0, 0.0, 1.0]))
-        self.xf, self.X0f, self.X0, self.x = tuple(xf), tuple(X0f), tuple(X0), tuple(x)
-        self.rest_len, self.axes = tuple(rl), tuple(ax)
-        self.nbr = tuple(np.ascontiguousarray(lat.nbr) for lat in self.lattices)
-        self.ring = tuple(np.ascontiguousarray(lat.ring) for lat in self.lattices)
-        self.plane = tuple(np.ascontiguousarray(lat.plane) for lat in self.lattices)
+            for s in range(N_SLOTS):
+                idx = 2 * k + s
+                for b, size in enumerate((self.n[k], self.n[k], self.n_all[k], self.n_all[k])):
+                    self.offs[4 * idx + b] = rows
+                    rows += size
+                self.offs[24 + idx] = rl_rows
+                rl_rows += self.n[k]
+        topo = 0
+        for k in range(N_LAYERS):
+            self.offs[30 + k] = topo
+            self.offs[33 + k] = self.n_all[k]
+            topo += self.n_all[k]
+        self.pos = np.zeros((rows, 3))
+        self.rest_all = np.zeros((rl_rows, 6))
+        self.axes_all = np.zeros((N_LAYERS * N_SLOTS, 3))
+        self.axes_all[:, 2] = 1.0
+        self.nbr_all = np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices]))
+        self.ring_all = np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices]))
+        self.plane_all = np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices]))
+        o = self.offs
+
+        def view(idx, b, size):
+            return self.pos[o[4 * idx + b]:o[4 * idx + b] + size]
+
+        slots = range(N_LAYERS * N_SLOTS)
+        self.xf = tuple(view(i, 0, self.n[i // 2]) for i in slots)
+        self.X0f = tuple(view(i, 1, self.n[i // 2]) for i in slots)
+        self.X0 = tuple(view(i, 2, self.n_all[i // 2]) for i in slots)
+        self.x = tuple(view(i, 3, self.n_all[i // 2]) for i in slots)
+        self.rest_len = tuple(self.rest_all[o[24 + i]:o[24 + i] + self.n[i // 2]] for i in slots)
+        self.axes = tuple(self.axes_all[i] for i in slots)
+        self.nbr = tuple(lat.nbr for lat in self.lattices)
+        self.ring = tuple(lat.ring for lat in self.lattices)
+        self.plane = tuple(lat.plane for lat in self.lattices)
         self.si = np.zeros(SI_SIZE, dtype=np.int64)
         self.sf = np.zeros(SF_SIZE)
         self.holes = np.zeros((MAX_HOLES, 7))
@@ -522,9 +561,9 @@ class NeedleModel:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N)."""
         self._p[:] = p
         self._v[:] = v
-        step_kernel(self._p, self._v, self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.xf, self.X0f,
-                    self.X0, self.x, self.rest_len, self.axes, self.nbr, self.ring, self.plane, self.si, self.sf,
-                    self.holes, self.radii, self.scratch, self.diag)
+        step_kernel(self._p, self._v, self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos,
+                    self.rest_all, self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.si,
+                    self.sf, self.holes, self.radii, self.scratch, self.diag)
         return self.diag[0:3]
 
     def warm_up(self) -> None:

@@ -1,0 +1,464 @@
+"""The real-time engine: a 1 kHz servo loop and a 60 Hz visual loop around one NeedleModel.
+
+Servo tick (:meth:`Session._servo_tick`): read the device, run the compiled step (collision, force
+net, damping, safety: :func:`haptic_acu.needle.step_kernel`), command the force, write the tick's
+sample row into the lock-free :class:`~haptic_acu.samples.SampleRing`. No logging, no allocation
+beyond a few Python floats, no lock, no JIT (everything is compiled in :meth:`Session.warm_up`).
+
+Visual frame (:meth:`Session._visual_frame`): drain the ring, run springback on handed-over nets,
+evaluate each layer's dent on the patch grid around the acupoint, and hand a :class:`Frame` to
+every sink (recorder, rerun logger, replay summary, status line).
+
+Clocks:
+
+* ``"sim"`` (headless replay): one thread, simulated time. Servo ticks at exactly 1 ms, a visual
+  frame whenever simulated time crosses a multiple of 1/60 s. The same two functions as a live
+  session, interleaved deterministically: identical input gives identical output.
+* ``"realtime"``: a servo thread on absolute deadlines (hybrid sleep-then-spin), a visual thread,
+  ``sys.setswitchinterval(2e-4)``, ``gc.freeze()`` after warm-up, SCHED_FIFO for the servo thread
+  where the OS allows it. Devices that drive the clock (the OMNI) call the servo tick from their own
+  scheduler through :meth:`devices.base.Device.run_servo`.
+
+Net ownership (see :mod:`haptic_acu.needle`): the servo owns a pressing net; at puncture it copies
+the displaced positions onto the curved surface and marks the slot owner 2, after which only the
+visual loop's springback writes it. The visual loop reads pressing nets without a lock (a torn read
+only affects one rendered frame).
+
+Faults: a device fault, a non-finite state, or an exception in either loop commands zero force at
+once, stops both loops, flushes every sink (the recording is complete up to the last tick), and is
+reported once as ``SessionResult.fault``.
+"""
+from __future__ import annotations
+
+import gc
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import shf
+from .errors import DeviceFault
+from .forcenet import dent_on_grid
+from .needle import D_FAULT, NeedleModel
+from .samples import NCOL, SampleRing, write_sample
+from .springback import Springback
+
+ZERO3 = np.zeros(3)
+
+
+@dataclass
+class Frame:
+    """What a sink sees once per visual frame."""
+
+    t_s: float  # session time of the frame (simulated in "sim", wall since start otherwise)
+    index: int
+    samples: np.ndarray  # (k, NCOL) rows written since the previous frame
+    model: NeedleModel
+    rates: dict  # {"servo_hz": measured, "visual_hz": measured}
+    dents: "Dents | dict" = field(default_factory=dict)  # layer -> (n_theta, n_phi) dent (m) on PATCH_GRID
+
+
+class Dents(Mapping):
+    """Layer -> radial dent (m) on :data:`PATCH_GRID`, for the layers with a live net; each grid is
+    computed on first access (only sinks that render pay for it) and cached for the frame."""
+
+    def __init__(self, model, skip_settled=None):
+        self._model = model
+        self._cache = {}
+        self._keys = [k for k in range(3) if any(
+            model.owner(2 * k + s) == 1 or (model.owner(2 * k + s) == 2 and not (skip_settled is not None and skip_settled[2 * k + s]))
+            for s in range(2))]
+
+    def __getitem__(self, k):
+        if k not in self._keys:
+            raise KeyError(k)
+        if k not in self._cache:
+            self._cache[k] = layer_dent(self._model, k, *PATCH_GRID)
+        return self._cache[k]
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self):
+        return len(self._keys)
+
+
+@dataclass
+class SessionResult:
+    ticks: int
+    duration_s: float
+    fault: str | None
+    stats: dict
+
+
+def patch_grid(half_angle: float = 0.5, n_theta: int = 24, n_phi: int = 48):
+    """Directions (theta, phi) of the rendered patch around the acupoint (the +z pole)."""
+    th = (np.arange(n_theta) + 0.5) * (half_angle / n_theta)
+    ph = np.arange(n_phi) * (2 * np.pi / n_phi)
+    return np.meshgrid(th, ph, indexing="ij")
+
+
+PATCH_GRID = patch_grid()
+
+
+def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
+    """Radial dent (m) of layer k's surface at directions (theta, phi), from every live net of layer k.
+
+    The deformed surface is r(theta, phi) = r_rest(theta, phi) - dent(theta, phi) (the paper's tie of
+    each particle's dZ to the SH radius), interpolated between particles.
+    """
+    th = np.ascontiguousarray(np.ravel(theta), dtype=np.float64)
+    ph = np.ascontiguousarray(np.ravel(phi), dtype=np.float64)
+    total = np.zeros(th.size)
+    tmp = np.empty(th.size)
+    support = 1.5 * model.params[k].spacing_m
+    for s in range(2):
+        idx = 2 * k + s
+        if model.owner(idx) == 0:
+            continue
+        pos = model.net_positions(idx)
+        dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], support, tmp)
+        total += tmp
+    return total.reshape(np.shape(theta))
+
+
+def percentiles_us(values_s: np.ndarray) -> dict:
+    if values_s.size == 0:
+        return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
+    v = np.abs(values_s) * 1e6
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
+            "p999": float(np.percentile(v, 99.9)), "max": float(v.max())}
+
+
+class Session:
+    """One simulation session: a model, a device, sinks, and the two loops.
+
+    ``run()`` blocks until the device is done (end of trajectory, quit key), ``duration_s`` of
+    session time has passed, :meth:`stop` is called (or SIGINT/SIGTERM arrives), or a fault occurs.
+    """
+
+    def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
+                 model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
+                 realtime_priority: bool = True, dents: bool = True):
+        if clock not in ("sim", "realtime"):
+            raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
+        self.cfg = cfg
+        self.device = device
+        self.sinks = list(sinks)
+        self.clock = clock
+        self.duration_s = duration_s
+        self.model = model if model is not None else NeedleModel(cfg)
+        self.springback = Springback.from_config(self.model, cfg)
+        self.servo_dt = 1.0 / servo_hz
+        self.frame_dt = 1.0 / visual_hz
+        self.realtime_priority = realtime_priority
+        self.want_dents = dents
+        self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
+        self.tick = 0
+        self.frame_index = 0
+        self.fault: str | None = None
+        self._stop = threading.Event()
+        self._fault_lock = threading.Lock()
+        self._period_err = np.zeros(1 << 20)  # servo period errors (s), first 2^20 ticks kept
+        self._n_err = 0
+        self.missed = 0
+        self._servo_times: list[float] = []
+        self._frame_wall: list[float] = []
+        self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
+        self._zero = np.zeros(3)
+        self._warm = False
+        self._t_session = 0.0
+
+    # -- set-up -----------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Compile every kernel both loops call, warm the sinks, before any loop starts."""
+        self.model.warm_up()
+        buf = np.zeros((1, NCOL))
+        write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
+        layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
+        # springback kernels: run once on a scratch copy of slot 0
+        from .springback import springback_step
+        springback_step(self.model.x[0].copy(), self.model.X0[0].copy(), 1, 1.0, np.zeros_like(self.model.x[0]))
+        for s in self.sinks:
+            if hasattr(s, "warm_up"):
+                s.warm_up()
+        self._warm = True
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _set_fault(self, reason: str) -> None:
+        with self._fault_lock:
+            if self.fault is None:
+                self.fault = reason
+        self._stop.set()
+        try:
+            self.device.set_force(self._zero)
+        except Exception:  # the device may be the thing that failed
+            pass
+
+    # -- the two loop bodies (shared by every clock) --------------------------------------------
+    def _servo_tick(self, t: float, state, period_err: float = 0.0) -> np.ndarray:
+        m = self.model
+        force = m.step(state.position_m, state.velocity_m_s)
+        if m.diag[D_FAULT] != 0.0:
+            self.device.set_force(self._zero)
+            ring = self.ring
+            write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+            ring.commit()
+            self.tick += 1
+            self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
+            return self._zero
+        self.device.set_force(force)
+        ring = self.ring
+        write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+        ring.commit()
+        self.tick += 1
+        return force
+
+    def _visual_frame(self, t: float) -> None:
+        rows = self.ring.drain()
+        self.springback.frame()
+        dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
+        frame = Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents)
+        self.frame_index += 1
+        for s in self.sinks:
+            s.on_frame(frame)
+
+    def _final_frame(self) -> None:
+        """Flush whatever the servo wrote after the last visual frame."""
+        if self.ring.head != self.ring.tail:
+            self._visual_frame(self._t_session)
+
+    def _stats(self, wall_s: float) -> dict:
+        errs = self._period_err[: min(self._n_err, self._period_err.size)]
+        return {"clock": self.clock, "ticks": self.tick, "missed_ticks": self.missed,
+                "frames": self.frame_index, "dropped_rows": self.ring.dropped,
+                "wall_s": wall_s, "period_error_us": percentiles_us(errs),
+                "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"]}
+
+    # -- running ------------------------------------------------------------------------------------
+    def run(self) -> SessionResult:
+        if not self._warm:
+            self.warm_up()
+        for s in self.sinks:
+            if hasattr(s, "start"):
+                s.start({"config": self.cfg, "model": self.model, "device": self.device.info, "clock": self.clock})
+        old_handlers = self._install_signals()
+        wall0 = time.perf_counter()
+        try:
+            if self.clock == "sim":
+                self._run_sim()
+            elif self.device.info.drives_clock:
+                self._run_device_clock()
+            else:
+                self._run_realtime()
+        except DeviceFault as e:
+            self._set_fault(f"device fault: {e}")
+        except BaseException as e:  # any exception in a loop: force zero, report once
+            self._set_fault(f"{type(e).__name__}: {e}")
+            if not isinstance(e, Exception):
+                raise
+        finally:
+            try:
+                self.device.set_force(self._zero)
+            except Exception:
+                pass
+            self._restore_signals(old_handlers)
+            try:
+                self._final_frame()
+            finally:
+                result = SessionResult(self.tick, self._t_session, self.fault,
+                                       self._stats(time.perf_counter() - wall0))
+                for s in self.sinks:
+                    if hasattr(s, "close"):
+                        s.close(result)
+        return result
+
+    def _run_sim(self) -> None:
+        dev = self.device
+        dt = self.servo_dt
+        next_frame = self.frame_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        t0 = time.perf_counter()
+        while not self._stop.is_set():
+            t = self.tick * dt
+            if t > limit + 1e-12:
+                break
+            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            if state.done:
+                break
+            self._servo_tick(t, state)
+            self._t_session = t
+            if t + 1e-12 >= next_frame:
+                wall = time.perf_counter() - t0
+                self.rates = {"servo_hz": self.tick / wall if wall > 0 else 0.0, "visual_hz": self.frame_index / wall if wall > 0 else 0.0}
+                self._visual_frame(t)
+                next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+
+    # real time: our timer drives the servo thread
+    def _rt_setup(self):
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(2e-4)
+        gc.collect()
+        gc.freeze()
+        return old
+
+    def _rt_teardown(self, old_interval):
+        sys.setswitchinterval(old_interval)
+        gc.unfreeze()
+
+    def _try_fifo(self) -> bool:
+        if not self.realtime_priority or not hasattr(os, "sched_setscheduler"):
+            return False
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))  # this thread only (Linux)
+            return True
+        except (PermissionError, OSError):
+            return False
+
+    def _visual_loop(self, t0: float) -> None:
+        try:
+            next_t = t0 + self.frame_dt
+            last = time.perf_counter()
+            frames = 0
+            while not self._stop.is_set():
+                now = time.perf_counter()
+                if now < next_t:
+                    time.sleep(min(next_t - now, 0.005))
+                    continue
+                next_t += self.frame_dt
+                if next_t < now:
+                    next_t = now + self.frame_dt  # fell behind: do not try to catch up
+                frames += 1
+                if now - last >= 0.5:
+                    self.rates["visual_hz"] = frames / (now - last)
+                    frames = 0
+                    last = now
+                self._visual_frame(now - t0)
+        except BaseException as e:
+            self._set_fault(f"visual loop: {type(e).__name__}: {e}")
+
+    def _run_realtime(self) -> None:
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        try:
+            self._servo_loop(t0)
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
+
+    def _servo_loop(self, t0: float) -> None:
+        self._try_fifo()
+        dev = self.device
+        dt = self.servo_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        perf = time.perf_counter
+        sleep = time.sleep
+        errs = self._period_err
+        cap = errs.size
+        k = 0
+        count_start = perf()
+        count_ticks = 0
+        while not self._stop.is_set():
+            deadline = t0 + k * dt
+            now = perf()
+            remaining = deadline - now
+            if remaining > 4e-4:
+                sleep(remaining - 3e-4)
+            while perf() < deadline:
+                pass
+            start = perf()
+            err = start - deadline
+            if err > dt:
+                self.missed += 1
+            if self._n_err < cap:
+                errs[self._n_err] = err
+            self._n_err += 1
+            t = start - t0
+            if t > limit:
+                break
+            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            if state.done:
+                break
+            self._servo_tick(t, state, err)
+            self._t_session = t
+            k += 1
+            if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor instead of bursting
+                t0 = perf() - k * dt
+            count_ticks += 1
+            if start - count_start >= 0.5:
+                self.rates["servo_hz"] = count_ticks / (start - count_start)
+                count_start = start
+                count_ticks = 0
+
+    # the device's scheduler drives the servo step (OMNI)
+    def _run_device_clock(self) -> None:
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        last = [t0, 0, t0]  # previous tick time, ticks in the rate window, window start
+        limit = self.duration_s if self.duration_s is not None else math.inf
+
+        def step(state):
+            now = time.perf_counter()
+            err = (now - last[0]) - self.servo_dt
+            last[0] = now
+            if self._n_err < self._period_err.size:
+                self._period_err[self._n_err] = err
+            self._n_err += 1
+            if err > self.servo_dt:
+                self.missed += 1
+            t = now - t0
+            last[1] += 1
+            if now - last[2] >= 0.5:
+                self.rates["servo_hz"] = last[1] / (now - last[2])
+                last[1] = 0
+                last[2] = now
+            if t > limit or state.done:
+                self._stop.set()
+                return self._zero
+            self._t_session = t
+            return self._servo_tick(t, state, err)
+
+        try:
+            self.device.run_servo(step, self._stop)
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
+
+    # -- signals ------------------------------------------------------------------------------------
+    def _install_signals(self):
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        old = {}
+
+        def handler(signum, frame):
+            self.stop()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                old[sig] = signal.signal(sig, handler)
+            except (ValueError, OSError):
+                pass
+        return old
+
+    def _restore_signals(self, old) -> None:
+        if not old:
+            return
+        for sig, h in old.items():
+            try:
+                signal.signal(sig, h)
+            except (ValueError, OSError):
+                pass
