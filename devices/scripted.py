@@ -86,6 +86,13 @@ class ScriptedDevice(Device):
         pos, vel, done = self._cursor.sample(t_s)
         return DeviceState(t_s=float(t_s), position_m=pos, velocity_m_s=vel, done=done)
 
+    def read_block(self, t_s: np.ndarray):
+        """States at many increasing session times at once (headless replay): positions (n, 3) m,
+        velocities (n, 3) m/s, done flags (n,)."""
+        if self._cursor is None:
+            raise RuntimeError("ScriptedDevice: call open() first")
+        return self._cursor.sample_block(t_s)
+
     def set_force(self, force_n) -> None:
         f = np.array(force_n, dtype=np.float64).reshape(3)
         self.last_force_n = f

@@ -40,12 +40,12 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
-from . import shf
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
-from .needle import D_FAULT, NeedleModel
+from .needle import D_FAULT, NeedleModel, step_kernel
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
@@ -128,6 +128,26 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     return total.reshape(np.shape(theta))
 
 
+@nb.njit(cache=True, nogil=True)
+def run_ticks(P, V, T, tick0, buf, head, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
+              plane_all, offs, si, sf, holes, radii, scratch, diag, pbuf, vbuf):
+    """Headless replay: the servo step for a block of ticks (positions ``P``, velocities ``V`` at
+    times ``T``), each sample row written at ``head + i`` of the ring ``buf``. The same
+    :func:`step_kernel` and :func:`write_sample` as a live tick, without a Python round trip per
+    tick. Stops after a faulting tick; returns the number of ticks run."""
+    cap = buf.shape[0]
+    for i in range(T.shape[0]):
+        for k in range(3):
+            pbuf[k] = P[i, k]
+            vbuf[k] = V[i, k]
+        step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
+                    plane_all, offs, si, sf, holes, radii, scratch, diag)
+        write_sample(buf, (head + i) % cap, T[i], tick0 + i, pbuf, vbuf, diag, si, 0.0)
+        if diag[D_FAULT] != 0.0:
+            return i + 1
+    return T.shape[0]
+
+
 def percentiles_us(values_s: np.ndarray) -> dict:
     if values_s.size == 0:
         return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
@@ -181,6 +201,11 @@ class Session:
         self.model.warm_up()
         buf = np.zeros((1, NCOL))
         write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
+        if self.clock == "sim":
+            z = np.zeros((1, 3))
+            run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, buf, 0, *self.model.kernel_args(),
+                      self.model._p, self.model._v)
+            self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
         from .springback import springback_step
@@ -282,6 +307,8 @@ class Session:
         return result
 
     def _run_sim(self) -> None:
+        if hasattr(self.device, "read_block"):
+            return self._run_sim_blocks()
         dev = self.device
         dt = self.servo_dt
         next_frame = self.frame_dt
@@ -299,6 +326,48 @@ class Session:
             if t + 1e-12 >= next_frame:
                 wall = time.perf_counter() - t0
                 self.rates = {"servo_hz": self.tick / wall if wall > 0 else 0.0, "visual_hz": self.frame_index / wall if wall > 0 else 0.0}
+                self._visual_frame(t)
+                next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+
+    def _run_sim_blocks(self) -> None:
+        """Simulated time, one visual frame's ticks per compiled call (see :func:`run_ticks`)."""
+        dev = self.device
+        dt = self.servo_dt
+        m = self.model
+        args = m.kernel_args()
+        ring = self.ring
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        t0 = time.perf_counter()
+        next_frame = self.frame_dt
+        while not self._stop.is_set():
+            k0 = self.tick
+            if k0 * dt > limit + 1e-12:
+                break
+            k1 = max(k0, math.ceil((next_frame - 1e-12) / dt))  # the tick that reaches the frame time
+            k_lim = math.floor((limit + 1e-12) / dt) if limit != math.inf else k1
+            k1 = min(k1, k_lim)
+            T = np.arange(k0, k1 + 1) * dt
+            P, V, done = dev.read_block(T)
+            if done.any():
+                cut = int(np.argmax(done))
+                T, P, V = T[:cut], P[:cut], V[:cut]
+            if T.size:
+                n = run_ticks(P, V, T, k0, ring.buf, ring.head, *args, m._p, m._v)
+                ring.head += n
+                self.tick += n
+                self._t_session = float(T[n - 1])
+                if m.diag[D_FAULT] != 0.0:
+                    self.device.set_force(self._zero)
+                    self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); force set to zero")
+                    break
+                self.device.set_force(m.diag[0:3])
+            if T.size < k1 + 1 - k0:  # the trajectory ended
+                break
+            t = self._t_session
+            if t + 1e-12 >= next_frame:
+                wall = time.perf_counter() - t0
+                if wall > 0:
+                    self.rates = {"servo_hz": self.tick / wall, "visual_hz": self.frame_index / wall}
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 

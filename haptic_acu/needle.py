@@ -557,6 +557,12 @@ class NeedleModel:
             self.holes[:] = 0.0
         self.diag[:] = 0.0
 
+    def kernel_args(self) -> tuple:
+        """Everything :func:`step_kernel` takes after ``p, v``, in order."""
+        return (self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos, self.rest_all,
+                self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.si, self.sf,
+                self.holes, self.radii, self.scratch, self.diag)
+
     def step(self, p, v) -> np.ndarray:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N)."""
         self._p[:] = p

@@ -60,15 +60,15 @@ from .errors import UserError
 REQUIRED_COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm")
 DEFAULT_MAX_HAND_SPEED_M_PER_S = 2.0
 SERVO_TICK_S = 1e-3  # the velocity finite-difference step: one 1 kHz servo tick
-BLOCK_ROWS = 8192  # rows parsed at a time when streaming a whole file (~2.5 MB peak)
-CURSOR_BLOCK_ROWS = 256  # smaller blocks for playback: a block parses in ~0.1 ms, inside a tick
+BLOCK_BYTES = 1 << 18  # bytes parsed at a time when streaming a whole file (~7000 rows)
+CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows, parsed in ~0.2 ms)
+MAX_LINE_BYTES = 1 << 20  # a longer "line" is binary data, not a row
 
 _NUMBER = re.compile(
     r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE
 )
 _CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
-_CONTROL_BYTE = np.zeros(256, dtype=bool)
-_CONTROL_BYTE[[*range(0, 9), 11, 12, *range(14, 32), 127]] = True
+_CONTROL_BYTES = bytes([*range(0, 9), 11, 12, *range(14, 32), 127])  # as _CONTROL
 _FORMAT_BY_SUFFIX = (("_s", "%.6f"), ("_mm", "%.4f"), ("_n", "%.5f"))
 
 
@@ -111,15 +111,15 @@ class TrajectoryReader:
     """
 
     def __init__(self, path, max_hand_speed_m_per_s: float = DEFAULT_MAX_HAND_SPEED_M_PER_S,
-                 extra_columns: Sequence[str] = (), block_rows: int = BLOCK_ROWS):
+                 extra_columns: Sequence[str] = (), block_bytes: int = BLOCK_BYTES):
         if not max_hand_speed_m_per_s > 0:
             raise ValueError(f"max_hand_speed_m_per_s must be > 0, got {max_hand_speed_m_per_s}")
-        if block_rows < 1:
-            raise ValueError(f"block_rows must be >= 1, got {block_rows}")
+        if block_bytes < 1:
+            raise ValueError(f"block_bytes must be >= 1, got {block_bytes}")
         self.path = Path(path)
         self.max_hand_speed_m_per_s = float(max_hand_speed_m_per_s)
         self.extra_columns = tuple(extra_columns)
-        self.block_rows = int(block_rows)
+        self.block_bytes = int(block_bytes)
         with self._open() as f:
             self.columns, self.header_line = self._read_header(f)
         want = REQUIRED_COLUMNS + self.extra_columns
@@ -159,8 +159,10 @@ class TrajectoryReader:
 
     def _read_header(self, f) -> tuple[list[str], int]:
         line = 0
-        for raw in f:
+        while raw := f.readline(MAX_LINE_BYTES + 1):
             line += 1
+            if len(raw) > MAX_LINE_BYTES:
+                raise _binary_error(self.path, line, "a line of over 1 MB (binary data?)")
             text = self._decode(raw, line).strip()
             if not text or text.startswith("#"):
                 continue
@@ -170,25 +172,29 @@ class TrajectoryReader:
                         f"{','.join(REQUIRED_COLUMNS)}")
 
     # -- parsing -------------------------------------------------------------------------------
-    def _parse_fast(self, lines: list[bytes]) -> np.ndarray | None:
+    def _parse_fast(self, blob: bytes, n_lines: int) -> np.ndarray | None:
         """All lines are data rows of plain ASCII numbers: parse in C, else None."""
-        blob = b"".join(lines)
         if not blob.isascii() or b"#" in blob or b'"' in blob:
             return None
-        a = np.frombuffer(blob, dtype=np.uint8)
-        if _CONTROL_BYTE[a].any():
+        if len(blob.translate(None, _CONTROL_BYTES)) != len(blob):
             return None
+        a = np.frombuffer(blob, dtype=np.uint8)
         # every line must hold exactly len(columns) - 1 commas (blank lines hold none)
-        ends = np.cumsum(np.fromiter(map(len, lines), dtype=np.int64, count=len(lines)))
+        ends = np.flatnonzero(a == 10) + 1
+        if len(ends) < n_lines:
+            ends = np.append(ends, len(a))  # the file's last line, without a newline
         per_line = np.diff(np.searchsorted(np.flatnonzero(a == 44), ends), prepend=0)
         if np.any(per_line != len(self.columns) - 1):
             return None
+        lines = blob.decode("ascii").splitlines()
+        if len(lines) != n_lines:
+            return None  # a lone carriage return
         try:
             vals = np.loadtxt(lines, delimiter=",", usecols=self._usecols, comments=None, ndmin=2,
                               dtype=np.float64)
         except ValueError:
             return None
-        return vals if vals.shape[0] == len(lines) else None
+        return vals if vals.shape[0] == n_lines else None
 
     def _parse_slow(self, lines: list[bytes], first: int):
         """Line by line; returns (values, line numbers, the first error or None)."""
@@ -224,27 +230,47 @@ class TrajectoryReader:
         return vals, np.array(nums, dtype=np.int64), err
 
     # -- streaming -------------------------------------------------------------------------------
-    def blocks(self, block_rows: int | None = None) -> Iterator[Block]:
+    def blocks(self, block_bytes: int | None = None) -> Iterator[Block]:
         """Validated blocks of samples, in file order. Raises UserError at the first problem."""
         return self._blocks(_Checker(self.path, self.max_hand_speed_m_per_s, self._names),
-                            block_rows or self.block_rows)
+                            block_bytes or self.block_bytes)
 
-    def _blocks(self, check: "_Checker", block_rows: int) -> Iterator[Block]:
+    def _text_blocks(self, f, block_bytes: int) -> Iterator[tuple[bytes, int]]:
+        """Whole lines, about ``block_bytes`` at a time: (bytes, number of lines)."""
+        carry = b""
+        while True:
+            chunk = f.read(block_bytes)
+            if not chunk:
+                if carry:
+                    yield carry, 1
+                return
+            data = carry + chunk if carry else chunk
+            cut = data.rfind(b"\n") + 1
+            if cut == 0:
+                carry = data
+                if len(carry) > MAX_LINE_BYTES:
+                    yield carry, 1  # no row is this long: the parsers report it
+                    return
+                continue
+            carry = data[cut:]
+            yield data[:cut], data.count(b"\n", 0, cut)
+
+    def _blocks(self, check: "_Checker", block_bytes: int) -> Iterator[Block]:
         with self._open() as f:
-            for _ in itertools.islice(f, self.header_line):
-                pass
+            for _ in range(self.header_line):
+                f.readline(MAX_LINE_BYTES + 1)
             first = self.header_line + 1
-            while True:
-                lines = list(itertools.islice(f, block_rows))
-                if not lines:
-                    break
-                vals = self._parse_fast(lines)
+            for blob, n_lines in self._text_blocks(f, block_bytes):
+                vals = self._parse_fast(blob, n_lines)
                 err = None
                 if vals is not None:
-                    nums = np.arange(first, first + len(lines), dtype=np.int64)
+                    nums = np.arange(first, first + n_lines, dtype=np.int64)
                 else:
+                    lines = blob.split(b"\n")
+                    if blob.endswith(b"\n"):
+                        lines.pop()
                     vals, nums, err = self._parse_slow(lines, first)
-                first += len(lines)
+                first += n_lines
                 if len(vals):
                     check(vals, nums)  # rows before a parse error may hold an earlier problem
                 if err is not None:
@@ -263,7 +289,7 @@ class TrajectoryReader:
         """Read the whole file once, checking everything; nothing is kept but a summary."""
         check = _Checker(self.path, self.max_hand_speed_m_per_s, self._names)
         t_first = t_last = math.nan
-        for b in self._blocks(check, self.block_rows):
+        for b in self._blocks(check, self.block_bytes):
             if math.isnan(t_first):
                 t_first = float(b.t_s[0])
             t_last = float(b.t_s[-1])
@@ -271,8 +297,8 @@ class TrajectoryReader:
 
     def cursor(self, velocity_step_s: float = SERVO_TICK_S) -> "TrajectoryCursor":
         """A playback cursor over this file, streaming it in small blocks."""
-        rows = min(self.block_rows, CURSOR_BLOCK_ROWS)
-        return TrajectoryCursor(lambda: self.blocks(rows), velocity_step_s)
+        size = min(self.block_bytes, CURSOR_BLOCK_BYTES)
+        return TrajectoryCursor(lambda: self.blocks(size), velocity_step_s)
 
 
 class _Checker:
@@ -476,6 +502,22 @@ class TrajectoryCursor:
         p = self._at(t, 0)
         v = (p - self._at(t - h, 1)) / h
         return p, v, bool(self._eof and t >= self._t[-1])
+
+    def sample_block(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Vectorised :meth:`sample` for increasing times ``t`` (n,): positions (n, 3), velocities
+        (n, 3) and done flags (n,). Used by headless replay, one visual frame of ticks per call."""
+        t = np.asarray(t, dtype=np.float64)
+        h = self.velocity_step_s
+        self._ensure(float(t[0]) - h, float(t[-1]))
+        T = self._t
+        P = self._p
+        pos = np.empty((t.size, 3))
+        back = np.empty((t.size, 3))
+        for k in range(3):
+            pos[:, k] = np.interp(t, T, P[:, k])
+            back[:, k] = np.interp(t - h, T, P[:, k])
+        done = (t >= T[-1]) if self._eof else np.zeros(t.size, dtype=bool)
+        return pos, (pos - back) / h, done
 
     def position_at(self, t: float) -> np.ndarray:
         return self.sample(t)[0]
