@@ -37,6 +37,7 @@ class DeviceState:
     buttons: int = 0
     axis: np.ndarray | None = None  # unit vector from tip toward the handle, if the device knows it
     done: bool = False  # the source has ended (end of a trajectory, quit key)
+    reset: bool = False  # the user asked for a fresh tissue (holes and nets cleared) this tick
 
 
 @dataclass(frozen=True)

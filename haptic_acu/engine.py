@@ -231,6 +231,8 @@ class Session:
     # -- the two loop bodies (shared by every clock) --------------------------------------------
     def _servo_tick(self, t: float, state, period_err: float = 0.0) -> np.ndarray:
         m = self.model
+        if state.reset:
+            m.reset(keep_holes=False)
         force = m.step(state.position_m, state.velocity_m_s)
         if m.diag[D_FAULT] != 0.0:
             self.device.set_force(self._zero)
