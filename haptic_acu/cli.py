@@ -16,6 +16,8 @@ from .errors import DeviceFault, UserError
 
 # name -> module providing register(subparsers); imported only when needed.
 COMMANDS = {
+    "replay": "haptic_acu.replay_cmd",
+    "run": "haptic_acu.run_cmd",
     "fit": "haptic_acu.fit_cmd",
 }
 

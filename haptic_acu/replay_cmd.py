@@ -1,0 +1,132 @@
+"""``haptic-acu replay``: headless replay of one or more trajectories (see :mod:`haptic_acu.replay`)."""
+from __future__ import annotations
+
+import csv
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+
+from .errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("replay", help="replay recorded trajectories headless (the main job)",
+                       description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm) through the simulator "
+                                   "on simulated time and write samples.csv, summary.json, force_depth.png and "
+                                   "recording.rrd. Without TRAJECTORY: the bundled default insertion.")
+    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY", help="CSV files or folders of them")
+    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
+    p.add_argument("--out", help="output folder (default: a new folder under runs/)")
+    p.add_argument("--realtime", action="store_true", help="pace the replay on the wall clock")
+    p.add_argument("--no-rrd", action="store_true", help="do not write recording.rrd")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file")
+    g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
+    p.add_argument("--jobs", type=int, default=0, help="parallel replays for a batch (default: the cores)")
+    p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    p.set_defaults(func=run)
+
+
+def _stamp() -> str:
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+def _fresh(path: Path) -> Path:
+    """``path``, or ``path-2``, ``path-3``... if it exists."""
+    if not path.exists():
+        return path
+    i = 2
+    while path.with_name(f"{path.name}-{i}").exists():
+        i += 1
+    return path.with_name(f"{path.name}-{i}")
+
+
+def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
+    if not quiet:
+        print(f"{summary['trajectory']}: {summary['duration_s']:.3f} s, {summary['ticks']} ticks", file=file)
+        if not summary["punctures"]:
+            print("  no puncture", file=file)
+        for p in summary["punctures"]:
+            print(f"  {p['layer']:<6} punctured at t={p['t_s']:.3f} s, tip {p['tip_depth_mm']:.2f} mm deep, "
+                  f"peak {p['peak_force_n']:.2f} N", file=file)
+        print(f"  max force {summary['max_force_n']:.2f} N, max depth {summary['max_depth_mm']:.2f} mm, "
+              f"layers reached: {', '.join(summary['layers_reached']) or 'none'}", file=file)
+        stats = summary.get("_stats") or {}
+        if summary.get("_wall_s"):
+            print(f"  replayed {summary['duration_s'] / summary['_wall_s']:.0f}x real time", file=file)
+    print(f"  files: {out_dir}/", file=file)
+
+
+def _one(args_tuple):
+    traj, out_dir, config, rrd = args_tuple
+    from .replay import replay_one
+    try:
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False)
+        return str(traj), s, None
+    except UserError as e:
+        return str(traj), None, str(e)
+
+
+def _flat(summary: dict) -> dict:
+    row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
+           "max_force_n": summary["max_force_n"], "max_depth_mm": summary["max_depth_mm"],
+           "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
+    for p in summary["punctures"]:
+        row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])
+        row.setdefault(f"{p['layer']}_peak_force_n", p["peak_force_n"])
+    return row
+
+
+def run(args) -> int:
+    from .config import load_config
+    from .replay import replay_one, trajectories_from
+
+    cfg = load_config(args.config)  # a bad config fails before anything runs
+    paths = trajectories_from(args.trajectories)
+    for p in paths:
+        if not p.is_file():
+            raise UserError(f"{p}: trajectory file not found")
+    if len(paths) == 1:
+        traj = paths[0]
+        out = Path(args.out) if args.out else _fresh(Path("runs") / f"{traj.stem}-{_stamp()}")
+        summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
+                             spawn=args.spawn, connect=args.connect, cfg=cfg)
+        print_summary(summary, out, quiet=args.quiet)
+        return 0
+    if args.spawn or args.connect or args.realtime:
+        raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
+    base = Path(args.out) if args.out else _fresh(Path("runs") / f"batch-{_stamp()}")
+    base.mkdir(parents=True, exist_ok=True)
+    stems = [p.stem for p in paths]
+    if len(set(stems)) != len(stems):
+        raise UserError("batch trajectories must have distinct file names")
+    jobs = args.jobs or min(len(paths), max(1, len(__import__("os").sched_getaffinity(0))))
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd) for p in paths]
+    results = {}
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+        futs = [ex.submit(_one, w) for w in work]
+        for f in as_completed(futs):
+            traj, summary, err = f.result()
+            results[traj] = (summary, err)
+    failed = 0
+    rows = []
+    for p, w in zip(paths, work):
+        summary, err = results[str(p)]
+        if err:
+            failed += 1
+            print(f"haptic-acu replay: error: {err}", file=sys.stderr)
+            continue
+        print_summary(summary, Path(w[1]), quiet=args.quiet)
+        rows.append(_flat(summary))
+    if rows:
+        cols = []
+        for r in rows:
+            cols += [c for c in r if c not in cols]
+        with open(base / "summaries.csv", "w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=cols)
+            wr.writeheader()
+            wr.writerows(rows)
+        print(f"batch: {len(rows)} replayed, {failed} failed; combined summary {base / 'summaries.csv'}")
+    return 2 if failed else 0

@@ -1,0 +1,84 @@
+"""``haptic-acu run``: a live session on a device (OMNI, keyboard, or a trajectory in real time)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="a live session on a haptic device",
+                       description="Run the simulator live: a 1 kHz servo loop on the device and a 60 Hz visual "
+                                   "loop (springback, rerun logging, status line).")
+    p.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True)
+    p.add_argument("--trajectory", help="trajectory CSV for --device scripted (played in real time)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--record", metavar="FILE", help="record the session as a replayable trajectory CSV")
+    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--rrd", metavar="FILE", help="log to a rerun .rrd file")
+    g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer")
+    g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer")
+    p.add_argument("--no-status", action="store_true", help="no live status line")
+    p.set_defaults(func=run)
+
+
+def make_device(args, cfg):
+    from devices.base import Workspace
+
+    ws = Workspace.from_config(cfg.workspace)
+    limit = cfg.safety.force_limit_n
+    if args.device == "scripted":
+        if not args.trajectory:
+            raise UserError("--device scripted needs --trajectory FILE")
+        from devices.scripted import ScriptedDevice
+        return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
+    if args.trajectory:
+        raise UserError(f"--trajectory is for --device scripted, not {args.device}")
+    if args.device == "keyboard":
+        from devices.keyboard import KeyboardDevice
+        return KeyboardDevice(workspace=ws, force_limit_n=limit, stdin=sys.stdin, out=sys.stderr)
+    from devices.omni import OmniDevice
+    return OmniDevice(ws, force_limit_n=limit)
+
+
+def run(args) -> int:
+    from .config import load_config
+    from .engine import Session
+
+    if args.duration is not None and not args.duration > 0:
+        raise UserError(f"--duration must be > 0, got {args.duration}")
+    cfg = load_config(args.config)
+    device = make_device(args, cfg)
+    sinks = []
+    if args.record:
+        rec = Path(args.record)
+        if not rec.parent.exists():
+            raise UserError(f"{rec}: folder {rec.parent} does not exist")
+        from .recorder import RecorderSink
+        sinks.append(RecorderSink(rec))
+    if args.rrd or args.spawn or args.connect:
+        from .rerun_log import RerunSink
+        sinks.append(RerunSink.to_file(args.rrd) if args.rrd else RerunSink.spawn() if args.spawn
+                     else RerunSink.connect(args.connect))
+    if not args.no_status:
+        from .status import StatusLine
+        sinks.append(StatusLine(stream=sys.stderr))
+    device.open()
+    try:
+        session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration)
+        session.warm_up()
+        result = session.run()
+    finally:
+        device.close()
+    st = result.stats
+    pe = st["period_error_us"]
+    print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
+          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us", file=sys.stderr)
+    if args.record:
+        print(f"recording: {args.record}", file=sys.stderr)
+    if result.fault:
+        print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
+        return 3
+    return 0
