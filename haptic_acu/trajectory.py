@@ -444,7 +444,6 @@ class TrajectoryCursor:
         self._t = np.empty(0)
         self._p = np.empty((0, 3))
         self._eof = False
-        self._from_start = True
         self._hint = [0, 0]
         while not self._eof and len(self._t) < 2:
             self._pull(0)
@@ -459,14 +458,13 @@ class TrajectoryCursor:
             self._eof = True
             return
         if keep_from > 0:
-            self._from_start = False
             self._hint = [max(h - keep_from, 0) for h in self._hint]
         self._t = np.concatenate((self._t[keep_from:], b.t_s))
         self._p = np.concatenate((self._p[keep_from:], b.pos_m))
 
     def _ensure(self, lo: float, hi: float) -> None:
         """Make the window hold the segment containing ``lo`` and reach past ``hi`` (or the end)."""
-        if lo < self._t[0] and not self._from_start:
+        if lo < self._t[0] and self._t[0] > self.t_first_s:  # the samples needed were dropped
             self._rewind()
         while not self._eof and self._t[-1] <= hi:
             self._pull(max(int(np.searchsorted(self._t, lo, side="right")) - 1, 0))
