@@ -39,14 +39,16 @@ Numbers are written with fixed decimals, deterministically: ``%.6f`` for seconds
 ``%.4f`` for mm (0.1 um), ``%.5f`` for newtons (10 uN), chosen by the column's unit suffix;
 other extra columns ``%.10g``.
 
-Reading speed (csv bytes split and parsed by ``numpy.loadtxt`` in blocks, a pure-Python path
-only for blocks with comments, quotes, non-ASCII text or errors): about 1.5 million rows/s for
-validation on a 2-core test machine, with memory bounded by the block size (~2.5 MB).
+Reading speed: whole lines are read in blocks of bytes and parsed by ``numpy.loadtxt``; a
+line-by-line Python path (the ``csv`` module) takes over only for blocks with comments, quotes,
+non-ASCII text or an error, and is the one that names the faulty line. Validating a
+million-row file takes about 0.75 s (1.3 M rows/s) on an idle 2-core machine, about 1.1 s when
+it is busy; peak traced allocation is about 2.5 MB whatever the file's size. Playback through
+the cursor costs about 12 us per 1 ms tick, including its share of parsing.
 """
 from __future__ import annotations
 
 import csv
-import itertools
 import math
 import re
 from dataclasses import dataclass, field
@@ -65,7 +67,7 @@ CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows, parsed i
 MAX_LINE_BYTES = 1 << 20  # a longer "line" is binary data, not a row
 
 _NUMBER = re.compile(
-    r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE
+    r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE | re.ASCII
 )
 _CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
 _CONTROL_BYTES = bytes([*range(0, 9), 11, 12, *range(14, 32), 127])  # as _CONTROL

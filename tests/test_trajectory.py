@@ -321,6 +321,10 @@ def test_interpolation_exact_for_linear_motion(tmp_path):
         inner = times[times - 1e-3 >= t[0]]
         np.testing.assert_allclose(tr.velocity_at(inner), np.broadcast_to(v, (len(inner), 3)),
                                    rtol=0, atol=1e-9)
+    # row by row, streamed
+    rows = list(T.TrajectoryReader(path).rows())
+    np.testing.assert_array_equal([r[0] for r in rows], tr.t_s)
+    np.testing.assert_array_equal([r[1] for r in rows], tr.pos_m)
     # the streaming cursor, with tiny blocks so the window is rebuilt many times
     cur = T.TrajectoryCursor(lambda: T.TrajectoryReader(path).blocks(block_bytes=100))
     got = [cur.sample(tk) for tk in ticks]
