@@ -1,0 +1,1 @@
+"""HD API emulator (a stand-in libHD.so) for testing devices.omni without a PHANTOM; see build.py."""

@@ -1,0 +1,94 @@
+"""Build the HD API emulator (``hd_emulator.c``) into a ``libHD.so`` and run programs against it.
+
+``build_emulator(out_dir)`` compiles the library with the system C compiler and returns its path;
+``emulator_env(lib_path, ...)`` returns an environment in which ``CDLL("libHD.so")`` (what
+pyOpenHaptics does at import) loads the emulator, configured through the ``HD_EMU_*`` variables
+documented at the top of ``hd_emulator.c``. Programs run with that environment - a test driver or
+``haptic-acu`` itself - see an emulated PHANTOM instead of OpenHaptics.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+SOURCE = Path(__file__).resolve().parent / "hd_emulator.c"
+
+# Fault kinds understood by HD_EMU_FAULTS (and their emu_inject_fault codes).
+FAULT_CODES = {"device_fault": 0x0300, "comm_error": 0x0302, "freeze": -1, "nan": -2, "stop_calling": -3}
+
+
+class EmulatorBuildError(RuntimeError):
+    """No C compiler, or the compiler rejected the source."""
+
+
+def find_compiler() -> str | None:
+    """The C compiler to use: $CC, else cc, gcc or clang on PATH; None if there is none."""
+    for cand in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if cand and shutil.which(cand):
+            return shutil.which(cand)
+    return None
+
+
+def build_emulator(out_dir) -> Path:
+    """Compile the emulator to ``out_dir/libHD.so`` (soname libHD.so) and return that path."""
+    cc = find_compiler()
+    if cc is None:
+        raise EmulatorBuildError("no C compiler (set CC, or install cc/gcc/clang)")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / "libHD.so"
+    cmd = [cc, "-shared", "-fPIC", "-O2", "-pthread", "-Wall", "-Wl,-soname,libHD.so",
+           "-o", str(out), str(SOURCE), "-lm"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise EmulatorBuildError(f"{' '.join(cmd)} failed: {proc.stderr.strip()}")
+    return out
+
+
+def _path_spec(path) -> str:
+    return ";".join(",".join(repr(float(v)) for v in knot) for knot in path)
+
+
+def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velocity=True,
+                 init_error=None, buttons=None, device_name=None, log=None, base=None) -> dict:
+    """An environment whose dynamic loader finds the emulator as ``libHD.so``.
+
+    ``path``: knots ``(t_s, x_mm, y_mm, z_mm)`` of the stylus path in the device frame;
+    ``faults``: ``(kind, at_s)`` pairs, kind one of :data:`FAULT_CODES`; ``velocity=False`` makes
+    HD_CURRENT_VELOCITY unsupported; ``init_error``: an HD error code hdInitDevice fails with;
+    ``log``: a CSV file the force log is written to when the device is disabled and at exit.
+    """
+    env = dict(os.environ if base is None else base)
+    for key in [k for k in env if k.startswith("HD_EMU_")]:
+        del env[key]
+    lib_dir = str(Path(lib_path).resolve().parent)
+    old = env.get("LD_LIBRARY_PATH")
+    env["LD_LIBRARY_PATH"] = lib_dir + (os.pathsep + old if old else "")
+    if path is not None:
+        env["HD_EMU_PATH"] = _path_spec(path)
+    if faults:
+        for kind, _ in faults:
+            if kind not in FAULT_CODES:
+                raise ValueError(f"unknown emulator fault {kind!r}; one of {sorted(FAULT_CODES)}")
+        env["HD_EMU_FAULTS"] = ",".join(f"{kind}@{float(at)!r}" for kind, at in faults)
+    if nominal_max_force is not None:
+        env["HD_EMU_NOMINAL_MAX_FORCE"] = repr(float(nominal_max_force))
+    if not velocity:
+        env["HD_EMU_NO_VELOCITY"] = "1"
+    if init_error is not None:
+        env["HD_EMU_INIT_ERROR"] = hex(int(init_error))
+    if buttons is not None:
+        env["HD_EMU_BUTTONS"] = str(int(buttons))
+    if device_name is not None:
+        env["HD_EMU_DEVICE_NAME"] = device_name
+    if log is not None:
+        env["HD_EMU_LOG"] = str(log)
+    return env
+
+
+if __name__ == "__main__":  # python tests/hd_emulator/build.py OUT_DIR
+    import sys
+
+    print(build_emulator(sys.argv[1] if len(sys.argv) > 1 else "."))
