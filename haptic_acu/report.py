@@ -1,0 +1,419 @@
+"""The session report: the replay summary, the force-depth figure and ``samples.csv``, as frame sinks.
+
+Sinks (see :mod:`haptic_acu.engine`) get ``start(info)``, ``on_frame(frame)`` once per visual frame
+with the servo rows written since the last frame (:mod:`haptic_acu.samples`), and ``close(result)``.
+
+Tip depth. Every depth reported here is the tip's depth below the *rest* skin surface, measured
+radially from the body centre: ``r_skin(theta, phi) - |p - c|`` (m; negative above the skin). For an
+insertion perpendicular to the skin (the scene's needle along -z at the acupoint) that is the depth
+along the insertion. It is physical, continuous, and independent of the model's internal
+compression offset, so a surface is seen to be pushed down ahead of the tip before it breaks: the
+skin (0.8 mm thick) breaks with the tip about 1.4 mm below its rest position. (The sample column
+``depth_skin_m`` is different: the depth in the compressed tissue's frame, 0 until the skin breaks.)
+
+Force in the figure: the component along the outward radial direction at the tip, ``F . u``
+(N; positive resists insertion, negative pulls the needle in, e.g. damping on withdrawal); for the
+perpendicular insertion that is the axial force. The summary's forces are magnitudes ``|F|``.
+"""
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .samples import COL, NCOL
+
+PLACES = ("outside", "skin", "fat", "muscle", "bone")  # sample ``layer`` codes -1..3
+LAYERS = PLACES[1:4]
+PRESSING, PUNCTURED = 1, 2  # layer states (haptic_acu.needle)
+STATE_NAMES = ("untouched", "pressing", "punctured")
+
+_C_X = COL["x_m"]
+_C_F = COL["fx_n"]
+_C_T = COL["t_s"]
+_C_TICK = COL["tick"]
+_C_LAYER = COL["layer"]
+_C_STATE = COL["state_skin"]
+_C_PUNCT = COL["puncture"]
+
+
+def place_name(code: float) -> str:
+    """Name of a sample ``layer`` code: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone."""
+    return PLACES[int(code) + 1]
+
+
+def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
+    """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
+    negative above the skin."""
+    d = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) - tissue.centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    safe = np.where(rho > 0.0, rho, 1.0)
+    theta = np.arccos(np.clip(d[:, 2] / safe, -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return tissue.radius(0, theta, phi) - rho
+
+
+def radial_force_n(rows: np.ndarray, tissue) -> np.ndarray:
+    """F . u per row (N): the force along the outward radial direction at the tip (positive resists
+    insertion)."""
+    d = rows[:, _C_X:_C_X + 3] - tissue.centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    u = d / np.where(rho > 0.0, rho, 1.0)[:, None]
+    return np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], u)
+
+
+def _r(x: float, nd: int) -> float:
+    """Round for JSON, without negative zeros."""
+    return round(float(x), nd) + 0.0
+
+
+class SessionScan:
+    """Streaming scan of sample rows: punctures with their pressing-phase peak force, and per-place
+    time and peak force. Feed row blocks in order with :meth:`feed`; it keeps O(1) state.
+
+    A puncture is a row whose ``puncture`` column is a layer index. Its peak force is the largest
+    ``|F|`` over the rows of the uninterrupted run in which that layer's state was PRESSING just
+    before it (the run restarts if the tip lifts off and touches again); its depth is the tip's depth
+    (:func:`tip_depth_m`) at the puncture tick. Time in a place: each row's interval up to the next
+    row (t_{i+1} - t_i) counts for the place of row i.
+    """
+
+    def __init__(self, tissue):
+        self.tissue = tissue
+        self.ticks = 0
+        self.t_first: float | None = None
+        self.t_last: float | None = None
+        self.max_force = 0.0
+        self.max_depth = -np.inf
+        self.time_in = np.zeros(len(PLACES))
+        self.peak_in = np.zeros(len(PLACES))
+        self.ticks_in = np.zeros(len(PLACES), dtype=np.int64)
+        self.punctures: list[dict] = []
+        self.clamped_ticks = 0
+        self.fault_ticks = 0
+        self._prev_place = -1
+        self._prev_state = [0, 0, 0]
+        self._press_peak = [0.0, 0.0, 0.0]
+        self._press_peak_depth = [0.0, 0.0, 0.0]
+
+    def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> list[dict]:
+        """Scan a block of rows (k, NCOL); returns the punctures found in it (also kept). ``depth``:
+        the rows' :func:`tip_depth_m`, if the caller has it already."""
+        rows = np.asarray(rows)
+        k = rows.shape[0]
+        if k == 0:
+            return []
+        if rows.ndim != 2 or rows.shape[1] != NCOL:
+            raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
+        f = np.sqrt(np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], rows[:, _C_F:_C_F + 3]))
+        if depth is None:
+            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        t = rows[:, _C_T]
+        place = rows[:, _C_LAYER].astype(np.int64) + 1
+        # time: interval to the next row counts for the place of the earlier row
+        if self.t_last is not None:
+            self.time_in[self._prev_place] += t[0] - self.t_last
+        else:
+            self.t_first = float(t[0])
+        np.add.at(self.time_in, place[:-1], np.diff(t))
+        np.add.at(self.ticks_in, place, 1)
+        np.maximum.at(self.peak_in, place, f)
+        self._prev_place = int(place[-1])
+        self.t_last = float(t[-1])
+        self.ticks += k
+        self.max_force = max(self.max_force, float(f.max()))
+        self.max_depth = max(self.max_depth, float(depth.max()))
+        self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
+        self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
+        # pressing runs and punctures (a few rows per frame: a plain loop)
+        states = rows[:, _C_STATE:_C_STATE + 3].astype(np.int64).tolist()
+        punct = rows[:, _C_PUNCT].tolist()
+        found = []
+        for i in range(k):
+            st = states[i]
+            for j in range(3):
+                if st[j] == PRESSING:
+                    if self._prev_state[j] != PRESSING or f[i] > self._press_peak[j]:
+                        self._press_peak[j] = float(f[i])
+                        self._press_peak_depth[j] = float(depth[i])
+                self._prev_state[j] = st[j]
+            if punct[i] >= 0:
+                j = int(punct[i])
+                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, _C_TICK]),
+                      "tip_depth_m": float(depth[i]), "peak_force_n": self._press_peak[j],
+                      "peak_depth_m": self._press_peak_depth[j]}
+                found.append(ev)
+        self.punctures.extend(found)
+        return found
+
+
+class SummarySink:
+    """Accumulates the replay summary (and, by default, the rows for the figure).
+
+    ``summary()`` is a JSON-ready dict, deterministic for identical rows: forces in N to 0.1 mN,
+    depths in mm to 1 um, times in s to 0.1 ms. The engine's loop statistics are added under
+    ``"loop"`` on :meth:`close` (timing figures there are only deterministic on the sim clock).
+    """
+
+    def __init__(self, keep_rows: bool = True):
+        self.keep_rows = keep_rows
+        self.scan: SessionScan | None = None
+        self.tissue = None
+        self.config = None
+        self._blocks: list[np.ndarray] = []
+        self.fault: str | None = None
+        self.stats: dict | None = None
+
+    # -- sink interface -------------------------------------------------------------------------
+    def start(self, info: dict) -> None:
+        self.config = info.get("config")
+        self.tissue = info["model"].tissue
+        self.scan = SessionScan(self.tissue)
+        self._blocks = []
+
+    def on_frame(self, frame) -> None:
+        rows = frame.samples
+        if len(rows):
+            self.scan.feed(rows)
+            if self.keep_rows:
+                self._blocks.append(rows)
+
+    def close(self, result) -> None:
+        self.fault = getattr(result, "fault", None)
+        self.stats = getattr(result, "stats", None)
+
+    # -- outputs --------------------------------------------------------------------------------
+    @property
+    def rows(self) -> np.ndarray:
+        if not self._blocks:
+            return np.zeros((0, NCOL))
+        if len(self._blocks) > 1:
+            self._blocks = [np.concatenate(self._blocks)]
+        return self._blocks[0]
+
+    def summary(self) -> dict:
+        s = self.scan
+        if s is None:
+            raise RuntimeError("SummarySink.summary() before start()")
+        max_depth_mm = max(0.0, s.max_depth * 1e3) if s.ticks else 0.0
+        out = {
+            "ticks": s.ticks,
+            "duration_s": _r((s.t_last - s.t_first) if s.ticks else 0.0, 4),
+            "max_force_n": _r(s.max_force, 4),
+            "max_depth_mm": _r(max_depth_mm, 3),
+            "layers_reached": [name for i, name in enumerate(PLACES) if i > 0 and s.ticks_in[i] > 0],
+            "punctures": [{"layer": p["layer"], "t_s": _r(p["t_s"], 4), "tip_depth_mm": _r(p["tip_depth_m"] * 1e3, 3),
+                           "peak_force_n": _r(p["peak_force_n"], 4)} for p in s.punctures],
+            "layers": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
+                       for i, name in enumerate(PLACES)},
+            "clamped_ticks": s.clamped_ticks,
+            "fault": self.fault,
+        }
+        if self.config is not None:
+            lo, hi = self.config.scene.target_depth_mm
+            out["target_depth_mm"] = [float(lo), float(hi)]
+            out["in_target_range"] = bool(lo <= max_depth_mm <= hi)
+        if self.stats is not None:
+            st = self.stats
+            loop = {key: st[key] for key in ("clock", "missed_ticks", "dropped_rows", "frames") if key in st}
+            if isinstance(st.get("period_error_us"), dict):
+                loop["period_error_us"] = {k: _r(v, 1) for k, v in st["period_error_us"].items()}
+            out["loop"] = loop
+        return out
+
+    def print_summary(self, file=None) -> None:
+        file = sys.stdout if file is None else file
+        s = self.summary()
+        line = (f"session: {s['duration_s']:.3f} s, {s['ticks']} ticks; max |F| {s['max_force_n']:.3f} N, "
+                f"max depth {s['max_depth_mm']:.2f} mm")
+        if "target_depth_mm" in s:
+            lo, hi = s["target_depth_mm"]
+            line += f" (target {lo:g}-{hi:g} mm: {'in range' if s['in_target_range'] else 'not in range'})"
+        print(line, file=file)
+        if s["punctures"]:
+            for p in s["punctures"]:
+                print(f"  {p['layer']:<6} punctured at t={p['t_s']:.3f} s, depth {p['tip_depth_mm']:.2f} mm, "
+                      f"peak {p['peak_force_n']:.3f} N", file=file)
+        else:
+            print("  no puncture", file=file)
+        parts = [f"{name} {v['time_s']:.3f} s / {v['peak_force_n']:.3f} N" for name, v in s["layers"].items()
+                 if v["time_s"] > 0 or v["peak_force_n"] > 0]
+        print("  time / peak |F| by place: " + ", ".join(parts), file=file)
+        if s["clamped_ticks"]:
+            print(f"  force clamped on {s['clamped_ticks']} ticks", file=file)
+        if s["fault"]:
+            print(f"  FAULT: {s['fault']}", file=file)
+
+    def write_figure(self, path) -> None:
+        plot_force_depth(self.rows, path, self.tissue)
+
+
+# ---- the figure -------------------------------------------------------------------------------
+_BAND_COLOURS = {"skin": "#e8b89a", "fat": "#f3dc8c", "muscle": "#d98a8a", "bone": "#d8d4c8"}
+_EVENT_COLOURS = {"skin": "#b5542a", "fat": "#a07d00", "muscle": "#8e1e1e"}
+
+
+def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110) -> None:
+    """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
+
+    Top: the force along the outward radial direction at the tip, ``F . u`` (N, positive resists
+    insertion; the axial force for a perpendicular insertion), against the tip's depth below the rest
+    skin surface (mm, :func:`tip_depth_m`), over bands of the layers at rest under the acupoint (the
+    config thicknesses, :meth:`Tissue.depths_at_acupoint`); each puncture is marked at its
+    pressing-phase peak. Bottom: ``F . u`` and ``|F|`` against time, punctures as vertical lines.
+    ``tissue`` defaults to the one built from the default config.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != NCOL:
+        raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
+    if tissue is None:
+        from .config import load_config
+        from .tissue import Tissue
+        tissue = Tissue.from_config(load_config())
+    depth_mm = tip_depth_m(rows[:, _C_X:_C_X + 3], tissue) * 1e3
+    f_ax = radial_force_n(rows, tissue)
+    f_mag = np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)
+    t = rows[:, _C_T]
+    events = SessionScan(tissue).feed(rows)
+
+    fig = Figure(figsize=(8.0, 7.5), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(2, 1, gridspec_kw={"height_ratios": [3, 2]})
+
+    bounds = tissue.depths_at_acupoint() * 1e3  # [0, skin/fat, fat/muscle, muscle/bone]
+    lo = min(float(depth_mm.min()), 0.0) if rows.size else -1.0
+    hi = max(float(depth_mm.max()), bounds[1]) if rows.size else bounds[2]
+    pad = 0.02 * (hi - lo)
+    x0, x1 = lo - pad, hi + pad
+    edges = [*bounds, max(x1, bounds[3])]
+    for name, a, b in zip(("skin", "fat", "muscle", "bone"), edges[:-1], edges[1:]):
+        if b <= x0 or a >= x1:
+            continue
+        ax1.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.45, lw=0, label=name)
+    ax1.axhline(0.0, color="0.6", lw=0.6)
+    ax1.plot(depth_mm, f_ax, color="k", lw=1.0, label="F . u (resisting)")
+    for ev in events:
+        c = _EVENT_COLOURS[ev["layer"]]
+        x, y = ev["peak_depth_m"] * 1e3, ev["peak_force_n"]
+        ax1.plot([x], [y], marker="v", ms=8, color=c, ls="none")
+        ax1.annotate(f"{ev['layer']} punctured\n{y:.2f} N at {x:.2f} mm", (x, y), xytext=(6, 4),
+                     textcoords="offset points", fontsize=8, color=c)
+    ax1.set_xlim(x0, x1)
+    if rows.size:
+        ax1.set_ylim(min(-0.05, 1.1 * float(f_ax.min())), max(0.1, 1.25 * float(f_ax.max())))
+    ax1.set_xlabel("tip depth below the rest skin surface (mm)")
+    ax1.set_ylabel("force along the outward normal F . u (N)")
+    ax1.set_title(title or "Needle insertion: force against depth")
+    ax1.legend(loc="upper right", fontsize=8, framealpha=0.9, title="bands: layers at rest",
+               title_fontsize=8)
+
+    ax2.axhline(0.0, color="0.6", lw=0.6)
+    ax2.plot(t, f_mag, color="0.55", lw=0.8, label="|F|")
+    ax2.plot(t, f_ax, color="k", lw=1.0, label="F . u")
+    for ev in events:
+        ax2.axvline(ev["t_s"], color=_EVENT_COLOURS[ev["layer"]], lw=0.8, ls="--")
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("force (N)")
+    if rows.size:
+        ax2.set_xlim(float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3)
+    ax2.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+
+
+# ---- samples.csv ------------------------------------------------------------------------------
+# (header, source column or None, scale, decimals); None columns are computed.
+_CSV_NUMERIC = (
+    ("t_s", "t_s", 1.0, 6),
+    ("x_mm", "x_m", 1e3, 4), ("y_mm", "y_m", 1e3, 4), ("z_mm", "z_m", 1e3, 4),
+    ("fx_n", "fx_n", 1.0, 5), ("fy_n", "fy_n", 1.0, 5), ("fz_n", "fz_n", 1.0, 5),
+)
+_CSV_TAIL = (
+    ("depth_mm", "depth_m", 1e3, 4),
+    ("tip_depth_mm", None, 1e3, 4),
+    ("depth_skin_mm", "depth_skin_m", 1e3, 4),
+    ("f_n", None, 1.0, 5),
+    ("f_surface_n", "f_surface_n", 1.0, 5), ("f_damp_n", "f_damp_n", 1.0, 5),
+    ("f_lateral_n", "f_lateral_n", 1.0, 5), ("f_bone_n", "f_bone_n", 1.0, 5),
+    ("f_skin_n", "f_skin_n", 1.0, 5), ("f_fat_n", "f_fat_n", 1.0, 5), ("f_muscle_n", "f_muscle_n", 1.0, 5),
+)
+CSV_FIELDS = ("tick",) + tuple(h for h, *_ in _CSV_NUMERIC) + (
+    "layer", "state_skin", "state_fat", "state_muscle") + tuple(h for h, *_ in _CSV_TAIL) + (
+    "puncture", "clamped", "fault")
+
+
+class SamplesCsvSink:
+    """Writes every servo row to ``samples.csv`` as it arrives (flushed once per frame).
+
+    Columns (:data:`CSV_FIELDS`): ``tick``; ``t_s``; tip position ``x_mm, y_mm, z_mm``; force on the
+    needle ``fx_n, fy_n, fz_n``; ``layer`` the tip is in (outside/skin/fat/muscle/bone);
+    ``state_skin/fat/muscle`` (untouched/pressing/punctured); ``depth_mm`` depth into that layer;
+    ``tip_depth_mm`` depth below the rest skin surface (:func:`tip_depth_m`, negative above);
+    ``depth_skin_mm`` depth in the compressed tissue's frame (0 until the skin breaks); ``f_n`` = |F|;
+    the force parts (surface, damping, lateral, bone) and per-layer forces; ``puncture`` (the layer
+    punctured on that tick, else empty); ``clamped`` and ``fault`` (0/1). Fixed decimals (t 1 us,
+    lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._f = None
+        self.tissue = None
+        self.rows_written = 0
+
+    def start(self, info: dict) -> None:
+        self.tissue = info["model"].tissue
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "w", newline="", encoding="ascii")
+        self._f.write(",".join(CSV_FIELDS) + "\n")
+
+    def on_frame(self, frame) -> None:
+        self.write_rows(frame.samples)
+        self._f.flush()
+
+    def close(self, result=None) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    def write_rows(self, rows: np.ndarray) -> None:
+        k = len(rows)
+        if k == 0:
+            return
+        computed = {"tip_depth_mm": tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue),
+                    "f_n": np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)}
+
+        def fmt(spec):
+            name, src, scale, nd = spec
+            v = computed[name] if src is None else rows[:, COL[src]]
+            v = np.round(v * scale, nd) + 0.0  # + 0.0: no "-0.000"
+            return [f"{x:.{nd}f}" for x in v.tolist()]
+
+        head = [fmt(s) for s in _CSV_NUMERIC]
+        tail = [fmt(s) for s in _CSV_TAIL]
+        ticks = rows[:, _C_TICK].astype(np.int64).tolist()
+        places = [PLACES[int(c) + 1] for c in rows[:, _C_LAYER].tolist()]
+        states = [[STATE_NAMES[int(c)] for c in rows[:, _C_STATE + j].tolist()] for j in range(3)]
+        punct = ["" if c < 0 else LAYERS[int(c)] for c in rows[:, _C_PUNCT].tolist()]
+        clamped = rows[:, COL["clamped"]].astype(np.int64).tolist()
+        fault = rows[:, COL["fault"]].astype(np.int64).tolist()
+        lines = []
+        for i in range(k):
+            lines.append(",".join([str(ticks[i]), *(c[i] for c in head), places[i], states[0][i], states[1][i],
+                                   states[2][i], *(c[i] for c in tail), punct[i], str(clamped[i]), str(fault[i])]))
+        self._f.write("\n".join(lines) + "\n")
+        self.rows_written += k
+
+
+def read_samples_csv(path) -> list[dict]:
+    """Read a ``samples.csv`` back as a list of dicts of strings (for tools and tests)."""
+    with open(path, newline="", encoding="ascii") as f:
+        return list(csv.DictReader(f))
+
+
+__all__ = ["SummarySink", "SamplesCsvSink", "SessionScan", "plot_force_depth", "tip_depth_m", "radial_force_n",
+           "place_name", "CSV_FIELDS", "read_samples_csv"]

@@ -1,0 +1,199 @@
+"""The session report sinks: summary (vs an independent scan of the rows), figure, samples.csv.
+
+The session is synthetic and engine-free: the real NeedleModel driven along -z through the acupoint
+(tip from z = +5 mm to -30 mm at 10 mm/s, 1 ms ticks), rows written with samples.write_sample and
+cut into ~17-row frames. On that line the depth below the rest skin surface is exactly -z (the
+acupoint is the skin's +z pole, at the origin), which the tests use as the independent depth.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+import struct
+import zlib
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from haptic_acu import samples as S
+from haptic_acu.config import load_config
+from haptic_acu.needle import NeedleModel
+from haptic_acu.report import CSV_FIELDS, SamplesCsvSink, SummarySink, plot_force_depth
+
+PRESSING, PUNCTURED = 1, 2
+LAYER_NAMES = ("skin", "fat", "muscle")
+C = S.COL
+
+
+def drive_rows(model, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3) -> np.ndarray:
+    """Sample rows of a straight -z insertion at constant speed (engine-free)."""
+    model.reset(keep_holes=False)
+    n = int(round((z0 - z1) / (speed * dt))) + 1
+    rows = np.zeros((n, S.NCOL))
+    v = np.array([0.0, 0.0, -speed])
+    for i in range(n):
+        p = np.array([0.0, 0.0, z0 - speed * dt * i])
+        model.step(p, v)
+        S.write_sample(rows, i, i * dt, i, p, v, model.diag, model.si, 0.0)
+    return rows
+
+
+def feed(sinks, rows, model, cfg, frame_rows=17):
+    info = {"config": cfg, "model": model, "device": None, "clock": "sim"}
+    for s in sinks:
+        s.start(info)
+    for index, a in enumerate(range(0, len(rows), frame_rows)):
+        block = rows[a:a + frame_rows].copy()
+        frame = SimpleNamespace(t_s=float(block[-1, C["t_s"]]), index=index, samples=block, model=model,
+                                rates={"servo_hz": 1000.0, "visual_hz": 60.0}, dents={})
+        for s in sinks:
+            s.on_frame(frame)
+    result = SimpleNamespace(fault=None, stats={"clock": "sim", "missed_ticks": 0, "dropped_rows": 0})
+    for s in sinks:
+        s.close(result)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    cfg = load_config()
+    model = NeedleModel(cfg)
+    model.warm_up()
+    rows = drive_rows(model)
+    tmp = tmp_path_factory.mktemp("report")
+    summ = SummarySink()
+    csv_sink = SamplesCsvSink(tmp / "samples.csv")
+    feed([summ, csv_sink], rows, model, cfg)
+    return SimpleNamespace(cfg=cfg, model=model, rows=rows, summary=summ, csv=tmp / "samples.csv", tmp=tmp)
+
+
+def independent_punctures(rows):
+    """Punctures from the layer states alone (PRESSING -> PUNCTURED), each with the max |F| of the
+    pressing run just before it and the depth -z (mm) at that tick."""
+    f = np.linalg.norm(rows[:, C["fx_n"]:C["fz_n"] + 1], axis=1)
+    out = []
+    for j, name in enumerate(LAYER_NAMES):
+        st = rows[:, C["state_skin"] + j]
+        for i in np.nonzero((st[1:] == PUNCTURED) & (st[:-1] == PRESSING))[0] + 1:
+            start = i - 1
+            while start > 0 and st[start - 1] == PRESSING:
+                start -= 1
+            out.append({"layer": name, "t_s": rows[i, C["t_s"]], "tick": i, "tip_depth_mm": -rows[i, C["z_m"]] * 1e3,
+                        "peak_force_n": f[start:i].max()})
+    return sorted(out, key=lambda p: p["t_s"])
+
+
+def test_summary_punctures_match_an_independent_scan_of_the_rows(session):
+    got = session.summary.summary()["punctures"]
+    want = independent_punctures(session.rows)
+    # 35 mm straight through the acupoint passes skin, fat (8.4 mm) and into muscle.
+    assert [p["layer"] for p in want] == ["skin", "fat", "muscle"]
+    assert [p["layer"] for p in got] == [p["layer"] for p in want]
+    for g, w in zip(got, want):
+        assert g["t_s"] == pytest.approx(w["t_s"], abs=1e-4)
+        assert g["tip_depth_mm"] == pytest.approx(w["tip_depth_mm"], abs=1e-3)
+        assert g["peak_force_n"] == pytest.approx(w["peak_force_n"], abs=1e-4)
+    # The puncture column and the state transitions agree tick for tick.
+    assert list(np.nonzero(session.rows[:, C["puncture"]] >= 0)[0]) == [w["tick"] for w in want]
+
+
+def test_summary_totals(session):
+    rows = session.rows
+    s = session.summary.summary()
+    f = np.linalg.norm(rows[:, C["fx_n"]:C["fz_n"] + 1], axis=1)
+    assert s["ticks"] == len(rows)
+    assert s["duration_s"] == pytest.approx(rows[-1, C["t_s"]] - rows[0, C["t_s"]], abs=1e-4)
+    assert s["max_force_n"] == pytest.approx(f.max(), abs=1e-4)
+    assert s["max_depth_mm"] == pytest.approx(30.0, abs=1e-3)  # the drive's deepest point, z = -30 mm
+    assert s["layers_reached"] == ["skin", "fat", "muscle"]
+    # Time in each place adds up to the session; the tip is outside until the skin breaks.
+    assert sum(v["time_s"] for v in s["layers"].values()) == pytest.approx(s["duration_s"], abs=5e-4)
+    skin_t = s["punctures"][0]["t_s"]
+    assert s["layers"]["outside"]["time_s"] == pytest.approx(skin_t - rows[0, C["t_s"]], abs=1e-4)
+    assert s["layers"]["outside"]["peak_force_n"] == pytest.approx(s["punctures"][0]["peak_force_n"], abs=1e-4)
+    lo, hi = session.cfg.scene.target_depth_mm
+    assert s["in_target_range"] == (lo <= 30.0 <= hi)
+    assert s["loop"]["clock"] == "sim"
+    json.dumps(s)  # JSON-ready
+
+
+def test_summary_does_not_depend_on_how_rows_are_cut_into_frames(session):
+    """The summary is a streaming scan: one frame, 5-row frames and 17-row frames give the same dict."""
+    want = session.summary.summary()
+    for frame_rows in (len(session.rows), 5, 1000):
+        other = SummarySink(keep_rows=False)
+        feed([other], session.rows, session.model, session.cfg, frame_rows=frame_rows)
+        assert other.summary() == want
+
+
+def test_print_summary_names_each_puncture(session):
+    buf = io.StringIO()
+    session.summary.print_summary(buf)
+    text = buf.getvalue()
+    for p in session.summary.summary()["punctures"]:
+        assert f"{p['layer']:<6} punctured at t={p['t_s']:.3f} s" in text
+
+
+def _png_chunks(data: bytes):
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos = 8
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos:pos + 4])
+        kind = data[pos + 4:pos + 8]
+        body = data[pos + 8:pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length:pos + 12 + length])
+        assert zlib.crc32(kind + body) == crc, kind
+        yield kind, body
+        pos += 12 + length
+
+
+def test_figure_is_a_valid_png_and_byte_identical_across_runs(session):
+    a, b = session.tmp / "a.png", session.tmp / "b.png"
+    plot_force_depth(session.rows, a, session.model.tissue)
+    plot_force_depth(session.rows.copy(), b, session.model.tissue)
+    data = a.read_bytes()
+    assert data == b.read_bytes()
+    chunks = list(_png_chunks(data))
+    assert chunks[0][0] == b"IHDR" and chunks[-1][0] == b"IEND"
+    width, height = struct.unpack(">II", chunks[0][1][:8])
+    assert (width, height) == (880, 825)  # 8 x 7.5 in at 110 dpi
+    pixels = zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"))
+    assert len(pixels) == height * (1 + width * 4)  # RGBA rows, one filter byte each
+    assert not any(kind in (b"tEXt", b"iTXt") and b"Software" in body for kind, body in chunks)
+
+
+def test_figure_rejects_rows_of_the_wrong_shape(session):
+    with pytest.raises(ValueError, match="shape"):
+        plot_force_depth(np.zeros((10, 3)), session.tmp / "x.png", session.model.tissue)
+
+
+def test_csv_round_trips_with_one_row_per_tick(session):
+    rows = session.rows
+    with open(session.csv, newline="") as f:
+        reader = csv.DictReader(f)
+        assert tuple(reader.fieldnames) == CSV_FIELDS
+        recs = list(reader)
+    assert len(recs) == len(rows)
+    assert [int(r["tick"]) for r in recs] == list(range(len(rows)))
+    for key, col, scale, tol in (("t_s", "t_s", 1, 5e-7), ("z_mm", "z_m", 1e3, 5e-5), ("x_mm", "x_m", 1e3, 5e-5),
+                                 ("fz_n", "fz_n", 1, 5e-6), ("fx_n", "fx_n", 1, 5e-6), ("depth_mm", "depth_m", 1e3, 5e-5)):
+        got = np.array([float(r[key]) for r in recs])
+        np.testing.assert_allclose(got, rows[:, C[col]] * scale, rtol=0, atol=tol * 1.0001, err_msg=key)
+    np.testing.assert_allclose([float(r["tip_depth_mm"]) for r in recs], -rows[:, C["z_m"]] * 1e3, atol=5e-4)
+    places = ("outside", "skin", "fat", "muscle", "bone")
+    assert [r["layer"] for r in recs] == [places[int(c) + 1] for c in rows[:, C["layer"]]]
+    states = ("untouched", "pressing", "punctured")
+    for j, name in enumerate(LAYER_NAMES):
+        assert [r[f"state_{name}"] for r in recs] == [states[int(c)] for c in rows[:, C["state_skin"] + j]]
+    punct = [(int(r["tick"]), r["puncture"]) for r in recs if r["puncture"]]
+    assert punct == [(p["tick"], p["layer"]) for p in independent_punctures(rows)]
+    text = session.csv.read_text()
+    assert not re.search(r"(^|,)-0\.0+(,|$)", text, re.M)  # no negative zeros
+
+
+def test_csv_is_byte_identical_for_identical_rows(session):
+    other = SamplesCsvSink(session.tmp / "again.csv")
+    feed([other], session.rows, session.model, session.cfg, frame_rows=50)
+    assert (session.tmp / "again.csv").read_bytes() == session.csv.read_bytes()
