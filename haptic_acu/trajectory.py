@@ -67,7 +67,8 @@ CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows, parsed i
 MAX_LINE_BYTES = 1 << 20  # a longer "line" is binary data, not a row
 
 _NUMBER = re.compile(
-    r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE | re.ASCII
+    r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)",
+    re.IGNORECASE | re.ASCII,
 )
 _CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
 _CONTROL_BYTES = bytes([*range(0, 9), 11, 12, *range(14, 32), 127])  # as _CONTROL
@@ -135,7 +136,8 @@ class TrajectoryReader:
                 f"header must name {','.join(want)} (found: {','.join(self.columns)}){hint}")
         for c in want:
             if self.columns.count(c) > 1:
-                raise UserError(f"{self.path}: line {self.header_line}: column {c} appears more than once")
+                raise UserError(f"{self.path}: line {self.header_line}: column {c} appears more "
+                                "than once")
         self._usecols = [self.columns.index(c) for c in want]
         self._names = want
 
@@ -154,7 +156,8 @@ class TrajectoryReader:
         try:
             text = raw.decode("utf-8-sig" if line == 1 else "utf-8")
         except UnicodeDecodeError:
-            raise _binary_error(self.path, line, "not UTF-8 text (binary data or another encoding)") from None
+            raise _binary_error(self.path, line,
+                                "not UTF-8 text (binary data or another encoding)") from None
         if _CONTROL.search(text):
             raise _binary_error(self.path, line, "binary data (control characters)")
         return text
@@ -321,7 +324,8 @@ class _Checker:
         if len(bad):
             r = int(bad[0])
             j = int(np.flatnonzero(~np.isfinite(vals[r]))[0])
-            problems.append((r, 0, f"column {self.names[j]} is {float(vals[r, j])!r}; values must be finite"))
+            problems.append((r, 0, f"column {self.names[j]} is {float(vals[r, j])!r}; values must "
+                                   "be finite"))
         if self.prev is not None:
             tt = np.concatenate(([self.prev[0]], t))
             pp = np.vstack((self.prev[1], p))
@@ -343,8 +347,9 @@ class _Checker:
             if len(bad_v):
                 i = int(bad_v[0])
                 problems.append((i + 1 - off, 2,
-                                 f"the tip moves at {speed[i]:.3g} m/s since line {ll[i]}, faster than a "
-                                 f"hand can (max_hand_speed_m_per_s = {self.vmax:g}); trajectory refused"))
+                                 f"the tip moves at {speed[i]:.3g} m/s since line {ll[i]}, faster "
+                                 f"than a hand can (max_hand_speed_m_per_s = {self.vmax:g}); "
+                                 "trajectory refused"))
             if not problems:
                 self.max_speed = max(self.max_speed, float(np.max(speed)))
         if problems:
