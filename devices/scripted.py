@@ -11,6 +11,8 @@ Clocking (``drives_clock`` is False: the engine calls ``read`` / ``set_force`` e
 
 * ``read_at(t_s)``: the state at a session time the caller supplies. The simplest contract, and
   the one to use when the engine keeps its own clock.
+* ``read_block(t_s_array)``: positions, velocities and done flags for many increasing times at
+  once (the headless engine asks for one visual frame of ticks per call).
 * headless (``realtime=False``): the device keeps a simulated clock; the engine calls
   ``advance(dt)`` once per tick (dt = 1 ms, summed without drift) and ``read()`` returns the state
   at that clock. The first ``read()`` before any ``advance`` is at t = 0.

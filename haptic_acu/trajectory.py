@@ -512,6 +512,8 @@ class TrajectoryCursor:
         """Vectorised :meth:`sample` for increasing times ``t`` (n,): positions (n, 3), velocities
         (n, 3) and done flags (n,). Used by headless replay, one visual frame of ticks per call."""
         t = np.asarray(t, dtype=np.float64)
+        if t.size == 0:
+            return np.empty((0, 3)), np.empty((0, 3)), np.zeros(0, dtype=bool)
         h = self.velocity_step_s
         self._ensure(float(t[0]) - h, float(t[-1]))
         T = self._t

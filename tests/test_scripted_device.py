@@ -84,6 +84,24 @@ def test_headless_replay_tick_by_tick(tmp_path):
     assert all(isinstance(s, DeviceState) and s.buttons == 0 for s in ticks)
 
 
+def test_read_block_matches_tick_by_tick(tmp_path):
+    """The engine's headless loop asks for a visual frame of ticks at once."""
+    path, t, z = _ramp(tmp_path)
+    with ScriptedDevice(path) as a, ScriptedDevice(path) as b:
+        ticks = np.arange(0, 800) * 1e-3
+        P, V, D = [], [], []
+        for k in range(0, len(ticks), 17):
+            p, v, d = b.read_block(ticks[k:k + 17])
+            P.append(p)
+            V.append(v)
+            D.append(d)
+        one = [a.read_at(x) for x in ticks]
+    np.testing.assert_allclose(np.concatenate(P), [s.position_m for s in one], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.concatenate(V), [s.velocity_m_s for s in one], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.concatenate(D), [s.done for s in one])
+    np.testing.assert_allclose(np.concatenate(P)[:, 2], np.interp(ticks, t, z) / 1000, atol=1e-12)
+
+
 def test_read_at_seek_and_the_ends(tmp_path):
     path, t, z = _ramp(tmp_path)
     dev = ScriptedDevice(path)

@@ -356,6 +356,15 @@ def test_cursor_matches_numpy_interp_and_holds_at_the_ends(tmp_path):
     np.testing.assert_allclose([g[0] for g in got], ref(tk), rtol=0, atol=1e-13)
     np.testing.assert_allclose([g[1] for g in got], (ref(tk) - ref(tk - h)) / h, rtol=0, atol=1e-9)
     np.testing.assert_array_equal([g[2] for g in got], tk >= tf[-1])
+    # the vectorised form, a visual frame (17 ticks) per call, on a fresh cursor
+    blk = T.TrajectoryReader(path).cursor()
+    frames = [tk[a:a + 17] for a in range(0, len(tk), 17)]
+    res = [blk.sample_block(f) for f in frames]
+    np.testing.assert_allclose(np.concatenate([r[0] for r in res]), ref(tk), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.concatenate([r[1] for r in res]), (ref(tk) - ref(tk - h)) / h,
+                               rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.concatenate([r[2] for r in res]), tk >= tf[-1])
+    assert blk.sample_block(np.empty(0))[0].shape == (0, 3)
     np.testing.assert_allclose(tr.position_at(times), ref(times), rtol=0, atol=1e-13)
     # before the first sample: held at the first position with zero velocity
     pos, vel, done = T.TrajectoryReader(path).cursor().sample(0.1)
