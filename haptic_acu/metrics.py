@@ -1,0 +1,234 @@
+"""Trainee session metrics: how each insertion was made, from a session's sample rows.
+
+:func:`session_metrics` reads the servo rows of one session (:mod:`haptic_acu.samples`, one row per
+tick, SI units) and returns a JSON-ready dict: numbers rounded to fixed places (mm to 1 um, N to
+0.1 mN, s to 0.1 ms, degrees to 0.01), so identical rows give identical output.
+
+Insertion. A contiguous run of ticks in which the skin is punctured (``state_skin`` == 2). The
+model resets the layer states when the tip comes back above the entry point, so going in again,
+even through the existing hole, starts a new insertion. The insertion's *entry tick* is the first
+tick of the skin's pressing run just before the run (the tip touching the intact skin); if there is
+none, as when the tip re-enters through a hole (untouched -> punctured), it is the run's first tick.
+
+Per insertion:
+
+* ``entry_mm``: the tip position (mm, scene frame) at the entry tick; ``entry_offset_mm`` its
+  distance from the acupoint (the origin).
+* ``angle_deg``: angle between the insertion direction (entry -> the tip at its deepest, i.e. at
+  the first tick of maximum ``depth_skin_m``) and the inward skin normal at the entry: minus
+  ``tissue.normal(0, entry)`` when a :class:`~haptic_acu.tissue.Tissue` is given, else -z (the
+  normal at the acupoint). None if the tip never moved away from the entry.
+* ``max_depth_mm``: the largest ``depth_skin_m`` (depth along the insertion below the skin entry,
+  in the compressed tissue's frame: see :mod:`haptic_acu.needle`), against the config's
+  ``scene.target_depth_mm``: ``depth_verdict`` is "in range", "too shallow" or "too deep".
+* ``insertion_speed_mm_s``: mean axial speed from the puncture (the run's first tick) to the first
+  tick at 90% of the max depth: the tip's displacement along the insertion direction over the time
+  between (so the depth frame's steps at deeper punctures, below, do not bias it).
+* ``time_to_target_s``: from the entry tick to the first tick whose depth reaches the target's lower
+  bound; None if it never does.
+* ``peak_force_n``: the largest ``|f_skin_n|``, ``|f_fat_n|``, ``|f_muscle_n|`` (the force attributed
+  to each layer: its surface force while pressed, its damping once passed) from the entry tick to
+  the end of the run, so the skin's puncture peak is included; ``peak_total_force_n`` the largest
+  ``|F|``.
+* ``lift_thrust``: cycles of lifting and thrusting back once the needle is at depth, i.e. from the
+  first tick whose depth reaches the target's lower bound (or 90% of the max depth, if that is
+  shallower). Each cycle is a trough of the depth signal found by ``scipy.signal.find_peaks`` (on
+  minus the depth) with a prominence of at least 1 mm; its ``amplitude`` is that prominence, the
+  depth given up on the lift (for a cosine stroke around a fixed depth: the stroke length).
+  ``frequency_hz`` is (cycles - 1) over the time from the first trough to the last (None for fewer
+  than two). Before peak finding the depth signal is made continuous: when the fat or muscle
+  surface breaks, the model lifts its frame by that surface's dent, so ``depth_skin_m`` steps back
+  by about 1 mm in one tick; those steps (the drop in depth beyond the tip's own axial motion on
+  the puncture tick) are added back, or a puncture could pass for a lift.
+* ``lateral``: ticks of the run with ``f_lateral_n`` (the lateral-constraint force) above the comfort
+  bound, their duration, and the run's largest lateral force.
+* ``time_in_tissue_s``: the run's duration (ticks times the tick period).
+
+Session level: ``insertions`` (count), ``skin_punctures`` (insertions that broke intact skin),
+``time_in_tissue_s`` and ``lateral`` summed over insertions. The tick period is the median interval
+between rows.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from .samples import COL, NCOL
+
+LAYERS = ("skin", "fat", "muscle")
+PRESSING, PUNCTURED = 1, 2  # layer states (haptic_acu.needle)
+DEFAULT_LATERAL_COMFORT_N = 0.5
+CYCLE_PROMINENCE_M = 1e-3
+SPEED_DEPTH_FRACTION = 0.9
+
+_X = COL["x_m"]
+_F = COL["fx_n"]
+_T = COL["t_s"]
+_SKIN = COL["state_skin"]
+_PUNCT = COL["puncture"]
+_DEPTH = COL["depth_skin_m"]
+_LAT = COL["f_lateral_n"]
+_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
+
+
+def _r(x, nd: int):
+    """Round for JSON without negative zeros; None stays None."""
+    if x is None:
+        return None
+    return round(float(x), nd) + 0.0
+
+
+def insertion_runs(state_skin: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) row indices of each contiguous run with the skin punctured."""
+    inside = np.asarray(state_skin) == PUNCTURED
+    if not inside.any():
+        return []
+    edges = np.diff(inside.astype(np.int8), prepend=0, append=0)
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1) - 1
+    return list(zip(starts.tolist(), ends.tolist()))
+
+
+def entry_tick(state_skin: np.ndarray, first: int) -> int:
+    """The first tick of the pressing run that ends just before row ``first``, else ``first``."""
+    i = first
+    while i > 0 and state_skin[i - 1] == PRESSING:
+        i -= 1
+    return i
+
+
+def depth_verdict(depth_mm: float, target_mm) -> str:
+    lo, hi = target_mm
+    if depth_mm < lo:
+        return "too shallow"
+    if depth_mm > hi:
+        return "too deep"
+    return "in range"
+
+
+def continuous_depth(depth: np.ndarray, axial: np.ndarray, puncture: np.ndarray) -> np.ndarray:
+    """``depth`` (m) with the steps at deeper-layer punctures added back (see the module docstring).
+
+    On a tick whose ``puncture`` is fat or muscle (>= 1), the step is the tip's axial advance over
+    that tick minus the change of ``depth``; it is kept for every later tick."""
+    step = np.zeros_like(depth)
+    if depth.size > 1:
+        jump = np.diff(axial) - np.diff(depth)
+        at = puncture[1:] >= 1
+        step[1:] = np.where(at, np.maximum(jump, 0.0), 0.0)
+    return depth + np.cumsum(step)
+
+
+def lift_thrust_cycles(t: np.ndarray, depth: np.ndarray, prominence_m: float = CYCLE_PROMINENCE_M) -> dict:
+    """Lift-thrust cycles in a depth signal (m) sampled at times ``t`` (s): troughs of the depth with
+    at least ``prominence_m`` prominence (scipy.signal.find_peaks on -depth)."""
+    if depth.size < 3:
+        return {"cycles": 0, "mean_amplitude_mm": None, "frequency_hz": None}
+    troughs, props = find_peaks(-depth, prominence=prominence_m)
+    n = int(troughs.size)
+    amp = float(np.mean(props["prominences"])) * 1e3 if n else None
+    freq = None
+    if n >= 2:
+        span = float(t[troughs[-1]] - t[troughs[0]])
+        freq = (n - 1) / span if span > 0 else None
+    return {"cycles": n, "mean_amplitude_mm": _r(amp, 3), "frequency_hz": _r(freq, 3)}
+
+
+def _angle_deg(u: np.ndarray, n: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(u, n)), float(np.dot(u, n)))))
+
+
+def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target_mm, tissue=None,
+                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+    """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured)."""
+    state = rows[:, _SKIN]
+    e = entry_tick(state, first)
+    run = rows[first:last + 1]
+    t = run[:, _T]
+    p = run[:, _X:_X + 3]
+    depth = run[:, _DEPTH]
+    entry = rows[e, _X:_X + 3].copy()
+    lo, hi = float(target_mm[0]), float(target_mm[1])
+
+    k_deep = int(np.argmax(depth))
+    max_depth = float(depth[k_deep])
+    direction = p[k_deep] - entry
+    length = float(np.linalg.norm(direction))
+    if tissue is not None:
+        inward = -np.asarray(tissue.normal(0, entry), dtype=np.float64)
+    else:
+        inward = np.array([0.0, 0.0, -1.0])
+    if length > 1e-6:
+        u = direction / length
+        angle = _angle_deg(u, inward)
+    else:
+        u = inward
+        angle = None
+    axial = (p - entry) @ u
+
+    # speed: from the puncture (run's first tick) to the first tick at 90% of the max depth
+    speed = None
+    k90 = int(np.argmax(depth >= SPEED_DEPTH_FRACTION * max_depth))
+    if k90 > 0 and t[k90] > t[0]:
+        speed = (axial[k90] - axial[0]) / (t[k90] - t[0]) * 1e3
+
+    reached = np.flatnonzero(depth >= lo * 1e-3)
+    t_target = float(t[reached[0]] - rows[e, _T]) if reached.size else None
+
+    window = rows[e:last + 1]
+    peaks = {name: _r(np.abs(window[:, c]).max(), 4) for name, c in zip(LAYERS, _LAYER_F)}
+    f_total = np.sqrt(np.einsum("ij,ij->i", window[:, _F:_F + 3], window[:, _F:_F + 3]))
+
+    at_depth = min(lo * 1e-3, SPEED_DEPTH_FRACTION * max_depth)
+    k_start = int(np.argmax(depth >= at_depth))
+    dc = continuous_depth(depth, axial, run[:, _PUNCT])
+    cycles = lift_thrust_cycles(t[k_start:], dc[k_start:])
+
+    lat = run[:, _LAT]
+    over = int(np.count_nonzero(lat > lateral_comfort_n))
+    skin_punctured = bool(run[0, _PUNCT] == 0)
+    return {
+        "t_entry_s": _r(rows[e, _T], 4),
+        "t_inside_s": _r(t[0], 4),
+        "t_exit_s": _r(t[-1], 4),
+        "skin_punctured": skin_punctured,
+        "entry_mm": [_r(v * 1e3, 3) for v in entry],
+        "entry_offset_mm": _r(np.linalg.norm(entry) * 1e3, 3),
+        "angle_deg": _r(angle, 2),
+        "max_depth_mm": _r(max_depth * 1e3, 3),
+        "depth_verdict": depth_verdict(max_depth * 1e3, (lo, hi)),
+        "insertion_speed_mm_s": _r(speed, 3),
+        "time_to_target_s": _r(t_target, 4),
+        "peak_force_n": peaks,
+        "peak_total_force_n": _r(f_total.max(), 4),
+        "lift_thrust": cycles,
+        "lateral": {"ticks_over": over, "time_over_s": _r(over * dt, 4), "max_n": _r(lat.max(), 4)},
+        "time_in_tissue_s": _r(len(run) * dt, 4),
+    }
+
+
+def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+    """Metrics of one session's rows ((n, NCOL) array, oldest first): see the module docstring.
+
+    ``cfg``: the :class:`~haptic_acu.config.TissueConfig` (its ``scene.target_depth_mm``).
+    ``tissue``: the session's :class:`~haptic_acu.tissue.Tissue`, for the skin normal at each entry
+    (default: -z, the normal at the acupoint). ``lateral_comfort_n``: the lateral-force comfort
+    bound (N)."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != NCOL:
+        raise ValueError(f"sample rows must have shape (n, {NCOL}), got {rows.shape}")
+    target = tuple(float(v) for v in cfg.scene.target_depth_mm)
+    dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
+    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n)
+                  for a, b in insertion_runs(rows[:, _SKIN])]
+    ticks_over = sum(m["lateral"]["ticks_over"] for m in insertions)
+    max_lat = max((m["lateral"]["max_n"] for m in insertions), default=0.0)
+    return {
+        "insertions": len(insertions),
+        "skin_punctures": sum(m["skin_punctured"] for m in insertions),
+        "time_in_tissue_s": _r(np.count_nonzero(rows[:, _SKIN] == PUNCTURED) * dt, 4),
+        "target_depth_mm": list(target),
+        "lateral_comfort_n": float(lateral_comfort_n),
+        "lateral": {"ticks_over": ticks_over, "time_over_s": _r(ticks_over * dt, 4), "max_n": _r(max_lat, 4)},
+        "per_insertion": insertions,
+    }
