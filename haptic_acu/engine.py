@@ -194,6 +194,7 @@ class Session:
         self._zero = np.zeros(3)
         self._warm = False
         self._t_session = 0.0
+        self.sched_fifo = False
 
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -268,7 +269,8 @@ class Session:
         return {"clock": self.clock, "ticks": self.tick, "missed_ticks": self.missed,
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
-                "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"]}
+                "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"],
+                "sched_fifo": self.sched_fifo}
 
     # -- running ------------------------------------------------------------------------------------
     def run(self) -> SessionResult:
@@ -429,7 +431,7 @@ class Session:
             self._rt_teardown(old)
 
     def _servo_loop(self, t0: float) -> None:
-        self._try_fifo()
+        self.sched_fifo = self._try_fifo()
         dev = self.device
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
