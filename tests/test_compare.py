@@ -1,0 +1,118 @@
+"""``haptic-acu compare`` through the real CLI: the slow and the fast bundled insertions (their speed
+ratio is their generator's 30/3), bad input as one-line errors, and the figure's determinism."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from haptic_acu.compare_cmd import plot_compare
+from haptic_acu.samples import COL, NCOL
+
+ROOT = Path(__file__).resolve().parent.parent
+TRAJ = ROOT / "trajectories"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "haptic_acu", "compare", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def assert_one_line_error(r, *needles):
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("haptic-acu compare: error: ")
+    assert "Traceback" not in r.stderr
+    for n in needles:
+        assert n in lines[0]
+
+
+@pytest.mark.slow
+def test_slow_vs_fast_insertion(tmp_path):
+    out = tmp_path / "cmp"
+    r = cli(TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", out, "--labels", "trainee", "expert")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["labels"] == ["trainee", "expert"]
+    a, b = (s["metrics"] for s in doc["sessions"])
+    assert [s["trajectory"] for s in doc["sessions"]] == ["slow_insertion.csv", "fast_insertion.csv"]
+    assert a["insertions"] == b["insertions"] == 1
+    va = a["per_insertion"][0]["insertion_speed_mm_s"]
+    vb = b["per_insertion"][0]["insertion_speed_mm_s"]
+    # make_bundled.py: 3 mm/s and 30 mm/s, both at cruise speed by the time the tip reaches the skin
+    assert va == pytest.approx(3.0, rel=0.05) and vb == pytest.approx(30.0, rel=0.05)
+    assert vb / va == pytest.approx(10.0, rel=0.05)
+    assert doc["first_insertion_b_minus_a"]["insertion_speed_mm_s"] == pytest.approx(vb - va, abs=1e-3)
+    # the same path at ten times the speed reaches the target depth about ten times sooner
+    ta, tb = a["per_insertion"][0]["time_to_target_s"], b["per_insertion"][0]["time_to_target_s"]
+    assert ta / tb == pytest.approx(10.0, rel=0.1)
+    # the printed table: a header with both labels, then rows with one value per session
+    lines = r.stdout.splitlines()
+    assert lines[0].split() == ["trainee", "expert"]
+    speed = next(ln for ln in lines if "insertion speed" in ln).split()
+    assert [float(speed[-2]), float(speed[-1])] == pytest.approx([va, vb], abs=0.01)
+    assert lines[-1] == f"files: {out}/"
+    png = (out / "compare.png").read_bytes()
+    assert png.startswith(PNG_SIGNATURE)
+    assert sorted(p.name for p in out.iterdir()) == ["compare.json", "compare.png"]
+    assert not (tmp_path / "cmp.partial").exists()
+
+
+def _bad(tmp_path):
+    p = tmp_path / "trainee.csv"
+    p.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.01,0,0\n0.02,0,0,4\n")
+    return p
+
+
+def test_malformed_file_names_file_and_line(tmp_path):
+    bad = _bad(tmp_path)
+    for args in ((bad, TRAJ / "default.csv"), (TRAJ / "default.csv", bad)):
+        r = cli(*args, "--out", tmp_path / "out")
+        assert_one_line_error(r, str(bad), "line 3")
+        assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
+
+
+def test_missing_file_and_bad_arguments(tmp_path):
+    r = cli(tmp_path / "nope.csv", TRAJ / "default.csv", "--out", tmp_path / "out")
+    assert_one_line_error(r, str(tmp_path / "nope.csv"), "not found")
+    r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--config", tmp_path / "none.toml")
+    assert_one_line_error(r, "none.toml")
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "keep.txt").write_text("x")
+    r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--out", full)
+    assert_one_line_error(r, str(full), "not empty")
+    assert sorted(p.name for p in full.iterdir()) == ["keep.txt"]
+    r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--labels", "only-one")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def _rows(depth_mm, force_n):
+    r = np.zeros((len(depth_mm), NCOL))
+    r[:, COL["t_s"]] = np.arange(len(depth_mm)) * 1e-3
+    r[:, COL["depth_skin_m"]] = np.asarray(depth_mm) * 1e-3
+    r[:, COL["fz_n"]] = force_n
+    r[:, COL["state_skin"]] = np.where(np.asarray(depth_mm) > 0, 2, 1)
+    return r
+
+
+def test_figure_bytes_are_deterministic(tmp_path):
+    d = np.concatenate([np.zeros(50), np.linspace(0, 20, 400), np.linspace(20, 0, 400)])
+    a = _rows(d, 0.05 * d + 0.2 * np.sin(d))
+    b = _rows(0.8 * d, 0.08 * d)
+    bounds = np.array([0.0, 0.8, 9.2, 48.2])
+    paths = [tmp_path / "one.png", tmp_path / "two.png"]
+    for p in paths:
+        plot_compare([a, b], ["trainee", "expert"], p, bounds)
+    one, two = (p.read_bytes() for p in paths)
+    assert one.startswith(PNG_SIGNATURE) and one == two
+    assert b"Software" not in one and b"Date" not in one
+    # a different session draws a different picture (the bytes depend on the data)
+    plot_compare([a, _rows(0.5 * d, 0.08 * d)], ["trainee", "expert"], paths[1], bounds)
+    assert paths[1].read_bytes() != one
