@@ -157,19 +157,22 @@ class SummarySink:
     ``"loop"`` on :meth:`close` (timing figures there are only deterministic on the sim clock).
     """
 
-    def __init__(self, keep_rows: bool = True):
+    def __init__(self, cfg=None, keep_rows: bool = True):
         self.keep_rows = keep_rows
         self.scan: SessionScan | None = None
         self.tissue = None
-        self.config = None
+        self.config = cfg
         self._blocks: list[np.ndarray] = []
         self.fault: str | None = None
         self.stats: dict | None = None
 
     # -- sink interface -------------------------------------------------------------------------
     def start(self, info: dict) -> None:
-        self.config = info.get("config")
+        if info.get("config") is not None:
+            self.config = info["config"]
         self.tissue = info["model"].tissue
+        if self.config is not None:
+            remember_tissue(self.config, self.tissue)
         self.scan = SessionScan(self.tissue)
         self._blocks = []
 
@@ -185,8 +188,8 @@ class SummarySink:
         self.stats = getattr(result, "stats", None)
 
     # -- outputs --------------------------------------------------------------------------------
-    @property
     def rows(self) -> np.ndarray:
+        """Every row seen so far (k, NCOL), if ``keep_rows``."""
         if not self._blocks:
             return np.zeros((0, NCOL))
         if len(self._blocks) > 1:
@@ -247,12 +250,43 @@ class SummarySink:
             print(f"  FAULT: {s['fault']}", file=file)
 
     def write_figure(self, path) -> None:
-        plot_force_depth(self.rows, path, self.tissue)
+        plot_force_depth(self.rows(), path, self.tissue)
 
 
 # ---- the figure -------------------------------------------------------------------------------
 _BAND_COLOURS = {"skin": "#e8b89a", "fat": "#f3dc8c", "muscle": "#d98a8a", "bone": "#d8d4c8"}
 _EVENT_COLOURS = {"skin": "#b5542a", "fat": "#a07d00", "muscle": "#8e1e1e"}
+
+
+_TISSUES: dict = {}  # config -> Tissue built for it (fitting one takes seconds)
+
+
+def remember_tissue(cfg, tissue) -> None:
+    """Let :func:`plot_force_depth` (given a config) reuse a session's tissue instead of refitting it."""
+    try:
+        _TISSUES[cfg] = tissue
+    except TypeError:  # an unhashable config: nothing to key on
+        pass
+    while len(_TISSUES) > 4:
+        _TISSUES.pop(next(iter(_TISSUES)))
+
+
+def tissue_of(tissue_or_config=None):
+    """A Tissue from a Tissue, a TissueConfig (the one a sink saw, or built and remembered), or None
+    (the default config)."""
+    if tissue_or_config is not None and hasattr(tissue_or_config, "radius"):
+        return tissue_or_config
+    from .config import load_config
+    from .tissue import Tissue
+    cfg = tissue_or_config if tissue_or_config is not None else load_config()
+    try:
+        hit = _TISSUES.get(cfg)
+    except TypeError:
+        hit = None
+    if hit is None:
+        hit = Tissue.from_config(cfg)
+        remember_tissue(cfg, hit)
+    return hit
 
 
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110) -> None:
@@ -263,7 +297,8 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     skin surface (mm, :func:`tip_depth_m`), over bands of the layers at rest under the acupoint (the
     config thicknesses, :meth:`Tissue.depths_at_acupoint`); each puncture is marked at its
     pressing-phase peak. Bottom: ``F . u`` and ``|F|`` against time, punctures as vertical lines.
-    ``tissue`` defaults to the one built from the default config.
+    ``tissue``: a Tissue or a TissueConfig (a session sink's tissue is reused); default: the default
+    config's.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -271,10 +306,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
-    if tissue is None:
-        from .config import load_config
-        from .tissue import Tissue
-        tissue = Tissue.from_config(load_config())
+    tissue = tissue_of(tissue)
     depth_mm = tip_depth_m(rows[:, _C_X:_C_X + 3], tissue) * 1e3
     f_ax = radial_force_n(rows, tissue)
     f_mag = np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)

@@ -63,7 +63,7 @@ def session(tmp_path_factory):
     model.warm_up()
     rows = drive_rows(model)
     tmp = tmp_path_factory.mktemp("report")
-    summ = SummarySink()
+    summ = SummarySink(cfg)
     csv_sink = SamplesCsvSink(tmp / "samples.csv")
     feed([summ, csv_sink], rows, model, cfg)
     return SimpleNamespace(cfg=cfg, model=model, rows=rows, summary=summ, csv=tmp / "samples.csv", tmp=tmp)
@@ -149,12 +149,17 @@ def _png_chunks(data: bytes):
         pos += 12 + length
 
 
+def test_summary_sink_keeps_every_row(session):
+    assert np.array_equal(session.summary.rows(), session.rows)
+
+
 def test_figure_is_a_valid_png_and_byte_identical_across_runs(session):
-    a, b = session.tmp / "a.png", session.tmp / "b.png"
+    a, b, c = session.tmp / "a.png", session.tmp / "b.png", session.tmp / "c.png"
     plot_force_depth(session.rows, a, session.model.tissue)
-    plot_force_depth(session.rows.copy(), b, session.model.tissue)
+    plot_force_depth(session.rows.copy(), b, session.cfg)  # the config: the sink's tissue is reused
+    session.summary.write_figure(c)
     data = a.read_bytes()
-    assert data == b.read_bytes()
+    assert data == b.read_bytes() == c.read_bytes()
     chunks = list(_png_chunks(data))
     assert chunks[0][0] == b"IHDR" and chunks[-1][0] == b"IEND"
     width, height = struct.unpack(">II", chunks[0][1][:8])

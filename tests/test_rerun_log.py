@@ -1,0 +1,248 @@
+"""RerunSink: write a .rrd from a synthetic session and read it back with rerun.chunk.RrdReader.
+
+The session is engine-free: the real NeedleModel driven along -z through the acupoint (tip from
+z = +5 mm to -30 mm at 10 mm/s, 1 ms ticks), rows written with samples.write_sample and cut into
+17-row frames; each frame runs springback and carries the live nets' dents on the patch grid
+(forcenet.dent_on_grid), as the engine's visual loop does.
+"""
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rerun.chunk import RrdReader
+
+from haptic_acu import samples as S
+from haptic_acu.config import load_config
+from haptic_acu.errors import UserError
+from haptic_acu.forcenet import dent_on_grid, lattice
+from haptic_acu.needle import NeedleModel
+from haptic_acu.rerun_log import RerunSink, lattice_rows
+from haptic_acu.springback import Springback
+
+C = S.COL
+PRESSING, PUNCTURED = 1, 2
+
+
+def frame_dents(model, theta, phi):
+    """Layer -> radial dent (m) on the (theta, phi) grid from every live net of that layer."""
+    th, ph = theta.ravel().copy(), phi.ravel().copy()
+    out = {}
+    for k in range(3):
+        for s in range(2):
+            idx = 2 * k + s
+            if model.owner(idx) == 0:
+                continue
+            pos = model.net_positions(idx)
+            tmp = np.empty(th.size)
+            dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], 1.5 * model.params[k].spacing_m, tmp)
+            out[k] = out.get(k, 0.0) + tmp.reshape(theta.shape)
+    return out
+
+
+def run_session(model, cfg, sink, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3, frame_rows=17):
+    from haptic_acu.engine import PATCH_GRID
+
+    model.reset(keep_holes=False)
+    spring = Springback.from_config(model, cfg)
+    n = int(round((z0 - z1) / (speed * dt))) + 1
+    rows = np.zeros((n, S.NCOL))
+    v = np.array([0.0, 0.0, -speed])
+    sink.warm_up()
+    sink.start({"config": cfg, "model": model, "device": None, "clock": "sim"})
+    start = 0
+    for i in range(n):
+        p = np.array([0.0, 0.0, z0 - speed * dt * i])
+        model.step(p, v)
+        S.write_sample(rows, i, i * dt, i, p, v, model.diag, model.si, 0.0)
+        if i + 1 - start == frame_rows or i == n - 1:
+            spring.frame()
+            sink.on_frame(SimpleNamespace(t_s=i * dt, index=start // frame_rows, samples=rows[start:i + 1].copy(),
+                                          model=model, rates={"servo_hz": 1000.0, "visual_hz": 60.0},
+                                          dents=frame_dents(model, *PATCH_GRID)))
+            start = i + 1
+    sink.close(SimpleNamespace(fault=None, stats={}))
+    return rows
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    cfg = load_config()
+    model = NeedleModel(cfg)
+    model.warm_up()
+    path = tmp_path_factory.mktemp("rerun") / "session.rrd"
+    sink = RerunSink.to_file(path)
+    rows = run_session(model, cfg, sink)
+    reader = RrdReader(path)
+    return SimpleNamespace(path=path, rows=rows, model=model, sink=sink, reader=reader, store=reader.store())
+
+
+def columns(store, entity, component, static=False):
+    """(ticks, sim_time ns, values per row) of one component of one entity, in log order."""
+    ticks, times, values = [], [], []
+    for chunk in store.stream().filter(content=entity).to_chunks():
+        if chunk.entity_path != entity or chunk.is_static != static:
+            continue
+        rb = chunk.to_record_batch()
+        if component not in rb.schema.names:
+            continue
+        if not static:
+            ticks += rb.column("tick").to_pylist()
+            times += rb.column("sim_time").cast(pa.int64()).to_pylist()
+        values += rb.column(component).to_pylist()
+    return np.array(ticks, dtype=np.int64), np.array(times, dtype=np.int64), values
+
+
+def test_force_series_hold_exactly_one_value_per_tick(recording):
+    rows = recording.rows
+    ticks, times, values = columns(recording.store, "/force/total", "Scalars:scalars")
+    order = np.argsort(ticks, kind="stable")
+    assert list(ticks[order]) == list(range(len(rows)))  # every tick once, none twice
+    vals = np.array(values)[order]
+    f = rows[:, C["fx_n"]:C["fz_n"] + 1]
+    assert np.array_equal(vals[:, 1:4], f)  # float64 through and back: exact
+    assert np.array_equal(vals[:, 0], np.sqrt(f[:, 0] ** 2 + f[:, 1] ** 2 + f[:, 2] ** 2))
+    assert np.array_equal(times[order], np.round(rows[:, C["t_s"]] * 1e9).astype(np.int64))
+
+
+def test_split_and_depth_series(recording):
+    rows = recording.rows
+    ticks, _, values = columns(recording.store, "/force/split", "Scalars:scalars")
+    vals = np.array(values)[np.argsort(ticks, kind="stable")]
+    assert len(vals) == len(rows)
+    assert np.array_equal(vals[:, 0:3], rows[:, C["f_skin_n"]:C["f_muscle_n"] + 1])
+    assert np.array_equal(vals[:, 3], rows[:, C["f_surface_n"]])
+    assert np.array_equal(vals[:, 4], rows[:, C["f_damp_n"]])
+    ticks, _, values = columns(recording.store, "/depth", "Scalars:scalars")
+    vals = np.array(values)[np.argsort(ticks, kind="stable")]
+    # Straight down the acupoint (the skin's +z pole at the origin): depth below the skin is -z.
+    np.testing.assert_allclose(vals[:, 0], -rows[:, C["z_m"]] * 1e3, atol=1e-6)
+    np.testing.assert_allclose(vals[:, 1], rows[:, C["depth_m"]] * 1e3, atol=1e-12)
+
+
+def test_puncture_events_are_text_log_entries_at_the_puncture_ticks(recording):
+    rows = recording.rows
+    ticks, _, texts = columns(recording.store, "/events", "TextLog:text")
+    texts = [t[0] for t in texts]
+    want = []
+    for j, name in enumerate(("skin", "fat", "muscle")):
+        st = rows[:, C["state_skin"] + j]
+        for i in np.nonzero((st[1:] == PUNCTURED) & (st[:-1] == PRESSING))[0] + 1:
+            want.append((int(i), name))
+    want.sort()
+    assert [(int(t), s.split(" ")[0]) for t, s in zip(ticks, texts)] == want
+    for (i, name), text in zip(want, texts):
+        assert text.startswith(f"{name} punctured at t={rows[i, C['t_s']]:.3f} s, depth {-rows[i, C['z_m']] * 1e3:.2f} mm")
+
+
+def test_scene_entities_exist(recording):
+    store = recording.store
+    for name in ("skin", "fat", "muscle", "bone"):
+        _, _, verts = columns(store, f"/world/tissue/{name}/rest", "Mesh3D:vertex_positions", static=True)
+        _, _, tris = columns(store, f"/world/tissue/{name}/rest", "Mesh3D:triangle_indices", static=True)
+        assert len(verts) == 1 and len(tris) == 1
+        assert np.max(tris[0]) < len(verts[0])
+    for entity, component in (("/world/needle", "LineStrips3D:strips"), ("/world/force", "Arrows3D:vectors"),
+                              ("/world/nets/skin/slot0/particles", "Points3D:positions"),
+                              ("/world/nets/skin/slot0/springs", "LineStrips3D:strips"),
+                              ("/rates/servo_hz", "Scalars:scalars")):
+        ticks, _, values = columns(store, entity, component)
+        assert len(values) > 0, entity
+    assert recording.reader.blueprints(), "the blueprint goes with the recording"
+
+
+def test_skin_patch_follows_the_tip_and_springs_back(recording):
+    """While the skin is pressed, the patch's pole vertex (on the needle's line) is below its rest
+    position (z = 0) but never below the tip, and sinks as the tip does; after the puncture springback
+    returns the whole patch to rest."""
+    rows, tissue = recording.rows, recording.model.tissue
+    ticks, _, verts = columns(recording.store, "/world/tissue/skin/patch", "Mesh3D:vertex_positions")
+    _, _, tris = columns(recording.store, "/world/tissue/skin/patch", "Mesh3D:triangle_indices", static=True)
+    assert np.max(tris[0]) < len(verts[0])
+    pressing = rows[:, C["state_skin"]] == PRESSING
+    lows = []
+    for t, v in zip(ticks, verts):
+        v = np.array(v)
+        if pressing[t] and -rows[t, C["z_m"]] > 0.3e-3:
+            tip_z = rows[t, C["z_m"]]
+            low = v[-1, 2]  # the pole vertex, at the acupoint
+            assert tip_z - 1e-6 <= low < 0.4 * tip_z  # dented by a good part of the tip's depth
+            lows.append(low)
+    assert len(lows) >= 3 and all(b < a for a, b in zip(lows, lows[1:]))
+    last = np.array(verts[-1], dtype=np.float64)[:-1]  # the grid vertices (the last one is the pole)
+    d = last - tissue.centre
+    r = np.linalg.norm(d, axis=1)
+    r_rest = tissue.radius(0, np.arccos(d[:, 2] / r), np.arctan2(d[:, 1], d[:, 0]))
+    assert np.max(np.abs(r - r_rest)) < 10e-6
+
+
+def test_rrd_verify(recording):
+    exe = Path(sys.executable).with_name("rerun")
+    if not exe.exists():
+        pytest.skip("no rerun CLI beside the interpreter")
+    res = subprocess.run([str(exe), "rrd", "verify", str(recording.path)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_lattice_rows_cover_every_spring_once():
+    for w in (2, 4, 8, 11):
+        lat = lattice(w)
+        n = 1 + 3 * (w - 1) * (w - 2) if w > 2 else 1  # the first w-1 rings, as a sub-net
+        for m in (lat.ring.size, n):
+            pairs = [tuple(sorted((int(a), int(b)))) for row in lattice_rows(lat, m) for a, b in zip(row, row[1:])]
+            want = {(i, int(j)) for i in range(m) for j in lat.nbr[i] if i < j < m}
+            assert len(pairs) == len(set(pairs)) and set(pairs) == want
+
+
+def test_from_spec(tmp_path):
+    with pytest.raises(UserError, match="spawn, connect"):
+        RerunSink.from_spec(str(tmp_path / "out.txt"))
+    sink = RerunSink.from_spec(str(tmp_path / "x.rrd"))
+    assert sink.mode == "file"
+    sink.close(None)
+    assert (tmp_path / "x.rrd").stat().st_size > 0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_connect_to_a_running_grpc_server(recording):
+    exe = Path(sys.executable).with_name("rerun")
+    if not exe.exists():
+        pytest.skip("no rerun CLI beside the interpreter")
+    port = _free_port()
+    server = subprocess.Popen([str(exe), "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20.0
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or server.poll() is not None:
+                    pytest.skip("could not start `rerun --serve-grpc`")
+                time.sleep(0.1)
+        sink = RerunSink.from_spec(f"connect:127.0.0.1:{port}")
+        assert sink.mode == "connect" and sink.target == f"rerun+http://127.0.0.1:{port}/proxy"
+        model = recording.model
+        run_session(model, model.cfg, sink, z0=1e-3, z1=-2e-3)  # a short press through the skin
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+
+
+def test_connect_without_a_viewer_is_a_one_line_user_error():
+    with pytest.raises(UserError, match="start a viewer") as e:
+        RerunSink.connect(f"127.0.0.1:{_free_port()}")
+    assert "\n" not in str(e.value)
