@@ -8,7 +8,7 @@ filtered difference of positions if the device does not report it; buttons), map
 frame (m, m/s) with the :class:`~devices.base.Workspace`, calls the engine's ``step(state)``,
 and commands the returned force (N, scene frame -> device frame) before closing the frame.
 
-Safety, in this order, on every tick:
+Safety, on every tick:
 
 * every HD call is followed by ``hdGetError``; any error ends the session;
 * no force until the first valid state; then the force is ramped in linearly over ``ramp_s``;
@@ -34,6 +34,7 @@ from __future__ import annotations
 import atexit
 import ctypes
 import math
+import sys
 import threading
 import time
 from typing import Callable
@@ -161,6 +162,7 @@ class _Servo:
         self.stall_ticks = stall_ticks
         self.ramp_ticks = ramp_ticks
         self.ticks = 0  # callbacks so far (read by the watchdog)
+        self.in_tick = False  # a callback is running (a slow step, not a silent scheduler)
         self.valid = 0  # ticks with a valid state (the ramp counts these)
         self.stop_requested = False  # stop was set: zero the force and finish
         self.abort_requested = False  # run_servo gave up (watchdog): zero the force and finish
@@ -340,8 +342,11 @@ class OmniDevice(Device):
                     last_ticks, last_change = ticks, now
                 elif now - last_change > (self._watchdog_s if ticks else grace):
                     servo.abort_requested = True
-                    servo.finish(fault=f"servo callback not called for {1e3 * (now - last_change):.0f} ms "
-                                       f"(after {ticks} ticks): HD scheduler stalled")
+                    ms = 1e3 * (now - last_change)
+                    servo.finish(fault=f"servo step has not returned for {ms:.0f} ms (tick {ticks}): too slow for "
+                                       "the 1 kHz servo (compile kernels before run_servo)" if servo.in_tick else
+                                       f"servo callback not called for {ms:.0f} ms (after {ticks} ticks): "
+                                       "HD scheduler stalled")
                     break
         except BaseException as e:  # KeyboardInterrupt in the waiting thread
             servo.abort_requested = True
@@ -366,31 +371,35 @@ class OmniDevice(Device):
         until closed. The unscheduling waits for a callback in progress, so it runs in a helper
         thread: a ``step`` that never returns cannot keep run_servo from raising."""
         hd = self._hd
-        with self._lock:
-            self._fault = servo.fault or f"{type(servo.exc).__name__} in the servo step"
-            hd.disable(HD_FORCE_OUTPUT)
-            hd.get_error()
-            stop_scheduler, self._scheduler_on = self._scheduler_on, False
 
-        def unschedule_and_stop():
+        def unschedule_and_stop(stop_scheduler):
             if handle:
                 hd.unschedule(handle)
             if stop_scheduler:
                 hd.stop_scheduler()
             hd.get_error()
 
-        helper = threading.Thread(target=unschedule_and_stop, name="omni-stop", daemon=True)
-        self._stopper = helper
-        helper.start()
+        with self._lock:  # close() waits for the helper before it disables the device
+            self._fault = servo.fault or f"{type(servo.exc).__name__} in the servo step"
+            hd.disable(HD_FORCE_OUTPUT)
+            hd.get_error()
+            helper = threading.Thread(target=unschedule_and_stop, args=(self._scheduler_on,),
+                                      name="omni-stop", daemon=True)
+            self._scheduler_on = False
+            helper.start()
+            self._stopper = helper
         helper.join(1.0)
 
     def _tick(self, s: _Servo) -> int:
         """One servo tick, on the HD scheduler thread. Never lets an exception into C."""
+        s.in_tick = True
         try:
             return self._tick_body(s)
         except BaseException as e:  # from step (or a bug here): zero force, finish
             self._zero_and_end(s)
             return s.finish(exc=e)
+        finally:
+            s.in_tick = False
 
     def _zero_and_end(self, s: _Servo) -> None:
         hd, h = self._hd, self._handle
@@ -468,6 +477,8 @@ class OmniDevice(Device):
         )
         s.latest = state
         f = np.asarray(s.step(state), dtype=float)
+        if s.abort_requested:  # the watchdog gave up on this step while it ran
+            return self._abort(s, "the servo was aborted while the step ran")
         if f.shape != (3,):
             raise ValueError(f"servo step returned a force of shape {f.shape}, expected (3,)")
         if not all(map(math.isfinite, f.tolist())):
@@ -546,5 +557,5 @@ def _close_all() -> None:
     for dev in list(_open_devices):
         try:
             dev.close()
-        except Exception:
-            pass
+        except Exception as e:  # noqa: BLE001 - exiting anyway; say so on one line
+            print(f"haptic-acu: closing the OMNI at exit failed: {type(e).__name__}: {e}", file=sys.stderr)

@@ -49,6 +49,9 @@ def emulator(tmp_path_factory):
 
 
 def run_session(lib, tmp_path, scenario: dict, env=None, **emu) -> dict:
+    # A shared, loaded test machine may starve a thread for a while: only the tests of the
+    # watchdog itself use its default 100 ms.
+    scenario = {**scenario, "options": {"watchdog_s": 0.5, **scenario.get("options", {})}}
     tmp_path.mkdir(parents=True, exist_ok=True)
     (tmp_path / "scenario.json").write_text(json.dumps(scenario))
     out = tmp_path / "result.json"
@@ -187,7 +190,7 @@ FAULTS = {
 def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tmp_path, kind):
     stall_s = 0.05
     res = run_session(emulator, tmp_path, {"workspace": WS, "force_limit_n": LIMIT, "spring_k_n_per_m": K,
-                                            "duration_s": 3.0, "options": {"stall_s": stall_s}},
+                                            "duration_s": 3.0, "options": {"stall_s": stall_s, "watchdog_s": 0.1}},
                       path=DEEP, faults=[(kind, FAULT_AT)])
     assert res["outcome"] == "DeviceFault", (res["outcome"], res["message"])
     msg = res["message"]
@@ -275,3 +278,28 @@ def test_exit_without_close_zeroes_and_disables_the_device(emulator, tmp_path, l
     if leave == "servo":
         assert np.any(fr[:, 7] > 0.5)  # the servo was pushing ...
     assert np.all(fr[-1, 5:8] == 0.0)  # ... and its last frame commanded zero
+
+
+def test_bad_force_limit_is_a_user_error_before_any_library_is_loaded():
+    from devices.base import Workspace
+    from devices.omni import OmniDevice
+    from haptic_acu.errors import UserError
+
+    for bad in (float("nan"), 0.0, -1.0, float("inf")):
+        with pytest.raises(UserError, match="force limit"):
+            OmniDevice(Workspace(), bad)
+    dev = OmniDevice(Workspace(), 2.0)
+    assert dev.info.drives_clock and dev.info.force_limit_n == 2.0 and dev.info.rate_hz == 1000.0
+    dev.close()  # closing a device that was never opened is a no-op
+
+
+def test_a_step_that_blocks_the_servo_is_a_fault_with_the_output_off(emulator, tmp_path):
+    res = run_session(emulator, tmp_path, {"workspace": WS, "spring_k_n_per_m": K, "duration_s": 3.0,
+                                            "sleep_at_s": FAULT_AT, "sleep_s": 0.6,
+                                            "options": {"watchdog_s": 0.1}}, path=DEEP)
+    assert res["outcome"] == "DeviceFault" and "has not returned" in res["message"]
+    assert "\n" not in res["message"]
+    log = res["log"]
+    assert OUTPUT_DISABLED in log[:, 1].tolist()
+    assert res["emulator_after_run_servo"]["output_force"] == [0.0, 0.0, 0.0]
+    assert res["close_twice"] == "ok"

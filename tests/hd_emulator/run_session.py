@@ -6,8 +6,9 @@ Usage (in an environment from ``build.emulator_env``, so that ``libHD.so`` is th
 
 The scenario gives the workspace, the OmniDevice options and a stand-in for the physics:
 ``F = constant_n + k * max(0, -z) * (0, 0, 1)`` in the scene frame (a spring pushing the tip back
-out of the half-space z < 0), optionally raising ``StepBoom`` from ``raise_at_s`` or returning a
-NaN force from ``nan_at_s``. The session stops when the servo time reaches ``duration_s``.
+out of the half-space z < 0), optionally raising ``StepBoom`` from ``raise_at_s``, returning a
+NaN force from ``nan_at_s`` or sleeping ``sleep_s`` once at ``sleep_at_s``. The session stops
+when the servo time reaches ``duration_s``.
 
 The result holds the outcome of run_servo, every state handed to the step, the emulator's force
 log (``t_s, kind, x, y, z (mm, device frame), fx, fy, fz (N, device frame)``) and the force the
@@ -96,6 +97,7 @@ def main(scenario_path: str, result_path: str) -> int:
         return 0
     raise_at = sc.get("raise_at_s")
     nan_at = sc.get("nan_at_s")
+    sleep_at, slept = sc.get("sleep_at_s"), [False]
     duration = float(sc.get("duration_s", 1.0))
     stop = threading.Event()
     raised = {"done": False}
@@ -109,6 +111,9 @@ def main(scenario_path: str, result_path: str) -> int:
         if raise_at is not None and state.t_s >= raise_at:
             raised["done"] = True
             raise StepBoom(f"boom at t={state.t_s:.3f} s")
+        if sleep_at is not None and state.t_s >= sleep_at and not slept[0]:
+            slept[0] = True
+            time.sleep(float(sc["sleep_s"]))  # a step far too slow for the servo (a JIT compile, say)
         if nan_at is not None and state.t_s >= nan_at:
             return np.array([math.nan, 0.0, 0.0])
         return const + np.array([0.0, 0.0, k * max(0.0, -state.position_m[2])])
