@@ -12,6 +12,9 @@ none, as when the tip re-enters through a hole (untouched -> punctured), it is t
 
 Per insertion:
 
+* ``t_entry_s``, ``t_inside_s``, ``t_exit_s``: session times (s) of the entry tick, the run's first
+  tick (the skin's puncture, or the re-entry) and its last tick; ``skin_punctured``: whether the
+  run began by breaking intact skin (its first tick carries the skin's ``puncture`` mark).
 * ``entry_mm``: the tip position (mm, scene frame) at the entry tick; ``entry_offset_mm`` its
   distance from the acupoint (the origin).
 * ``angle_deg``: angle between the insertion direction (entry -> the tip at its deepest, i.e. at
