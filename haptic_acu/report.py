@@ -150,11 +150,17 @@ class SessionScan:
 
 
 class SummarySink:
-    """Accumulates the replay summary (and, by default, the rows for the figure).
+    """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
 
     ``summary()`` is a JSON-ready dict, deterministic for identical rows: forces in N to 0.1 mN,
-    depths in mm to 1 um, times in s to 0.1 ms. The engine's loop statistics are added under
-    ``"loop"`` on :meth:`close` (timing figures there are only deterministic on the sim clock).
+    depths in mm to 1 um, times in s to 0.1 ms. Keys: ``ticks``, ``duration_s``, ``max_force_n``
+    (max |F|), ``max_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
+    0 if the tip never went below it), ``layers_reached``, ``punctures`` (see :class:`SessionScan`:
+    layer, t_s, tip_depth_mm, peak_force_n), ``layers`` (time_s and peak |F| per place the tip was
+    in, "outside" including pressing the intact skin), ``clamped_ticks``, ``fault``, and on
+    :meth:`close` the engine's ``loop`` statistics (timing figures there are only deterministic on
+    the sim clock). ``cfg`` (optional) is the session's TissueConfig; ``start`` also takes it from
+    ``info``.
     """
 
     def __init__(self, cfg=None, keep_rows: bool = True):
@@ -214,10 +220,6 @@ class SummarySink:
             "clamped_ticks": s.clamped_ticks,
             "fault": self.fault,
         }
-        if self.config is not None:
-            lo, hi = self.config.scene.target_depth_mm
-            out["target_depth_mm"] = [float(lo), float(hi)]
-            out["in_target_range"] = bool(lo <= max_depth_mm <= hi)
         if self.stats is not None:
             st = self.stats
             loop = {key: st[key] for key in ("clock", "missed_ticks", "dropped_rows", "frames") if key in st}
@@ -230,10 +232,7 @@ class SummarySink:
         file = sys.stdout if file is None else file
         s = self.summary()
         line = (f"session: {s['duration_s']:.3f} s, {s['ticks']} ticks; max |F| {s['max_force_n']:.3f} N, "
-                f"max depth {s['max_depth_mm']:.2f} mm")
-        if "target_depth_mm" in s:
-            lo, hi = s["target_depth_mm"]
-            line += f" (target {lo:g}-{hi:g} mm: {'in range' if s['in_target_range'] else 'not in range'})"
+                f"max tip depth {s['max_depth_mm']:.2f} mm below the rest skin")
         print(line, file=file)
         if s["punctures"]:
             for p in s["punctures"]:

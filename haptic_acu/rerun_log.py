@@ -58,6 +58,7 @@ _ALPHA = {"skin": 150, "fat": 200, "muscle": 255, "bone": 255}
 
 _C_X = COL["x_m"]
 _C_F = COL["fx_n"]
+_SPLIT_COLS = np.r_[COL["f_skin_n"]:COL["f_muscle_n"] + 1, COL["f_surface_n"]:COL["f_bone_n"] + 1]
 
 # entity -> (series names, colours, (rows, tip depth) -> (k, m) values); one send_columns each per frame
 SERIES = {
@@ -66,7 +67,7 @@ SERIES = {
     "force/split": (["skin", "fat", "muscle", "surface", "damping", "lateral", "bone"],
                     [(215, 140, 100), (200, 160, 30), (170, 40, 40), (31, 119, 180), (255, 127, 14), (148, 103, 189),
                      (140, 86, 75)],
-                    lambda r, d: r[:, np.r_[COL["f_skin_n"]:COL["f_muscle_n"] + 1, COL["f_surface_n"]:COL["f_bone_n"] + 1]]),
+                    lambda r, d: r[:, _SPLIT_COLS]),
     "depth": (["tip below rest skin (mm)", "into current layer (mm)"], [(20, 20, 20), (120, 120, 120)],
               lambda r, d: np.column_stack([d * 1e3, r[:, COL["depth_m"]] * 1e3])),
 }
@@ -217,8 +218,8 @@ class RerunSink:
 
     # -- sink interface -------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """Pay rerun's first-call costs now (the first ``send_columns`` takes ~20-200 ms): send each
-        servo series' styling and an empty column batch to it."""
+        """Pay rerun's first-call costs before the loops start (the first ``send_columns`` takes tens
+        of ms, up to ~0.2 s): send each servo series its styling and an empty column batch."""
         if self._warm:
             return
         rec = self.rec
@@ -253,7 +254,6 @@ class RerunSink:
         rec.log("session", rr.TextDocument("\n".join(doc)), static=True)
 
         th_p, ph_p = PATCH_GRID
-        self._patch_theta, self._patch_phi = np.ascontiguousarray(th_p), np.ascontiguousarray(ph_p)
         n_th, n_ph = th_p.shape
         self._patch_dirs = shf.unit_vectors(th_p, ph_p)
         self._patch_tris = _cap_triangles(n_th, n_ph)

@@ -139,7 +139,8 @@ def test_puncture_events_are_text_log_entries_at_the_puncture_ticks(recording):
     want.sort()
     assert [(int(t), s.split(" ")[0]) for t, s in zip(ticks, texts)] == want
     for (i, name), text in zip(want, texts):
-        assert text.startswith(f"{name} punctured at t={rows[i, C['t_s']]:.3f} s, depth {-rows[i, C['z_m']] * 1e3:.2f} mm")
+        t, depth_mm = rows[i, C["t_s"]], -rows[i, C["z_m"]] * 1e3
+        assert text.startswith(f"{name} punctured at t={t:.3f} s, depth {depth_mm:.2f} mm")
 
 
 def test_scene_entities_exist(recording):
