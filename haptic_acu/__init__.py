@@ -5,7 +5,15 @@ The tissue is three layers (skin, fat, muscle) bounded by spherical-harmonic sur
 force net on each surface (:mod:`haptic_acu.forcenet`), per-layer damping after puncture and
 shape-matching springback (:mod:`haptic_acu.needle`, :mod:`haptic_acu.springback`).
 """
-from importlib.metadata import PackageNotFoundError, version as _version
+import os as _os
+
+# Single-threaded BLAS unless the user says otherwise: a 1 kHz servo thread must not compete with BLAS
+# worker threads, and on these 2-core machines a threaded lstsq (4000 x 256, the tissue fit) took 3.7 s
+# under load against 0.12 s single-threaded. Set before numpy is first imported through this package.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+
+from importlib.metadata import PackageNotFoundError, version as _version  # noqa: E402
 
 try:
     __version__ = _version("haptic-acu")

@@ -54,7 +54,6 @@ between rows.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from .samples import COL, NCOL
 
@@ -127,6 +126,8 @@ def lift_thrust_cycles(t: np.ndarray, depth: np.ndarray, prominence_m: float = C
     at least ``prominence_m`` prominence (scipy.signal.find_peaks on -depth)."""
     if depth.size < 3:
         return {"cycles": 0, "mean_amplitude_mm": None, "frequency_hz": None}
+    from scipy.signal import find_peaks  # imported here: scipy.signal costs ~1 s to import
+
     troughs, props = find_peaks(-depth, prominence=prominence_m)
     n = int(troughs.size)
     amp = float(np.mean(props["prominences"])) * 1e3 if n else None
