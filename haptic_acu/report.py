@@ -163,12 +163,16 @@ class SummarySink:
     ``info``.
     """
 
+    BATCH_ROWS = 2048
+
     def __init__(self, cfg=None, keep_rows: bool = True):
         self.keep_rows = keep_rows
         self.scan: SessionScan | None = None
         self.tissue = None
         self.config = cfg
         self._blocks: list[np.ndarray] = []
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
         self.fault: str | None = None
         self.stats: dict | None = None
 
@@ -181,15 +185,29 @@ class SummarySink:
             remember_tissue(self.config, self.tissue)
         self.scan = SessionScan(self.tissue)
         self._blocks = []
+        self._pending = []
+        self._n_pending = 0
 
     def on_frame(self, frame) -> None:
+        # Rows are scanned in batches of BATCH_ROWS (a frame holds ~17): the scan's per-call cost,
+        # not its per-row cost, dominated a headless replay.
         rows = frame.samples
         if len(rows):
-            self.scan.feed(rows)
+            self._pending.append(rows)
+            self._n_pending += len(rows)
             if self.keep_rows:
                 self._blocks.append(rows)
+            if self._n_pending >= self.BATCH_ROWS:
+                self._scan_pending()
+
+    def _scan_pending(self) -> None:
+        if self._pending:
+            self.scan.feed(np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0])
+            self._pending = []
+            self._n_pending = 0
 
     def close(self, result) -> None:
+        self._scan_pending()
         self.fault = getattr(result, "fault", None)
         self.stats = getattr(result, "stats", None)
 
@@ -206,6 +224,7 @@ class SummarySink:
         s = self.scan
         if s is None:
             raise RuntimeError("SummarySink.summary() before start()")
+        self._scan_pending()
         max_depth_mm = max(0.0, s.max_depth * 1e3) if s.ticks else 0.0
         out = {
             "ticks": s.ticks,
@@ -390,11 +409,16 @@ class SamplesCsvSink:
     lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
     """
 
+    BATCH_ROWS = 1024
+
     def __init__(self, path):
         self.path = Path(path)
         self._f = None
         self.tissue = None
         self.rows_written = 0
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+        self._fmt = None
 
     def start(self, info: dict) -> None:
         self.tissue = info["model"].tissue
@@ -403,11 +427,25 @@ class SamplesCsvSink:
         self._f.write(",".join(CSV_FIELDS) + "\n")
 
     def on_frame(self, frame) -> None:
-        self.write_rows(frame.samples)
-        self._f.flush()
+        # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
+        # live session loses at most BATCH_ROWS rows of this file on a crash (the recording sink
+        # is the one that flushes every frame).
+        if len(frame.samples):
+            self._pending.append(frame.samples)
+            self._n_pending += len(frame.samples)
+            if self._n_pending >= self.BATCH_ROWS:
+                self._write_pending()
+
+    def _write_pending(self) -> None:
+        if self._pending:
+            self.write_rows(np.concatenate(self._pending))
+            self._f.flush()
+            self._pending = []
+            self._n_pending = 0
 
     def close(self, result=None) -> None:
         if self._f is not None:
+            self._write_pending()
             self._f.close()
             self._f = None
 
@@ -415,28 +453,27 @@ class SamplesCsvSink:
         k = len(rows)
         if k == 0:
             return
+        if self._fmt is None:
+            from .csvfmt import RowFormatter
+            cols = [("fixed", 0)] + [("fixed", nd) for *_, nd in _CSV_NUMERIC]
+            cols += [("category", PLACES)] + [("category", STATE_NAMES)] * 3
+            cols += [("fixed", nd) for *_, nd in _CSV_TAIL]
+            cols += [("category", LAYERS), ("fixed", 0), ("fixed", 0)]
+            self._fmt = RowFormatter(cols)
         computed = {"tip_depth_mm": tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue),
                     "f_n": np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)}
 
-        def fmt(spec):
+        def col(spec):
             name, src, scale, nd = spec
-            v = computed[name] if src is None else rows[:, COL[src]]
-            v = np.round(v * scale, nd) + 0.0  # + 0.0: no "-0.000"
-            return [f"{x:.{nd}f}" for x in v.tolist()]
+            return (computed[name] if src is None else rows[:, COL[src]]) * scale
 
-        head = [fmt(s) for s in _CSV_NUMERIC]
-        tail = [fmt(s) for s in _CSV_TAIL]
-        ticks = rows[:, _C_TICK].astype(np.int64).tolist()
-        places = [PLACES[int(c) + 1] for c in rows[:, _C_LAYER].tolist()]
-        states = [[STATE_NAMES[int(c)] for c in rows[:, _C_STATE + j].tolist()] for j in range(3)]
-        punct = ["" if c < 0 else LAYERS[int(c)] for c in rows[:, _C_PUNCT].tolist()]
-        clamped = rows[:, COL["clamped"]].astype(np.int64).tolist()
-        fault = rows[:, COL["fault"]].astype(np.int64).tolist()
-        lines = []
-        for i in range(k):
-            lines.append(",".join([str(ticks[i]), *(c[i] for c in head), places[i], states[0][i], states[1][i],
-                                   states[2][i], *(c[i] for c in tail), punct[i], str(clamped[i]), str(fault[i])]))
-        self._f.write("\n".join(lines) + "\n")
+        punct = rows[:, _C_PUNCT].copy()
+        punct[punct < 0] = np.nan  # empty cell
+        table = np.column_stack(
+            [rows[:, _C_TICK]] + [col(s) for s in _CSV_NUMERIC]
+            + [rows[:, _C_LAYER] + 1] + [rows[:, _C_STATE + j] for j in range(3)]
+            + [col(s) for s in _CSV_TAIL] + [punct, rows[:, COL["clamped"]], rows[:, COL["fault"]]])
+        self._f.write(self._fmt.format(table).decode("ascii"))
         self.rows_written += k
 
 
