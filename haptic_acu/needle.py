@@ -151,6 +151,18 @@ def surface_normal(coeffs_k, lmax, centre, p, out):
 
 
 @nb.njit(cache=True, nogil=True)
+def _radii_at_tip(coeffs, lmax, centre, q, radii):
+    """``boundary_radii`` for the (lifted) tip ``q``. The centre itself has no direction (the contact
+    point and the bone wall's push would divide by rho = 0): a tip exactly there is moved 1e-12 m onto
+    the +z pole, the direction ``shf.direction_of`` gives the centre."""
+    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+    if rho == 0.0:
+        q[2] = centre[2] + 1e-12
+        rho = boundary_radii(coeffs, lmax, centre, q, radii)
+    return rho
+
+
+@nb.njit(cache=True, nogil=True)
 def _take_slot(si, k):
     """Pick the slot to build layer k's new net in: the one in use if the servo owns it, else a free
     one, else (both in springback) the older one."""
@@ -216,7 +228,7 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
     q[1] = p[1] - o * a1
     q[2] = p[2] - o * a2
 
-    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+    rho = _radii_at_tip(coeffs, lmax, centre, q, radii)
     front = N_LAYERS
     for k in range(N_LAYERS):
         if si[SI_STATE + k] != PUNCTURED:
@@ -373,7 +385,7 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
                     q[0] = p[0] - o * a0
                     q[1] = p[1] - o * a1
                     q[2] = p[2] - o * a2
-                    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+                    rho = _radii_at_tip(coeffs, lmax, centre, q, radii)
                     front = k + 1
                 else:
                     fo = scratch[9:12]

@@ -357,3 +357,25 @@ def test_force_never_exceeds_the_limit(cfg, tissue):
         np.testing.assert_allclose(fs, fb * min(1.0, limit / nb) if nb > 0 else fb, rtol=1e-12, atol=1e-15)
         clamped += nb > limit
     assert clamped > 100
+
+
+def test_tip_exactly_at_the_tissue_centre_is_handled(cfg, tissue):
+    """The centre of the SH boundaries is the one point with no direction (shf.direction_of calls it
+    the +z pole). A tip there, first touch or deep in the bone wall, must still give a finite force."""
+    model = NeedleModel(cfg, tissue)
+    f = model.step(tissue.centre.copy(), np.zeros(3))
+    assert np.all(np.isfinite(f)) and not model.fault
+    # Through the holes of an earlier insertion (no dent, so no compression offset) and on down
+    # through the bone to its centre: the wall's penetration is the whole bone radius, its push the
+    # +z pole's direction.
+    big = NeedleModel(replace(cfg, "safety", force_limit_n=1e6), tissue)
+    insert_and_withdraw(big)
+    pts, v = straight_line(1e-3, tissue.centre[2], 0.1)
+    drive(big, pts, v)
+    assert big.states == (PUNCTURED,) * 3
+    f = big.step(tissue.centre.copy(), np.zeros(3))
+    tops, thick = layer_tops_m(cfg)
+    bone_radius = 0.2 - tops[2] - thick[2]
+    k_bone = cfg.needle.bone_stiffness_n_per_mm * 1e3
+    assert not big.fault
+    np.testing.assert_allclose(f, [0.0, 0.0, k_bone * bone_radius], rtol=1e-9)
