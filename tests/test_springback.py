@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from haptic_acu.config import load_config
 from haptic_acu.forcenet import Net, NetParams, n_particles
-from haptic_acu.needle import D_PUNCTURE, NeedleModel
+from haptic_acu.needle import D_PUNCTURE, N_LAYERS, N_SLOTS, NeedleModel
 from haptic_acu.springback import Springback, polar_rotation, shape_matching_goals, springback_step
 from physics_helpers import sh_sphere, sphere_config, sphere_tissue, straight_line
 
@@ -158,7 +158,7 @@ def test_springback_class_returns_a_punctured_skin_to_the_rest_surface():
         model.step(p, v)
         if model.diag[D_PUNCTURE] == 0:
             break
-    handed = [i for i in range(6) if model.owner(i) == 2]
+    handed = [i for i in range(N_LAYERS * N_SLOTS) if model.owner(i) == 2]
     assert len(handed) == 1
     idx = handed[0]
     radius = 0.2  # the sphere's skin
