@@ -1,5 +1,5 @@
 # Two commands set everything up on a fresh machine:
-#   make demo   - create .venv, install, replay the bundled default session headless
+#   make demo   - create .venv, install, replay the bundled default insertion headless
 #   make test   - same environment, run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/haptic-acu fit
+	$(VENV)/bin/haptic-acu replay
 
 test: $(STAMP)
 	$(PY) -m pytest -q

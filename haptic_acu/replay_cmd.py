@@ -51,9 +51,20 @@ def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = F
         for p in summary["punctures"]:
             print(f"  {p['layer']:<6} punctured at t={p['t_s']:.3f} s, tip {p['tip_depth_mm']:.2f} mm deep, "
                   f"peak {p['peak_force_n']:.2f} N", file=file)
-        print(f"  max force {summary['max_force_n']:.2f} N, max depth {summary['max_depth_mm']:.2f} mm, "
+        print(f"  max force {summary['max_force_n']:.2f} N, tip at most {summary['max_depth_mm']:.2f} mm below the rest skin, "
               f"layers reached: {', '.join(summary['layers_reached']) or 'none'}", file=file)
-        stats = summary.get("_stats") or {}
+        m = summary.get("metrics")
+        if m:
+            print(f"  {m['insertions']} insertion(s), {m['time_in_tissue_s']:.2f} s in tissue", file=file)
+            for i in m["per_insertion"]:
+                ang = "-" if i["angle_deg"] is None else f"{i['angle_deg']:.1f}"
+                spd = "-" if i["insertion_speed_mm_s"] is None else f"{i['insertion_speed_mm_s']:.1f}"
+                lt = i["lift_thrust"]
+                cyc = f"{lt['cycles']} lift-thrust cycles"
+                if lt["cycles"]:
+                    cyc += f" ({lt['mean_amplitude_mm']:.1f} mm, {lt['frequency_hz']:.2f} Hz)"
+                print(f"  entry {i['entry_offset_mm']:.1f} mm off the acupoint at {ang} deg to the normal, "
+                      f"{i['max_depth_mm']:.1f} mm into the (compressed) tissue, {i['depth_verdict']}, {spd} mm/s, {cyc}", file=file)
         if summary.get("_wall_s"):
             print(f"  replayed {summary['duration_s'] / summary['_wall_s']:.0f}x real time", file=file)
     print(f"  files: {out_dir}/", file=file)
