@@ -26,7 +26,12 @@ only affects one rendered frame).
 
 Faults: a device fault, a non-finite state, or an exception in either loop commands zero force at
 once, stops both loops, flushes every sink (the recording is complete up to the last tick), and is
-reported once as ``SessionResult.fault``.
+reported once as ``SessionResult.fault``. A sink that raises does not keep the others from getting
+the frame's rows. A device on our timer that stops updating is a fault too: its ``DeviceState.t_s``
+stuck for ``stale_s`` (50 ms) of session time while a force is commanded (a stale state; the
+drives-clock OMNI checks its own position instead), or no servo tick for ``servo_watchdog_s``
+(0.5 s; a read that blocks): the visual loop then commands zero force and the session ends when the
+read returns (a read that never returns cannot be interrupted: devices time out their own I/O).
 """
 from __future__ import annotations
 
@@ -165,7 +170,8 @@ class Session:
 
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
-                 realtime_priority: bool = True, dents: bool = True):
+                 realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
+                 servo_watchdog_s: float = 0.5):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -179,6 +185,8 @@ class Session:
         self.frame_dt = 1.0 / visual_hz
         self.realtime_priority = realtime_priority
         self.want_dents = dents
+        self.stale_s = stale_s
+        self.servo_watchdog_s = servo_watchdog_s
         self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
         self.tick = 0
         self.frame_index = 0
@@ -230,7 +238,9 @@ class Session:
             pass
 
     # -- the two loop bodies (shared by every clock) --------------------------------------------
-    def _servo_tick(self, t: float, state, period_err: float = 0.0) -> np.ndarray:
+    def _servo_tick(self, t: float, state, period_err: float = 0.0, command: bool = True) -> np.ndarray:
+        """One servo tick; returns the force. ``command=False`` (a device that drives the clock):
+        the caller commands the returned force, so ``device.set_force`` is not called."""
         m = self.model
         if state.reset:
             m.reset(keep_holes=False)
@@ -243,7 +253,8 @@ class Session:
             self.tick += 1
             self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
             return self._zero
-        self.device.set_force(force)
+        if command:
+            self.device.set_force(force)
         ring = self.ring
         write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
         ring.commit()
@@ -256,13 +267,24 @@ class Session:
         dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
         frame = Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents)
         self.frame_index += 1
-        for s in self.sinks:
-            s.on_frame(frame)
+        error = None
+        for s in self.sinks:  # every sink gets the drained rows, even if one of them fails
+            try:
+                s.on_frame(frame)
+            except Exception as e:
+                if error is None:
+                    error = e
+        if error is not None:
+            raise error
 
     def _final_frame(self) -> None:
-        """Flush whatever the servo wrote after the last visual frame."""
+        """Flush whatever the servo wrote after the last visual frame. A sink that fails here is a
+        fault (if none was reported yet), not an exception out of :meth:`run`."""
         if self.ring.head != self.ring.tail:
-            self._visual_frame(self._t_session)
+            try:
+                self._visual_frame(self._t_session)
+            except Exception as e:
+                self._set_fault(f"visual loop: {type(e).__name__}: {e}")
 
     def _stats(self, wall_s: float) -> dict:
         errs = self._period_err[: min(self._n_err, self._period_err.size)]
@@ -396,13 +418,22 @@ class Session:
         except (PermissionError, OSError):
             return False
 
-    def _visual_loop(self, t0: float) -> None:
+    def _visual_loop(self, t0: float, watchdog: bool = False) -> None:
         try:
             next_t = t0 + self.frame_dt
             last = time.perf_counter()
             frames = 0
+            seen_tick, seen_at = -1, last
             while not self._stop.is_set():
                 now = time.perf_counter()
+                if watchdog:  # the servo thread is stuck in a tick (a device read that blocks)
+                    if self.tick != seen_tick:
+                        seen_tick, seen_at = self.tick, now
+                    elif now - seen_at > self.servo_watchdog_s:
+                        self._set_fault(f"no servo tick for {1e3 * (now - seen_at):.0f} ms after tick {seen_tick} "
+                                        f"(t={self._t_session:.3f} s): device read or servo step blocked; "
+                                        "force set to zero")
+                        break
                 if now < next_t:
                     time.sleep(min(next_t - now, 0.005))
                     continue
@@ -421,7 +452,7 @@ class Session:
     def _run_realtime(self) -> None:
         old = self._rt_setup()
         t0 = time.perf_counter()
-        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
+        vis = threading.Thread(target=self._visual_loop, args=(t0, True), name="haptic-acu-visual", daemon=True)
         vis.start()
         try:
             self._servo_loop(t0)
@@ -442,6 +473,8 @@ class Session:
         k = 0
         count_start = perf()
         count_ticks = 0
+        force = self.model.diag  # [0:3]: the force the previous tick commanded
+        dev_t, dev_t_since = math.nan, 0.0
         while not self._stop.is_set():
             deadline = t0 + k * dt
             now = perf()
@@ -461,8 +494,14 @@ class Session:
             if t > limit:
                 break
             state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
-            if state.done:
+            if state.done or self._stop.is_set():  # stopped (or faulted) while the read ran
                 break
+            if state.t_s != dev_t:
+                dev_t, dev_t_since = state.t_s, t
+            elif t - dev_t_since > self.stale_s and (force[0] != 0.0 or force[1] != 0.0 or force[2] != 0.0):
+                raise DeviceFault(f"{dev.info.name}: device time stuck at {dev_t:.3f} s for "
+                                  f"{1e3 * (t - dev_t_since):.0f} ms while a force was commanded: "
+                                  "device stopped updating")
             self._servo_tick(t, state, err)
             self._t_session = t
             k += 1
@@ -502,7 +541,7 @@ class Session:
                 self._stop.set()
                 return self._zero
             self._t_session = t
-            return self._servo_tick(t, state, err)
+            return self._servo_tick(t, state, err, command=False)
 
         try:
             self.device.run_servo(step, self._stop)

@@ -1,0 +1,343 @@
+"""The real-time engine (haptic_acu.engine.Session) under faults, signals, and headless replay.
+
+Fault injection uses small test devices (real implementations of devices.base.Device, not mocks of
+the engine): a press along -z into the skin on the engine's own timer that misbehaves at read N -
+raises DeviceFault, returns NaN, returns a stale state, blocks, or refuses a force - and a sink
+whose on_frame raises. Whatever the fault, the engine must: command zero force (the device's own
+log of commands ends in zero), stop both loops, report exactly one one-line reason, close every
+sink, and leave a recording (RecorderSink) that holds every tick up to the fault. Tick counts are
+checked against the device's count of reads and the recorded positions against the positions the
+device returned, not against the engine's own bookkeeping alone.
+
+No timing asserts: every expectation is in ticks and counts, never in wall time.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from devices.base import Device, DeviceInfo, DeviceState
+from devices.scripted import ScriptedDevice
+from haptic_acu import trajectory
+from haptic_acu.config import load_config
+from haptic_acu.engine import Session
+from haptic_acu.errors import DeviceFault
+from haptic_acu.needle import NeedleModel
+from haptic_acu.recorder import EXTRA, RecorderSink
+from haptic_acu.tissue import Tissue
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
+
+FAULT_TICK = 300  # the press touches the skin at t = 0.2 s: by read 300 (t >= 0.3 s) it is loaded
+Z0_M = 1e-3  # the tip starts 1 mm above the acupoint ...
+SPEED_M_S = 5e-3  # ... and goes down along -z at 5 mm/s
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+@pytest.fixture(scope="module")
+def tissue(cfg):
+    return Tissue.from_config(cfg)  # the expensive SH fit, once; every session gets a fresh model
+
+
+def session(cfg, tissue, device, sinks, clock="realtime", **kw) -> Session:
+    kw.setdefault("duration_s", 5.0)  # a backstop: every test here ends well before
+    s = Session(cfg, device, sinks, clock=clock, model=NeedleModel(cfg, tissue), **kw)
+    s.warm_up()
+    return s
+
+
+class PressDevice(Device):
+    """The tip at (0, 0, Z0 - SPEED * t) on the engine's clock (``read_at``), misbehaving from read
+    ``at`` on according to ``mode``:
+
+    * ``"raise"``: read raises DeviceFault;
+    * ``"nan"``: the position is NaN;
+    * ``"stale"``: the previous state again (device time and position stop advancing);
+    * ``"block"``: read ``at`` blocks for ``block_s``, then returns a fresh state;
+    * ``"set_force"``: set_force raises on any non-zero force (zero is still accepted);
+    * ``None``: no fault.
+
+    Logs every state it returned (``states``: t, x, y, z) and every force it accepted (``forces``),
+    with whether a read was blocked at the time (``zeroed_while_blocked``).
+    """
+
+    def __init__(self, mode=None, at=FAULT_TICK, block_s=1.2):
+        self.info = DeviceInfo("test-press", f"test press device ({mode})", 3.3, 1000.0, False)
+        self.mode, self.at, self.block_s = mode, at, block_s
+        self.reads = 0
+        self.states: list[tuple] = []
+        self.forces: list[np.ndarray] = []
+        self.in_read = False
+        self.zeroed_while_blocked = False
+        self._last: DeviceState | None = None
+        self.closed = False
+
+    def open(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+    def read(self):  # the engine uses read_at when a device has it
+        raise AssertionError("the engine should call read_at")
+
+    def read_at(self, t):
+        n = self.reads
+        if n >= self.at and self.mode == "raise":
+            raise DeviceFault(f"test device lost at read {n}")
+        if n >= self.at and self.mode == "stale" and self._last is not None:
+            self.reads += 1
+            return self._last
+        if n == self.at and self.mode == "block":
+            self.in_read = True
+            time.sleep(self.block_s)
+            self.in_read = False
+        p = np.array([0.0, 0.0, Z0_M - SPEED_M_S * t])
+        if n >= self.at and self.mode == "nan":
+            p[2] = math.nan
+        state = DeviceState(t_s=t, position_m=p, velocity_m_s=np.array([0.0, 0.0, -SPEED_M_S]))
+        self.reads += 1
+        self._last = state
+        self.states.append((t, *p))
+        return state
+
+    def set_force(self, force_n):
+        f = np.array(force_n, dtype=float)
+        if self.mode == "set_force" and self.reads > self.at and np.any(f != 0.0):
+            raise RuntimeError(f"test actuator refused {f[2]:.3f} N")
+        if self.in_read and not np.any(f):
+            self.zeroed_while_blocked = True
+        self.forces.append(f)
+
+
+class Counter:
+    """A sink counting rows and calls."""
+
+    def __init__(self):
+        self.rows = 0
+        self.frames = 0
+        self.started = 0
+        self.closed = 0
+        self.result = None
+
+    def start(self, info):
+        self.started += 1
+
+    def on_frame(self, frame):
+        self.frames += 1
+        self.rows += len(frame.samples)
+
+    def close(self, result):
+        self.closed += 1
+        self.result = result
+
+
+class Bomb:
+    """A sink that raises from its ``at``-th frame on (a broken renderer)."""
+
+    def __init__(self, at=5):
+        self.at = at
+        self.calls = 0
+        self.closed = 0
+
+    def on_frame(self, frame):
+        self.calls += 1
+        if self.calls >= self.at:
+            raise RuntimeError(f"boom in frame {frame.index}")
+
+    def close(self, result):
+        self.closed += 1
+
+
+def visual_threads():
+    return [t for t in threading.enumerate() if t.name == "haptic-acu-visual" and t.is_alive()]
+
+
+def recorded(path) -> trajectory.Trajectory:
+    return trajectory.load(path, extra_columns=EXTRA)
+
+
+def check_stopped(result, dev, counter, reason_part):
+    """Common to every fault: one one-line reason, zero force last, both loops and sinks closed."""
+    assert isinstance(result.fault, str) and reason_part in result.fault, result.fault
+    assert "\n" not in result.fault
+    assert dev.forces and not np.any(dev.forces[-1]), "the last commanded force must be zero"
+    assert visual_threads() == []
+    assert counter.closed == 1 and counter.result is result
+    assert counter.rows == result.ticks  # every tick reached the sinks, once
+
+
+def check_recording(rec_path, dev, n_rows):
+    """The recording parses as a trajectory and holds exactly the first ``n_rows`` states the
+    device returned, in order (positions to the file's 0.1 um)."""
+    tr = recorded(rec_path)
+    assert len(tr.t_s) == n_rows
+    st = np.array(dev.states[:n_rows])
+    np.testing.assert_allclose(tr.t_s, st[:, 0], rtol=0, atol=0.6e-6)
+    np.testing.assert_allclose(tr.pos_m, st[:, 1:4], rtol=0, atol=0.6e-7)
+    return tr
+
+
+# -- faults ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("clock", ["realtime", "sim"])
+def test_device_fault_zeroes_force_and_keeps_the_recording(cfg, tissue, tmp_path, clock):
+    dev, counter = PressDevice("raise"), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], clock=clock).run()
+    check_stopped(result, dev, counter, "device fault: test device lost at read 300")
+    assert dev.reads == FAULT_TICK == result.ticks  # read 300 raised: ticks 0..299 ran
+    assert dev.forces[FAULT_TICK - 1][2] > 0.05  # pressing the skin (+z) up to the fault ...
+    assert all(not np.any(f) for f in dev.forces[FAULT_TICK:])  # ... zero from the faulting tick on
+    tr = check_recording(rec, dev, FAULT_TICK)
+    assert tr.extra["fz_n"][-1] > 0.05
+
+
+@pytest.mark.parametrize("clock", ["realtime", "sim"])
+def test_nan_position_is_a_fault_within_one_tick(cfg, tissue, tmp_path, clock):
+    dev, counter = PressDevice("nan"), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], clock=clock).run()
+    check_stopped(result, dev, counter, "non-finite")
+    # The NaN tick itself ran (its row is in the ring) and commanded zero; nothing after it.
+    assert result.ticks == FAULT_TICK + 1 == dev.reads
+    assert dev.forces[FAULT_TICK - 1][2] > 0.05
+    assert all(not np.any(f) for f in dev.forces[FAULT_TICK:])
+    check_recording(rec, dev, FAULT_TICK)  # a NaN row cannot be in a trajectory file: the rest is
+
+
+def test_stale_device_is_a_fault(cfg, tissue, tmp_path):
+    # From read 300 the device hands back the same state: its time stops while the tip presses the
+    # skin. The engine allows stale_s of session time, then faults before commanding the stale force again.
+    dev, counter = PressDevice("stale"), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], stale_s=0.05).run()
+    check_stopped(result, dev, counter, "stopped updating")
+    assert "device time stuck" in result.fault
+    detecting = dev.reads - 1  # the read that found the state stale did not become a tick
+    assert result.ticks == detecting > FAULT_TICK + 1  # at least one stale tick ran first (50 ms)
+    assert dev.forces[detecting - 1][2] > 0.05  # the stale state was still pressing ...
+    assert all(not np.any(f) for f in dev.forces[detecting:])  # ... then zero, within the tick
+    # The recording holds every tick: the fresh states, then the stale position repeated on the
+    # engine's clock until the fault.
+    tr = recorded(rec)
+    assert len(tr.t_s) == result.ticks
+    fresh = np.array(dev.states)
+    assert len(fresh) == FAULT_TICK
+    np.testing.assert_allclose(tr.pos_m[:FAULT_TICK], fresh[:, 1:4], rtol=0, atol=0.6e-7)
+    np.testing.assert_allclose(tr.pos_m[FAULT_TICK:], np.tile(fresh[-1, 1:4], (result.ticks - FAULT_TICK, 1)),
+                               rtol=0, atol=0.6e-7)
+
+
+def test_a_read_that_blocks_trips_the_servo_watchdog(cfg, tissue, tmp_path):
+    dev, counter = PressDevice("block", block_s=1.2), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], servo_watchdog_s=0.3).run()
+    check_stopped(result, dev, counter, "no servo tick")
+    assert dev.zeroed_while_blocked  # the visual loop commanded zero while the read was stuck
+    assert result.ticks == FAULT_TICK  # the late state was not used: the session had ended
+    assert dev.forces[FAULT_TICK - 1][2] > 0.05
+    check_recording(rec, dev, FAULT_TICK)
+
+
+@pytest.mark.parametrize("clock", ["realtime", "sim"])
+def test_exception_in_the_servo_step(cfg, tissue, tmp_path, clock):
+    dev, counter = PressDevice("set_force"), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], clock=clock).run()
+    check_stopped(result, dev, counter, "RuntimeError: test actuator refused")
+    # set_force of tick 300 raised before its row was written: ticks 0..299 are the session.
+    assert result.ticks == FAULT_TICK == dev.reads - 1
+    assert dev.forces[FAULT_TICK - 1][2] > 0.05 and not np.any(dev.forces[-1])
+    check_recording(rec, dev, FAULT_TICK)
+
+
+@pytest.mark.parametrize("clock", ["realtime", "sim"])
+def test_exception_in_the_visual_loop(cfg, tissue, tmp_path, clock):
+    # The broken sink comes first: the recorder after it must still get every row.
+    dev, counter, bomb = PressDevice(None), Counter(), Bomb(at=20)
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [bomb, RecorderSink(rec), counter], clock=clock).run()
+    check_stopped(result, dev, counter, "RuntimeError: boom in frame 19")
+    assert bomb.closed == 1
+    # 20 frames at 60 Hz are ~330 ticks; a read under way when the fault came is not used
+    assert dev.reads - 1 <= result.ticks <= dev.reads and result.ticks > 19 * 16
+    assert result.ticks < 5000  # it stopped on the fault, not on the 5 s duration
+    check_recording(rec, dev, result.ticks)
+
+
+# -- signals -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_stops_cleanly_with_zero_force(cfg, tissue, tmp_path, sig):
+    dev = ScriptedDevice(DEFAULT_TRAJ, realtime=True)
+    dev.open()
+    rec = tmp_path / "rec.csv"
+    counter = Counter()
+    s = session(cfg, tissue, dev, [RecorderSink(rec), counter], duration_s=10.0)
+    before = signal.getsignal(sig)
+
+    def send():  # once the tip is through the skin (default.csv: skin at 1.1-1.25 s, fat after 1.45 s)
+        while s.tick < 1600 and not s._stop.is_set():
+            time.sleep(0.01)
+        if not s._stop.is_set():
+            os.kill(os.getpid(), sig)
+
+    killer = threading.Thread(target=send)
+    killer.start()
+    try:
+        result = s.run()
+    finally:
+        killer.join()
+    dev.close()
+    assert result.fault is None
+    assert 1600 <= result.ticks < 10000
+    assert signal.getsignal(sig) is before  # the session's handler is gone again
+    assert dev.max_force_n > 0.1 and not np.any(dev.last_force_n)
+    assert visual_threads() == [] and counter.closed == 1 and counter.rows == result.ticks
+    tr = recorded(rec)
+    assert len(tr.t_s) == result.ticks and np.all(np.diff(tr.t_s) > 0)
+    assert tr.extra["fz_n"][-1] > 0.02  # inserting (+z drag) when the signal came: the zero is the engine's
+
+
+# -- headless replay ---------------------------------------------------------------------------
+
+
+def test_headless_replay_is_deterministic(cfg, tissue, tmp_path):
+    """Two sim-clock replays of the same trajectory, each with a fresh model: byte-identical
+    samples and identical summaries (when the report sinks exist)."""
+    report = pytest.importorskip("haptic_acu.report")
+    outs = []
+    for i in range(2):
+        dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        summary = report.SummarySink(cfg)
+        counter = Counter()
+        rec = tmp_path / f"rec{i}.csv"
+        result = session(cfg, tissue, dev, [report.SamplesCsvSink(tmp_path / f"samples{i}.csv"), summary,
+                                            RecorderSink(rec), counter], clock="sim", duration_s=None).run()
+        dev.close()
+        assert result.fault is None
+        outs.append((result.ticks, json.dumps(summary.summary(), sort_keys=True)))
+    assert outs[0] == outs[1]
+    a, b = (tmp_path / "samples0.csv").read_bytes(), (tmp_path / "samples1.csv").read_bytes()
+    assert a == b and a.count(b"\n") == outs[0][0] + 1
+    assert (tmp_path / "rec0.csv").read_bytes() == (tmp_path / "rec1.csv").read_bytes()
+    # and the replay ran the whole file: 1 ms ticks from 0 to its last sample
+    info = trajectory.validate(DEFAULT_TRAJ)
+    assert outs[0][0] == math.floor(info.t_last_s * 1000 + 1e-6)
