@@ -39,7 +39,8 @@ def make_device(args, cfg):
     if args.device == "keyboard":
         from devices.keyboard import KeyboardDevice
         return KeyboardDevice(workspace=ws, force_limit_n=limit, stdin=sys.stdin, out=sys.stderr)
-    from devices.omni import OmniDevice
+    from devices.omni import OmniDevice, load_hd_library
+    load_hd_library()  # a missing pyOpenHaptics / libHD.so fails now, before the simulator warms up
     return OmniDevice(ws, force_limit_n=limit)
 
 
@@ -65,10 +66,12 @@ def run(args) -> int:
     if not args.no_status:
         from .status import StatusLine
         sinks.append(StatusLine(stream=sys.stderr))
+    # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
+    # time) starts in open(), and should not run for seconds with force output on and no servo.
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration)
+    session.warm_up()
     device.open()
     try:
-        session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration)
-        session.warm_up()
         result = session.run()
     finally:
         device.close()
