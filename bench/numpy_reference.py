@@ -1,0 +1,360 @@
+"""The servo step written plainly with NumPy and SciPy: the peer the compiled kernel is measured against.
+
+This is what a Python developer would write first for the layered needle model of
+:mod:`haptic_acu.needle` (MODEL.md sections 1-3), vectorised wherever the maths allows, and kept
+independent of the compiled code (it shares only the fitted tissue coefficients and the config):
+
+* collision: the real orthonormal SH basis (Condon-Shortley phase, column ``l*l + l + m``) at the
+  tip's direction from SciPy's complex ``sph_harm_y`` (Y_l0 = Re Y_l^0, Y_lm = sqrt(2) Re Y_l^m,
+  Y_l-m = sqrt(2) Im Y_l^m), then one matrix-vector product for the four boundary radii;
+* the force net: its own hexagonal lattice, and a *multicolour* Gauss-Seidel-Newton sweep: the
+  triangular lattice is 3-coloured by (q - r) mod 3 (no two neighbours share a colour), so every
+  particle of one colour takes its per-particle Newton step at once, as batched 3x3 solves
+  (``numpy.linalg.solve``); ring w moves along the axis only, N1 is held at the tip, steps are
+  limited to L/4. It visits particles in another order than the compiled lexicographic sweep, so
+  the two agree exactly only at the static solution (both converge to the same equilibrium);
+* puncture at the ring-w mean deflection threshold, the compression offset, Table 1's damping of
+  the layers passed, the lateral constraint, the bone wall, the non-finite fault latch and the
+  force clamp, as in the compiled step.
+
+Left out, because no benchmark path exercises them and they do not change what one pressing tick
+costs: holes (re-entry through an earlier puncture), the two net slots per layer and their hand-over
+to springback, and the undeformed margin rings (springback only). One net per layer; a model is
+meant for one insertion from a fresh state.
+
+SI throughout: metres, newtons, seconds.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.special import sph_harm_y
+
+UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
+_HEX = np.array([(1, 0), (0, 1), (-1, 1), (-1, 0), (0, -1), (1, -1)])
+
+
+class SHBasis:
+    """Real orthonormal SH basis up to ``lmax`` from SciPy's complex harmonics."""
+
+    def __init__(self, lmax: int):
+        self.lmax = int(lmax)
+        ls, ms = [], []
+        for l in range(self.lmax + 1):
+            for m in range(l + 1):
+                ls.append(l)
+                ms.append(m)
+        self.l = np.array(ls)
+        self.m = np.array(ms)
+        self.k = (self.lmax + 1) ** 2
+        self.col_pos = self.l * self.l + self.l + self.m  # Y_lm, m >= 0
+        pos = self.m > 0
+        self.col_neg = (self.l * self.l + self.l - self.m)[pos]  # Y_l-m
+        self._pos = pos
+        self.scale = np.where(pos, math.sqrt(2.0), 1.0)
+
+    def rows(self, theta, phi) -> np.ndarray:
+        """Basis at directions (theta, phi) (1-D arrays, radians): shape (n, (lmax+1)^2)."""
+        theta = np.atleast_1d(np.asarray(theta, dtype=float))
+        phi = np.atleast_1d(np.asarray(phi, dtype=float))
+        y = sph_harm_y(self.l[None, :], self.m[None, :], theta[:, None], phi[:, None])
+        out = np.empty((theta.size, self.k))
+        out[:, self.col_pos] = self.scale * y.real
+        out[:, self.col_neg] = math.sqrt(2.0) * y.imag[:, self._pos]
+        return out
+
+
+def directions(points, centre):
+    """(theta, phi, rho) of points (n, 3) seen from ``centre``."""
+    d = np.atleast_2d(points) - centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    theta = np.arccos(np.clip(d[:, 2] / rho, -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return theta, phi, rho
+
+
+class HexNet:
+    """Topology of a w-ring hexagonal net (ring 1 = the centre, index 0) and its 3-colouring."""
+
+    def __init__(self, w: int):
+        q, r = np.meshgrid(np.arange(-(w - 1), w), np.arange(-(w - 1), w), indexing="ij")
+        q = q.ravel()
+        r = r.ravel()
+        dist = np.max(np.abs(np.stack([q, r, q + r])), axis=0)
+        keep = dist <= w - 1
+        q, r, dist = q[keep], r[keep], dist[keep]
+        order = np.lexsort((np.abs(q) + np.abs(r), dist))  # centre first
+        q, r, dist = q[order], r[order], dist[order]
+        self.w = w
+        self.n = q.size
+        self.ring = dist + 1
+        self.plane = np.column_stack([q + 0.5 * r, r * math.sqrt(3.0) / 2.0])  # units of L
+        lookup = -np.ones((2 * w + 1, 2 * w + 1), dtype=np.int64)
+        lookup[q + w, r + w] = np.arange(self.n)
+        nq = q[:, None] + _HEX[None, :, 0]
+        nr = r[:, None] + _HEX[None, :, 1]
+        self.nbr = lookup[nq + w, nr + w]  # (n, 6), -1 where absent (the padding row/column is -1)
+        colour = (q - r) % 3
+        self.colours = [np.nonzero((colour == c) & (np.arange(self.n) > 0))[0] for c in range(3)]
+        self.outer = self.ring == w
+
+
+class Net:
+    """One layer's force net: flat reference lattice ``X0f`` and current positions ``xf`` (n, 3)."""
+
+    def __init__(self, hexnet: HexNet, spacing, pretension):
+        self.hex = hexnet
+        self.L = spacing
+        self.rest = np.where(hexnet.nbr >= 0, (1.0 - pretension) * spacing, 0.0)
+        self.X0f = np.zeros((hexnet.n, 3))
+        self.xf = np.zeros((hexnet.n, 3))
+        self.X0 = np.zeros((hexnet.n, 3))  # rest positions on the curved surface (for rendering)
+        self.axis = np.array([0.0, 0.0, 1.0])
+        self.sweeps_done = 0
+
+
+def tangent_frame(axis):
+    """Two unit tangents (e1, e2) at a unit normal ``axis`` (e1 from x, or from y near the x axis)."""
+    ref = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(axis, ref)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
+
+
+class NumpyNeedle:
+    """The layered needle model, one ``step(p, v)`` per servo tick, in NumPy/SciPy.
+
+    ``tissue`` is a :class:`haptic_acu.tissue.Tissue` (coefficients and centre); ``cfg`` the config.
+    After a step: ``force`` (N), ``states``, ``layer`` (-1 outside .. 3 bone), ``punctured_now``
+    (layer broken this tick or -1), ``offset`` (compression, m), ``fault``.
+    """
+
+    def __init__(self, cfg, tissue):
+        self.coeffs = np.asarray(tissue.coeffs, dtype=float)
+        self.centre = np.asarray(tissue.centre, dtype=float)
+        self.basis = SHBasis(tissue.lmax)
+        self.layers = []
+        for layer in cfg.layers:
+            hexnet = HexNet(layer.rings)
+            self.layers.append(dict(
+                kv=layer.k_virtual_n_per_mm * 1e3, ks=layer.k_surface_n_per_mm * 1e3,
+                L=layer.spring_length_mm * 1e-3, thresh=layer.puncture_threshold_um * 1e-6,
+                d=layer.damping_n_s_per_m_per_mm * 1e3, thick=layer.thickness_mm * 1e-3,
+                net=Net(hexnet, layer.spring_length_mm * 1e-3, layer.pretension)))
+        self.damping = np.array([lay["d"] for lay in self.layers])
+        nd = cfg.needle
+        self.lateral_on = bool(nd.lateral_constraint)
+        self.k_lat = nd.lateral_stiffness_n_per_mm * 1e3
+        self.k_bone = nd.bone_stiffness_n_per_mm * 1e3
+        self.limit = cfg.safety.force_limit_n
+        self.sweeps = int(cfg.solver.sweeps_per_tick)
+        self.states = [UNTOUCHED] * 3
+        self.inserted = False
+        self.fault = False
+        self.offset = 0.0
+        self.axis = np.array([0.0, 0.0, -1.0])
+        self.entry = np.zeros(3)
+        self.force = np.zeros(3)
+        self.layer = -1
+        self.punctured_now = -1
+        self.surface_force = 0.0
+
+    # -- geometry ---------------------------------------------------------------------------------
+    def radii(self, q):
+        """Every boundary's radius toward point ``q`` and |q - centre|."""
+        th, ph, rho = directions(q, self.centre)
+        return self.coeffs @ self.basis.rows(th, ph)[0], rho[0]
+
+    def surface_points(self, k, points):
+        """Radial projections of ``points`` (n, 3) onto boundary k."""
+        th, ph, rho = directions(points, self.centre)
+        r = self.basis.rows(th, ph) @ self.coeffs[k]
+        return self.centre + (points - self.centre) * (r / rho)[:, None]
+
+    def normal(self, k, p, h=1e-4):
+        """Outward unit normal of boundary k at its point toward ``p``: central differences of the
+        surface along two tangents of the radial direction."""
+        u = (p - self.centre) / np.linalg.norm(p - self.centre)
+        t1, t2 = tangent_frame(u)
+        dirs = np.array([u + h * t1, u - h * t1, u + h * t2, u - h * t2])
+        s = self.surface_points(k, self.centre + dirs)
+        n = np.cross(s[0] - s[1], s[2] - s[3])
+        n /= np.linalg.norm(n)
+        return n if n @ u > 0 else -n
+
+    def build(self, k, contact):
+        """Lay layer k's net around ``contact``: flat lattice in the tangent plane, curved copy."""
+        lay = self.layers[k]
+        net = lay["net"]
+        net.axis = self.normal(k, contact)
+        e1, e2 = tangent_frame(net.axis)
+        pl = net.hex.plane * lay["L"]
+        net.X0f = contact + pl[:, :1] * e1 + pl[:, 1:] * e2
+        net.xf = net.X0f.copy()
+        net.X0 = net.X0f.copy()
+        net.X0[1:] = self.surface_points(k, net.X0f[1:])
+        net.X0[0] = contact
+        net.sweeps_done = 0
+
+    # -- the force net ----------------------------------------------------------------------------
+    def _colour_step(self, lay, idx):
+        """One Newton step for every particle in ``idx`` (one colour: no two are neighbours)."""
+        net = lay["net"]
+        xf, a = net.xf, net.axis
+        kv, ks = lay["kv"], lay["ks"]
+        J = net.hex.nbr[idx]
+        valid = J >= 0
+        d = np.where(valid[..., None], xf[J] - xf[idx][:, None, :], 0.0)  # (m, 6, 3)
+        l2 = np.einsum("mkc,mkc->mk", d, d)
+        valid &= l2 > 0.0
+        inv = np.where(valid, 1.0 / np.sqrt(np.where(valid, l2, 1.0)), 0.0)
+        s = np.where(valid, ks * (1.0 - net.rest[idx] * inv), 0.0)  # tension / length
+        defl = (xf[idx] - net.X0f[idx]) @ a
+        f = -kv * defl[:, None] * a + np.einsum("mk,mkc->mc", s, d)
+        geo = np.maximum(s, 0.0)
+        c = (ks - geo) * inv * inv * valid
+        H = (kv * np.outer(a, a) + geo.sum(1)[:, None, None] * np.eye(3)
+             + np.einsum("mk,mki,mkj->mij", c, d, d))
+        outer = net.hex.outer[idx]
+        step = np.zeros_like(f)
+        max_step = 0.25 * lay["L"]
+        if outer.any():
+            hn = np.einsum("i,mij,j->m", a, H[outer], a)
+            t = np.where(hn > 0.0, (f[outer] @ a) / np.where(hn > 0.0, hn, 1.0), 0.0)
+            step[outer] = np.clip(t, -max_step, max_step)[:, None] * a
+        free = ~outer
+        if free.any():
+            Hf = H[free]
+            det = np.linalg.det(Hf)
+            tr = np.trace(Hf, axis1=1, axis2=2)
+            ok = det > 1e-12 * tr ** 3
+            sol = np.zeros((Hf.shape[0], 3))
+            if ok.any():
+                sol[ok] = np.linalg.solve(Hf[ok], f[free][ok][..., None])[..., 0]
+            norm = np.sqrt(np.einsum("mc,mc->m", sol, sol))
+            sol *= np.minimum(1.0, max_step / np.maximum(norm, 1e-300))[:, None]
+            step[free] = sol
+        xf[idx] += step
+        return np.abs(step).max() if step.size else 0.0
+
+    def sweep(self, lay):
+        """One multicolour Gauss-Seidel-Newton sweep (colour order alternates); largest step (m)."""
+        net = lay["net"]
+        order = net.hex.colours if net.sweeps_done % 2 == 0 else net.hex.colours[::-1]
+        net.sweeps_done += 1
+        return max(self._colour_step(lay, idx) for idx in order)
+
+    def net_reaction(self, lay):
+        """The net's force on the needle at N1 (surface springs + N1's virtual spring)."""
+        net = lay["net"]
+        xf, a = net.xf, net.axis
+        valid = net.hex.nbr[0] >= 0
+        d = xf[net.hex.nbr[0][valid]] - xf[0]
+        ln = np.sqrt(np.einsum("kc,kc->k", d, d))
+        f = lay["ks"] * ((ln - net.rest[0][valid]) / ln) @ d
+        return f - lay["kv"] * ((xf[0] - net.X0f[0]) @ a) * a
+
+    @staticmethod
+    def ring_w_deflection(lay):
+        net = lay["net"]
+        o = net.hex.outer
+        return float(-((net.xf[o] - net.X0f[o]) @ net.axis).mean())
+
+    # -- the servo step ---------------------------------------------------------------------------
+    def step(self, p, v, sweeps: int | None = None):
+        """One servo tick at tip ``p`` (m) moving at ``v`` (m/s): the force on the needle (N)."""
+        p = np.asarray(p, dtype=float)
+        v = np.asarray(v, dtype=float)
+        self.punctured_now = -1
+        self.surface_force = 0.0
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
+            self.fault = True
+        if self.fault:
+            self.force = np.zeros(3)
+            return self.force
+        sweeps = self.sweeps if sweeps is None else sweeps
+        a = self.axis
+        s_p = 0.0
+        if self.inserted:
+            s_p = float((p - self.entry) @ a)
+            if s_p < -1e-6:  # back above the entry point: out of the tissue
+                self.inserted = False
+                self.offset = 0.0
+                self.states = [UNTOUCHED] * 3
+            elif self.offset > s_p:
+                self.offset = max(s_p, 0.0)  # withdrawal: the skin tents up with the needle
+        q = p - self.offset * a
+        radii, rho = self.radii(q)
+        front = next((k for k in range(3) if self.states[k] != PUNCTURED), 3)
+        f = np.zeros(3)
+        if front < 3:
+            k = front
+            lay = self.layers[k]
+            net = lay["net"]
+            if self.states[k] == UNTOUCHED and radii[k] >= rho:
+                self.build(k, self.centre + (q - self.centre) * (radii[k] / rho))
+                self.states[k] = PRESSING
+            if self.states[k] == PRESSING:
+                r = q - net.X0f[0]
+                dz1 = -(r @ net.axis)
+                if dz1 <= 0.0:
+                    self.states[k] = UNTOUCHED  # lifted off
+                else:
+                    n_sweeps = sweeps
+                    lateral = r + dz1 * net.axis
+                    if lateral @ lateral > (0.5 * lay["L"]) ** 2:
+                        # slid sideways: a new net under the tip, warm-started with the old net's
+                        # ring-mean deflections
+                        dz = -((net.xf - net.X0f) @ net.axis)
+                        ring = net.hex.ring
+                        mean = np.bincount(ring, dz)[1:] / np.bincount(ring)[1:]
+                        self.build(k, self.centre + (q - self.centre) * (radii[k] / rho))
+                        net.xf = net.X0f - mean[ring - 1][:, None] * net.axis
+                        n_sweeps *= 2
+                        r = q - net.X0f[0]
+                    net.xf[0] = q
+                    for _ in range(n_sweeps):
+                        self.sweep(lay)
+                    if self.ring_w_deflection(lay) > lay["thresh"]:
+                        self.states[k] = PUNCTURED
+                        self.punctured_now = k
+                        if k == 0:
+                            m = np.linalg.norm(r)
+                            self.axis = a = r / m if m > 1e-4 else -net.axis
+                            self.entry = net.X0f[0].copy()
+                            self.inserted = True
+                        comp = float(r @ a)
+                        if comp > 0.0:
+                            self.offset += comp  # the tissue beneath stays compressed by the dent
+                        q = p - self.offset * a
+                        radii, rho = self.radii(q)
+                        front = k + 1
+                    else:
+                        fn = max(float(self.net_reaction(lay) @ net.axis), 0.0)  # a surface only pushes
+                        f += fn * net.axis
+                        self.surface_force = fn
+        if self.inserted:
+            h = np.clip(radii[:3] - rho, 0.0, radii[:3] - radii[1:])
+            passed = np.array([s == PUNCTURED for s in self.states])
+            f += -float(np.sum(self.damping * h * passed)) * float(v @ a) * a
+            if self.lateral_on:
+                e = p - self.entry
+                f -= self.k_lat * (e - (e @ a) * a)
+        if front >= 3 and radii[3] > rho:
+            f += self.k_bone * (radii[3] - rho) * (q - self.centre) / rho
+        layer = -1
+        if rho <= radii[0]:
+            layer = next((j for j in range(3) if rho > radii[j + 1]), 3)
+        if front < 3 and layer > front - 1:
+            layer = front - 1
+        self.layer = layer
+        if not np.all(np.isfinite(f)):
+            self.fault = True
+            self.force = np.zeros(3)
+            return self.force
+        mag = float(np.linalg.norm(f))
+        if mag > self.limit:
+            f *= self.limit / mag
+        self.force = f
+        return f

@@ -1,0 +1,718 @@
+"""Every measurement of ``haptic-acu bench``, the table and the JSON.
+
+Pieces (each a function taking a :class:`Sizes`, returning part of the result dict):
+
+* :func:`servo`: the servo step on the :mod:`bench.scenarios` paths, three ways: ``model.step``
+  (what the engine calls), ``step_kernel(*args)`` alone (the compiled call with preassembled
+  arguments: the difference is the Python method's overhead), and ticks run inside one compiled
+  loop (:func:`haptic_acu.engine.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
+  Python at all); and the same paths through :mod:`bench.numpy_reference`.
+* :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
+  trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
+  temporary .rrd file.
+* :func:`sh`: SH evaluation (three layer meshes at 64 x 128 directions, lmax 15) and fitting
+  (10,000 samples, lmax 15) against pyshtools (``MakeGridPoint``, ``SHExpandLSQ``, orthonormal
+  harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
+  to one), with the two fits' agreement.
+* :func:`springback`, :func:`replay`, :func:`cold_start`, :func:`scaling`.
+
+The bench never fails on a number, only on a crash: targets are reported as pass/miss.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+
+from haptic_acu.errors import UserError
+
+from . import measure, scenarios
+from .measure import percentiles, ratio, time_calls
+
+BLOCK = 25  # ticks per compiled block in the "compiled" servo timing
+
+
+@dataclasses.dataclass(frozen=True)
+class Sizes:
+    """How much of everything to measure."""
+
+    servo_ticks: int  # timed ticks per scenario and per way of calling
+    numpy_ticks: int  # timed ticks of the NumPy reference per scenario
+    numpy_scenarios: tuple  # scenario names the NumPy reference runs on
+    loop_s: float  # real-time session length
+    sh_repeats: int  # evaluations / fits timed
+    fit_samples: int
+    sh_grid: tuple
+    springback_calls: int
+    replay_runs: int  # per mode (with / without .rrd)
+    cold_runs: int  # measured runs
+    cold_full_process: bool  # let the cold-start replays finish (process_total), or stop at the first tick
+    scaling_ticks: int
+    scaling_w: tuple = (4, 8, 12, 16)
+    scaling_lmax: tuple = (5, 10, 15, 20)
+    trajectory: str | None = None  # None: the bundled default
+
+
+FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
+             numpy_scenarios=("press_skin_w10", "press_muscle_w10", "inside_muscle"), loop_s=30.0,
+             sh_repeats=20, fit_samples=10_000, sh_grid=(64, 128), springback_calls=5000, replay_runs=3,
+             cold_runs=3, cold_full_process=True, scaling_ticks=3000)
+QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, sh_repeats=5,
+                            springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
+                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"))
+
+# The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
+SERVO_HEADLINE = "press_skin_w10"
+
+
+def _log(progress, msg):
+    if progress:
+        print(f"bench: {msg}", file=sys.stderr, flush=True)
+
+
+# ---- servo step ----------------------------------------------------------------------------------
+
+def _state_arrays(model):
+    return [model.pos, model.rest_all, model.axes_all, model.si, model.sf, model.holes, model.radii,
+            model.scratch, model.diag]
+
+
+def _snapshot(model):
+    return [a.copy() for a in _state_arrays(model)]
+
+
+def _restore(model, snap):
+    for a, s in zip(_state_arrays(model), snap):
+        a[...] = s
+
+
+@nb.njit(cache=True, nogil=True)
+def empty_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all, offs,
+                 si, sf, holes, radii, scratch, diag):
+    """Takes what :func:`haptic_acu.needle.step_kernel` takes and does nothing: calling it from
+    Python costs exactly the dispatch and argument unboxing of a servo call."""
+    return
+
+
+def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("step", "kernel", "compiled")) -> dict:
+    """Time one scenario's ticks, the ways interleaved tick by tick (so each sees the same machine
+    load), each on its own model brought to the same state:
+
+    * ``step``: ``NeedleModel.step(p, v)``, what the engine's servo tick calls;
+    * ``kernel``: ``step_kernel(p, v, *args)`` with preassembled arguments (p, v written before);
+    * ``dispatch``: :func:`empty_kernel` with the same arguments: the Python-to-compiled call cost;
+    * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
+      (:func:`haptic_acu.engine.run_ticks`, as the headless replay runs them); per-tick means.
+
+    Optionally the NumPy reference on the same path (``numpy_ticks`` ticks, after the ones above).
+    Returns percentile objects in microseconds.
+    """
+    from haptic_acu.engine import run_ticks
+    from haptic_acu.needle import step_kernel
+    from haptic_acu.samples import NCOL
+
+    P = np.ascontiguousarray(sc.P[:n])
+    V = np.ascontiguousarray(sc.V[:n])
+    n = P.shape[0]
+    T = np.arange(n) * scenarios.DT
+    models = {}
+    for way in ("step", "kernel", "compiled"):
+        if way not in ways:
+            continue
+        m = scenarios.model_for(sc.cfg)
+        m.warm_up()
+        for p, v in zip(sc.pre_P, sc.pre_V):
+            m.step(p, v)
+        scenarios.check_state(m, sc)
+        models[way] = m
+    any_model = next(iter(models.values()))
+    out = {"particles": any_model.n[sc.layer] if sc.layer >= 0 else 0}
+    buf = np.zeros((BLOCK, NCOL))
+    if "compiled" in models:
+        c = models["compiled"]
+        c_args = c.kernel_args()
+        snap = _snapshot(c)
+        run_ticks(P[:1], V[:1], T[:1], 0, buf, 0, *c_args, c._p, c._v)  # load the compiled loop
+        _restore(c, snap)
+    if "kernel" in models:
+        k = models["kernel"]
+        k_args = k.kernel_args()
+        kp, kv = k._p, k._v
+        empty_kernel(kp, kv, *k_args)
+    times = {w: [] for w in ("step", "kernel", "dispatch", "compiled")}
+    clock = time.perf_counter_ns
+    with measure.gc_paused():
+        for i in range(n):
+            if "step" in models:
+                m = models["step"]
+                t0 = clock()
+                m.step(P[i], V[i])
+                times["step"].append(clock() - t0)
+            if "kernel" in models:
+                kp[:] = P[i]
+                kv[:] = V[i]
+                t0 = clock()
+                step_kernel(kp, kv, *k_args)
+                t1 = clock()
+                empty_kernel(kp, kv, *k_args)
+                t2 = clock()
+                times["kernel"].append(t1 - t0)
+                times["dispatch"].append(t2 - t1)
+            if "compiled" in models and (i + 1) % BLOCK == 0:
+                s = i + 1 - BLOCK
+                t0 = clock()
+                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, buf, 0, *c_args, c._p, c._v)
+                times["compiled"].append((clock() - t0) / BLOCK)
+    for m in models.values():
+        scenarios.check_state(m, sc)  # still the state being measured at the end of the path
+    for way, t in times.items():
+        if t:
+            out[way] = percentiles(np.array(t), 1e-3)
+    if len(models) > 1:
+        f = [m.diag[:3].copy() for m in models.values()]
+        out["ways_agree"] = all(np.array_equal(f[0], g) for g in f[1:])
+
+    if numpy_ticks:
+        from .numpy_reference import NumpyNeedle
+
+        ref = NumpyNeedle(sc.cfg, any_model.tissue)
+        for p, v in zip(sc.pre_P, sc.pre_V):
+            ref.step(p, v)
+        k = min(numpy_ticks, sc.P.shape[0])
+        t_np = time_calls(lambda i: ref.step(sc.P[i], sc.V[i]), k)
+        out["numpy"] = percentiles(t_np, 1e6)
+        out["numpy_states_match"] = _same_phase(ref.states, sc)
+    return out
+
+
+def _same_phase(states, sc) -> bool:
+    if sc.layer >= 0:
+        return states[sc.layer] == scenarios.PRESSING
+    return all(s == scenarios.PUNCTURED for s in states)
+
+
+def servo(sizes: Sizes, progress=False) -> dict:
+    scen = [scenarios.press(sizes.servo_ticks, layer=0, w=10), scenarios.press(sizes.servo_ticks, layer=2),
+            scenarios.inside_muscle(sizes.servo_ticks)]
+    res = {k: {} for k in ("servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
+                           "servo_tick_numpy_us", "speedup_vs_numpy", "servo_particles")}
+    notes = []
+    for sc in scen:
+        _log(progress, f"servo step, {sc.name}")
+        r = servo_scenario(sc, sizes.servo_ticks, sizes.numpy_ticks if sc.name in sizes.numpy_scenarios else 0)
+        res["servo_tick_us"][sc.name] = r["step"]
+        res["servo_kernel_us"][sc.name] = r["kernel"]
+        res["servo_dispatch_us"][sc.name] = r["dispatch"]
+        res["servo_compiled_us"][sc.name] = r.get("compiled")
+        res["servo_particles"][sc.name] = r["particles"]
+        if not r.get("ways_agree", True):
+            notes.append(f"servo {sc.name}: the ways of calling the step ended with different forces")
+        if "numpy" in r:
+            res["servo_tick_numpy_us"][sc.name] = r["numpy"]
+            res["speedup_vs_numpy"][sc.name] = ratio(r["numpy"]["p50"], r["step"]["p50"])
+            if not r["numpy_states_match"]:
+                notes.append(f"servo {sc.name}: the NumPy reference was not in the measured state")
+    res["notes"] = notes
+    return res
+
+
+# ---- real-time loop ------------------------------------------------------------------------------
+
+def looped_trajectory(src, dst, min_duration_s: float) -> float:
+    """Write ``src`` repeated back to back until it lasts ``min_duration_s``; returns its duration."""
+    from haptic_acu.trajectory import TrajectoryWriter, load
+
+    tr = load(src)
+    t = tr.t_s - tr.t_s[0]
+    period = t[-1] + (t[1] - t[0])
+    copies = max(1, math.ceil(min_duration_s / period) + 1)
+    with TrajectoryWriter(dst, comments=[f"{Path(src).name} repeated {copies} times (haptic-acu bench)"]) as w:
+        for c in range(copies):
+            w.append_rows(np.column_stack([t + c * period, tr.pos_m]))
+    return copies * period - (t[1] - t[0])
+
+
+class _DentProbe:
+    """Stands in for the rerun sink when it is missing: reads every live dent grid each frame."""
+
+    def on_frame(self, frame):
+        for k in frame.dents:
+            frame.dents[k]
+
+
+def loop(sizes: Sizes, progress=False) -> dict:
+    from devices.scripted import ScriptedDevice
+    from haptic_acu.config import load_config
+    from haptic_acu.engine import Session
+    from haptic_acu.replay import DEFAULT_TRAJECTORY
+
+    cfg = load_config()
+    notes = []
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+        traj = Path(tmp) / "looped.csv"
+        looped_trajectory(sizes.trajectory or DEFAULT_TRAJECTORY, traj, sizes.loop_s + 1.0)
+        dev = ScriptedDevice(traj, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s, realtime=True,
+                             force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        rrd = Path(tmp) / "loop.rrd"
+        try:
+            from haptic_acu.rerun_log import RerunSink
+            sinks = [RerunSink.to_file(rrd)]
+            rerun = True
+        except ImportError as e:
+            sinks = [_DentProbe()]
+            rerun = False
+            notes.append(f"rerun logging not available ({e}); the loop ran without it")
+        session = Session(cfg, dev, sinks, clock="realtime", duration_s=sizes.loop_s)
+        session.warm_up()
+        _log(progress, f"real-time loop, {sizes.loop_s:.0f} s")
+        policy_before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
+        try:
+            result = session.run()
+            fifo = hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) == getattr(os, "SCHED_FIFO", -1)
+        finally:
+            # The engine makes the servo thread (here: this one) SCHED_FIFO when allowed and leaves it so.
+            if policy_before is not None and os.sched_getscheduler(0) != policy_before:
+                os.sched_setscheduler(0, policy_before, os.sched_param(0))
+        dev.close()
+        st = result.stats
+        rrd_bytes = rrd.stat().st_size if rrd.exists() else 0
+    if result.fault:
+        notes.append(f"real-time session stopped: {result.fault}")
+    return {"loop_period_error_us": st["period_error_us"], "ticks": int(st["ticks"]),
+            "missed_ticks": int(st["missed_ticks"]),
+            "loop": {"duration_s": sizes.loop_s, "wall_s": st["wall_s"], "frames": st["frames"],
+                     "servo_hz": st["servo_hz"], "visual_hz": st["visual_hz"], "dropped_rows": st["dropped_rows"],
+                     "rerun_rrd": rerun, "rrd_bytes": rrd_bytes, "sched_fifo": bool(fifo), "fault": result.fault},
+            "notes": notes}
+
+
+# ---- spherical harmonics -------------------------------------------------------------------------
+
+def to_pyshtools(coeffs: np.ndarray) -> np.ndarray:
+    """Our real orthonormal coefficients (column l*l + l + m, Condon-Shortley phase) as a pyshtools
+    ``cilm`` array for ``norm=4`` (orthonormal), ``csphase=-1``: the same functions, so
+    cilm[0, l, m] = c[l, m] and cilm[1, l, m] = c[l, -m]."""
+    from haptic_acu import shf
+
+    lmax = shf.lmax_of(coeffs.size)
+    cilm = np.zeros((2, lmax + 1, lmax + 1))
+    for l in range(lmax + 1):
+        base = l * l + l
+        for m in range(l + 1):
+            cilm[0, l, m] = coeffs[base + m]
+            if m > 0:
+                cilm[1, l, m] = coeffs[base - m]
+    return cilm
+
+
+def from_pyshtools(cilm: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`to_pyshtools`."""
+    lmax = cilm.shape[1] - 1
+    c = np.zeros((lmax + 1) ** 2)
+    for l in range(lmax + 1):
+        base = l * l + l
+        c[base: base + l + 1] = cilm[0, l, : l + 1]
+        for m in range(1, l + 1):
+            c[base - m] = cilm[1, l, m]
+    return c
+
+
+def import_pyshtools():
+    """The pyshtools module, or None when it is not installed (``pip install .[bench]``)."""
+    try:
+        import pyshtools
+    except ImportError:
+        return None
+    return pyshtools
+
+
+def lat_lon(theta, phi):
+    """pyshtools' latitude and longitude (degrees) of our polar angle and azimuth (radians)."""
+    return 90.0 - np.degrees(np.ravel(theta)), np.degrees(np.ravel(phi))
+
+
+def fit_samples(n: int):
+    """``n`` directions and the default skin surface's radius there (m): the fit benchmark's data."""
+    from haptic_acu.config import load_config
+    from haptic_acu.tissue import limb_radius, sample_directions
+
+    body = load_config().body
+    th, ph = sample_directions(n, seed=1)
+    return th, ph, limb_radius(th, ph, np.array(body.semi_axes_mm) * 1e-3, body.bulge)
+
+
+def sh(sizes: Sizes, coeffs: np.ndarray, progress=False) -> dict:
+    """``coeffs``: the layer surfaces' coefficients (k, (lmax+1)^2), evaluated on the grid."""
+    from haptic_acu import shf
+
+    lmax = shf.lmax_of(coeffs.shape[1])
+    T, P = shf.grid(*sizes.sh_grid)
+    reps = sizes.sh_repeats
+    _log(progress, "SH evaluation and fit")
+    shf.evaluate(coeffs[0], T[:1, :1], P[:1, :1])
+    ours = [None]
+
+    def eval_ours(_):
+        ours[0] = [shf.evaluate(c, T, P) for c in coeffs]
+
+    res = {"sh_lmax": lmax, "sh_grid": list(sizes.sh_grid), "sh_surfaces": int(coeffs.shape[0]),
+           "fit_samples": sizes.fit_samples}
+    res["shf_eval_ms"] = percentiles(time_calls(eval_ours, reps), 1e3)
+    th, ph, r = fit_samples(sizes.fit_samples)
+    shf.fit(th[: 2 * (lmax + 1) ** 2], ph[: 2 * (lmax + 1) ** 2], r[: 2 * (lmax + 1) ** 2], lmax)
+    fit_out = [None]
+
+    def fit_ours(_):
+        fit_out[0] = shf.fit(th, ph, r, lmax)
+
+    res["shf_fit_ms"] = percentiles(time_calls(fit_ours, max(2, reps // 4)), 1e3)
+    notes = []
+    psh = import_pyshtools()
+    res.update({"pyshtools_eval_ms": None, "pyshtools_fit_ms": None, "pyshtools_grid_dh_ms": None,
+                "shf_speedup_vs_pyshtools": None, "sh_agreement_m": None})
+    if psh is None:
+        notes.append("pyshtools not installed: pip install '.[bench]' for the pyshtools rows")
+        res["notes"] = notes
+        return res
+    res["pyshtools_version"] = psh.__version__
+    lat, lon = lat_lon(T, P)
+    cilms = [to_pyshtools(c) for c in coeffs]
+    theirs = [None]
+
+    def eval_theirs(_):
+        theirs[0] = [psh.expand.MakeGridPoint(c, lat, lon, norm=4, csphase=-1) for c in cilms]
+
+    eval_theirs(0)
+    res["pyshtools_eval_ms"] = percentiles(time_calls(eval_theirs, reps), 1e3)
+    # pyshtools' own grid: the FFT synthesis on its 64 x 128 Driscoll-Healy grid (other points).
+    n_lat = sizes.sh_grid[0]
+    dh = lambda _: [psh.expand.MakeGridDH(c, lmax=n_lat // 2 - 1, norm=4, csphase=-1, sampling=2) for c in cilms]
+    dh(0)
+    res["pyshtools_grid_dh_ms"] = percentiles(time_calls(dh, reps), 1e3)
+    la, lo = lat_lon(th, ph)
+    cilm_fit = [None]
+
+    def fit_theirs(_):
+        cilm_fit[0] = psh.expand.SHExpandLSQ(r, la, lo, lmax, norm=4, csphase=-1)[0]
+
+    res["pyshtools_fit_ms"] = percentiles(time_calls(fit_theirs, max(2, reps // 4)), 1e3)
+    res["shf_speedup_vs_pyshtools"] = {
+        "eval": ratio(res["pyshtools_eval_ms"]["p50"], res["shf_eval_ms"]["p50"]),
+        "fit": ratio(res["pyshtools_fit_ms"]["p50"], res["shf_fit_ms"]["p50"])}
+    theirs_fit = from_pyshtools(cilm_fit[0])
+    res["sh_agreement_m"] = {
+        "eval_max_abs": float(max(np.abs(a.ravel() - b).max() for a, b in zip(ours[0], theirs[0]))),
+        "fit_surface_max_abs": float(np.abs(shf.evaluate(fit_out[0], T, P) - shf.evaluate(theirs_fit, T, P)).max()),
+        "fit_coeff_max_abs": float(np.abs(fit_out[0] - theirs_fit).max())}
+    res["notes"] = notes
+    return res
+
+
+# ---- springback, replay, cold start, scaling -----------------------------------------------------
+
+def springback(sizes: Sizes, progress=False) -> dict:
+    """One visual-frame springback step of a w = 10 net and its margin rings, from a pressed shape."""
+    from haptic_acu.springback import springback_step
+
+    _log(progress, "springback")
+    sc = scenarios.press(400, layer=0, w=10)
+    model = scenarios.model_for(sc.cfg)
+    for p, v in zip(np.vstack([sc.pre_P, sc.P]), np.vstack([sc.pre_V, sc.V])):
+        model.step(p, v)
+    idx = model.active_slot(0)
+    X0 = model.X0[idx].copy()
+    deformed = model.net_positions(idx)
+    x = deformed.copy()
+    goals = np.zeros_like(x)
+    n_net = model.n[0]
+    springback_step(x, X0, n_net, 0.5, goals)
+    t = time_calls(lambda i: springback_step(x, X0, n_net, 0.5, goals), sizes.springback_calls,
+                   lambda i: np.copyto(x, deformed))
+    return {"springback_us": percentiles(t, 1e6), "springback_particles": int(x.shape[0]),
+            "springback_net_particles": int(n_net)}
+
+
+def replay(sizes: Sizes, progress=False) -> dict:
+    """Simulated seconds per wall second of the headless replay (the session run, as
+    ``haptic-acu replay`` reports it), without and with the .rrd recording."""
+    from haptic_acu.replay import DEFAULT_TRAJECTORY, replay_one
+
+    traj = sizes.trajectory or DEFAULT_TRAJECTORY
+    runs = {"no_rrd": [], "rrd": []}
+    notes = []
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+        for mode in ("no_rrd", "rrd"):
+            _log(progress, f"replay, {mode.replace('_', ' ')}")
+            for i in range(sizes.replay_runs):
+                try:
+                    s = replay_one(traj, Path(tmp) / f"{mode}-{i}", rrd=(mode == "rrd"), progress=False)
+                except ImportError as e:
+                    notes.append(f"replay with .rrd not available ({e})")
+                    break
+                runs[mode].append(s["duration_s"] / s["_wall_s"])
+    med = {k: (float(np.median(v)) if v else None) for k, v in runs.items()}
+    return {"replay_speed_x": {**med, "runs": runs, "trajectory": Path(traj).name}, "notes": notes}
+
+
+def cold_start(sizes: Sizes, progress=False) -> dict:
+    """Process start to the first servo tick of ``python -m haptic_acu replay --no-rrd --quiet``,
+    with a warm numba cache (:func:`collect` runs it after :func:`replay`, whose runs load or
+    compile, and so cache, every kernel the replay calls).
+
+    The child (:mod:`bench.cold_start_child`) is that command with the scripted device's
+    ``set_force`` wrapped to print the wall-clock time of the first force command, which follows
+    the first block of servo ticks; the parent takes its own wall clock just before starting the
+    process. ``first_tick`` is the difference. With ``sizes.cold_full_process`` the child runs the
+    whole replay (plots and files included) and ``process_total`` is its wall time, an upper bound;
+    otherwise it is stopped at its first tick.
+    """
+    from haptic_acu.replay import DEFAULT_TRAJECTORY
+
+    traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
+    first, total = [], []
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+        for i in range(sizes.cold_runs):
+            _log(progress, f"cold start, run {i + 1}")
+            cmd = [sys.executable, "-m", "bench.cold_start_child", "replay", traj, "--no-rrd", "--quiet",
+                   "--out", str(Path(tmp) / f"run{i}")]
+            t0 = time.time()
+            # cwd: a clean folder, so nothing there can shadow the packages on sys.path
+            proc = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            t_first = None
+            lines = []
+            for line in proc.stderr:
+                m = re.match(r"FIRST_TICK_DONE ([0-9.]+)", line)
+                if m:
+                    t_first = float(m.group(1))
+                    if not sizes.cold_full_process:
+                        proc.kill()
+                        break
+                else:
+                    lines.append(line)
+            proc.stderr.close()
+            rc = proc.wait()
+            t1 = time.time()
+            if t_first is None or (sizes.cold_full_process and rc != 0):
+                tail = (lines or ["no output"])[-1].strip()
+                raise RuntimeError(f"cold-start replay failed (exit {rc}): {tail}")
+            first.append(t_first - t0)
+            if sizes.cold_full_process:
+                total.append(t1 - t0)
+    return {"cold_start_s": {
+        "first_tick": float(np.median(first)), "process_total": float(np.median(total)) if total else None,
+        "runs_first_tick": first, "runs_process_total": total,
+        "method": "parent's wall clock just before starting `python -m bench.cold_start_child replay --no-rrd "
+                  "--quiet` to the child's wall clock at its first set_force (after the first servo ticks); "
+                  "process_total: the whole replay process, an upper bound"}}
+
+
+def scaling(sizes: Sizes, progress=False) -> dict:
+    """Servo tick (model.step, skin pressed) for several net sizes; SH evaluation of one surface on
+    the grid for several degrees."""
+    from haptic_acu import shf
+
+    out = {"servo_tick_us": {}, "particles": {}, "sh_eval_ms": {}, "sh_eval_point_us": {}}
+    for w in sizes.scaling_w:
+        _log(progress, f"scaling, w = {w}")
+        sc = scenarios.press(sizes.scaling_ticks, layer=0, w=w)
+        r = servo_scenario(sc, sizes.scaling_ticks, ways=("step",))
+        out["servo_tick_us"][str(w)] = r["step"]
+        out["particles"][str(w)] = r["particles"]
+    T, P = shf.grid(*sizes.sh_grid)
+    rng = np.random.default_rng(0)
+    for lmax in sizes.scaling_lmax:
+        c = rng.standard_normal((lmax + 1) ** 2) / (1.0 + np.arange((lmax + 1) ** 2))
+        shf.evaluate(c, T[:1, :1], P[:1, :1])
+        t = time_calls(lambda i: shf.evaluate(c, T, P), max(3, sizes.sh_repeats))
+        out["sh_eval_ms"][str(lmax)] = percentiles(t, 1e3)
+        out["sh_eval_point_us"][str(lmax)] = out["sh_eval_ms"][str(lmax)]["p50"] * 1e3 / T.size
+    return {"scaling": out}
+
+
+# ---- targets, table, JSON ------------------------------------------------------------------------
+
+def _get(res, *path):
+    for p in path:
+        if res is None:
+            return None
+        res = res.get(p) if isinstance(res, dict) else None
+    return res
+
+
+def targets(res: dict) -> list[dict]:
+    """The issue's targets, each with the measured value and pass / miss (None: not measured)."""
+    ticks = res.get("ticks") or 0
+    missed = res.get("missed_ticks")
+    rows = [
+        ("servo tick p99, w=10 pressing skin (us)", _get(res, "servo_tick_us", SERVO_HEADLINE, "p99"), "<=", 30.0),
+        ("speedup over the NumPy reference, w=10 (x)", _get(res, "speedup_vs_numpy", SERVO_HEADLINE), ">=", 20.0),
+        ("loop period error p99 (us)", _get(res, "loop_period_error_us", "p99"), "<=", 100.0),
+        ("loop period error p99.9 (us)", _get(res, "loop_period_error_us", "p999"), "<=", 500.0),
+        ("missed ticks per 10,000", (1e4 * missed / ticks) if ticks and missed is not None else None, "<=", 1.0),
+        ("SH eval vs pyshtools (x faster)", _get(res, "shf_speedup_vs_pyshtools", "eval"), ">=", 1.0),
+        ("SH fit vs pyshtools (x faster)", _get(res, "shf_speedup_vs_pyshtools", "fit"), ">=", 1.0),
+        ("SH fit agreement with pyshtools (m)", _get(res, "sh_agreement_m", "fit_surface_max_abs"), "<=", 1e-10),
+        ("springback step p99 (us)", _get(res, "springback_us", "p99"), "<=", 100.0),
+        ("replay without .rrd (x real time)", _get(res, "replay_speed_x", "no_rrd"), ">=", 50.0),
+        ("replay with .rrd (x real time)", _get(res, "replay_speed_x", "rrd"), ">=", 10.0),
+        ("cold start to first tick (s)", _get(res, "cold_start_s", "first_tick"), "<=", 5.0),
+    ]
+    out = []
+    for label, value, op, limit in rows:
+        ok = None if value is None else (value <= limit if op == "<=" else value >= limit)
+        out.append({"target": label, "value": value, "op": op, "limit": limit, "pass": ok})
+    return out
+
+
+REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us", "servo_tick_numpy_us",
+                 "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks", "shf_eval_ms", "shf_fit_ms",
+                 "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
+                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes")
+
+
+def collect(sizes: Sizes, progress=False) -> dict:
+    """Run every piece; the result dict (the JSON)."""
+    from haptic_acu.config import load_config
+
+    t0 = time.perf_counter()
+    res = {"quick": sizes == QUICK, "sizes": dataclasses.asdict(sizes), "machine": measure.machine_info()}
+    notes = []
+    walls = {}
+    tissue = scenarios.tissue_for(load_config())
+    pieces = [("servo", lambda: servo(sizes, progress)),
+              ("sh", lambda: sh(sizes, tissue.coeffs[:3], progress)),
+              ("springback", lambda: springback(sizes, progress)),
+              ("scaling", lambda: scaling(sizes, progress)),
+              ("replay", lambda: replay(sizes, progress)),
+              ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
+              ("loop", lambda: loop(sizes, progress))]
+    for name, fn in pieces:
+        t = time.perf_counter()
+        part = fn()
+        walls[name] = round(time.perf_counter() - t, 2)
+        notes += part.pop("notes", [])
+        res.update(part)
+    res["piece_wall_s"] = walls
+    res["machine"]["pyshtools"] = res.pop("pyshtools_version", None)
+    res["machine"]["load_average_end"] = measure.load_average()
+    res["notes"] = notes
+    res["targets"] = targets(res)
+    res["bench_wall_s"] = time.perf_counter() - t0
+    return res
+
+
+def _fmt(x, digits=3):
+    if x is None:
+        return "-"
+    if isinstance(x, (int, np.integer)):
+        return str(x)
+    if x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
+        return f"{x:.2e}"
+    return f"{x:.{digits}g}"
+
+
+def format_table(res: dict) -> str:
+    """The human-readable table: percentiles per row, then the targets with pass / miss."""
+    lines = []
+    m = res["machine"]
+    lines.append(f"haptic-acu bench ({'quick' if res.get('quick') else 'full'}) on {m['cpu']}, "
+                 f"{m['cores_available']} cores, python {m['python']}, numpy {m['numpy']}, numba {m['numba']}, "
+                 f"{m['date']}; load average {m['load_average_start']} -> {m.get('load_average_end')}")
+    head = f"{'':46s} {'p50':>9s} {'p99':>9s} {'p99.9':>9s} {'max':>9s}"
+
+    def prow(label, p):
+        if p is None:
+            lines.append(f"{label:46s} {'-':>9s}")
+        else:
+            lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
+
+    lines.append("")
+    lines.append(head)
+    for name in res["servo_tick_us"]:
+        lines.append(f"servo tick, {name} ({res['servo_particles'][name]} particles)")
+        prow("  model.step (us)", res["servo_tick_us"][name])
+        prow("  step_kernel alone (us)", res["servo_kernel_us"][name])
+        prow("  call overhead: empty kernel, same args (us)", res["servo_dispatch_us"][name])
+        prow(f"  in a compiled loop, per tick of {BLOCK} (us)", res["servo_compiled_us"][name])
+        if name in res["servo_tick_numpy_us"]:
+            prow("  NumPy reference (us)", res["servo_tick_numpy_us"][name])
+            lines.append(f"  speedup over NumPy (p50): {_fmt(res['speedup_vs_numpy'][name])}x")
+    lp = res["loop"]
+    prow(f"loop period error, {lp['duration_s']:.0f} s real time (us)", res["loop_period_error_us"])
+    lines.append(f"  {res['ticks']} ticks, {res['missed_ticks']} missed, {lp['frames']} frames "
+                 f"({_fmt(lp['visual_hz'])} Hz), rerun .rrd: {'yes' if lp['rerun_rrd'] else 'NO'}, "
+                 f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}")
+    g = res["sh_grid"]
+    prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
+    if res["pyshtools_eval_ms"] is None:
+        lines.append(f"{'  pyshtools MakeGridPoint':46s} pyshtools not installed")
+    else:
+        prow("  pyshtools MakeGridPoint, same points (ms)", res["pyshtools_eval_ms"])
+        prow("  pyshtools MakeGridDH, its own grid (ms)", res["pyshtools_grid_dh_ms"])
+    prow(f"SH fit, {res['fit_samples']} samples, lmax {res['sh_lmax']} (ms)", res["shf_fit_ms"])
+    if res["pyshtools_fit_ms"] is None:
+        lines.append(f"{'  pyshtools SHExpandLSQ':46s} pyshtools not installed")
+    else:
+        prow("  pyshtools SHExpandLSQ (ms)", res["pyshtools_fit_ms"])
+        a = res["sh_agreement_m"]
+        lines.append(f"  agreement with pyshtools: eval {_fmt(a['eval_max_abs'])} m, fitted surface "
+                     f"{_fmt(a['fit_surface_max_abs'])} m")
+    prow(f"springback step, {res['springback_particles']} particles (us)", res["springback_us"])
+    rs = res["replay_speed_x"]
+    lines.append(f"replay {rs['trajectory']}: {_fmt(rs['no_rrd'])}x real time without .rrd, "
+                 f"{_fmt(rs['rrd'])}x with it")
+    cs = res["cold_start_s"]
+    lines.append(f"cold start: first servo tick {_fmt(cs['first_tick'])} s after process start"
+                 + (f" (whole replay process {_fmt(cs['process_total'])} s)" if cs["process_total"] else ""))
+    sc = res["scaling"]
+    lines.append("scaling, servo tick p50 / p99 (us): " + ", ".join(
+        f"w={w} ({sc['particles'][w]} p) {_fmt(p['p50'])} / {_fmt(p['p99'])}" for w, p in sc["servo_tick_us"].items()))
+    lines.append("scaling, SH eval of one surface p50 (ms; us per point): " + ", ".join(
+        f"lmax {l} {_fmt(p['p50'])} ({_fmt(sc['sh_eval_point_us'][l])})" for l, p in sc["sh_eval_ms"].items()))
+    lines.append("")
+    lines.append(f"{'target':46s} {'measured':>10s} {'':>3s} {'limit':>8s}  result")
+    for t in res["targets"]:
+        verdict = "not measured" if t["pass"] is None else ("pass" if t["pass"] else "MISS")
+        lines.append(f"{t['target']:46s} {_fmt(t['value']):>10s} {t['op']:>3s} {_fmt(t['limit']):>8s}  {verdict}")
+    for n in res["notes"]:
+        lines.append(f"note: {n}")
+    lines.append("Timings on a shared machine are noisy; the bench reports, it does not judge.")
+    return "\n".join(lines)
+
+
+def write_json(res: dict, path) -> None:
+    path = Path(path)
+    path.write_text(json.dumps(res, indent=2, sort_keys=False, default=float) + "\n")
+
+
+def check_json_path(path) -> None:
+    """Fail before two minutes of measuring if the JSON file cannot be written."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{p}: --json wants a file name, this is a folder")
+    if not p.parent.is_dir():
+        raise UserError(f"{p}: --json folder {p.parent} does not exist")
+    if not os.access(p.parent, os.W_OK):
+        raise UserError(f"{p}: --json folder {p.parent} is not writable")
+
+
+def main(quick: bool = False, json_path=None, progress: bool = True, out=None) -> int:
+    check_json_path(json_path)
+    res = collect(QUICK if quick else FULL, progress=progress)
+    print(format_table(res), file=out or sys.stdout)
+    if json_path is not None:
+        write_json(res, json_path)
+    return 0
