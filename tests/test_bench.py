@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -224,6 +226,32 @@ def test_looped_trajectory_repeats_the_file(tmp_path):
     assert copies >= 2
     for c in range(copies):
         np.testing.assert_allclose(loop.position_at(t + c * period), one.position_at(t), atol=1e-9)
+
+
+def test_sh_rows_say_pyshtools_is_missing_when_it_is(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyshtools", None)  # what `import pyshtools` meets when not installed
+    tiny = dataclasses.replace(run.QUICK, sh_repeats=1, fit_samples=200, sh_grid=(4, 8))
+    coeffs = np.random.default_rng(0).standard_normal((3, (4 + 1) ** 2))
+    res = run.sh(tiny, coeffs)
+    _percentile_object(res["shf_eval_ms"])
+    _percentile_object(res["shf_fit_ms"])
+    assert res["pyshtools_eval_ms"] is None and res["pyshtools_fit_ms"] is None
+    assert res["shf_speedup_vs_pyshtools"] is None
+    assert any("pyshtools not installed" in n for n in res["notes"])
+
+
+@pytest.mark.slow
+def test_loop_runs_without_the_rerun_sink_and_says_so(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "haptic_acu.rerun_log", None)
+    traj = tmp_path / "short.csv"
+    with TrajectoryWriter(traj) as w:
+        w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.2, 0.0, 0.0, -1e-3]])
+    policy = os.sched_getscheduler(0)
+    res = run.loop(dataclasses.replace(run.QUICK, loop_s=0.3, trajectory=str(traj)))
+    assert os.sched_getscheduler(0) == policy  # the engine's SCHED_FIFO does not outlive the loop
+    assert res["loop"]["rerun_rrd"] is False and any("rerun logging not available" in n for n in res["notes"])
+    assert 200 < res["ticks"] < 400 and res["loop"]["frames"] > 5  # 0.3 s at 1 kHz, visual frames ran
+    _percentile_object(res["loop_period_error_us"])
 
 
 @pytest.mark.slow
