@@ -50,6 +50,7 @@ class Sizes:
     numpy_ticks: int  # timed ticks of the NumPy reference per scenario
     numpy_scenarios: tuple  # scenario names the NumPy reference runs on
     loop_s: float  # real-time session length
+    loop_plain_s: float  # a second real-time session without rerun logging (0: none)
     sh_repeats: int  # evaluations / fits timed
     fit_samples: int
     sh_grid: tuple
@@ -64,10 +65,10 @@ class Sizes:
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
-             numpy_scenarios=("press_skin_w10", "press_muscle_w10", "inside_muscle"), loop_s=30.0,
+             numpy_scenarios=("press_skin_w10", "press_muscle_w10", "inside_muscle"), loop_s=30.0, loop_plain_s=10.0,
              sh_repeats=20, fit_samples=10_000, sh_grid=(64, 128), springback_calls=5000, replay_runs=3,
              cold_runs=3, cold_full_process=True, scaling_ticks=3000)
-QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, sh_repeats=5,
+QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, loop_plain_s=0.0, sh_repeats=5,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
                             scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"))
 
@@ -243,58 +244,84 @@ def looped_trajectory(src, dst, min_duration_s: float) -> float:
 
 
 class _DentProbe:
-    """Stands in for the rerun sink when it is missing: reads every live dent grid each frame."""
+    """The visual loop's dent evaluation without rerun: reads every live dent grid each frame (the
+    rerun sink does the same before logging them)."""
 
     def on_frame(self, frame):
         for k in frame.dents:
             frame.dents[k]
 
 
-def loop(sizes: Sizes, progress=False) -> dict:
+def realtime_session(cfg, trajectory, duration_s: float, rerun: bool, tmp, progress=False) -> dict:
+    """A real-time Session on the scripted device playing ``trajectory`` looped for ``duration_s``;
+    with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
+    missing). Returns the session's stats plus what ran."""
     from devices.scripted import ScriptedDevice
-    from haptic_acu.config import load_config
     from haptic_acu.engine import Session
-    from haptic_acu.replay import DEFAULT_TRAJECTORY
 
-    cfg = load_config()
-    notes = []
-    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
-        traj = Path(tmp) / "looped.csv"
-        looped_trajectory(sizes.trajectory or DEFAULT_TRAJECTORY, traj, sizes.loop_s + 1.0)
-        dev = ScriptedDevice(traj, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s, realtime=True,
-                             force_limit_n=cfg.safety.force_limit_n)
-        dev.open()
-        rrd = Path(tmp) / "loop.rrd"
+    traj = Path(tmp) / "looped.csv"
+    looped_trajectory(trajectory, traj, duration_s + 1.0)
+    dev = ScriptedDevice(traj, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s, realtime=True,
+                         force_limit_n=cfg.safety.force_limit_n)
+    dev.open()
+    rrd = Path(tmp) / "loop.rrd"
+    note = None
+    sinks = [_DentProbe()]
+    if rerun:
         try:
             from haptic_acu.rerun_log import RerunSink
             sinks = [RerunSink.to_file(rrd)]
-            rerun = True
         except ImportError as e:
-            sinks = [_DentProbe()]
             rerun = False
-            notes.append(f"rerun logging not available ({e}); the loop ran without it")
-        session = Session(cfg, dev, sinks, clock="realtime", duration_s=sizes.loop_s)
-        session.warm_up()
-        _log(progress, f"real-time loop, {sizes.loop_s:.0f} s")
-        policy_before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
-        try:
-            result = session.run()
-            fifo = hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) == getattr(os, "SCHED_FIFO", -1)
-        finally:
-            # The engine makes the servo thread (here: this one) SCHED_FIFO when allowed and leaves it so.
-            if policy_before is not None and os.sched_getscheduler(0) != policy_before:
-                os.sched_setscheduler(0, policy_before, os.sched_param(0))
-        dev.close()
-        st = result.stats
-        rrd_bytes = rrd.stat().st_size if rrd.exists() else 0
-    if result.fault:
-        notes.append(f"real-time session stopped: {result.fault}")
-    return {"loop_period_error_us": st["period_error_us"], "ticks": int(st["ticks"]),
-            "missed_ticks": int(st["missed_ticks"]),
-            "loop": {"duration_s": sizes.loop_s, "wall_s": st["wall_s"], "frames": st["frames"],
-                     "servo_hz": st["servo_hz"], "visual_hz": st["visual_hz"], "dropped_rows": st["dropped_rows"],
-                     "rerun_rrd": rerun, "rrd_bytes": rrd_bytes, "sched_fifo": bool(fifo), "fault": result.fault},
-            "notes": notes}
+            note = f"rerun logging not available ({e}); the loop ran without it"
+    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s)
+    session.warm_up()
+    _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging")
+    policy_before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
+    fifo = False
+    try:
+        result = session.run()
+        fifo = policy_before is not None and os.sched_getscheduler(0) == getattr(os, "SCHED_FIFO", -1)
+    finally:
+        # The engine makes the servo thread (here: this one) SCHED_FIFO when allowed and leaves it so.
+        if policy_before is not None and os.sched_getscheduler(0) != policy_before:
+            os.sched_setscheduler(0, policy_before, os.sched_param(0))
+    dev.close()
+    st = dict(result.stats)
+    st.update(rerun_rrd=rerun, rrd_bytes=rrd.stat().st_size if rrd.exists() else 0, sched_fifo=bool(fifo),
+              fault=result.fault, note=note)
+    return st
+
+
+def loop(sizes: Sizes, progress=False) -> dict:
+    """The issue's loop: real time, visual loop with springback, dents and rerun logging; and, if
+    ``sizes.loop_plain_s``, a shorter run without rerun logging, to tell its share of the tail."""
+    from haptic_acu.config import load_config
+    from haptic_acu.replay import DEFAULT_TRAJECTORY
+
+    cfg = load_config()
+    traj = sizes.trajectory or DEFAULT_TRAJECTORY
+    notes = []
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+        st = realtime_session(cfg, traj, sizes.loop_s, True, tmp, progress)
+    if st["note"]:
+        notes.append(st["note"])
+    if st["fault"]:
+        notes.append(f"real-time session stopped: {st['fault']}")
+    out = {"loop_period_error_us": st["period_error_us"], "ticks": int(st["ticks"]),
+           "missed_ticks": int(st["missed_ticks"]),
+           "loop": {"duration_s": sizes.loop_s, "wall_s": st["wall_s"], "frames": st["frames"],
+                    "servo_hz": st["servo_hz"], "visual_hz": st["visual_hz"], "dropped_rows": st["dropped_rows"],
+                    "rerun_rrd": st["rerun_rrd"], "rrd_bytes": st["rrd_bytes"], "sched_fifo": st["sched_fifo"],
+                    "fault": st["fault"]},
+           "loop_no_rerun": None, "notes": notes}
+    if sizes.loop_plain_s:
+        with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+            plain = realtime_session(cfg, traj, sizes.loop_plain_s, False, tmp, progress)
+        out["loop_no_rerun"] = {"duration_s": sizes.loop_plain_s, "period_error_us": plain["period_error_us"],
+                                "ticks": int(plain["ticks"]), "missed_ticks": int(plain["missed_ticks"]),
+                                "frames": plain["frames"], "sched_fifo": plain["sched_fifo"], "fault": plain["fault"]}
+    return out
 
 
 # ---- spherical harmonics -------------------------------------------------------------------------
@@ -576,8 +603,9 @@ def targets(res: dict) -> list[dict]:
     return out
 
 
-REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us", "servo_tick_numpy_us",
-                 "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks", "shf_eval_ms", "shf_fit_ms",
+REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
+                 "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
+                 "loop_no_rerun", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes")
 
@@ -654,6 +682,10 @@ def format_table(res: dict) -> str:
     lines.append(f"  {res['ticks']} ticks, {res['missed_ticks']} missed, {lp['frames']} frames "
                  f"({_fmt(lp['visual_hz'])} Hz), rerun .rrd: {'yes' if lp['rerun_rrd'] else 'NO'}, "
                  f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}")
+    lnr = res.get("loop_no_rerun")
+    if lnr:
+        prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
+        lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed")
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:

@@ -260,7 +260,8 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     with TrajectoryWriter(traj) as w:  # press the skin through and come back out: 0.9 s
         w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.4, 0.0, 0.0, -3e-3], [0.9, 0.0, 0.0, 1e-3]])
     tiny = dataclasses.replace(
-        run.QUICK, servo_ticks=30, numpy_ticks=5, numpy_scenarios=("press_skin_w10",), loop_s=0.3, sh_repeats=1,
+        run.QUICK, servo_ticks=30, numpy_ticks=5, numpy_scenarios=("press_skin_w10",), loop_s=0.3, loop_plain_s=0.2,
+        sh_repeats=1,
         fit_samples=600, sh_grid=(8, 16), springback_calls=20, replay_runs=1, cold_runs=1, scaling_ticks=25,
         scaling_w=(3, 4), scaling_lmax=(2, 4), trajectory=str(traj))
     res = run.collect(tiny)
@@ -270,6 +271,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         _percentile_object(res["servo_tick_us"][name])
     _percentile_object(res["loop_period_error_us"])
     assert 0 < res["ticks"] and 0 <= res["missed_ticks"] <= res["ticks"]
+    assert res["loop_no_rerun"]["ticks"] > 0
     for key in ("shf_eval_ms", "shf_fit_ms", "springback_us"):
         _percentile_object(res[key])
     assert res["replay_speed_x"]["no_rrd"] > 0 and res["cold_start_s"]["first_tick"] > 0
