@@ -475,8 +475,9 @@ class Session:
         count_ticks = 0
         force = self.model.diag  # [0:3]: the force the previous tick commanded
         dev_t, dev_t_since = math.nan, 0.0
+        anchor = t0  # tick k's deadline is anchor + k * dt
         while not self._stop.is_set():
-            deadline = t0 + k * dt
+            deadline = anchor + k * dt
             now = perf()
             remaining = deadline - now
             if remaining > 4e-4:
@@ -505,8 +506,8 @@ class Session:
             self._servo_tick(t, state, err)
             self._t_session = t
             k += 1
-            if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor instead of bursting
-                t0 = perf() - k * dt
+            if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor the deadlines instead of
+                anchor = perf() - k * dt  # bursting; session time (start - t0) still only moves on
             count_ticks += 1
             if start - count_start >= 0.5:
                 self.rates["servo_hz"] = count_ticks / (start - count_start)

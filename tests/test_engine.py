@@ -254,6 +254,21 @@ def test_a_read_that_blocks_trips_the_servo_watchdog(cfg, tissue, tmp_path):
     check_recording(rec, dev, FAULT_TICK)
 
 
+def test_a_stalled_tick_does_not_turn_session_time_back(cfg, tissue, tmp_path):
+    # Read 300 takes 50 ms (well under the watchdog): the next tick is > 10 periods late, and the
+    # servo re-anchors its deadlines instead of bursting. Session time must still only increase
+    # (it once restarted from the new anchor, and the recorder refused the block: a fault).
+    dev, counter = PressDevice("block", block_s=0.05), Counter()
+    rec = tmp_path / "rec.csv"
+    result = session(cfg, tissue, dev, [RecorderSink(rec), counter], duration_s=0.6).run()
+    assert result.fault is None
+    assert result.ticks == dev.reads == counter.rows and counter.closed == 1
+    t = np.array(dev.states)[:, 0]
+    assert np.all(np.diff(t) > 0)
+    assert t[FAULT_TICK + 1] - t[FAULT_TICK] >= 0.05  # read 300 blocked: the stall is in session time
+    check_recording(rec, dev, result.ticks)
+
+
 @pytest.mark.parametrize("clock", ["realtime", "sim"])
 def test_exception_in_the_servo_step(cfg, tissue, tmp_path, clock):
     dev, counter = PressDevice("set_force"), Counter()
@@ -290,7 +305,12 @@ def test_signal_stops_cleanly_with_zero_force(cfg, tissue, tmp_path, sig):
     rec = tmp_path / "rec.csv"
     counter = Counter()
     s = session(cfg, tissue, dev, [RecorderSink(rec), counter], duration_s=10.0)
-    before = signal.getsignal(sig)
+    late = []
+
+    def ours(signum, frame):  # a signal that arrived after the session had ended lands here, not in pytest
+        late.append(signum)
+
+    before = signal.signal(sig, ours)
 
     def send():  # once the tip is through the skin (default.csv: skin at 1.1-1.25 s, fat after 1.45 s)
         while s.tick < 1600 and not s._stop.is_set():
@@ -302,12 +322,15 @@ def test_signal_stops_cleanly_with_zero_force(cfg, tissue, tmp_path, sig):
     killer.start()
     try:
         result = s.run()
+        killer.join()
+        restored = signal.getsignal(sig)
     finally:
         killer.join()
+        signal.signal(sig, before)
     dev.close()
-    assert result.fault is None
+    assert result.fault is None and late == []
     assert 1600 <= result.ticks < 10000
-    assert signal.getsignal(sig) is before  # the session's handler is gone again
+    assert restored is ours  # the session put the previous handler back
     assert dev.max_force_n > 0.1 and not np.any(dev.last_force_n)
     assert visual_threads() == [] and counter.closed == 1 and counter.rows == result.ticks
     tr = recorded(rec)
