@@ -321,6 +321,8 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_no_rerun"] = {"duration_s": sizes.loop_plain_s, "period_error_us": plain["period_error_us"],
                                 "ticks": int(plain["ticks"]), "missed_ticks": int(plain["missed_ticks"]),
                                 "frames": plain["frames"], "sched_fifo": plain["sched_fifo"], "fault": plain["fault"]}
+        if plain["fault"]:
+            notes.append(f"real-time session without rerun logging stopped: {plain['fault']}")
     return out
 
 
@@ -681,11 +683,13 @@ def format_table(res: dict) -> str:
     prow(f"loop period error, {lp['duration_s']:.0f} s real time (us)", res["loop_period_error_us"])
     lines.append(f"  {res['ticks']} ticks, {res['missed_ticks']} missed, {lp['frames']} frames "
                  f"({_fmt(lp['visual_hz'])} Hz), rerun .rrd: {'yes' if lp['rerun_rrd'] else 'NO'}, "
-                 f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}")
+                 f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}"
+                 + (f"; STOPPED: {lp['fault']}" if lp["fault"] else ""))
     lnr = res.get("loop_no_rerun")
     if lnr:
         prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
-        lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed")
+        lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
+                     + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:
