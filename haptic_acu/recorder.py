@@ -32,9 +32,11 @@ class RecorderSink:
             return
         out = rows[:, _SRC].copy()
         out[:, -1] *= 1e3  # depth in mm
-        # a recording must strictly increase in time (a device clock can repeat a timestamp)
-        keep = np.concatenate([[out[0, 0] > self._last_t], np.diff(out[:, 0]) > 0])
-        out = out[keep]
+        # a recording must strictly increase in time (a device clock can repeat a timestamp): keep
+        # the rows later than every row before them (not just the previous one, which may be dropped)
+        t = out[:, 0]
+        before = np.fmax.accumulate(np.concatenate([[self._last_t], t[:-1]]))
+        out = out[t > before]
         finite = np.all(np.isfinite(out[:, :4]), axis=1)
         out = out[finite]
         out[:, 4:] = np.nan_to_num(out[:, 4:])

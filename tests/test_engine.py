@@ -364,3 +364,29 @@ def test_headless_replay_is_deterministic(cfg, tissue, tmp_path):
     # and the replay ran the whole file: 1 ms ticks from 0 to its last sample
     info = trajectory.validate(DEFAULT_TRAJ)
     assert outs[0][0] == math.floor(info.t_last_s * 1000 + 1e-6)
+
+
+def test_recorder_keeps_only_rows_later_than_all_before_them(tmp_path):
+    """A device clock can repeat or step back a timestamp; the recording (a trajectory file) must
+    strictly increase. Expected rows from a plain loop over the same times."""
+    from types import SimpleNamespace
+
+    from haptic_acu.samples import COL, NCOL
+
+    blocks = [[0.001, 0.003, 0.002, 0.0025, 0.004, 0.004], [0.0035, 0.005, 0.006], [0.006], [0.0061]]
+    rec = tmp_path / "rec.csv"
+    sink = RecorderSink(rec)
+    expected, latest = [], -math.inf
+    for i, times in enumerate(blocks):
+        rows = np.zeros((len(times), NCOL))
+        rows[:, COL["t_s"]] = times
+        rows[:, COL["z_m"]] = np.arange(len(times)) * 1e-4 + i * 1e-3
+        sink.on_frame(SimpleNamespace(samples=rows))
+        for t, z in zip(times, rows[:, COL["z_m"]]):
+            if t > latest:
+                expected.append((t, z))
+                latest = t
+    sink.close(None)
+    tr = recorded(rec)
+    np.testing.assert_allclose(tr.t_s, [t for t, _ in expected], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(tr.pos_m[:, 2], [z for _, z in expected], rtol=0, atol=1e-9)
