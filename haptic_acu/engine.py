@@ -30,8 +30,10 @@ reported once as ``SessionResult.fault``. A sink that raises does not keep the o
 the frame's rows. A device on our timer that stops updating is a fault too: its ``DeviceState.t_s``
 stuck for ``stale_s`` (50 ms) of session time while a force is commanded (a stale state; the
 drives-clock OMNI checks its own position instead), or no servo tick for ``servo_watchdog_s``
-(0.5 s; a read that blocks): the visual loop then commands zero force and the session ends when the
-read returns (a read that never returns cannot be interrupted: devices time out their own I/O).
+(2 s; a read that blocks): the visual loop then commands zero force and the session ends when the
+read returns (a read that never returns cannot be interrupted: devices time out their own I/O). The
+watchdog is long because on a loaded 2-core machine whole-loop stalls of up to ~0.9 s were seen
+with healthy devices; the timer-driven devices (keyboard, scripted) have no motor to hold a force.
 """
 from __future__ import annotations
 
@@ -171,7 +173,7 @@ class Session:
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
-                 servo_watchdog_s: float = 0.5):
+                 servo_watchdog_s: float = 2.0):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -409,14 +411,27 @@ class Session:
         sys.setswitchinterval(old_interval)
         gc.unfreeze()
 
-    def _try_fifo(self) -> bool:
+    def _try_fifo(self):
+        """Ask for SCHED_FIFO for the calling thread only (Linux: pid 0 is this thread), with
+        SCHED_RESET_ON_FORK so no child process inherits it. Returns the previous (policy, priority)
+        to hand to :meth:`_restore_sched`, or None if refused (then the loop runs as it is)."""
         if not self.realtime_priority or not hasattr(os, "sched_setscheduler"):
-            return False
+            return None
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))  # this thread only (Linux)
-            return True
+            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(10))
+            return prev
         except (PermissionError, OSError):
-            return False
+            return None
+
+    @staticmethod
+    def _restore_sched(prev) -> None:
+        if prev is None:
+            return
+        try:
+            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
+        except (PermissionError, OSError):
+            pass
 
     def _visual_loop(self, t0: float, watchdog: bool = False) -> None:
         try:
@@ -462,7 +477,14 @@ class Session:
             self._rt_teardown(old)
 
     def _servo_loop(self, t0: float) -> None:
-        self.sched_fifo = self._try_fifo()
+        prev = self._try_fifo()
+        self.sched_fifo = prev is not None
+        try:
+            self._servo_loop_body(t0)
+        finally:
+            self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
+
+    def _servo_loop_body(self, t0: float) -> None:
         dev = self.device
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf

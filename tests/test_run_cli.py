@@ -1,0 +1,166 @@
+"""`haptic-acu run --device scripted` as a user runs it (a subprocess): stopping it with SIGINT and
+SIGTERM, and replaying its recording headless to the same forces.
+
+That the engine commands zero force on a signal is checked in process (tests/test_engine.py:
+the scripted device has no motor to observe from outside); here: the exit status, no traceback, a
+recording that is complete (one row per tick the session counted) and parses as a trajectory.
+
+Subprocesses run with OPENBLAS_NUM_THREADS=1: the tissue's least-squares fit is several times
+faster single-threaded on a loaded 2-core machine, and nothing checked here depends on it.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from haptic_acu import trajectory
+from haptic_acu.recorder import EXTRA
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
+LAYERS = ("skin", "fat", "muscle")
+TIMEOUT_S = 180
+
+
+def env():
+    e = dict(os.environ)
+    e["OPENBLAS_NUM_THREADS"] = "1"
+    return e
+
+
+def haptic_acu(*args):
+    return [sys.executable, "-m", "haptic_acu", *map(str, args)]
+
+
+def session_ticks(stderr: str) -> int:
+    m = re.search(r"session: (\d+) ticks", stderr)
+    assert m, stderr
+    return int(m.group(1))
+
+
+def data_rows(path: Path) -> int:
+    if not path.exists():
+        return 0
+    return sum(1 for line in path.read_bytes().splitlines() if line[:1].isdigit())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_stops_the_session_cleanly(tmp_path, sig):
+    rec = tmp_path / "rec.csv"
+    proc = subprocess.Popen(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--record", rec),
+                            cwd=REPO, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        # ~1 s into the session (rows reach the file once per visual frame), then the signal.
+        deadline = time.monotonic() + TIMEOUT_S
+        while data_rows(rec) < 1000 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if proc.poll() is not None:
+            pytest.fail(f"the session ended before the signal: {proc.communicate()[1]}")
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err  # a requested stop is a clean end, not an error
+    assert "Traceback" not in err and "stopped:" not in err
+    tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: increasing time, finite values
+    n = session_ticks(err)
+    assert len(tr.t_s) == n >= 1000
+    assert tr.t_s[-1] < 16.0  # stopped by the signal, not at the trajectory's end
+
+
+def read_samples(path: Path) -> dict:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    out = {k: np.array([float(r[k]) for r in rows]) for k in ("t_s", "fx_n", "fy_n", "fz_n")}
+    for name in LAYERS:
+        out[f"state_{name}"] = np.array([{"untouched": 0, "pressing": 1, "punctured": 2}[r[f"state_{name}"]]
+                                         for r in rows])
+    return out
+
+
+def punctures(t, states):
+    """(layer, time of the first sample with the layer punctured), in order."""
+    seq = []
+    for k, name in enumerate(LAYERS):
+        hit = np.flatnonzero(states[:, k] == 2)
+        if hit.size:
+            seq.append((hit[0], name, t[hit[0]]))
+    return [(name, tp) for _, name, tp in sorted(seq)]
+
+
+def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
+    """Record 3 s of default.csv live (skin, fat and muscle punctures), replay the recording
+    headless, compare.
+
+    The live servo sampled the trajectory at jittered times t_i (the recording's times); the
+    replay samples the recording's positions, linearly interpolated, at exact 1 ms ticks. The
+    replay's force is interpolated to the recorded times and compared there. What may differ,
+    and by how much:
+
+    * position: the recording's 0.1 um rounding and the interpolation between recorded samples
+      (the trajectory is piecewise linear at 200 Hz, so only its corners are cut): < 1 um, i.e.
+      < 1 mN at the stiffest (~0.7 N/mm while the skin is pressed);
+    * velocity (damping): both are backward differences over 1 ms of nearly the same path;
+      mm/s-level differences at ramp corners times <= 3 N s/m per mm over ~20 mm: < 10 mN;
+    * the force net's relaxation (2 sweeps per tick) is history-dependent: a live tick that came
+      late (a missed deadline on a loaded machine) moved the tip further in one step, leaving the
+      net a little further from equilibrium for a few ticks: a few percent of the force;
+    * interpolating the replay's 1 ms force to t_i: the force's curvature over 1 ms (< 1 mN away
+      from a puncture).
+
+    Hence: |dF| <= 20 mN + 5 % of |F|, outside the ticks around each puncture (a force that drops
+    by ~1 N within a tick cannot be compared across a timing shift). The puncture sequence must be
+    identical, each puncture within the live session's sampling gap there plus 2 ms.
+    """
+    rec = tmp_path / "rec.csv"
+    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
+                                     "--record", rec, "--no-status"),
+                          cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert live.returncode == 0, live.stderr
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    assert len(tr.t_s) == session_ticks(live.stderr)
+
+    out = tmp_path / "replay"
+    rep = subprocess.run(haptic_acu("replay", rec, "--no-rrd", "--out", out, "--quiet"),
+                         cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert rep.returncode == 0, rep.stderr
+    s = read_samples(out / "samples.csv")
+    np.testing.assert_allclose(np.diff(s["t_s"]), 1e-3, atol=1.5e-6)  # exact 1 ms ticks (file: 1 us)
+    assert tr.t_s[-1] - 1e-3 - 1e-9 <= s["t_s"][-1] <= tr.t_s[-1]  # up to the recording's last sample
+
+    # the puncture sequence
+    live_states = np.stack([tr.extra[f"state_{n}"] for n in LAYERS], axis=1)
+    rep_states = np.stack([s[f"state_{n}"] for n in LAYERS], axis=1)
+    p_live, p_rep = punctures(tr.t_s, live_states), punctures(s["t_s"], rep_states)
+    assert [n for n, _ in p_live] == [n for n, _ in p_rep] == list(LAYERS)
+    windows = []
+    for (_, tl), (_, tp) in zip(p_live, p_rep):
+        i = int(np.searchsorted(tr.t_s, tl))
+        gap = tl - tr.t_s[max(i - 1, 0)]  # the live session's sampling gap before the puncture
+        assert abs(tl - tp) <= gap + 2e-3, (tl, tp, gap)
+        windows.append((min(tl, tp) - gap - 3e-3, max(tl, tp) + 3e-3))
+
+    # the forces at the recorded times, away from the punctures
+    t = tr.t_s
+    keep = (t >= s["t_s"][0]) & (t <= s["t_s"][-1])
+    for lo, hi in windows:
+        keep &= ~((t >= lo) & (t <= hi))
+    assert keep.sum() > 0.95 * len(t)
+    for axis in ("fx_n", "fy_n", "fz_n"):
+        f_live = tr.extra[axis][keep]
+        f_rep = np.interp(t[keep], s["t_s"], s[axis])
+        err = np.abs(f_rep - f_live)
+        tol = 0.02 + 0.05 * np.abs(f_live)
+        assert np.all(err <= tol), (axis, float(err.max()), float(t[keep][np.argmax(err - tol)]))
+    assert tr.extra["fz_n"].max() > 1.0  # the comparison covered real forces (the skin's ~1.5 N peak)

@@ -1,0 +1,189 @@
+"""`haptic-acu run --device omni` end to end: the CLI, the engine, devices.omni and the real
+pyOpenHaptics package, against the HD API emulator (tests/hd_emulator) in a subprocess.
+
+The emulator moves the stylus along a scripted path in device time (1 ms ticks from the moment
+the CLI opens the device) and logs every force frame it is sent (device frame, N) with the
+position the frame was computed from. Expectations come from the path, the workspace formula of
+config/tissue.toml (p_scene = scale * Rz * p_device + offset_mm) written out here, and the
+emulator's log, never from the code under test:
+
+* every servo tick is one recorded row and one emulator frame, in order, at the same position;
+* the force the emulator got is the recorded (engine) force, clamped to the device's limit
+  min(safety.force_limit_n, the emulator's nominal maximum);
+* pressing the skin (the tip below the acupoint) pushes the stylus back out, along device +z;
+* the session ends with a zero-force frame.
+
+Subprocesses run with OPENBLAS_NUM_THREADS=1: the tissue's least-squares fit is several times
+faster single-threaded on a loaded 2-core machine, and nothing checked here depends on it.
+"""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noqa: E402
+
+from haptic_acu import trajectory  # noqa: E402
+from haptic_acu.config import load_config  # noqa: E402
+from haptic_acu.recorder import EXTRA  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+FRAME = 0  # emulator log record kind of a committed force frame
+NOMINAL_MAX_N = 1.0  # the emulated device's nominal maximum: below the config's 3.3 N, so it is the limit
+TIMEOUT_S = 180
+
+
+@pytest.fixture(scope="module")
+def emulator(tmp_path_factory):
+    if find_compiler() is None:
+        pytest.skip("no C compiler to build the HD API emulator")
+    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
+
+
+@pytest.fixture(scope="module")
+def workspace():
+    ws = load_config(None).workspace
+    return np.array(ws.offset_mm, float), float(ws.scale), float(ws.rotation_z_deg)
+
+
+def to_scene_mm(p_dev_mm, workspace):
+    offset, scale, rot = workspace
+    a = np.radians(rot)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return scale * np.asarray(p_dev_mm, float) @ R.T + offset
+
+
+def device_z_of_scene_z(z_scene_mm, workspace):
+    offset, scale, rot = workspace
+    return (z_scene_mm - offset[2]) / scale  # a turn about z leaves z alone
+
+
+def run_cli(emulator, tmp_path, path, faults=(), duration=2.0):
+    log = tmp_path / "forces.csv"
+    rec = tmp_path / "rec.csv"
+    env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N)
+    env["OPENBLAS_NUM_THREADS"] = "1"
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
+                           "--record", str(rec), "--no-status"],
+                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    frames = np.zeros((0, 8))
+    if log.exists():
+        rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
+        frames = rows[rows[:, 1] == FRAME]
+    return proc, frames, rec
+
+
+def press_path(workspace):
+    """Device-frame knots (t_s, x, y, z mm): 5 mm above the acupoint, down to 1.1 mm below it
+    (a dent short of the skin's ~1.5 mm puncture), slowly on to 1.3 mm (never still while loaded,
+    or the OMNI's stall detector would rightly fire), back out to 5 mm above."""
+    z = lambda zs: device_z_of_scene_z(zs, workspace)  # noqa: E731
+    return [(0.0, 0.0, 0.0, z(5.0)), (0.3, 0.0, 0.0, z(5.0)), (0.9, 0.0, 0.0, z(-1.1)),
+            (1.5, 0.0, 0.0, z(-1.3)), (1.9, 0.0, 0.0, z(5.0))]
+
+
+def clamp(f, limit):
+    n = np.linalg.norm(f, axis=1, keepdims=True)
+    return np.where(n > limit, f * (limit / np.maximum(n, 1e-300)), f)
+
+
+def check_rows_match_frames(tr, frames, workspace):
+    """Recorded row i and emulator frame i are the same servo tick: same position, and the
+    device got the recorded force clamped to its limit (after the 200-tick ramp-in)."""
+    n = len(tr.t_s)
+    assert len(frames) >= n
+    np.testing.assert_allclose(tr.pos_m * 1e3, to_scene_mm(frames[:n, 2:5], workspace), rtol=0, atol=1.0e-4)
+    f_rec = np.stack([tr.extra["fx_n"], tr.extra["fy_n"], tr.extra["fz_n"]], axis=1)
+    ramp = np.minimum(1.0, np.arange(n) / 200.0)[:, None]
+    expected = clamp(ramp * f_rec, NOMINAL_MAX_N)  # workspace rotation 0 in the default config
+    np.testing.assert_allclose(frames[:n, 5:8], expected, rtol=0, atol=2e-5)  # the file's 10 uN
+
+
+def test_omni_press_through_the_cli(emulator, tmp_path, workspace):
+    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace))
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    m = re.search(r"session: (\d+) ticks", proc.stderr)
+    assert m, proc.stderr
+    ticks = int(m.group(1))
+
+    tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: strictly increasing time, finite values
+    assert len(tr.t_s) == ticks >= 1900  # one row per tick of a 2 s session
+    check_rows_match_frames(tr, frames, workspace)
+    # then only zero frames: the step past --duration, the stop frame, close()'s frame
+    assert np.all(frames[ticks:, 5:8] == 0.0) and 1 <= len(frames) - ticks <= 10
+
+    f = frames[:, 5:8]
+    assert np.all(np.isfinite(f))
+    assert np.linalg.norm(f, axis=1).max() <= min(3.3, NOMINAL_MAX_N) * (1 + 1e-12)
+    z_scene = to_scene_mm(frames[:, 2:5], workspace)[:, 2]
+    pressing = z_scene < -0.05
+    assert pressing.sum() > 300
+    assert np.all(f[pressing, 2] > 0.0)  # pushed back out of the skin: +z in the device frame
+    assert np.all(np.abs(f[pressing, :2]) < 1e-3 * f[pressing, 2:3] + 1e-9)
+    assert np.any(np.linalg.norm(f, axis=1) >= NOMINAL_MAX_N * (1 - 1e-9))  # the device limit engaged
+    assert np.all(f[z_scene > 0.05] == 0.0)  # nothing above the skin
+    assert np.all(f[-1] == 0.0)  # the session ends commanding zero
+
+
+FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin, pressing, moving slowly
+
+
+@pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("freeze", "position frozen")])
+def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message):
+    path = press_path(workspace)
+    proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0)
+    assert proc.returncode == 3, proc.stderr
+    assert "Traceback" not in proc.stderr
+    reasons = [ln for ln in proc.stderr.splitlines() if "stopped:" in ln]
+    assert len(reasons) == 1 and message in reasons[0], proc.stderr
+
+    f = frames[:, 5:8]
+    assert np.all(np.isfinite(f))
+    assert np.any(f[frames[:, 0] < FAULT_AT, 2] > 0.5)  # it was pressing when the fault came
+    assert np.all(f[-1] == 0.0)  # the last frame commanded zero
+
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    n = len(tr.t_s)
+    check_rows_match_frames(tr, frames, workspace)  # every tick up to the fault, in order
+    assert len(frames) - n == 1  # then only the fault's own zero frame
+
+    # Device time of the last recorded row, from its position on the path (the slow press from
+    # 0.9 s to 1.5 s): the recording reaches the fault. The recorded times are the engine's wall
+    # clock, not device time, so the position is what ties the two.
+    knots = np.array(path)
+    seg = (knots[:, 0] >= 0.9) & (knots[:, 0] <= 1.5)
+    z_dev_last = device_z_of_scene_z(tr.pos_m[-1, 2] * 1e3, workspace)
+    t_last = np.interp(-z_dev_last, -knots[seg, 3], knots[seg, 0])  # z falls with t on this segment
+    tick = 1e-3
+    if kind == "device_fault":  # the tick at FAULT_AT reports the error: the one before is the last
+        assert FAULT_AT - 3 * tick <= t_last <= FAULT_AT
+    else:  # the position froze at FAULT_AT; the stall detector waits 100 ticks, all recorded
+        assert abs(t_last - FAULT_AT) <= 3 * tick
+        frozen = np.all(np.abs(tr.pos_m - tr.pos_m[-1]) < 1e-9, axis=1)
+        run = int(np.argmin(frozen[::-1])) if not frozen.all() else len(frozen)  # trailing frozen rows
+        assert 98 <= run <= 102
+
+
+def test_missing_openhaptics_is_one_line_and_status_2(tmp_path):
+    env = emulator_env(tmp_path / "nowhere" / "libHD.so")
+    probe = subprocess.run([sys.executable, "-c", "import ctypes; ctypes.CDLL('libHD.so')"], env=env,
+                           capture_output=True)
+    if probe.returncode == 0:
+        pytest.skip("a libHD.so is installed on this machine's loader path")
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", "1"],
+                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    msg = lines[0]
+    assert msg.startswith("haptic-acu run: error:")
+    assert "libHD.so" in msg and "OpenHaptics" in msg and "LD_LIBRARY_PATH" in msg  # what, and how to install
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
