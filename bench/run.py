@@ -252,7 +252,7 @@ class _DentProbe:
             frame.dents[k]
 
 
-def realtime_session(cfg, trajectory, duration_s: float, rerun: bool, tmp, progress=False) -> dict:
+def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False) -> dict:
     """A real-time Session on the scripted device playing ``trajectory`` looped for ``duration_s``;
     with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
     missing). Returns the session's stats plus what ran."""
@@ -269,26 +269,24 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun: bool, tmp, progr
     sinks = [_DentProbe()]
     if rerun:
         try:
-            from haptic_acu.rerun_log import RerunSink
-            sinks = [RerunSink.to_file(rrd)]
+            if rerun == "inproc":
+                from haptic_acu.rerun_log import RerunSink
+                sinks = [RerunSink.to_file(rrd)]
+            else:  # what `haptic-acu run --rrd` does: the logger in a child process
+                import haptic_acu.rerun_log  # noqa: F401  (the child imports it; fail here if it cannot)
+                from haptic_acu.sinkproc import rerun_file_sink
+                sinks = [rerun_file_sink(rrd)]
         except ImportError as e:
             rerun = False
             note = f"rerun logging not available ({e}); the loop ran without it"
     session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s)
     session.warm_up()
     _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging")
-    policy_before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
-    fifo = False
-    try:
-        result = session.run()
-        fifo = policy_before is not None and os.sched_getscheduler(0) == getattr(os, "SCHED_FIFO", -1)
-    finally:
-        # The engine makes the servo thread (here: this one) SCHED_FIFO when allowed and leaves it so.
-        if policy_before is not None and os.sched_getscheduler(0) != policy_before:
-            os.sched_setscheduler(0, policy_before, os.sched_param(0))
+    result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
+    fifo = bool(result.stats.get("sched_fifo"))
     dev.close()
     st = dict(result.stats)
-    st.update(rerun_rrd=rerun, rrd_bytes=rrd.stat().st_size if rrd.exists() else 0, sched_fifo=bool(fifo),
+    st.update(rerun_rrd=bool(rerun), rerun_mode=rerun or "none", rrd_bytes=rrd.stat().st_size if rrd.exists() else 0, sched_fifo=bool(fifo),
               fault=result.fault, note=note)
     return st
 
@@ -303,7 +301,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
     traj = sizes.trajectory or DEFAULT_TRAJECTORY
     notes = []
     with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
-        st = realtime_session(cfg, traj, sizes.loop_s, True, tmp, progress)
+        st = realtime_session(cfg, traj, sizes.loop_s, "process", tmp, progress)
     if st["note"]:
         notes.append(st["note"])
     if st["fault"]:
@@ -323,7 +321,48 @@ def loop(sizes: Sizes, progress=False) -> dict:
                                 "frames": plain["frames"], "sched_fifo": plain["sched_fifo"], "fault": plain["fault"]}
         if plain["fault"]:
             notes.append(f"real-time session without rerun logging stopped: {plain['fault']}")
+        with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+            inproc = realtime_session(cfg, traj, sizes.loop_plain_s, "inproc", tmp, progress)
+        out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
+                                        "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
+                                        "fault": inproc["fault"]}
+    out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
     return out
+
+
+def machine_floor(duration_s: float, progress=False) -> dict:
+    """The host's own floor: a bare Python 1 kHz loop (absolute deadlines, sleep-then-spin, SCHED_FIFO
+    if allowed, switch interval 0.2 ms) doing no work. Whatever tail it shows is the machine's (a
+    virtual machine's CPU can be taken away for milliseconds), not the simulator's."""
+    _log(progress, f"machine floor: a bare 1 kHz loop, {duration_s:.0f} s")
+    prev = None
+    if hasattr(os, "sched_setscheduler"):
+        try:
+            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(10))
+        except OSError:
+            prev = None
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(2e-4)
+    n = int(duration_s * 1000)
+    errs = np.empty(n)
+    perf = time.perf_counter
+    try:
+        t0 = perf() + 0.01
+        for k in range(n):
+            d = t0 + k * 1e-3
+            r = d - perf()
+            if r > 4e-4:
+                time.sleep(r - 3e-4)
+            while perf() < d:
+                pass
+            errs[k] = perf() - d
+    finally:
+        sys.setswitchinterval(old)
+        if prev is not None:
+            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
+    return {"duration_s": duration_s, "period_error_us": percentiles(errs, 1e6), "ticks": n,
+            "missed_ticks": int(np.count_nonzero(errs > 1e-3))}
 
 
 # ---- spherical harmonics -------------------------------------------------------------------------
@@ -607,7 +646,7 @@ def targets(res: dict) -> list[dict]:
 
 REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
-                 "loop_no_rerun", "shf_eval_ms", "shf_fit_ms",
+                 "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes")
 
@@ -690,6 +729,15 @@ def format_table(res: dict) -> str:
         prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
         lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
                      + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
+    lip = res.get("loop_rerun_in_process")
+    if lip:
+        prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
+        lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
+                     + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
+    mf = res.get("machine_floor")
+    if mf:
+        prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
+        lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:

@@ -60,9 +60,11 @@ def run(args) -> int:
         from .recorder import RecorderSink
         sinks.append(RecorderSink(rec))
     if args.rrd or args.spawn or args.connect:
-        from .rerun_log import RerunSink
-        sinks.append(RerunSink.to_file(args.rrd) if args.rrd else RerunSink.spawn() if args.spawn
-                     else RerunSink.connect(args.connect))
+        # rerun logging runs in a child process (see haptic_acu.sinkproc): its calls would otherwise
+        # hold the GIL for hundreds of microseconds beside the servo thread
+        from .sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
+        sinks.append(rerun_file_sink(Path(args.rrd).resolve()) if args.rrd else rerun_spawn_sink() if args.spawn
+                     else rerun_connect_sink(args.connect))
     if not args.no_status:
         from .status import StatusLine
         sinks.append(StatusLine(stream=sys.stderr))

@@ -1,0 +1,63 @@
+"""A sink run in a child process (haptic_acu.sinkproc) writes what the same sink writes in process."""
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rerun.chunk import RrdReader
+
+from devices.scripted import ScriptedDevice
+from haptic_acu.config import load_config
+from haptic_acu.engine import Session
+from haptic_acu.errors import UserError
+from haptic_acu.rerun_log import RerunSink
+from haptic_acu.sinkproc import ProcessSink, rerun_file_sink
+
+
+def force_series(path):
+    ticks, values = [], []
+    for chunk in RrdReader(path).store().stream().filter(content="/force/total").to_chunks():
+        if chunk.entity_path != "/force/total" or chunk.is_static:
+            continue
+        rb = chunk.to_record_batch()
+        if "Scalars:scalars" in rb.schema.names:
+            ticks += rb.column("tick").cast(pa.int64()).to_pylist()
+            values += rb.column("Scalars:scalars").to_pylist()
+    order = np.argsort(ticks, kind="stable")
+    return np.array(ticks)[order], np.array(values)[order]
+
+
+def run_with(sink, tmp_path):
+    cfg = load_config()
+    traj = tmp_path / "t.csv"
+    traj.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,2\n0.5,0,0,-3\n")  # into the skin and through it
+    dev = ScriptedDevice(traj, force_limit_n=cfg.safety.force_limit_n)
+    dev.open()
+    s = Session(cfg, dev, [sink], clock="sim")
+    s.warm_up()
+    return s.run()
+
+
+def test_child_process_sink_writes_the_same_series(tmp_path):
+    a, b = tmp_path / "child.rrd", tmp_path / "here.rrd"
+    ra = run_with(rerun_file_sink(a), tmp_path)
+    rb = run_with(RerunSink.to_file(b), tmp_path)
+    assert ra.fault is None and rb.fault is None and ra.ticks == rb.ticks
+    ta, va = force_series(a)
+    tb, vb = force_series(b)
+    assert list(ta) == list(range(ra.ticks)) == list(tb)
+    assert np.array_equal(va, vb)
+    assert va[:, 0].max() > 0.3  # the skin pressed back
+
+
+def test_child_failure_is_reported_once_in_the_parent(tmp_path):
+    sink = rerun_file_sink(tmp_path / "no" / "such" / "dir" / "x.rrd")
+    with pytest.raises((UserError, RuntimeError)) as e:
+        sink.warm_up()
+    assert "\n" not in str(e.value)
+
+
+def test_unknown_sink_class_fails_cleanly():
+    sink = ProcessSink("haptic_acu.rerun_log", "NoSuchSink", None)
+    with pytest.raises(RuntimeError, match="NoSuchSink"):
+        sink.warm_up()
