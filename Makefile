@@ -20,5 +20,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+# the full benchmark (issue 6), with pyshtools for the SH comparison rows
+bench: $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
+	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+
 clean:
 	rm -rf $(VENV) runs .pytest_cache
