@@ -19,6 +19,7 @@ COMMANDS = {
     "replay": "haptic_acu.replay_cmd",
     "run": "haptic_acu.run_cmd",
     "fit": "haptic_acu.fit_cmd",
+    "score": "haptic_acu.score_cmd",
     "bench": "haptic_acu.bench_cmd",
     "compare": "haptic_acu.compare_cmd",
 }
