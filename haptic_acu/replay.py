@@ -84,7 +84,9 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             elif connect:
                 sinks.append(RerunSink.connect(connect))
             else:
-                sinks.append(RerunSink.to_file(partial / "recording.rrd"))
+                sink = RerunSink.to_file(partial / "recording.rrd")
+                sink.batch_frames = 30  # servo series in half-second batches of simulated time
+                sinks.append(sink)
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim")

@@ -181,6 +181,12 @@ class RerunSink:
         self._started = False
         self._last_tick = 0
         self._rates_next = -np.inf
+        # Servo-rate series go out every ``batch_frames`` visual frames (1: every frame, what a live
+        # viewer wants; headless replay writing a file sends fewer, larger batches: the SDK's
+        # per-call cost, not the data, dominated a replay).
+        self.batch_frames = 1
+        self._pending: list[np.ndarray] = []
+        self._frames_since_send = 0
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
@@ -288,21 +294,37 @@ class RerunSink:
                 static=True)
         self._started = True
 
+    def _send_series(self) -> None:
+        """Send the pending servo rows: one send_columns per series (one value per tick), and the
+        puncture events among them."""
+        if not self._pending:
+            return
+        rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+        self._pending = []
+        rec = self.rec
+        depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
+               rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
+        for path, (_, _, get) in SERIES.items():
+            rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=get(rows, depth)))
+        self._events(rows, depth)
+        rec.set_time("sim_time", duration=_ns(self._last_t))  # _events moved this thread's time
+        rec.set_time("tick", sequence=self._last_tick)
+
     def on_frame(self, frame) -> None:
         t_wall = time.perf_counter()
         t_cpu = time.thread_time()
         rec = self.rec
         rows = frame.samples
         k = len(rows)
-        depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue) if k else np.zeros(0)
         if k:
-            idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
-                   rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
-            for path, (_, _, get) in SERIES.items():
-                rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=get(rows, depth)))
-            self._events(rows, depth)
+            self._pending.append(rows)
             self._last_tick = int(rows[-1, COL["tick"]])
         self._last_t = frame.t_s
+        self._frames_since_send += 1
+        if self._frames_since_send >= self.batch_frames:
+            self._frames_since_send = 0
+            self._send_series()
         rec.set_time("sim_time", duration=_ns(frame.t_s))
         rec.set_time("tick", sequence=self._last_tick)
         model = frame.model
@@ -324,6 +346,8 @@ class RerunSink:
         self.frame_cpu_s.append(time.thread_time() - t_cpu)
 
     def close(self, result=None) -> None:
+        if self._started:
+            self._send_series()
         fault = getattr(result, "fault", None)
         if fault and self._started:
             self.rec.set_time("sim_time", duration=_ns(self._last_t))  # this thread's time (thread-local)
