@@ -15,7 +15,7 @@ import numpy as np
 FIXED, CATEGORY = 0, 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _put_uint(out, pos, v):
     """Write the decimal digits of the non-negative int64 ``v``; return the new position."""
     if v == 0:
@@ -38,7 +38,7 @@ def _put_uint(out, pos, v):
     return pos
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _format_rows(values, kinds, decimals, table, table_len, table_base, out):
     n, m = values.shape
     pos = 0
