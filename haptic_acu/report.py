@@ -420,6 +420,11 @@ class SamplesCsvSink:
         self._n_pending = 0
         self._fmt = None
 
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the CSV formatter before the loops start."""
+        from .csvfmt import RowFormatter
+        RowFormatter([("fixed", 3), ("category", ("a",))]).format(np.zeros((1, 2)))
+
     def start(self, info: dict) -> None:
         self.tissue = info["model"].tissue
         self.path.parent.mkdir(parents=True, exist_ok=True)
