@@ -27,6 +27,7 @@ import numpy as np
 
 from .errors import UserError
 from .metrics import insertion_runs
+from .replay_cmd import fresh_path
 from .samples import COL, NCOL
 
 COLOURS = ("#1f5fa8", "#d9661f")  # A, B
@@ -48,15 +49,6 @@ def register(sub) -> None:
     p.add_argument("--labels", nargs=2, metavar=("NAME_A", "NAME_B"),
                    help="names for the two sessions (default: the file names)")
     p.set_defaults(func=run)
-
-
-def _fresh(path: Path) -> Path:
-    if not path.exists():
-        return path
-    i = 2
-    while path.with_name(f"{path.name}-{i}").exists():
-        i += 1
-    return path.with_name(f"{path.name}-{i}")
 
 
 def open_trajectory(path: Path, cfg):
@@ -212,7 +204,7 @@ def run(args) -> int:
     if args.out:
         out = Path(args.out)
     else:
-        out = _fresh(Path("runs") / f"compare-{paths[0].stem}-vs-{paths[1].stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+        out = fresh_path(Path("runs") / f"compare-{paths[0].stem}-vs-{paths[1].stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UserError(f"{out}: output folder exists and is not empty")
 

@@ -33,7 +33,7 @@ def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
-def _fresh(path: Path) -> Path:
+def fresh_path(path: Path) -> Path:
     """``path``, or ``path-2``, ``path-3``... if it exists."""
     if not path.exists():
         return path
@@ -101,14 +101,14 @@ def run(args) -> int:
             raise UserError(f"{p}: trajectory file not found")
     if len(paths) == 1:
         traj = paths[0]
-        out = Path(args.out) if args.out else _fresh(Path("runs") / f"{traj.stem}-{_stamp()}")
+        out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
                              spawn=args.spawn, connect=args.connect, cfg=cfg)
         print_summary(summary, out, quiet=args.quiet)
         return 0
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
-    base = Path(args.out) if args.out else _fresh(Path("runs") / f"batch-{_stamp()}")
+    base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
     base.mkdir(parents=True, exist_ok=True)
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
