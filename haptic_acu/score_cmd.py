@@ -419,9 +419,10 @@ def _plot(path: Path, results) -> None:
             x = g - group / 2 + (k + 0.5) * bw
             ax.bar(x, s, width=bw, color=colour[rater], label=rater)
         ax.hlines(r.mean_score, g - group / 2, g + group / 2, colors="k", linewidth=1)
-        ax.text(g, min(10.0, r.mean_score) + 0.1, f"{r.mean_score:.2f}", ha="center", va="bottom", fontsize=8)
+        ax.text(g, min(10.0, float(r.scores.max())) + 0.1, f"mean {r.mean_score:.2f}", ha="center", va="bottom",
+                fontsize=8)
     ax.set_xticks(range(len(results)), [r.name for r in results])
-    ax.set_ylim(0, 10.5)
+    ax.set_ylim(0, 10.6)
     ax.set_ylabel("comprehensive score (eq. 14)")
     ax.set_title("Comprehensive scores per system, one bar per rater (line: mean)")
     handles, labels = [], []
