@@ -56,8 +56,6 @@ from .needle import D_FAULT, NeedleModel, step_kernel
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
-ZERO3 = np.zeros(3)
-
 
 @dataclass
 class Frame:
@@ -198,8 +196,6 @@ class Session:
         self._period_err = np.zeros(1 << 20)  # servo period errors (s), first 2^20 ticks kept
         self._n_err = 0
         self.missed = 0
-        self._servo_times: list[float] = []
-        self._frame_wall: list[float] = []
         self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
         self._zero = np.zeros(3)
         self._warm = False
