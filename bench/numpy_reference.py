@@ -13,6 +13,11 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   (``numpy.linalg.solve``); ring w moves along the axis only, N1 is held at the tip, steps are
   limited to L/4. It visits particles in another order than the compiled lexicographic sweep, so
   the two agree exactly only at the static solution (both converge to the same equilibrium);
+* with ``solver.servo_net = "table"`` (the default), the net's static response is read from the
+  layer's tabulated response (:mod:`haptic_acu.netresponse`: the same F, R and displacement-field
+  arrays the compiled step reads) through SciPy's ``RegularGridInterpolator`` (linear, extrapolating
+  past the last row), and the field laid onto the net with one matrix product: what a NumPy
+  developer would write for that design; with ``"sweeps"`` the multicolour sweeps above run instead;
 * puncture at the ring-w mean deflection threshold, the compression offset, Table 1's damping of
   the layers passed, the lateral constraint, the bone wall, the non-finite fault latch and the
   force clamp, as in the compiled step.
@@ -29,6 +34,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.interpolate import RegularGridInterpolator
 from scipy.special import sph_harm_y
 
 UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
@@ -149,6 +155,26 @@ class NumpyNeedle:
         self.k_bone = nd.bone_stiffness_n_per_mm * 1e3
         self.limit = cfg.safety.force_limit_n
         self.sweeps = int(cfg.solver.sweeps_per_tick)
+        self.tables = None
+        if cfg.solver.servo_net == "table":
+            from haptic_acu.forcenet import NetParams, lattice
+            from haptic_acu.netresponse import table_for
+
+            tol = cfg.solver.static_tolerance_um * 1e-6
+            self.tables = []
+            for layer, lay in zip(cfg.layers, self.layers):
+                t = table_for(NetParams.from_layer(layer), tol)
+                nr, nc = t.F.shape
+                grid = (np.linspace(0.0, 1.0, nr), np.arange(nc) * t.h)
+                lay["table"] = dict(
+                    F=RegularGridInterpolator(grid, t.F, bounds_error=False, fill_value=None),
+                    R=RegularGridInterpolator(grid, t.R, bounds_error=False, fill_value=None),
+                    D=t.D, h=t.h, rho2=t.rho_max ** 2)
+                self.tables.append(t)
+                # the table's field is in the package lattice's particle order; this net's order differs
+                pkg = {tuple(np.round(xy * 4).astype(int)): i for i, xy in enumerate(lattice(layer.rings).plane)}
+                perm = np.array([pkg[tuple(np.round(xy * 4).astype(int))] for xy in lay["net"].hex.plane])
+                lay["table"]["D"] = np.ascontiguousarray(t.D[:, perm, :])
         self.states = [UNTOUCHED] * 3
         self.inserted = False
         self.fault = False
@@ -313,10 +339,26 @@ class NumpyNeedle:
                         net.xf = net.X0f - mean[ring - 1][:, None] * net.axis
                         n_sweeps *= 2
                         r = q - net.X0f[0]
-                    net.xf[0] = q
-                    for _ in range(n_sweeps):
-                        self.sweep(lay)
-                    if self.ring_w_deflection(lay) > lay["thresh"]:
+                    tab = lay.get("table")
+                    if tab is not None:
+                        # the tabulated static response at (lateral offset^2 / rho_max^2, depth)
+                        dz1 = -(r @ net.axis)
+                        lateral = r + dz1 * net.axis
+                        pt = np.array([[max(float(lateral @ lateral) / tab["rho2"], 0.0), max(dz1, 0.0)]])
+                        fn_table = float(tab["F"](pt)[0])
+                        ring_w = float(tab["R"](pt)[0])
+                        x = min(dz1 / tab["h"], tab["D"].shape[0] - 1.0)
+                        i = min(int(x), tab["D"].shape[0] - 2)
+                        d = (1.0 - (x - i)) * tab["D"][i] + (x - i) * tab["D"][i + 1]
+                        e1, e2 = tangent_frame(net.axis)
+                        net.xf = net.X0f + d @ np.array([e1, e2, net.axis])
+                        net.xf[0] = q
+                    else:
+                        net.xf[0] = q
+                        for _ in range(n_sweeps):
+                            self.sweep(lay)
+                        ring_w = self.ring_w_deflection(lay)
+                    if ring_w > lay["thresh"]:
                         self.states[k] = PUNCTURED
                         self.punctured_now = k
                         if k == 0:
@@ -331,7 +373,8 @@ class NumpyNeedle:
                         radii, rho = self.radii(q)
                         front = k + 1
                     else:
-                        fn = max(float(self.net_reaction(lay) @ net.axis), 0.0)  # a surface only pushes
+                        fn = fn_table if tab is not None else float(self.net_reaction(lay) @ net.axis)
+                        fn = max(fn, 0.0)  # a surface only pushes
                         f += fn * net.axis
                         self.surface_force = fn
         if self.inserted:

@@ -64,7 +64,8 @@ class SpringbackParams:
 
 @dataclass(frozen=True)
 class SolverParams:
-    sweeps_per_tick: int  # Gauss-Seidel-Newton sweeps of the force net per servo tick
+    servo_net: str  # "table": the net's tabulated static response (netresponse.py); "sweeps": relax it each tick
+    sweeps_per_tick: int  # Gauss-Seidel-Newton sweeps of the force net per servo tick ("sweeps")
     static_tolerance_um: float  # convergence tolerance of a full static solve
 
 
@@ -202,6 +203,8 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
         _fail(path, "body.bulge", f"must be < 0.2, got {cfg.body.bulge}")
     if not cfg.springback.eta_min < 1:
         _fail(path, "springback.eta_min", f"must be < 1, got {cfg.springback.eta_min}")
+    if cfg.solver.servo_net not in ("table", "sweeps"):
+        _fail(path, "solver.servo_net", f"must be \"table\" or \"sweeps\", got {cfg.solver.servo_net!r}")
     lo, hi = cfg.scene.target_depth_mm
     if not 0 <= lo < hi:
         _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")

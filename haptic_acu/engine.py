@@ -135,7 +135,7 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
 
 @nb.njit(cache=True, nogil=True)
 def run_ticks(P, V, T, tick0, buf, head, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-              plane_all, offs, si, sf, holes, radii, scratch, diag, pbuf, vbuf):
+              plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf):
     """Headless replay: the servo step for a block of ticks (positions ``P``, velocities ``V`` at
     times ``T``), each sample row written at ``head + i`` of the ring ``buf``. The same
     :func:`step_kernel` and :func:`write_sample` as a live tick, without a Python round trip per
@@ -146,7 +146,7 @@ def run_ticks(P, V, T, tick0, buf, head, coeffs, lmax, centre, lp, npar, pos, re
             pbuf[k] = P[i, k]
             vbuf[k] = V[i, k]
         step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-                    plane_all, offs, si, sf, holes, radii, scratch, diag)
+                    plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
         write_sample(buf, (head + i) % cap, T[i], tick0 + i, pbuf, vbuf, diag, si, 0.0)
         if diag[D_FAULT] != 0.0:
             return i + 1

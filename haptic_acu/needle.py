@@ -49,6 +49,9 @@ import numpy as np
 from . import shf
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
+from .netresponse import TM_NR, lay_field, lookup
+from .netresponse import pack as pack_tables
+from .netresponse import table_for
 from .tissue import Tissue, boundary_radii
 
 UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
@@ -179,7 +182,7 @@ def _take_slot(si, k):
 
 @nb.njit(cache=True, nogil=True)
 def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
-                offs, si, sf, holes, radii, scratch, diag):
+                offs, tab, tmeta, si, sf, holes, radii, scratch, diag):
     """One servo tick. ``p``/``v``: tip position (m) and velocity (m/s), scene frame. Writes the force
     on the needle into ``diag[0:3]`` and diagnostics into the rest of ``diag`` (see D_* indices).
 
@@ -187,7 +190,9 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
     slot ``idx = 2*layer + slot``, the blocks xf, X0f (n rows) and X0, x (n_all rows) starting at
     ``offs[4*idx + 0..3]``; ``rest_all`` its rest lengths from ``offs[24 + idx]``; ``axes[idx]`` its
     axis; the lattice of layer k (``nbr_all``, ``ring_all``, ``plane_all``) starts at ``offs[30 + k]``
-    and has ``offs[33 + k]`` rows. See :class:`NeedleModel` for the layout.
+    and has ``offs[33 + k]`` rows. See :class:`NeedleModel` for the layout. ``tab``/``tmeta``: the
+    layers' tabulated static responses (:mod:`haptic_acu.netresponse`); a layer whose
+    ``tmeta[k, TM_NR]`` is 0 has none, and its net is relaxed by ``NP_SWEEPS`` sweeps per tick.
     """
     for i in range(D_SIZE):
         diag[i] = 0.0
@@ -339,13 +344,22 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
                     ry = q[1] - X0fk[0, 1]
                     rz = q[2] - X0fk[0, 2]
                     dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
+                use_table = tmeta[k, TM_NR] > 0.0
+                fn_table = 0.0
+                if use_table:
+                    # The net's static response at this (lateral offset, depth), then its centred
+                    # equilibrium shape laid onto the net for the visual loop and springback.
+                    lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
+                    fn_table, rw = lookup(tab, tmeta[k], lat2, dz1)
+                    lay_field(tab, tmeta[k], dz1, n, X0fk, ax, xfk)
                 for c in range(3):
                     xfk[0, c] = q[c]
-                for it in range(sweeps):
-                    relax(xfk, X0fk, rlk, nbrk, ringk, n, w, ax, lp[k, LP_K], lp[k, LP_KS],
-                          lp[k, LP_L], si[SI_SWEEP + k] % 2)
-                    si[SI_SWEEP + k] += 1
-                rw = ring_w_mean_deflection(xfk, X0fk, ringk, n, w, ax)
+                if not use_table:
+                    for it in range(sweeps):
+                        relax(xfk, X0fk, rlk, nbrk, ringk, n, w, ax, lp[k, LP_K], lp[k, LP_KS],
+                              lp[k, LP_L], si[SI_SWEEP + k] % 2)
+                        si[SI_SWEEP + k] += 1
+                    rw = ring_w_mean_deflection(xfk, X0fk, ringk, n, w, ax)
                 diag[D_RINGW] = rw
                 diag[D_DZ1] = dz1
                 if rw > lp[k, LP_THRESH]:
@@ -388,9 +402,12 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
                     rho = _radii_at_tip(coeffs, lmax, centre, q, radii)
                     front = k + 1
                 else:
-                    fo = scratch[9:12]
-                    force_on(0, xfk, X0fk, rlk, nbrk, ax, lp[k, LP_K], lp[k, LP_KS], fo)
-                    fn = fo[0] * ax[0] + fo[1] * ax[1] + fo[2] * ax[2]
+                    if use_table:
+                        fn = fn_table
+                    else:
+                        fo = scratch[9:12]
+                        force_on(0, xfk, X0fk, rlk, nbrk, ax, lp[k, LP_K], lp[k, LP_KS], fo)
+                        fn = fo[0] * ax[0] + fo[1] * ax[1] + fo[2] * ax[2]
                     if fn < 0.0:
                         fn = 0.0  # a surface only pushes
                     fx += fn * ax[0]
@@ -551,6 +568,10 @@ class NeedleModel:
         self.sf = np.zeros(SF_SIZE)
         self.holes = np.zeros((MAX_HOLES, 7))
         self.radii = np.zeros(4)
+        # The servo's fast path: each layer's tabulated static net response (netresponse.py).
+        tol = cfg.solver.static_tolerance_um * 1e-6
+        self.tables = [table_for(prm, tol) if cfg.solver.servo_net == "table" else None for prm in self.params]
+        self.tab, self.tmeta = pack_tables(self.tables, N_LAYERS)
         self.scratch = np.zeros(16 + 80)
         self.diag = np.zeros(D_SIZE)
         self._p = np.zeros(3)
@@ -572,16 +593,16 @@ class NeedleModel:
     def kernel_args(self) -> tuple:
         """Everything :func:`step_kernel` takes after ``p, v``, in order."""
         return (self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos, self.rest_all,
-                self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.si, self.sf,
-                self.holes, self.radii, self.scratch, self.diag)
+                self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.tab, self.tmeta,
+                self.si, self.sf, self.holes, self.radii, self.scratch, self.diag)
 
     def step(self, p, v) -> np.ndarray:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N)."""
         self._p[:] = p
         self._v[:] = v
         step_kernel(self._p, self._v, self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos,
-                    self.rest_all, self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.si,
-                    self.sf, self.holes, self.radii, self.scratch, self.diag)
+                    self.rest_all, self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.tab,
+                    self.tmeta, self.si, self.sf, self.holes, self.radii, self.scratch, self.diag)
         return self.diag[0:3]
 
     def warm_up(self) -> None:

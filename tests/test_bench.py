@@ -82,9 +82,11 @@ def test_reference_matches_compiled_step_on_a_converged_static_press():
     # longer changes by 1e-13 N; a residual position error d gives a force error of at most
     # (K + 6 ks) d, so 1e-9 N leaves orders of magnitude of margin and still catches any difference
     # in the model (a 1e-6 relative change of K or ks, a wrong neighbour, a wrong normal).
+    # (The servo's default tabulated response is checked against both solvers in test_netresponse.py.)
     sc = scenarios.press(10, layer=0, w=10)
-    model = scenarios.model_for(sc.cfg)
-    ref = NumpyNeedle(sc.cfg, model.tissue)
+    cfg = scenarios.config_copy(sc.cfg, servo_net="sweeps")
+    model = scenarios.model_for(cfg)
+    ref = NumpyNeedle(cfg, model.tissue)
     for p, v in zip(sc.pre_P, sc.pre_V):
         model.step(p, v)
         ref.step(p, v)
@@ -109,7 +111,7 @@ def test_reference_matches_compiled_step_through_every_layer():
     # forces differ only by what 20 sweeps leave unsolved: 1e-4 N against presses of 0.5-2 N. Once
     # every layer is broken no net is left and the force (damping of the layers passed, lateral
     # spring, clamp) depends only on where the punctures happened, so the two agree to rounding.
-    cfg = scenarios.config_copy(sweeps_per_tick=20)
+    cfg = scenarios.config_copy(sweeps_per_tick=20, servo_net="sweeps")
     for name in ("skin", "muscle"):
         cfg = dataclasses.replace(cfg, **{name: dataclasses.replace(getattr(cfg, name), rings=5,
                                                                      puncture_threshold_um=20.0)})
@@ -269,6 +271,10 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         assert key in res, key
     for name in ("press_skin_w10", "press_muscle_w10", "inside_muscle"):
         _percentile_object(res["servo_tick_us"][name])
+    for name in ("press_skin_w10", "press_muscle_w10"):  # the previous design, for comparison
+        _percentile_object(res["servo_tick_sweeps_us"][name])
+    assert set(res["net_table_build"]) == {"skin", "fat", "muscle", "skin_w10_never_breaks"}
+    assert all(t["build_s"] > 0 and t["rows"] > 8 for t in res["net_table_build"].values())
     _percentile_object(res["loop_period_error_us"])
     assert 0 < res["ticks"] and 0 <= res["missed_ticks"] <= res["ticks"]
     assert res["loop_no_rerun"]["ticks"] > 0
@@ -276,6 +282,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         _percentile_object(res[key])
     assert res["replay_speed_x"]["no_rrd"] > 0 and res["cold_start_s"]["first_tick"] > 0
     assert set(res["scaling"]["servo_tick_us"]) == {"3", "4"} and set(res["scaling"]["sh_eval_ms"]) == {"2", "4"}
+    assert set(res["scaling"]["servo_tick_sweeps_us"]) == {"3", "4"}
     assert len(res["targets"]) == 12 and all(t["pass"] in (True, False, None) for t in res["targets"])
     if res["pyshtools_eval_ms"] is not None:
         assert res["sh_agreement_m"]["fit_surface_max_abs"] < 1e-10

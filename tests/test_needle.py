@@ -10,6 +10,7 @@ positions at the punctures (MODEL.md section 3; needle.py's "Compression"):
     after fat puncture at s1:              effective depth = s - (s1 - h_s)
     after muscle puncture at s2:           effective depth = s - (s2 - h_s - h_f)
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -179,10 +180,15 @@ def drive_until(model, states, dent_m, cfg):
     raise AssertionError("state not reached")
 
 
+@pytest.mark.parametrize("servo_net, rel_tol", [("sweeps", 1e-6), ("table", 3e-5)])
 @pytest.mark.parametrize("layer", [0, 1, 2])
-def test_surface_force_is_the_static_net_reaction(cfg, tissue, layer):
+def test_surface_force_is_the_static_net_reaction(cfg, tissue, layer, servo_net, rel_tol):
     """Hold the tip while pressing: the force converges to an independently solved static net at the
-    compressed tip position; moving at v then adds exactly the damping of the layers above."""
+    compressed tip position; moving at v then adds exactly the damping of the layers above.
+    The sweeps converge to it; the table (solved to the static tolerance, 1e-10 m, and read by
+    linear interpolation between rows h = L/400 apart) stays within 3e-5 of it on the axis
+    (measured: 8e-6 on the muscle net)."""
+    cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, servo_net=servo_net))
     model = NeedleModel(cfg, tissue)
     states = tuple(PUNCTURED if j < layer else PRESSING if j == layer else UNTOUCHED for j in range(3))
     p, o = drive_until(model, states, 0.4e-3, cfg)
@@ -195,7 +201,7 @@ def test_surface_force_is_the_static_net_reaction(cfg, tissue, layer):
     net.solve(np.array([0.0, 0.0, p[2] + o]), tol_m=1e-14, max_sweeps=100000)
     f_static = net.reaction()
     assert f_static[2] > 0.1
-    np.testing.assert_allclose(f_hold, f_static, rtol=0, atol=1e-6 * f_static[2])
+    np.testing.assert_allclose(f_hold, f_static, rtol=0, atol=rel_tol * f_static[2])
     f_moving = model.step(p, DOWN).copy()
     above = sum(damping_m(cfg)[j] * thick[j] for j in range(layer)) * SPEED
     assert f_moving[2] - f_hold[2] == pytest.approx(above, rel=1e-6, abs=1e-9)
