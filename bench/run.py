@@ -2,11 +2,14 @@
 
 Pieces (each a function taking a :class:`Sizes`, returning part of the result dict):
 
+* :func:`net_tables`: solving each net's static-response table (:mod:`haptic_acu.netresponse`),
+  the one-off cost before a new set of net parameters' first tick.
 * :func:`servo`: the servo step on the :mod:`bench.scenarios` paths, three ways: ``model.step``
   (what the engine calls), ``step_kernel(*args)`` alone (the compiled call with preassembled
   arguments: the difference is the Python method's overhead), and ticks run inside one compiled
   loop (:func:`haptic_acu.engine.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
-  Python at all); and the same paths through :mod:`bench.numpy_reference`.
+  Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
+  design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
   trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
   temporary .rrd file.
@@ -99,7 +102,7 @@ def _restore(model, snap):
 
 @nb.njit(cache=True, nogil=True)
 def empty_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all, offs,
-                 si, sf, holes, radii, scratch, diag):
+                 tab, tmeta, si, sf, holes, radii, scratch, diag):
     """Takes what :func:`haptic_acu.needle.step_kernel` takes and does nothing: calling it from
     Python costs exactly the dispatch and argument unboxing of a servo call."""
     return
@@ -223,8 +226,38 @@ def servo(sizes: Sizes, progress=False) -> dict:
             res["speedup_vs_numpy"][sc.name] = ratio(r["numpy"]["p50"], r["step"]["p50"])
             if not r["numpy_states_match"]:
                 notes.append(f"servo {sc.name}: the NumPy reference was not in the measured state")
+    # The design before the tabulated response, for comparison: the net relaxed by
+    # solver.sweeps_per_tick Gauss-Seidel-Newton sweeps inside every tick.
+    res["servo_tick_sweeps_us"] = {}
+    for sc in scen:
+        if sc.layer < 0:
+            continue
+        _log(progress, f"servo step, {sc.name}, net relaxed by sweeps every tick")
+        sw = dataclasses.replace(sc, cfg=scenarios.config_copy(sc.cfg, servo_net="sweeps"))
+        res["servo_tick_sweeps_us"][sc.name] = servo_scenario(sw, sizes.servo_ticks, ways=("step",))["step"]
     res["notes"] = notes
     return res
+
+
+def net_tables(sizes: Sizes, progress=False) -> dict:
+    """Solving each net's static-response table (netresponse.build, no cache): what the first
+    session with a new set of net parameters pays once, before its first tick."""
+    from haptic_acu.config import load_config
+    from haptic_acu.forcenet import NetParams
+    from haptic_acu.netresponse import build
+
+    cfg = load_config()
+    tol = cfg.solver.static_tolerance_um * 1e-6
+    nets = [(layer.name, layer) for layer in cfg.layers]
+    nets.append(("skin_w10_never_breaks", scenarios.press(1, layer=0, w=10).cfg.skin))
+    out = {}
+    for name, layer in nets:
+        _log(progress, f"net table, {name}")
+        t = build(NetParams.from_layer(layer), tol)
+        out[name] = {"build_s": t.build_s, "rings": layer.rings, "rows": int(t.F.shape[1]),
+                     "columns": int(t.F.shape[0]), "sweeps": t.sweeps,
+                     "megabytes": (t.F.nbytes + t.R.nbytes + t.D.nbytes) / 1e6}
+    return {"net_table_build": out}
 
 
 # ---- real-time loop ------------------------------------------------------------------------------
@@ -591,13 +624,16 @@ def scaling(sizes: Sizes, progress=False) -> dict:
     the grid for several degrees."""
     from haptic_acu import shf
 
-    out = {"servo_tick_us": {}, "particles": {}, "sh_eval_ms": {}, "sh_eval_point_us": {}}
+    out = {"servo_tick_us": {}, "servo_tick_sweeps_us": {}, "particles": {}, "sh_eval_ms": {},
+           "sh_eval_point_us": {}}
     for w in sizes.scaling_w:
         _log(progress, f"scaling, w = {w}")
         sc = scenarios.press(sizes.scaling_ticks, layer=0, w=w)
         r = servo_scenario(sc, sizes.scaling_ticks, ways=("step",))
         out["servo_tick_us"][str(w)] = r["step"]
         out["particles"][str(w)] = r["particles"]
+        sw = dataclasses.replace(sc, cfg=scenarios.config_copy(sc.cfg, servo_net="sweeps"))
+        out["servo_tick_sweeps_us"][str(w)] = servo_scenario(sw, sizes.scaling_ticks, ways=("step",))["step"]
     T, P = shf.grid(*sizes.sh_grid)
     rng = np.random.default_rng(0)
     for lmax in sizes.scaling_lmax:
@@ -645,6 +681,7 @@ def targets(res: dict) -> list[dict]:
 
 
 REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
+                 "servo_tick_sweeps_us", "net_table_build",
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
                  "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
@@ -660,7 +697,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
     notes = []
     walls = {}
     tissue = scenarios.tissue_for(load_config())
-    pieces = [("servo", lambda: servo(sizes, progress)),
+    pieces = [("net_tables", lambda: net_tables(sizes, progress)),
+              ("servo", lambda: servo(sizes, progress)),
               ("sh", lambda: sh(sizes, tissue.coeffs[:3], progress)),
               ("springback", lambda: springback(sizes, progress)),
               ("scaling", lambda: scaling(sizes, progress)),
@@ -718,6 +756,11 @@ def format_table(res: dict) -> str:
         if name in res["servo_tick_numpy_us"]:
             prow("  NumPy reference (us)", res["servo_tick_numpy_us"][name])
             lines.append(f"  speedup over NumPy (p50): {_fmt(res['speedup_vs_numpy'][name])}x")
+        if name in res.get("servo_tick_sweeps_us", {}):
+            prow("  net relaxed by sweeps every tick instead (us)", res["servo_tick_sweeps_us"][name])
+    for name, t in res.get("net_table_build", {}).items():
+        lines.append(f"net table {name} (w={t['rings']}): solved in {_fmt(t['build_s'])} s, {t['rows']} rows x "
+                     f"{t['columns']} columns, {_fmt(t['megabytes'])} MB (cached after the first session)")
     lp = res["loop"]
     prow(f"loop period error, {lp['duration_s']:.0f} s real time (us)", res["loop_period_error_us"])
     lines.append(f"  {res['ticks']} ticks, {res['missed_ticks']} missed, {lp['frames']} frames "
@@ -763,6 +806,9 @@ def format_table(res: dict) -> str:
     sc = res["scaling"]
     lines.append("scaling, servo tick p50 / p99 (us): " + ", ".join(
         f"w={w} ({sc['particles'][w]} p) {_fmt(p['p50'])} / {_fmt(p['p99'])}" for w, p in sc["servo_tick_us"].items()))
+    if sc.get("servo_tick_sweeps_us"):
+        lines.append("  with the net relaxed by sweeps every tick instead: " + ", ".join(
+            f"w={w} {_fmt(p['p50'])} / {_fmt(p['p99'])}" for w, p in sc["servo_tick_sweeps_us"].items()))
     lines.append("scaling, SH eval of one surface p50 (ms; us per point): " + ", ".join(
         f"lmax {l} {_fmt(p['p50'])} ({_fmt(sc['sh_eval_point_us'][l])})" for l, p in sc["sh_eval_ms"].items()))
     lines.append("")

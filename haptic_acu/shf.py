@@ -83,6 +83,20 @@ def _basis_matrix(lmax, theta, phi, out):
         _basis_row(lmax, theta[i], phi[i], out[i])
 
 
+# The recurrences' factors, precomputed for the point kernels (the servo evaluates four boundaries
+# every tick): the same IEEE expressions as in _basis_row, so the values are bit for bit the same.
+REC_LMAX = 40  # the largest body.lmax a config may ask for
+_REC_MM = np.array([0.0] + [math.sqrt((2.0 * m + 1.0) / (2.0 * m)) for m in range(1, REC_LMAX + 1)])
+_REC_M1 = np.array([math.sqrt(2.0 * m + 3.0) for m in range(REC_LMAX + 1)])
+_REC_A = np.zeros((REC_LMAX + 1, REC_LMAX + 1))
+_REC_B = np.zeros((REC_LMAX + 1, REC_LMAX + 1))
+for _l in range(REC_LMAX + 1):
+    for _m in range(_l - 1):
+        _REC_A[_l, _m] = math.sqrt((4.0 * _l * _l - 1.0) / (_l * _l - _m * _m))
+        _REC_B[_l, _m] = math.sqrt(((_l - 1.0) * (_l - 1.0) - _m * _m) / (4.0 * (_l - 1.0) * (_l - 1.0) - 1.0))
+del _l, _m
+
+
 @nb.njit(cache=True, nogil=True)
 def eval_point(coeffs, lmax, theta, phi):
     """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing."""
@@ -92,7 +106,7 @@ def eval_point(coeffs, lmax, theta, phi):
     total = 0.0
     for m in range(lmax + 1):
         if m > 0:
-            pmm = -math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * s * pmm
+            pmm = -_REC_MM[m] * s * pmm
         cm = math.cos(m * phi)
         sm = math.sin(m * phi)
         p_lm2 = 0.0
@@ -101,11 +115,9 @@ def eval_point(coeffs, lmax, theta, phi):
             if l == m:
                 p = pmm
             elif l == m + 1:
-                p = math.sqrt(2.0 * m + 3.0) * x * pmm
+                p = _REC_M1[m] * x * pmm
             else:
-                a = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
-                b = math.sqrt(((l - 1.0) * (l - 1.0) - m * m) / (4.0 * (l - 1.0) * (l - 1.0) - 1.0))
-                p = a * (x * p_lm1 - b * p_lm2)
+                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
             if l > m:
                 p_lm2 = p_lm1
                 p_lm1 = p
@@ -115,6 +127,44 @@ def eval_point(coeffs, lmax, theta, phi):
             else:
                 total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
     return total
+
+
+@nb.njit(cache=True, nogil=True)
+def eval_point_many(coeffs, lmax, theta, phi, out):
+    """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs``, sharing one Legendre
+    recurrence and one set of cos/sin(m phi) (the sums are formed in the same order, so each equals
+    eval_point's bit for bit). Allocates nothing."""
+    nk = coeffs.shape[0]
+    for k in range(nk):
+        out[k] = 0.0
+    x = math.cos(theta)
+    s = math.sin(theta)
+    pmm = _INV_SQRT_4PI
+    for m in range(lmax + 1):
+        if m > 0:
+            pmm = -_REC_MM[m] * s * pmm
+        cm = math.cos(m * phi)
+        sm = math.sin(m * phi)
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            if l == m:
+                p = pmm
+            elif l == m + 1:
+                p = _REC_M1[m] * x * pmm
+            else:
+                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
+            if l > m:
+                p_lm2 = p_lm1
+                p_lm1 = p
+            base = l * l + l
+            if m == 0:
+                for k in range(nk):
+                    out[k] += coeffs[k, base] * p
+            else:
+                sp = _SQRT2 * p
+                for k in range(nk):
+                    out[k] += sp * (coeffs[k, base + m] * cm + coeffs[k, base - m] * sm)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -48,8 +48,7 @@ def sample_directions(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def boundary_radii(coeffs, lmax, centre, p, out):
     """Radii of all boundaries toward point ``p`` into ``out[4]``; returns |p - centre|."""
     theta, phi, rho = shf.direction_of(p[0], p[1], p[2], centre[0], centre[1], centre[2])
-    for k in range(coeffs.shape[0]):
-        out[k] = shf.eval_point(coeffs[k], lmax, theta, phi)
+    shf.eval_point_many(coeffs, lmax, theta, phi, out)
     return rho
 
 
