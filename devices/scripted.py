@@ -101,6 +101,13 @@ class ScriptedDevice(Device):
         self.max_force_n = max(self.max_force_n, float(np.linalg.norm(f)))
         self.force_commands += 1
 
+    def record_forces(self, count: int, max_magnitude_n: float, last_n) -> None:
+        """What a compiled servo loop (haptic_acu.rtloop) commanded without calling ``set_force``
+        tick by tick: ``count`` commands, the largest magnitude, the last force."""
+        self.force_commands += int(count)
+        self.max_force_n = max(self.max_force_n, float(max_magnitude_n))
+        self.last_force_n = np.array(last_n, dtype=np.float64).reshape(3)
+
     # -- clock -----------------------------------------------------------------------------------
     def advance(self, dt_s: float) -> None:
         """Move the simulated clock on by ``dt_s`` (headless mode)."""

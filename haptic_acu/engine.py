@@ -16,8 +16,11 @@ Clocks:
   session, interleaved deterministically: identical input gives identical output.
 * ``"realtime"``: a servo thread on absolute deadlines (hybrid sleep-then-spin), a visual thread,
   ``sys.setswitchinterval(2e-4)``, ``gc.freeze()`` after warm-up, SCHED_FIFO for the servo thread
-  where the OS allows it. Devices that drive the clock (the OMNI) call the servo tick from their own
-  scheduler through :meth:`devices.base.Device.run_servo`.
+  where the OS allows it. For a device that can be read ahead (``read_block``: the scripted device)
+  the servo thread runs the whole loop compiled and without the GIL (:mod:`haptic_acu.rtloop`; the
+  visual thread's C calls cannot delay it); for the others (keyboard) the loop is Python. Devices
+  that drive the clock (the OMNI) call the servo tick from their own scheduler through
+  :meth:`devices.base.Device.run_servo`.
 
 Net ownership (see :mod:`haptic_acu.needle`): the servo owns a pressing net; at puncture it copies
 the displaced positions onto the curved surface and marks the slot owner 2, after which only the
@@ -171,7 +174,7 @@ class Session:
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
-                 servo_watchdog_s: float = 2.0):
+                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -201,6 +204,10 @@ class Session:
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
+        # Real time on a device that can be read ahead (read_block: the scripted device): the whole
+        # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
+        self.compiled_loop = bool(compiled_loop) and hasattr(device, "read_block")
+        self._ctl = None  # the compiled loop's control words while it runs
 
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -208,6 +215,8 @@ class Session:
         self.model.warm_up()
         buf = np.zeros((1, NCOL))
         write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
+        if self.clock == "realtime" and self.compiled_loop:
+            self._warm_compiled_loop()
         if self.clock == "sim":
             z = np.zeros((1, 3))
             run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, buf, 0, *self.model.kernel_args(),
@@ -222,8 +231,22 @@ class Session:
                 s.warm_up()
         self._warm = True
 
+    def _warm_compiled_loop(self) -> None:
+        """Load the compiled servo loop with a run that stops before its first tick."""
+        from . import rtloop
+
+        rtloop.warm_up()
+        m = self.model
+        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
+        ctl[rtloop.CT_STOP] = 1
+        rtloop.servo_loop(ctl, np.zeros(rtloop.FL_SIZE), 0, 1000000, 0, np.zeros((1, 3)), np.zeros((1, 3)),
+                          np.zeros((1, NCOL)), np.zeros(1, np.int64), np.zeros(1), np.zeros(2, np.int64),
+                          *m.kernel_args(), m._p, m._v)
+
     def stop(self) -> None:
         self._stop.set()
+        if self._ctl is not None:
+            self._ctl[0] = 1  # rtloop.CT_STOP: the compiled loop sees it at its next tick
 
     def _set_fault(self, reason: str) -> None:
         with self._fault_lock:
@@ -434,6 +457,7 @@ class Session:
             next_t = t0 + self.frame_dt
             last = time.perf_counter()
             frames = 0
+            last_ticks = 0
             seen_tick, seen_at = -1, last
             while not self._stop.is_set():
                 now = time.perf_counter()
@@ -452,15 +476,102 @@ class Session:
                 if next_t < now:
                     next_t = now + self.frame_dt  # fell behind: do not try to catch up
                 frames += 1
+                ctl = self._ctl
+                if ctl is not None:
+                    self.tick = int(ctl[1])  # rtloop.CT_TICK
                 if now - last >= 0.5:
                     self.rates["visual_hz"] = frames / (now - last)
+                    if ctl is not None:
+                        ticks = int(ctl[1])
+                        self.rates["servo_hz"] = (ticks - last_ticks) / (now - last)
+                        last_ticks = ticks
                     frames = 0
                     last = now
                 self._visual_frame(now - t0)
         except BaseException as e:
             self._set_fault(f"visual loop: {type(e).__name__}: {e}")
 
+    def _run_realtime_compiled(self) -> None:
+        """Real time with the servo loop compiled and GIL-free (:mod:`haptic_acu.rtloop`): a servo
+        thread inside :func:`~haptic_acu.rtloop.servo_loop` for the whole session, a feeder thread
+        reading the device ahead, the visual thread as usual, and this thread waiting in Python so
+        signals (Ctrl-C) are handled at once."""
+        from . import rtloop
+
+        m = self.model
+        dt = self.servo_dt
+        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
+        ctl[rtloop.CT_END] = rtloop.NO_END
+        fl = np.zeros(rtloop.FL_SIZE)
+        feed = rtloop.Feed(self.device, ctl, dt)
+        feed.fill()  # the first second before the clock starts
+        k_limit = rtloop.NO_END
+        if self.duration_s is not None:
+            k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
+        period_ns = int(round(dt * 1e9))
+        args = m.kernel_args()
+        outcome = {}
+        old = self._rt_setup()
+        self._ctl = ctl
+        if self._stop.is_set():
+            ctl[rtloop.CT_STOP] = 1
+        t0_ns = rtloop.monotonic_ns() + 2_000_000
+        t0 = t0_ns * 1e-9  # CLOCK_MONOTONIC: time.perf_counter's clock
+
+        def servo():
+            prev = self._try_fifo()
+            self.sched_fifo = prev is not None
+            try:
+                outcome["status"] = rtloop.servo_loop(
+                    ctl, fl, t0_ns, period_ns, k_limit, feed.p, feed.v, self.ring.buf, self.ring.ctr,
+                    self._period_err, np.zeros(2, np.int64), *args, m._p, m._v)
+            except BaseException as e:
+                outcome["error"] = e
+            finally:
+                self._restore_sched(prev)
+                self._stop.set()
+
+        vis = threading.Thread(target=self._visual_loop, args=(t0, False), name="haptic-acu-visual", daemon=True)
+        th = threading.Thread(target=servo, name="haptic-acu-servo", daemon=True)
+        vis.start()
+        feed.start(self._stop)
+        th.start()
+        try:
+            while th.is_alive():
+                th.join(0.05)
+                if self._stop.is_set():
+                    ctl[rtloop.CT_STOP] = 1
+        finally:
+            ctl[rtloop.CT_STOP] = 1
+            th.join()
+            self._stop.set()
+            vis.join(timeout=2.0)
+            feed.join()
+            self._rt_teardown(old)
+            self._ctl = None
+            self.tick = int(ctl[rtloop.CT_TICK])
+            self.missed = int(ctl[rtloop.CT_MISSED])
+            self._n_err = int(ctl[rtloop.CT_NERR])
+            if self.tick:
+                self._t_session = (self.tick - 1) * dt
+            if hasattr(self.device, "record_forces"):
+                self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
+        if "error" in outcome:
+            raise outcome["error"]
+        status = outcome.get("status")
+        if status == rtloop.FAULTED:
+            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
+                            "force set to zero")
+        elif feed.error is not None and self.fault is None:  # the device failed: the feeder stopped the loop
+            e = feed.error
+            raise e if isinstance(e, DeviceFault) else DeviceFault(f"{self.device.info.name}: {type(e).__name__}: {e}")
+        elif status == rtloop.STARVED and self.fault is None:
+            raise DeviceFault(f"{self.device.info.name}: positions for tick {self.tick} were not read in time "
+                              "(the feeder fell 1 s behind the servo loop)")
+
     def _run_realtime(self) -> None:
+        if self.compiled_loop:
+            return self._run_realtime_compiled()
         old = self._rt_setup()
         t0 = time.perf_counter()
         vis = threading.Thread(target=self._visual_loop, args=(t0, True), name="haptic-acu-visual", daemon=True)

@@ -66,24 +66,34 @@ class SampleRing:
     """Single-producer (servo) / single-consumer (visual) ring of sample rows.
 
     The producer writes row ``head % capacity`` and then advances ``head``; the consumer copies rows
-    ``[tail, head)`` and advances ``tail``. Indices are plain ints (atomic under the GIL); no lock is
-    held by either side. If the consumer falls ``capacity`` rows behind, the oldest rows are lost
+    ``[tail, head)`` and advances ``tail``. ``head`` lives in a one-element int64 array (``ctr``),
+    so the compiled real-time loop (:mod:`haptic_acu.rtloop`) can publish rows without the GIL; no
+    lock is held by either side. If the consumer falls ``capacity`` rows behind, the oldest rows are lost
     and counted in ``dropped`` (size the ring for several visual frames: the default holds 8 s).
     """
 
     def __init__(self, capacity: int = 8192):
         self.buf = np.zeros((capacity, NCOL))
         self.capacity = capacity
-        self.head = 0
+        self.ctr = np.zeros(1, dtype=np.int64)  # head, in an array so a compiled producer can publish it
         self.tail = 0
         self.dropped = 0
         self._lock = threading.Lock()  # consumer side only (drain may be called from two threads at stop)
+
+    @property
+    def head(self) -> int:
+        """Rows written so far (the producer advances it after writing a row)."""
+        return int(self.ctr[0])
+
+    @head.setter
+    def head(self, value: int) -> None:
+        self.ctr[0] = value
 
     def next_row(self) -> int:
         return self.head % self.capacity
 
     def commit(self) -> None:
-        self.head += 1
+        self.ctr[0] += 1
 
     def drain(self) -> np.ndarray:
         """Copy out every row written since the last drain, oldest first."""
