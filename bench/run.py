@@ -12,7 +12,9 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
   trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
-  temporary .rrd file.
+  temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.rtloop`); in the full run also
+  without rerun, with rerun in this process, with the servo loop in Python (the design before), and
+  the machine's floor (a bare Python 1 kHz loop).
 * :func:`sh`: SH evaluation (three layer meshes at 64 x 128 directions, lmax 15) and fitting
   (10,000 samples, lmax 15) against pyshtools (``MakeGridPoint``, ``SHExpandLSQ``, orthonormal
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
@@ -285,10 +287,11 @@ class _DentProbe:
             frame.dents[k]
 
 
-def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False) -> dict:
+def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False, compiled_loop=True) -> dict:
     """A real-time Session on the scripted device playing ``trajectory`` looped for ``duration_s``;
     with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
-    missing). Returns the session's stats plus what ran."""
+    missing); ``compiled_loop=False``: the Python servo loop instead of the compiled one. Returns the
+    session's stats plus what ran."""
     from devices.scripted import ScriptedDevice
     from haptic_acu.engine import Session
 
@@ -312,9 +315,10 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
         except ImportError as e:
             rerun = False
             note = f"rerun logging not available ({e}); the loop ran without it"
-    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s)
+    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled_loop)
     session.warm_up()
-    _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging")
+    _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging"
+         + ("" if compiled_loop else ", Python servo loop"))
     result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
     fifo = bool(result.stats.get("sched_fifo"))
     dev.close()
@@ -359,6 +363,12 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
                                         "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
                                         "fault": inproc["fault"]}
+        # the design before rtloop.py, for comparison: the same session with the servo loop in Python
+        with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+            py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
+        out["loop_python_servo"] = {"duration_s": sizes.loop_plain_s, "period_error_us": py["period_error_us"],
+                                    "ticks": int(py["ticks"]), "missed_ticks": int(py["missed_ticks"]),
+                                    "fault": py["fault"]}
     out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
     return out
 
@@ -777,6 +787,11 @@ def format_table(res: dict) -> str:
         prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
         lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
                      + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
+    lps = res.get("loop_python_servo")
+    if lps:
+        prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
+        lines.append(f"  {lps['ticks']} ticks, {lps['missed_ticks']} missed"
+                     + (f"; STOPPED: {lps['fault']}" if lps["fault"] else ""))
     mf = res.get("machine_floor")
     if mf:
         prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])

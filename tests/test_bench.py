@@ -278,6 +278,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     _percentile_object(res["loop_period_error_us"])
     assert 0 < res["ticks"] and 0 <= res["missed_ticks"] <= res["ticks"]
     assert res["loop_no_rerun"]["ticks"] > 0
+    assert res["loop_python_servo"]["ticks"] > 0 and res["loop_rerun_in_process"]["ticks"] > 0
     for key in ("shf_eval_ms", "shf_fit_ms", "springback_us"):
         _percentile_object(res[key])
     assert res["replay_speed_x"]["no_rrd"] > 0 and res["cold_start_s"]["first_tick"] > 0
