@@ -107,3 +107,83 @@ def machine_info() -> dict:
         "thread_env": {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "NUMBA_NUM_THREADS")},
         "load_average_start": load_average(),
     }
+
+
+class StealSampler:
+    """CPU time the hypervisor took from this virtual machine (``steal`` in /proc/stat), sampled every
+    ``period_s`` by a thread: the host's share of a real-time loop's misses, measured directly
+    (a 1 kHz loop cannot run while its virtual CPU is descheduled). Resolution: one USER_HZ tick
+    (10 ms) summed over all CPUs. ``available`` is False where /proc/stat has no steal column."""
+
+    def __init__(self, period_s: float = 0.25):
+        import threading
+
+        self.period_s = period_s
+        self.samples: list[tuple[float, int]] = []
+        self.hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self.available = self._read() is not None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="steal-sampler", daemon=True)
+
+    @staticmethod
+    def _read():
+        try:
+            with open("/proc/stat") as f:
+                fields = f.readline().split()
+            return int(fields[8]) if fields[0] == "cpu" and len(fields) > 8 else None
+        except (OSError, ValueError):
+            return None
+
+    def _run(self):
+        while True:
+            v = self._read()
+            if v is not None:
+                self.samples.append((time.perf_counter(), v))
+            if self._stop.wait(self.period_s):
+                v = self._read()
+                if v is not None:
+                    self.samples.append((time.perf_counter(), v))
+                return
+
+    def __enter__(self):
+        if self.available:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        if self.available:
+            self._thread.join()
+
+    def windows(self):
+        """(start, end, stolen seconds) for each sampling interval."""
+        return [(a, b, (sb - sa) / self.hz) for (a, sa), (b, sb) in zip(self.samples, self.samples[1:])]
+
+
+def split_by_steal(errs_s, t0: float, dt: float, sampler: "StealSampler") -> dict:
+    """The loop's period errors (tick k at ``t0 + k*dt``) split into the sampling windows in which
+    the hypervisor took no CPU time and the rest: how the loop does when the host leaves it alone."""
+    errs_s = np.asarray(errs_s, dtype=float)
+    wins = sampler.windows()
+    if not wins or errs_s.size == 0:
+        return {"available": sampler.available and bool(wins)}
+    t_tick = t0 + np.arange(errs_s.size) * dt
+    quiet = np.zeros(errs_s.size, dtype=bool)
+    stolen_total = 0.0
+    span = 0.0
+    for a, b, stolen in wins:
+        stolen_total += stolen
+        span += b - a
+        if stolen == 0.0:
+            quiet |= (t_tick >= a) & (t_tick < b)
+    covered = (t_tick >= wins[0][0]) & (t_tick < wins[-1][1])
+    cpus = os.cpu_count() or 1
+    out = {"available": True, "steal_share": stolen_total / (span * cpus) if span > 0 else 0.0,
+           "stolen_s": stolen_total, "windows": len(wins),
+           "quiet_windows": sum(1 for w in wins if w[2] == 0.0),
+           "quiet_ticks": int(quiet.sum()), "quiet_missed": int(np.count_nonzero(errs_s[quiet] > dt)),
+           "other_ticks": int((covered & ~quiet).sum()),
+           "other_missed": int(np.count_nonzero(errs_s[covered & ~quiet] > dt))}
+    if quiet.any():
+        out["quiet_period_error_us"] = percentiles(np.abs(errs_s[quiet]), 1e6)
+    return out

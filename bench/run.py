@@ -319,10 +319,13 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
     session.warm_up()
     _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging"
          + ("" if compiled_loop else ", Python servo loop"))
-    result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
+    with measure.StealSampler() as steal:
+        result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
     fifo = bool(result.stats.get("sched_fifo"))
     dev.close()
     st = dict(result.stats)
+    n = min(session._n_err, session._period_err.size)
+    st["steal"] = measure.split_by_steal(session._period_err[:n], session.t0_perf or 0.0, session.servo_dt, steal)
     st.update(rerun_rrd=bool(rerun), rerun_mode=rerun or "none", rrd_bytes=rrd.stat().st_size if rrd.exists() else 0, sched_fifo=bool(fifo),
               fault=result.fault, note=note)
     return st
@@ -349,26 +352,27 @@ def loop(sizes: Sizes, progress=False) -> dict:
                     "servo_hz": st["servo_hz"], "visual_hz": st["visual_hz"], "dropped_rows": st["dropped_rows"],
                     "rerun_rrd": st["rerun_rrd"], "rrd_bytes": st["rrd_bytes"], "sched_fifo": st["sched_fifo"],
                     "fault": st["fault"]},
-           "loop_no_rerun": None, "notes": notes}
+           "loop_steal": st["steal"], "loop_no_rerun": None, "notes": notes}
     if sizes.loop_plain_s:
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             plain = realtime_session(cfg, traj, sizes.loop_plain_s, False, tmp, progress)
         out["loop_no_rerun"] = {"duration_s": sizes.loop_plain_s, "period_error_us": plain["period_error_us"],
                                 "ticks": int(plain["ticks"]), "missed_ticks": int(plain["missed_ticks"]),
-                                "frames": plain["frames"], "sched_fifo": plain["sched_fifo"], "fault": plain["fault"]}
+                                "frames": plain["frames"], "sched_fifo": plain["sched_fifo"], "fault": plain["fault"],
+                                "steal": plain["steal"]}
         if plain["fault"]:
             notes.append(f"real-time session without rerun logging stopped: {plain['fault']}")
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             inproc = realtime_session(cfg, traj, sizes.loop_plain_s, "inproc", tmp, progress)
         out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
                                         "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
-                                        "fault": inproc["fault"]}
+                                        "fault": inproc["fault"], "steal": inproc["steal"]}
         # the design before rtloop.py, for comparison: the same session with the servo loop in Python
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
         out["loop_python_servo"] = {"duration_s": sizes.loop_plain_s, "period_error_us": py["period_error_us"],
                                     "ticks": int(py["ticks"]), "missed_ticks": int(py["missed_ticks"]),
-                                    "fault": py["fault"]}
+                                    "fault": py["fault"], "steal": py["steal"]}
     out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
     return out
 
@@ -390,6 +394,8 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     n = int(duration_s * 1000)
     errs = np.empty(n)
     perf = time.perf_counter
+    steal = measure.StealSampler()
+    steal.__enter__()
     try:
         t0 = perf() + 0.01
         for k in range(n):
@@ -401,11 +407,13 @@ def machine_floor(duration_s: float, progress=False) -> dict:
                 pass
             errs[k] = perf() - d
     finally:
+        steal.__exit__(None, None, None)
         sys.setswitchinterval(old)
         if prev is not None:
             os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
     return {"duration_s": duration_s, "period_error_us": percentiles(errs, 1e6), "ticks": n,
-            "missed_ticks": int(np.count_nonzero(errs > 1e-3))}
+            "missed_ticks": int(np.count_nonzero(errs > 1e-3)),
+            "steal": measure.split_by_steal(errs, t0, 1e-3, steal)}
 
 
 # ---- spherical harmonics -------------------------------------------------------------------------
@@ -777,25 +785,42 @@ def format_table(res: dict) -> str:
                  f"({_fmt(lp['visual_hz'])} Hz), rerun .rrd: {'yes' if lp['rerun_rrd'] else 'NO'}, "
                  f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}"
                  + (f"; STOPPED: {lp['fault']}" if lp["fault"] else ""))
+    def steal_line(st):
+        if not st or not st.get("available") or "steal_share" not in st:
+            return
+        q = st.get("quiet_period_error_us")
+        line = (f"  host: {100 * st['steal_share']:.1f}% of CPU time stolen by the hypervisor; in the "
+                f"{st['quiet_windows']} of {st['windows']} windows of 0.25 s with none stolen: "
+                f"{st['quiet_missed']} missed in {st['quiet_ticks']} ticks")
+        if q:
+            line += f", p99 {_fmt(q['p99'])} us, p99.9 {_fmt(q['p999'])} us"
+        line += f"; elsewhere {st['other_missed']} missed in {st['other_ticks']}"
+        lines.append(line)
+
+    steal_line(res.get("loop_steal"))
     lnr = res.get("loop_no_rerun")
     if lnr:
         prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
         lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
                      + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
+        steal_line(lnr.get("steal"))
     lip = res.get("loop_rerun_in_process")
     if lip:
         prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
         lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
                      + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
+        steal_line(lip.get("steal"))
     lps = res.get("loop_python_servo")
     if lps:
         prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
         lines.append(f"  {lps['ticks']} ticks, {lps['missed_ticks']} missed"
                      + (f"; STOPPED: {lps['fault']}" if lps["fault"] else ""))
+        steal_line(lps.get("steal"))
     mf = res.get("machine_floor")
     if mf:
         prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
         lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
+        steal_line(mf.get("steal"))
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:

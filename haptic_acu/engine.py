@@ -208,6 +208,7 @@ class Session:
         # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
         self.compiled_loop = bool(compiled_loop) and hasattr(device, "read_block")
         self._ctl = None  # the compiled loop's control words while it runs
+        self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
 
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -549,6 +550,7 @@ class Session:
             feed.join()
             self._rt_teardown(old)
             self._ctl = None
+            self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
             self.tick = int(ctl[rtloop.CT_TICK])
             self.missed = int(ctl[rtloop.CT_MISSED])
             self._n_err = int(ctl[rtloop.CT_NERR])
@@ -574,6 +576,7 @@ class Session:
             return self._run_realtime_compiled()
         old = self._rt_setup()
         t0 = time.perf_counter()
+        self.t0_perf = t0
         vis = threading.Thread(target=self._visual_loop, args=(t0, True), name="haptic-acu-visual", daemon=True)
         vis.start()
         try:

@@ -130,11 +130,63 @@ def eval_point(coeffs, lmax, theta, phi):
 
 
 @nb.njit(cache=True, nogil=True)
+def _eval_point4(coeffs, lmax, theta, phi, out):
+    """eval_point_many for exactly four rows (the tissue's boundaries), the sums in registers."""
+    t0 = 0.0
+    t1 = 0.0
+    t2 = 0.0
+    t3 = 0.0
+    c0 = coeffs[0]
+    c1 = coeffs[1]
+    c2 = coeffs[2]
+    c3 = coeffs[3]
+    x = math.cos(theta)
+    s = math.sin(theta)
+    pmm = _INV_SQRT_4PI
+    for m in range(lmax + 1):
+        if m > 0:
+            pmm = -_REC_MM[m] * s * pmm
+        cm = math.cos(m * phi)
+        sm = math.sin(m * phi)
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            if l == m:
+                p = pmm
+            elif l == m + 1:
+                p = _REC_M1[m] * x * pmm
+            else:
+                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
+            if l > m:
+                p_lm2 = p_lm1
+                p_lm1 = p
+            base = l * l + l
+            if m == 0:
+                t0 += c0[base] * p
+                t1 += c1[base] * p
+                t2 += c2[base] * p
+                t3 += c3[base] * p
+            else:
+                sp = _SQRT2 * p
+                t0 += sp * (c0[base + m] * cm + c0[base - m] * sm)
+                t1 += sp * (c1[base + m] * cm + c1[base - m] * sm)
+                t2 += sp * (c2[base + m] * cm + c2[base - m] * sm)
+                t3 += sp * (c3[base + m] * cm + c3[base - m] * sm)
+    out[0] = t0
+    out[1] = t1
+    out[2] = t2
+    out[3] = t3
+
+
+@nb.njit(cache=True, nogil=True)
 def eval_point_many(coeffs, lmax, theta, phi, out):
     """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs``, sharing one Legendre
     recurrence and one set of cos/sin(m phi) (the sums are formed in the same order, so each equals
     eval_point's bit for bit). Allocates nothing."""
     nk = coeffs.shape[0]
+    if nk == 4:
+        _eval_point4(coeffs, lmax, theta, phi, out)
+        return
     for k in range(nk):
         out[k] = 0.0
     x = math.cos(theta)

@@ -293,3 +293,23 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     out = tmp_path / "bench.json"
     run.write_json(res, out)
     assert set(json.loads(out.read_text())) == set(res)
+
+
+def test_split_by_steal_counts_misses_inside_and_outside_steal_free_windows():
+    # Three 1 s windows; the hypervisor took 20 ms in the middle one. 3000 ticks at 1 ms from t0 = 10 s,
+    # late by 2 ms at ticks 100 (first window), 1500 and 1501 (middle) and 2999 (last): the split
+    # must put one miss in the quiet windows' 2000 ticks and two in the middle's 1000.
+    from bench.measure import StealSampler, split_by_steal
+
+    s = StealSampler()
+    s.samples = [(10.0, 500), (11.0, 500), (12.0, 502), (13.0, 502)]
+    errs = np.full(3000, 1e-6)
+    errs[[100, 1500, 1501]] = 2e-3
+    errs[2999] = 5e-4  # late, but within the period: not a miss
+    out = split_by_steal(errs, 10.0, 1e-3, s)
+    assert out["windows"] == 3 and out["quiet_windows"] == 2
+    assert out["quiet_ticks"] == 2000 and out["quiet_missed"] == 1
+    assert out["other_ticks"] == 1000 and out["other_missed"] == 2
+    assert out["stolen_s"] == pytest.approx(2 / s.hz)
+    assert out["quiet_period_error_us"]["max"] == pytest.approx(2000.0)
+    assert out["steal_share"] == pytest.approx((2 / s.hz) / (3.0 * (os.cpu_count() or 1)))
