@@ -16,8 +16,9 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
 * with ``solver.servo_net = "table"`` (the default), the net's static response is read from the
   layer's tabulated response (:mod:`haptic_acu.netresponse`: the same F, R and displacement-field
   arrays the compiled step reads) through SciPy's ``RegularGridInterpolator`` (linear, extrapolating
-  past the last row), and the field laid onto the net with one matrix product: what a NumPy
-  developer would write for that design; with ``"sweeps"`` the multicolour sweeps above run instead;
+  past the last row); the tabulated shape is laid onto the net (one matrix product, ``laid_shape``)
+  only for rendering, as in the compiled model: what a NumPy developer would write for that
+  design; with ``"sweeps"`` the multicolour sweeps above run instead;
 * puncture at the ring-w mean deflection threshold, the compression offset, Table 1's damping of
   the layers passed, the lateral constraint, the bone wall, the non-finite fault latch and the
   force clamp, as in the compiled step.
@@ -282,6 +283,19 @@ class NumpyNeedle:
         return f - lay["kv"] * ((xf[0] - net.X0f[0]) @ a) * a
 
     @staticmethod
+    def laid_shape(lay, q):
+        """A tabulated net's equilibrium shape with N1 at ``q`` (what the visual loop renders)."""
+        net, tab = lay["net"], lay["table"]
+        dz1 = -((q - net.X0f[0]) @ net.axis)
+        x = min(max(dz1, 0.0) / tab["h"], tab["D"].shape[0] - 1.0)
+        i = min(int(x), tab["D"].shape[0] - 2)
+        d = (1.0 - (x - i)) * tab["D"][i] + (x - i) * tab["D"][i + 1]
+        e1, e2 = tangent_frame(net.axis)
+        out = net.X0f + d @ np.array([e1, e2, net.axis])
+        out[0] = q
+        return out
+
+    @staticmethod
     def ring_w_deflection(lay):
         net = lay["net"]
         o = net.hex.outer
@@ -347,12 +361,7 @@ class NumpyNeedle:
                         pt = np.array([[max(float(lateral @ lateral) / tab["rho2"], 0.0), max(dz1, 0.0)]])
                         fn_table = float(tab["F"](pt)[0])
                         ring_w = float(tab["R"](pt)[0])
-                        x = min(dz1 / tab["h"], tab["D"].shape[0] - 1.0)
-                        i = min(int(x), tab["D"].shape[0] - 2)
-                        d = (1.0 - (x - i)) * tab["D"][i] + (x - i) * tab["D"][i + 1]
-                        e1, e2 = tangent_frame(net.axis)
-                        net.xf = net.X0f + d @ np.array([e1, e2, net.axis])
-                        net.xf[0] = q
+                        net.xf[0] = q  # (the shape is laid only for rendering: see laid_shape)
                     else:
                         net.xf[0] = q
                         for _ in range(n_sweeps):

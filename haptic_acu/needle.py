@@ -79,7 +79,8 @@ SI_SIZE = 25
 SF_OFFSET = 0
 SF_AXIS = 1  # 3
 SF_ENTRY = 4  # 3
-SF_SIZE = 7
+SF_SLOT_Q = 7  # 3 per slot: the (lifted) tip holding N1 of a tabulated pressing net (its shape is laid from it)
+SF_SIZE = 7 + 3 * 6
 # diagnostics out (diag[:])
 D_FX, D_FY, D_FZ = 0, 1, 2
 D_F_SURFACE = 3  # magnitude of the pressed layer's surface force (N)
@@ -313,20 +314,22 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
             else:
                 lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
                 sweeps = int(npar[NP_SWEEPS])
+                use_table = tmeta[k, TM_NR] > 0.0
                 if lat2 > (0.5 * lp[k, LP_L]) ** 2:
                     # Slid half a spacing sideways: re-centre the net under the tip, keeping its
                     # ring-mean deflection profile as the warm start.
+                    # (A tabulated net needs no warm start: it is read at its new offset at once.)
                     wr = scratch[16:16 + w]
-                    for j in range(w):
-                        wr[j] = 0.0
                     cnt = scratch[16 + 40:16 + 40 + w]
-                    for j in range(w):
-                        cnt[j] = 0.0
-                    for i in range(n):
-                        r_i = ringk[i] - 1
-                        wr[r_i] += -((xfk[i, 0] - X0fk[i, 0]) * ax[0] + (xfk[i, 1] - X0fk[i, 1]) * ax[1]
-                                     + (xfk[i, 2] - X0fk[i, 2]) * ax[2])
-                        cnt[r_i] += 1.0
+                    if not use_table:
+                        for j in range(w):
+                            wr[j] = 0.0
+                            cnt[j] = 0.0
+                        for i in range(n):
+                            r_i = ringk[i] - 1
+                            wr[r_i] += -((xfk[i, 0] - X0fk[i, 0]) * ax[0] + (xfk[i, 1] - X0fk[i, 1]) * ax[1]
+                                         + (xfk[i, 2] - X0fk[i, 2]) * ax[2])
+                            cnt[r_i] += 1.0
                     cpt = scratch[6:9]
                     for c in range(3):
                         cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
@@ -334,27 +337,29 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
                     build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], planek, nbrk, n, lp[k, LP_PRE],
                               X0k, xk, X0fk, xfk, rlk, ax)
                     si[SI_GEN + idx] += 1
-                    for i in range(n):
-                        r_i = ringk[i] - 1
-                        dz = wr[r_i] / cnt[r_i]
-                        for c in range(3):
-                            xfk[i, c] = X0fk[i, c] - dz * ax[c]
+                    if not use_table:
+                        for i in range(n):
+                            r_i = ringk[i] - 1
+                            dz = wr[r_i] / cnt[r_i]
+                            for c in range(3):
+                                xfk[i, c] = X0fk[i, c] - dz * ax[c]
                     sweeps *= 2
                     rx = q[0] - X0fk[0, 0]
                     ry = q[1] - X0fk[0, 1]
                     rz = q[2] - X0fk[0, 2]
                     dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
-                use_table = tmeta[k, TM_NR] > 0.0
                 fn_table = 0.0
                 if use_table:
-                    # The net's static response at this (lateral offset, depth), then its centred
-                    # equilibrium shape laid onto the net for the visual loop and springback.
+                    # The net's static response at this (lateral offset, depth). Its shape is laid
+                    # onto the particles only when someone looks: the visual loop (from the tip
+                    # kept in sf, NeedleModel.net_positions) and the puncture hand-over below.
                     lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
                     fn_table, rw = lookup(tab, tmeta[k], lat2, dz1)
-                    lay_field(tab, tmeta[k], dz1, n, X0fk, ax, xfk)
-                for c in range(3):
-                    xfk[0, c] = q[c]
-                if not use_table:
+                    for c in range(3):
+                        sf[SF_SLOT_Q + 3 * idx + c] = q[c]
+                else:
+                    for c in range(3):
+                        xfk[0, c] = q[c]
                     for it in range(sweeps):
                         relax(xfk, X0fk, rlk, nbrk, ringk, n, w, ax, lp[k, LP_K], lp[k, LP_KS],
                               lp[k, LP_L], si[SI_SWEEP + k] % 2)
@@ -365,6 +370,10 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
                 if rw > lp[k, LP_THRESH]:
                     # Puncture: virtual springs go, surface force vanishes, net handed to springback.
                     si[SI_STATE + k] = PUNCTURED
+                    if use_table:
+                        lay_field(tab, tmeta[k], dz1, n, X0fk, ax, xfk)
+                        for c in range(3):
+                            xfk[0, c] = q[c]
                     sync_curved(xk, X0k, xfk, X0fk, n)
                     si[SI_OWNER + idx] = 2
                     diag[D_PUNCTURE] = k
@@ -606,9 +615,13 @@ class NeedleModel:
         return self.diag[0:3]
 
     def warm_up(self) -> None:
-        """Compile (or load from cache) every kernel the servo step calls, then reset."""
+        """Compile (or load from cache) every kernel the servo step calls, and the visual loop's
+        read of a pressing net, then reset."""
         self.step(np.array([0.0, 0.0, 1e-3]), np.zeros(3))
         self.step(np.array([0.0, 0.0, -1e-4]), np.zeros(3))
+        for k in range(N_LAYERS):
+            if self.tables[k] is not None:
+                self.pressed_net_flat(2 * k)
         self.reset(keep_holes=False)
 
     # -- read-outs ------------------------------------------------------------------------------
@@ -645,12 +658,27 @@ class NeedleModel:
     def generation(self, idx: int) -> int:
         return int(self.si[SI_GEN + idx])
 
+    def pressed_net_flat(self, idx: int) -> np.ndarray:
+        """Flat-lattice positions of a pressing (owner 1) net: the relaxed particles, or for a
+        tabulated net its equilibrium shape at the tip the servo last held N1 at."""
+        k = idx // 2
+        if self.tables[k] is None:
+            return self.xf[idx].copy()
+        n = self.n[k]
+        q = self.sf[SF_SLOT_Q + 3 * idx:SF_SLOT_Q + 3 * idx + 3].copy()
+        axis = self.axes[idx].copy()
+        X0f = self.X0f[idx]
+        out = np.empty((n, 3))
+        lay_field(self.tab, self.tmeta[k], float(-((q - X0f[0]) @ axis)), n, X0f, axis, out)
+        out[0] = q
+        return out
+
     def net_positions(self, idx: int) -> np.ndarray:
         """Current curved-surface positions of slot ``idx``'s particles (force net + margin)."""
         k = idx // 2
         n = self.n[k]
         if self.owner(idx) == 1:
             out = self.X0[idx].copy()
-            out[:n] += self.xf[idx] - self.X0f[idx]
+            out[:n] += self.pressed_net_flat(idx) - self.X0f[idx]
             return out
         return self.x[idx].copy()

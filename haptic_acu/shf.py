@@ -99,7 +99,8 @@ del _l, _m
 
 @nb.njit(cache=True, nogil=True)
 def eval_point(coeffs, lmax, theta, phi):
-    """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing."""
+    """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing.
+    ``lmax`` <= REC_LMAX (the config's limit; not checked here)."""
     x = math.cos(theta)
     s = math.sin(theta)
     pmm = _INV_SQRT_4PI
@@ -303,6 +304,8 @@ def evaluate(coeffs, theta, phi) -> np.ndarray:
     if coeffs.ndim not in (1, 2) or (coeffs.ndim == 2 and coeffs.shape[1] != 3):
         raise ValueError(f"coefficients must have shape (K,) or (K, 3), got {coeffs.shape}")
     lmax = lmax_of(coeffs.shape[0])
+    if lmax > REC_LMAX:
+        raise ValueError(f"lmax {lmax} is above the point kernels' {REC_LMAX}")
     shape = np.shape(theta)
     theta, phi = _as_angles(theta, phi)
     if coeffs.ndim == 1:

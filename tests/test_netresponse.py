@@ -195,3 +195,42 @@ def test_servo_on_the_table_tracks_converged_sweeps(cfg):
     np.testing.assert_allclose(pa, pb, rtol=0, atol=2.5e-5)  # 2.5 ticks at 10 mm/s
     peak = max(max(fa), max(fb))
     assert np.abs(np.array(fa) - np.array(fb)).max() < 2e-3 * peak
+
+
+def test_the_rendered_pressing_net_is_the_static_solution_at_the_tip(cfg):
+    # Straight down at the acupoint into the skin, held 1 mm past first touch: the net the visual
+    # loop reads (laid from the table at the tip the servo held) against the package's own static
+    # solve of a net built at the same contact point with N1 at the same tip.
+    from haptic_acu.forcenet import Net
+
+    model = scenarios.model_for(cfg)
+    P, V = scenarios.straight(1e-3, -1.0e-3, 0.01)
+    for p, v in zip(P, V):
+        model.step(p, v)
+    assert model.states[0] == 1  # pressing
+    idx = model.active_slot(0)
+    flat = model.pressed_net_flat(idx)
+    net = Net.allocate(NetParams.from_layer(cfg.skin))
+    net.build(model.coeffs[0], model.lmax, model.centre, model.X0f[idx][0], model.axes[idx])
+    net.solve(flat[0].copy(), tol_m=1e-13, max_sweeps=200000)
+    np.testing.assert_allclose(flat, net.xf, rtol=0, atol=2e-7)
+    assert np.abs(flat - model.X0f[idx]).max() > 5e-4  # a real dent, not the rest shape
+
+
+def test_reference_lays_the_same_shape_as_the_compiled_model(cfg):
+    # The NumPy reference's laid_shape (its own lattice order, numpy interpolation and frame) against
+    # the compiled model's pressed net, at the same contact and tip, mapped by lattice position.
+    model = scenarios.model_for(cfg)
+    ref = NumpyNeedle(cfg, model.tissue)
+    P, V = scenarios.straight(1e-3, -0.8e-3, 0.01)
+    for p, v in zip(P, V):
+        model.step(p, v)
+        ref.step(p, v)
+    assert model.states[0] == 1 and ref.states[0] == 1
+    idx = model.active_slot(0)
+    ours = model.pressed_net_flat(idx)
+    lay = ref.layers[0]
+    theirs = ref.laid_shape(lay, lay["net"].xf[0].copy())
+    pkg = {tuple(np.round(xy * 4).astype(int)): i for i, xy in enumerate(lattice(cfg.skin.rings).plane)}
+    perm = np.array([pkg[tuple(np.round(xy * 4).astype(int))] for xy in lay["net"].hex.plane])
+    np.testing.assert_allclose(theirs, ours[perm], rtol=0, atol=1e-12)
