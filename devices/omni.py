@@ -216,6 +216,7 @@ class OmniDevice(Device):
         self._fault: str | None = None
         self._servo: _Servo | None = None
         self._callback = None  # the ctypes callback object: must outlive its scheduling
+        self._compiled_ctl = None  # a compiled servo's control words while it runs (run_servo_compiled)
         self._stopper: threading.Thread | None = None
         self._lock = threading.Lock()
 
@@ -269,6 +270,8 @@ class OmniDevice(Device):
         running = servo is not None and not servo.finished.is_set()
         if running:  # close() while run_servo runs (another thread, or the atexit hook)
             servo.abort_requested = True  # its next tick commands zero force and finishes
+            if self._compiled_ctl is not None:
+                self._compiled_ctl[1] = 1  # omniloop.I_ABORT
             servo.finished.wait(self._watchdog_s)
         elif self._scheduler_on and self._fault is None:
             self._zero_force_frame()
@@ -352,6 +355,79 @@ class OmniDevice(Device):
             servo.abort_requested = True
             servo.finish(exc=e)
 
+        if servo.fault is None and servo.exc is None:
+            self._callback_done(handle)
+            return
+        self._fail(servo, handle)
+        if servo.exc is not None:
+            exc, servo.exc = servo.exc, None
+            raise exc
+        raise DeviceFault(f"OMNI: {servo.fault}")
+
+    @staticmethod
+    def servo_library():
+        """The HD library handle a compiled servo callback (haptic_acu.omniloop) calls into; None
+        where that path is not supported (then run_servo with a Python step is used)."""
+        from haptic_acu import omniloop
+
+        return load_hd_library() if omniloop.supported() else None
+
+    def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
+        """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
+        ``callback`` (haptic_acu.omniloop.build_callback) with ``table`` (its arrays' addresses)
+        as user data, without the GIL. ``ictl``/``fctl`` are its control words: this thread
+        watches them (stop, watchdog) and turns how the callback ended into the same one-line
+        faults as the Python path."""
+        from haptic_acu import omniloop as ol
+
+        if self._handle is None:
+            raise RuntimeError("OmniDevice.run_servo_compiled before open()")
+        if self._fault is not None:
+            raise DeviceFault(f"OMNI already faulted ({self._fault}); close and reopen it")
+        servo = _Servo(None, stop, self._stall_ticks, self._ramp_ticks)
+        self._servo = servo
+        self._compiled_ctl = ictl
+        hd = self._hd
+        self._callback = ctypes.cast(callback.address, _CALLBACK)
+        handle = hd.schedule_async(self._callback, ctypes.c_void_p(table.ctypes.data), HD_MAX_SCHEDULER_PRIORITY)
+        msg = hd.error("hdScheduleAsynchronous")
+        if msg:
+            servo.finish(fault=msg)
+            self._fail(servo, None)
+            self._compiled_ctl = None
+            raise DeviceFault(f"OMNI: {msg}")
+
+        last_ticks, last_change = 0, time.monotonic()
+        grace = max(1.0, self._watchdog_s)
+        try:
+            while ictl[ol.I_STATUS] == ol.S_RUNNING:
+                servo.finished.wait(0.005)
+                if servo.finished.is_set():  # close() from another thread
+                    break
+                now = time.monotonic()
+                if stop.is_set():
+                    ictl[ol.I_STOP] = 1
+                ticks = int(ictl[ol.I_TICKS])
+                if ticks != last_ticks:
+                    last_ticks, last_change = ticks, now
+                elif now - last_change > (self._watchdog_s if ticks else grace):
+                    ictl[ol.I_ABORT] = 1
+                    ms = 1e3 * (now - last_change)
+                    servo.finish(fault=f"servo step has not returned for {ms:.0f} ms (tick {ticks}): too slow for "
+                                       "the 1 kHz servo" if ictl[ol.I_IN_TICK] else
+                                       f"servo callback not called for {ms:.0f} ms (after {ticks} ticks): "
+                                       "HD scheduler stalled")
+                    break
+        except BaseException as e:  # KeyboardInterrupt in the waiting thread
+            ictl[ol.I_ABORT] = 1
+            servo.finish(exc=e)
+        if servo.fault is None and servo.exc is None:
+            msg = ol.fault_message(ictl, fctl, hd_error_name)
+            if msg is not None:
+                servo.finish(fault=msg)
+            else:
+                servo.finish()
+        self._compiled_ctl = None
         if servo.fault is None and servo.exc is None:
             self._callback_done(handle)
             return

@@ -207,7 +207,11 @@ class Session:
         # Real time on a device that can be read ahead (read_block: the scripted device): the whole
         # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
         self.compiled_loop = bool(compiled_loop) and hasattr(device, "read_block")
+        # A device driving the clock whose servo callback can be compiled (the OMNI: omniloop.py).
+        self.compiled_servo_callback = bool(compiled_loop) and hasattr(device, "run_servo_compiled")
+        self._omni_callback = None
         self._ctl = None  # the compiled loop's control words while it runs
+        self._ctl_omni = None  # the OMNI's compiled callback's control words while it runs
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
 
     # -- set-up -----------------------------------------------------------------------------------
@@ -218,6 +222,13 @@ class Session:
         write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
+        self._omni_callback = None
+        if self.clock == "realtime" and self.compiled_servo_callback:
+            from . import omniloop
+
+            lib = self.device.servo_library()
+            if lib is not None:  # compiled here, before any loop: about a second
+                self._omni_callback = omniloop.build_callback(lib)
         if self.clock == "sim":
             z = np.zeros((1, 3))
             run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, buf, 0, *self.model.kernel_args(),
@@ -314,7 +325,15 @@ class Session:
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
                 "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"],
-                "sched_fifo": self.sched_fifo}
+                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind()}
+
+    def _servo_kind(self) -> str:
+        """How the servo tick ran: "simulated", "compiled" (no GIL: rtloop / omniloop) or "python"."""
+        if self.clock == "sim":
+            return "simulated"
+        if self.device.info.drives_clock:
+            return "compiled" if self._omni_callback is not None else "python"
+        return "compiled" if self.compiled_loop else "python"
 
     # -- running ------------------------------------------------------------------------------------
     def run(self) -> SessionResult:
@@ -477,15 +496,18 @@ class Session:
                 if next_t < now:
                     next_t = now + self.frame_dt  # fell behind: do not try to catch up
                 frames += 1
-                ctl = self._ctl
-                if ctl is not None:
-                    self.tick = int(ctl[1])  # rtloop.CT_TICK
+                compiled = False  # a compiled servo counts its ticks in its control words
+                if self._ctl is not None:
+                    self.tick = int(self._ctl[9])  # rtloop.CT_RAN
+                    compiled = True
+                elif self._ctl_omni is not None:
+                    self.tick = int(self._ctl_omni[13])  # omniloop.I_ETICK
+                    compiled = True
                 if now - last >= 0.5:
                     self.rates["visual_hz"] = frames / (now - last)
-                    if ctl is not None:
-                        ticks = int(ctl[1])
-                        self.rates["servo_hz"] = (ticks - last_ticks) / (now - last)
-                        last_ticks = ticks
+                    if compiled:
+                        self.rates["servo_hz"] = (self.tick - last_ticks) / (now - last)
+                        last_ticks = self.tick
                     frames = 0
                     last = now
                 self._visual_frame(now - t0)
@@ -551,18 +573,19 @@ class Session:
             self._rt_teardown(old)
             self._ctl = None
             self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
-            self.tick = int(ctl[rtloop.CT_TICK])
+            self.tick = int(ctl[rtloop.CT_RAN])  # ticks run (a stall's skipped ticks are not rows)
+            last_index = int(ctl[rtloop.CT_TICK]) - 1
             self.missed = int(ctl[rtloop.CT_MISSED])
             self._n_err = int(ctl[rtloop.CT_NERR])
-            if self.tick:
-                self._t_session = (self.tick - 1) * dt
+            if last_index >= 0:
+                self._t_session = last_index * dt
             if hasattr(self.device, "record_forces"):
                 self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
         if "error" in outcome:
             raise outcome["error"]
         status = outcome.get("status")
         if status == rtloop.FAULTED:
-            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
+            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {last_index}); "
                             "force set to zero")
         elif feed.error is not None and self.fault is None:  # the device failed: the feeder stopped the loop
             e = feed.error
@@ -647,7 +670,64 @@ class Session:
                 count_ticks = 0
 
     # the device's scheduler drives the servo step (OMNI)
+    def _run_device_clock_compiled(self) -> None:
+        """The OMNI with the whole tick compiled (:mod:`haptic_acu.omniloop`): its scheduler thread
+        never takes the GIL."""
+        from . import omniloop as ol
+
+        dev = self.device
+        m = self.model
+        ictl = np.zeros(ol.I_SIZE, np.int64)
+        fctl = np.zeros(ol.F_SIZE)
+        ws = dev.workspace
+        R = ws._rot()
+        wsa = np.concatenate([[ws.scale], R.ravel(), np.asarray(ws.offset_mm, float)])
+        prm = np.zeros(ol.P_SIZE)
+        prm[ol.P_HANDLE] = dev._handle
+        prm[ol.P_LMAX] = m.lmax
+        prm[ol.P_STALL] = dev._stall_ticks
+        prm[ol.P_RAMP] = dev._ramp_ticks
+        prm[ol.P_LIMIT_N] = dev.info.force_limit_n
+        prm[ol.P_ALPHA] = dev._alpha
+        prm[ol.P_PERIOD_NS] = self.servo_dt * 1e9
+        prm[ol.P_LIMIT_T] = self.duration_s if self.duration_s is not None else math.inf
+        prm[ol.P_RATE] = dev.info.rate_hz
+        ictl[ol.I_VEL_DEV] = 1
+        arrays = dict(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
+                      hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, coeffs=m.coeffs, centre=m.centre, lp=m.lp,
+                      npar=m.npar, pos=m.pos, rest_all=m.rest_all, axes=m.axes_all, nbr_all=m.nbr_all,
+                      ring_all=m.ring_all, plane_all=m.plane_all, offs=m.offs, tab=m.tab, tmeta=m.tmeta, si=m.si,
+                      sf=m.sf, holes=m.holes, radii=m.radii, scratch=m.scratch, diag=m.diag, pbuf=m._p, vbuf=m._v,
+                      rbuf=self.ring.buf, rctr=self.ring.ctr, errs=self._period_err)
+        table = ol.address_table(arrays)
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        t0_ns = time.perf_counter_ns()
+        ictl[ol.I_T0_NS] = t0_ns
+        ictl[ol.I_LAST_NS] = t0_ns
+        self.t0_perf = t0
+        self._ctl_omni = ictl
+        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        try:
+            dev.run_servo_compiled(self._omni_callback, table, ictl, fctl, self._stop)
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
+            self._ctl_omni = None
+            self.tick = int(ictl[ol.I_ETICK])
+            self.missed = int(ictl[ol.I_MISSED])
+            self._n_err = int(ictl[ol.I_NERR])
+            self._t_session = float(fctl[ol.F_TSESSION])
+            arrays.clear()  # (the table's addresses are dead from here)
+        if ictl[ol.I_DONE] == 2 and self.fault is None:
+            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
+                            "force set to zero")
+
     def _run_device_clock(self) -> None:
+        if self._omni_callback is not None:
+            return self._run_device_clock_compiled()
         old = self._rt_setup()
         t0 = time.perf_counter()
         vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)

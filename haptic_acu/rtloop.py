@@ -38,8 +38,8 @@ CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
 # control words (int64 array shared between the compiled loop and Python)
-CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0 = range(9)
-CT_SIZE = 9
+CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0, CT_RAN = range(10)
+CT_SIZE = 10  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
 STATUS_NAMES = ("running", "trajectory ended", "stopped", "non-finite state", "feed starved", "duration reached")
@@ -181,6 +181,7 @@ def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, e
         rctr[0] = head + 1
         k += 1
         ctl[CT_TICK] = k
+        ctl[CT_RAN] += 1
         if fault:
             status = FAULTED
             break

@@ -21,6 +21,8 @@ def register(sub) -> None:
     g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer")
     g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer")
     p.add_argument("--no-status", action="store_true", help="no live status line")
+    p.add_argument("--python-servo", action="store_true",
+                   help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
     p.set_defaults(func=run)
 
 
@@ -70,7 +72,8 @@ def run(args) -> int:
         sinks.append(StatusLine(stream=sys.stderr))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
-    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration)
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
+                      compiled_loop=not args.python_servo)
     session.warm_up()
     device.open()
     try:
@@ -80,7 +83,8 @@ def run(args) -> int:
     st = result.stats
     pe = st["period_error_us"]
     print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
-          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us", file=sys.stderr)
+          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
+          f"{st['servo_loop']} servo loop", file=sys.stderr)
     if args.record:
         print(f"recording: {args.record}", file=sys.stderr)
     if result.fault:

@@ -96,7 +96,7 @@ def test_realtime_forces_equal_the_headless_replay(cfg, tissue):
     cols = [COL[c] for c in ("t_s", "x_m", "y_m", "z_m", "fx_n", "fy_n", "fz_n", "state_skin", "state_fat", "ringw_m")]
     np.testing.assert_array_equal(rt[:n][:, cols], sim[:n][:, cols])
     assert rt[:n, COL["state_fat"]].max() == 2  # the comparison went through two punctures
-    assert result.ticks == ticks[-1] + 1 == 2501
+    assert ticks[-1] == 2500 and result.ticks == len(ticks)  # every tick run is a row
     assert dev.force_commands >= result.ticks and dev.max_force_n == pytest.approx(np.abs(rt[:, COL["fz_n"]]).max(), abs=1e-3)
     assert not np.any(dev.last_force_n)  # the session ended with zero force
 
@@ -115,7 +115,7 @@ def test_stop_from_another_thread_ends_at_once_with_zero_force_and_every_row(cfg
     assert result.fault is None and 100 < result.ticks < 9000
     ticks = rows[:, COL["tick"]]
     assert ticks[0] == 0 and np.all(np.diff(ticks) >= 1)  # every tick run is there once, in order
-    assert ticks[-1] == result.ticks - 1  # up to the last one
+    assert len(ticks) == result.ticks  # up to the last one
     assert not np.any(dev.last_force_n)
 
 
@@ -151,7 +151,7 @@ def test_nan_from_the_device_faults_on_that_tick_with_zero_force(cfg, tissue):
     dev.open()
     s, result, rows = run(cfg, tissue, dev, "realtime", 5.0)
     assert result.fault is not None and "non-finite" in result.fault and "tick 1300" in result.fault
-    assert result.ticks == 1301 and rows[-1, COL["tick"]] == 1300 and rows[-1, COL["fault"]] == 1
+    assert result.ticks == len(rows) and rows[-1, COL["tick"]] == 1300 and rows[-1, COL["fault"]] == 1
     assert np.all(rows[-1, [COL["fx_n"], COL["fy_n"], COL["fz_n"]]] == 0)
     assert not np.any(dev.last_force_n)
 
@@ -165,8 +165,7 @@ def test_a_device_that_stops_answering_faults_with_every_row_kept(cfg, tissue, t
     s, result, rows = run(cfg, tissue, dev, "realtime", 10.0)
     assert result.fault is not None and "device fault" in result.fault and "unreadable" in result.fault
     # the loop ran on what was read ahead (up to 2 s), every tick recorded, none after
-    assert 1000 <= result.ticks <= 2000
-    assert rows[-1, COL["tick"]] == result.ticks - 1
+    assert 1000 <= rows[-1, COL["tick"]] <= 2000 and result.ticks == len(rows)
     assert not np.any(dev.last_force_n)
 
 
@@ -174,7 +173,7 @@ def test_duration_limit_counts_ticks_like_the_python_loop(cfg, tissue):
     dev = ScriptedDevice(DEFAULT_TRAJ, realtime=True)
     dev.open()
     s, result, rows = run(cfg, tissue, dev, "realtime", 0.3)
-    assert result.fault is None and result.ticks == 301
+    assert result.fault is None and rows[-1, COL["tick"]] == 300 and result.ticks == len(rows)
     assert s.compiled_loop
     # the Python loop, asked for explicitly, runs the same session length
     dev = ScriptedDevice(DEFAULT_TRAJ, realtime=True)

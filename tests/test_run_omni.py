@@ -65,13 +65,14 @@ def device_z_of_scene_z(z_scene_mm, workspace):
     return (z_scene_mm - offset[2]) / scale  # a turn about z leaves z alone
 
 
-def run_cli(emulator, tmp_path, path, faults=(), duration=2.0):
+def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, servo="compiled"):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N)
+    env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
+                       velocity=velocity)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status"],
+                           "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     frames = np.zeros((0, 8))
     if log.exists():
@@ -106,13 +107,17 @@ def check_rows_match_frames(tr, frames, workspace):
     np.testing.assert_allclose(frames[:n, 5:8], expected, rtol=0, atol=2e-5)  # the file's 10 uN
 
 
-def test_omni_press_through_the_cli(emulator, tmp_path, workspace):
-    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace))
+@pytest.mark.parametrize("servo, velocity", [("compiled", True), ("compiled", False), ("python", True)])
+def test_omni_press_through_the_cli(emulator, tmp_path, workspace, servo, velocity):
+    # compiled: the HD scheduler runs haptic_acu.omniloop's callback; velocity=False: the device
+    # reports none, so both paths filter position differences; python: the ctypes Python callback.
+    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), servo=servo, velocity=velocity)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     m = re.search(r"session: (\d+) ticks", proc.stderr)
     assert m, proc.stderr
     ticks = int(m.group(1))
+    assert f"{servo} servo loop" in proc.stderr
 
     tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: strictly increasing time, finite values
     assert len(tr.t_s) == ticks >= 1900  # one row per tick of a 2 s session
@@ -136,10 +141,13 @@ def test_omni_press_through_the_cli(emulator, tmp_path, workspace):
 FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin, pressing, moving slowly
 
 
-@pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("freeze", "position frozen")])
-def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message):
+@pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("comm_error", "HD_COMM_ERROR"),
+                                           ("nan", "non-finite position"), ("freeze", "position frozen")])
+@pytest.mark.parametrize("servo", ["compiled", "python"])
+def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message, servo):
     path = press_path(workspace)
-    proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0)
+    proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0, servo=servo)
+    assert f"{servo} servo loop" in proc.stderr
     assert proc.returncode == 3, proc.stderr
     assert "Traceback" not in proc.stderr
     reasons = [ln for ln in proc.stderr.splitlines() if "stopped:" in ln]
@@ -163,13 +171,28 @@ def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, k
     z_dev_last = device_z_of_scene_z(tr.pos_m[-1, 2] * 1e3, workspace)
     t_last = np.interp(-z_dev_last, -knots[seg, 3], knots[seg, 0])  # z falls with t on this segment
     tick = 1e-3
-    if kind == "device_fault":  # the tick at FAULT_AT reports the error: the one before is the last
+    if kind != "freeze":  # the tick at FAULT_AT reports the error (or NaN): the one before is the last
         assert FAULT_AT - 3 * tick <= t_last <= FAULT_AT
     else:  # the position froze at FAULT_AT; the stall detector waits 100 ticks, all recorded
         assert abs(t_last - FAULT_AT) <= 3 * tick
         frozen = np.all(np.abs(tr.pos_m - tr.pos_m[-1]) < 1e-9, axis=1)
         run = int(np.argmin(frozen[::-1])) if not frozen.all() else len(frozen)  # trailing frozen rows
         assert 98 <= run <= 102
+
+
+def test_omni_scheduler_that_stops_calling_is_a_fault_through_the_cli(emulator, tmp_path, workspace):
+    # The compiled callback is not called any more: the device's watchdog (100 ms) stops the session
+    # with the output switched off, and every tick that ran is recorded.
+    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), faults=[("stop_calling", FAULT_AT)],
+                                duration=3.0)
+    assert proc.returncode == 3, proc.stderr
+    assert "compiled servo loop" in proc.stderr and "Traceback" not in proc.stderr
+    reasons = [ln for ln in proc.stderr.splitlines() if "stopped:" in ln]
+    assert len(reasons) == 1 and "not called" in reasons[0], proc.stderr
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    check_rows_match_frames(tr, frames, workspace)
+    assert len(frames) == len(tr.t_s)  # no frame after the last tick: none could be sent
+    assert abs(frames[-1, 0] - FAULT_AT) <= 3e-3
 
 
 def test_missing_openhaptics_is_one_line_and_status_2(tmp_path):

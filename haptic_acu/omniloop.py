@@ -1,0 +1,457 @@
+"""The OMNI's servo tick as one compiled C callback: the HD scheduler runs it without the GIL.
+
+With a Python callback (``OmniDevice.run_servo(step, stop)``) every 1 kHz tick of the HD scheduler
+thread has to take the GIL, so the visual thread's C calls (NumPy, file writes) delay the
+trainee's force by milliseconds (see :mod:`haptic_acu.rtloop` for the measurement on the scripted
+device). Here the whole tick, the device part of ``OmniDevice._tick_body`` (HD frame, stylus
+reads and their error checks, non-finite and frozen-position faults, filtered velocity when the
+device gives none, workspace mapping, force ramp-in, clamp in both frames) and the engine part
+(period error, ``step_kernel``, the sample row into the ring), is a numba ``cfunc`` handed to
+``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer: a table
+of (address, rows, columns) that the cfunc views with ``carray``. It reports how it ended through
+an int64 control array; :meth:`devices.omni.OmniDevice.run_servo_compiled` turns that into the same
+one-line faults as the Python callback.
+
+The HD calls are LLVM declarations of the HD API's C functions, resolved against the library
+pyOpenHaptics loaded (made visible to the JIT by :func:`load_library`), so the tick is cached like
+every other kernel and only the small cfunc wrapper is compiled per session. ``hdGetError`` returns
+its 12-byte ``HDErrorInfo`` in registers (RAX:RDX on x86-64, x0:x1 on AArch64), read as one 64-bit
+integer: the error code is its low 32 bits, the internal code the high 32. That holds on Linux
+x86-64 and AArch64, the platforms this path is used on (:func:`supported`); elsewhere the Python
+callback runs.
+"""
+from __future__ import annotations
+
+import ctypes
+import math
+import platform
+import sys
+
+import numba as nb
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from .needle import D_FAULT, step_kernel
+from .rtloop import _fence, now_ns
+from .samples import write_sample
+
+# HD API values (as in devices/omni.py)
+HD_SUCCESS = 0x0000
+HD_INVALID_ENUM = 0x0100
+HD_CURRENT_BUTTONS = 0x2000
+HD_CURRENT_VELOCITY = 0x2051
+HD_CURRENT_TRANSFORM = 0x2052
+HD_CURRENT_FORCE = 0x2700
+HD_CALLBACK_DONE = 0
+HD_CALLBACK_CONTINUE = 1
+
+# ictl (int64) words
+(I_STOP, I_ABORT, I_TICKS, I_IN_TICK, I_VALID, I_FROZEN, I_FORCE_ON, I_VEL_DEV, I_HAS_LAST, I_STATUS,
+ I_CODE, I_WHERE, I_INTERNAL, I_ETICK, I_NERR, I_MISSED, I_LAST_NS, I_T0_NS, I_DONE, I_TS) = range(20)
+I_SIZE = 22  # I_TS: 2 words, the clock's timespec
+# fctl (float64) words
+F_LAST = 0  # 3: last position (mm, device frame)
+F_VFILT = 3  # 3: filtered velocity (mm/s)
+F_DETAIL = 6  # 3: values for a fault's message
+F_TSESSION = 9
+F_SIZE = 10
+# prm (float64): scalars
+P_HANDLE, P_LMAX, P_STALL, P_RAMP, P_LIMIT_N, P_ALPHA, P_PERIOD_NS, P_LIMIT_T, P_RATE = range(9)
+P_SIZE = 9
+# ws (float64): scale, R (3x3 row-major), offset (mm)
+W_SCALE, W_R, W_OFF = 0, 1, 10
+W_SIZE = 13
+
+# statuses (I_STATUS)
+S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN = range(9)
+# where an HD error came from (I_WHERE)
+WHERE = ("hdBeginFrame", "hdGetDoublev(HD_CURRENT_TRANSFORM)", "hdGetDoublev(HD_CURRENT_VELOCITY)",
+         "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame")
+W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END = range(6)
+
+
+def supported() -> bool:
+    """The platforms whose calling convention returns hdGetError's struct in two registers."""
+    return sys.platform.startswith("linux") and platform.machine() in ("x86_64", "AMD64", "aarch64", "arm64")
+
+
+def _ptr_intrinsic(nbtype):
+    @intrinsic
+    def as_ptr(typingctx, addr):
+        sig = types.CPointer(nbtype)(types.int64)
+
+        def codegen(context, builder, signature, args):
+            return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
+
+        return sig, codegen
+
+    return as_ptr
+
+
+_f64p = _ptr_intrinsic(types.float64)
+_i64p = _ptr_intrinsic(types.int64)
+_i32p = _ptr_intrinsic(types.int32)
+
+# The arrays the callback reaches, in table order: (name, dtype, ndim).
+ARRAYS = (("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
+          ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1),
+          ("coeffs", np.float64, 2), ("centre", np.float64, 1), ("lp", np.float64, 2), ("npar", np.float64, 1),
+          ("pos", np.float64, 2), ("rest_all", np.float64, 2), ("axes", np.float64, 2), ("nbr_all", np.int64, 2),
+          ("ring_all", np.int64, 1), ("plane_all", np.float64, 2), ("offs", np.int64, 1), ("tab", np.float64, 1),
+          ("tmeta", np.float64, 2), ("si", np.int64, 1), ("sf", np.float64, 1), ("holes", np.float64, 2),
+          ("radii", np.float64, 1), ("scratch", np.float64, 1), ("diag", np.float64, 1), ("pbuf", np.float64, 1),
+          ("vbuf", np.float64, 1), ("rbuf", np.float64, 2), ("rctr", np.int64, 1), ("errs", np.float64, 1))
+
+
+def address_table(arrays: dict) -> np.ndarray:
+    """(address, rows, columns) per array of :data:`ARRAYS`, checked for dtype and contiguity."""
+    tbl = np.zeros(3 * len(ARRAYS), dtype=np.int64)
+    for i, (name, dtype, ndim) in enumerate(ARRAYS):
+        a = arrays[name]
+        if a.dtype != dtype or a.ndim != ndim or not a.flags.c_contiguous:
+            raise TypeError(f"omniloop: array {name} must be C-contiguous {np.dtype(dtype).name} {ndim}-D, "
+                            f"got {a.dtype} {a.ndim}-D contiguous={a.flags.c_contiguous}")
+        tbl[3 * i] = a.ctypes.data
+        tbl[3 * i + 1] = a.shape[0]
+        tbl[3 * i + 2] = a.shape[1] if ndim == 2 else 0
+    return tbl
+
+
+def _external(name, ret, args):
+    """An intrinsic calling the C function ``name`` (resolved when the code is linked: the HD library
+    must have been loaded with :func:`load_library` first). ``args``: LLVM types; numba passes
+    int64 for every argument (pointers as addresses)."""
+    def typer(n):
+        return (types.int64 if ret is not None else types.void)(*([types.int64] * n))
+
+    def codegen(context, builder, signature, llargs):
+        fnty = ir.FunctionType(ret if ret is not None else ir.VoidType(), args)
+        fn = cgutils.get_or_insert_function(builder.module, fnty, name)
+        conv = [builder.inttoptr(v, t) if isinstance(t, ir.PointerType) else builder.trunc(v, t)
+                for v, t in zip(llargs, args)]
+        r = builder.call(fn, conv)
+        return r if ret is not None else context.get_dummy_value()
+
+    if len(args) == 0:
+        @intrinsic
+        def call0(typingctx):
+            return typer(0), codegen
+        return call0
+    if len(args) == 1:
+        @intrinsic
+        def call1(typingctx, a):
+            return typer(1), codegen
+        return call1
+
+    @intrinsic
+    def call2(typingctx, a, b):
+        return typer(2), codegen
+    return call2
+
+
+_U32 = ir.IntType(32)
+_DP = ir.DoubleType().as_pointer()
+_IP = ir.IntType(32).as_pointer()
+hd_begin_frame = _external("hdBeginFrame", None, [_U32])
+hd_end_frame = _external("hdEndFrame", None, [_U32])
+hd_get_doublev = _external("hdGetDoublev", None, [_U32, _DP])
+hd_get_integerv = _external("hdGetIntegerv", None, [_U32, _IP])
+hd_set_doublev = _external("hdSetDoublev", None, [_U32, _DP])
+hd_get_error = _external("hdGetError", ir.IntType(64), [])  # HDErrorInfo's first 8 bytes (see above)
+
+
+def load_library(lib) -> None:
+    """Make the HD library pyOpenHaptics loaded (``lib``, a ctypes CDLL) resolvable by compiled code."""
+    import llvmlite.binding as llvm
+
+    llvm.load_library_permanently(lib._name)
+
+
+@nb.njit(nogil=True, cache=True)
+def hd_error():
+    return hd_get_error()
+
+
+@nb.njit(nogil=True, cache=True)
+def fail_hd(ictl, h, hdf, where, e):
+    """An HD error: command zero in this frame and close it (unless closing it failed), report."""
+    hdf[0] = 0.0
+    hdf[1] = 0.0
+    hdf[2] = 0.0
+    if where != W_END:
+        hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
+        hd_end_frame(h)
+        hd_error()
+    ictl[I_CODE] = e & 0xFFFFFFFF
+    ictl[I_INTERNAL] = (e >> 32) & 0xFFFFFFFF
+    ictl[I_WHERE] = where
+    ictl[I_STATUS] = S_HD_ERROR
+    return HD_CALLBACK_DONE
+
+@nb.njit(nogil=True, cache=True)
+def abort(ictl, h, hdf, status):
+    hdf[0] = 0.0
+    hdf[1] = 0.0
+    hdf[2] = 0.0
+    hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
+    hd_end_frame(h)
+    hd_error()
+    ictl[I_STATUS] = status
+    return HD_CALLBACK_DONE
+
+@nb.njit(nogil=True, cache=True)
+def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos, rest_all, axes, nbr_all,
+         ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf, rbuf, rctr,
+         errs):
+    ts = ictl[I_TS:I_TS + 2]
+    h = int(prm[P_HANDLE])
+    ictl[I_TICKS] += 1
+    hd_begin_frame(h)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_BEGIN, e)
+    if ictl[I_ABORT] != 0:
+        return abort(ictl, h, hdf, S_CLOSED)
+    if ictl[I_STOP] != 0:
+        hdf[0] = 0.0
+        hdf[1] = 0.0
+        hdf[2] = 0.0
+        hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
+        hd_end_frame(h)
+        e = hd_error()
+        if (e & 0xFFFFFFFF) != HD_SUCCESS:
+            return fail_hd(ictl, h, hdf, W_END, e)
+        ictl[I_STATUS] = S_STOPPED
+        return HD_CALLBACK_DONE
+    hd_get_doublev(HD_CURRENT_TRANSFORM, hdt.ctypes.data)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_TRANSFORM, e)
+    px = hdt[12]
+    py = hdt[13]
+    pz = hdt[14]
+    if ictl[I_VEL_DEV] != 0:
+        hd_get_doublev(HD_CURRENT_VELOCITY, hdv.ctypes.data)
+        e = hd_error() & 0xFFFFFFFF
+        if e == HD_INVALID_ENUM:
+            ictl[I_VEL_DEV] = 0
+        elif e != HD_SUCCESS:
+            return fail_hd(ictl, h, hdf, W_VELOCITY, e)
+    hd_get_integerv(HD_CURRENT_BUTTONS, hdb.ctypes.data)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_BUTTONS, e)
+    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        fctl[F_DETAIL] = px
+        fctl[F_DETAIL + 1] = py
+        fctl[F_DETAIL + 2] = pz
+        return abort(ictl, h, hdf, S_POS_NAN)
+    same = (ictl[I_HAS_LAST] != 0 and px == fctl[F_LAST] and py == fctl[F_LAST + 1] and pz == fctl[F_LAST + 2])
+    if same and ictl[I_FORCE_ON] != 0:
+        ictl[I_FROZEN] += 1
+        if ictl[I_FROZEN] >= prm[P_STALL]:
+            fctl[F_DETAIL] = px
+            fctl[F_DETAIL + 1] = py
+            fctl[F_DETAIL + 2] = pz
+            return abort(ictl, h, hdf, S_STALL)
+    else:
+        ictl[I_FROZEN] = 0
+    if ictl[I_VEL_DEV] != 0:
+        vx = hdv[0]
+        vy = hdv[1]
+        vz = hdv[2]
+        if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
+            fctl[F_DETAIL] = vx
+            fctl[F_DETAIL + 1] = vy
+            fctl[F_DETAIL + 2] = vz
+            return abort(ictl, h, hdf, S_VEL_NAN)
+    else:  # first-order low-pass of backward differences
+        if ictl[I_HAS_LAST] != 0:
+            a = prm[P_ALPHA]
+            rate = prm[P_RATE]
+            fctl[F_VFILT] += a * ((px - fctl[F_LAST]) * rate - fctl[F_VFILT])
+            fctl[F_VFILT + 1] += a * ((py - fctl[F_LAST + 1]) * rate - fctl[F_VFILT + 1])
+            fctl[F_VFILT + 2] += a * ((pz - fctl[F_LAST + 2]) * rate - fctl[F_VFILT + 2])
+        vx = fctl[F_VFILT]
+        vy = fctl[F_VFILT + 1]
+        vz = fctl[F_VFILT + 2]
+    fctl[F_LAST] = px
+    fctl[F_LAST + 1] = py
+    fctl[F_LAST + 2] = pz
+    ictl[I_HAS_LAST] = 1
+    # device (mm) -> scene (m)
+    sc = ws[W_SCALE] * 1e-3
+    for r in range(3):
+        pbuf[r] = (ws[W_SCALE] * (ws[W_R + 3 * r] * px + ws[W_R + 3 * r + 1] * py + ws[W_R + 3 * r + 2] * pz)
+                   + ws[W_OFF + r]) * 1e-3
+        vbuf[r] = sc * (ws[W_R + 3 * r] * vx + ws[W_R + 3 * r + 1] * vy + ws[W_R + 3 * r + 2] * vz)
+
+    # ---- the engine's tick (Session._run_device_clock's step + _servo_tick) ----------------
+    now = now_ns(ts)
+    period = prm[P_PERIOD_NS]
+    err = (now - ictl[I_LAST_NS]) - period
+    ictl[I_LAST_NS] = now
+    n = ictl[I_NERR]
+    if n < errs.shape[0]:
+        errs[n] = err * 1e-9
+    ictl[I_NERR] = n + 1
+    if err > period:
+        ictl[I_MISSED] += 1
+    t = (now - ictl[I_T0_NS]) * 1e-9
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    if t > prm[P_LIMIT_T]:
+        ictl[I_STOP] = 1  # session length reached: zero now, the next tick finishes
+        ictl[I_DONE] = 1
+    else:
+        fctl[F_TSESSION] = t
+        step_kernel(pbuf, vbuf, coeffs, int(prm[P_LMAX]), centre, lp, npar, pos, rest_all, axes, nbr_all,
+                    ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
+        head = rctr[0]
+        write_sample(rbuf, head % rbuf.shape[0], t, ictl[I_ETICK], pbuf, vbuf, diag, si, err * 1e-9)
+        _fence()
+        rctr[0] = head + 1
+        ictl[I_ETICK] += 1
+        if diag[D_FAULT] != 0.0:
+            ictl[I_STOP] = 1  # the engine reports the non-finite state; zero force from here
+            ictl[I_DONE] = 2
+        else:
+            fx = diag[0]
+            fy = diag[1]
+            fz = diag[2]
+
+    # ---- the device's safety: ramp-in, clamp in both frames, finite check ------------------
+    ramp = ictl[I_VALID] / prm[P_RAMP]
+    if ramp > 1.0:
+        ramp = 1.0
+    ictl[I_VALID] += 1
+    fx *= ramp
+    fy *= ramp
+    fz *= ramp
+    lim = prm[P_LIMIT_N]
+    m = math.sqrt(fx * fx + fy * fy + fz * fz)
+    if m > lim:
+        fx *= lim / m
+        fy *= lim / m
+        fz *= lim / m
+    # scene -> device: R^T (forces are not scaled)
+    dx = ws[W_R] * fx + ws[W_R + 3] * fy + ws[W_R + 6] * fz
+    dy = ws[W_R + 1] * fx + ws[W_R + 4] * fy + ws[W_R + 7] * fz
+    dz = ws[W_R + 2] * fx + ws[W_R + 5] * fy + ws[W_R + 8] * fz
+    m = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if m > lim:
+        dx *= lim / m
+        dy *= lim / m
+        dz *= lim / m
+    if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz)):
+        fctl[F_DETAIL] = dx
+        fctl[F_DETAIL + 1] = dy
+        fctl[F_DETAIL + 2] = dz
+        return abort(ictl, h, hdf, S_FORCE_NAN)
+    hdf[0] = dx
+    hdf[1] = dy
+    hdf[2] = dz
+    hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_SETFORCE, e)
+    hd_end_frame(h)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_END, e)
+    ictl[I_FORCE_ON] = 1 if (dx != 0.0 or dy != 0.0 or dz != 0.0) else 0
+    return HD_CALLBACK_CONTINUE
+
+
+def build_callback(lib):
+    """The servo callback for the HD library ``lib`` (a ctypes CDLL): a numba cfunc whose
+    ``.address`` goes to hdScheduleAsynchronous with the address table as user data. The tick
+    itself is cached; only this small wrapper is compiled per process."""
+    load_library(lib)
+
+    @nb.cfunc(types.uint32(types.voidptr), nopython=True, cache=True)
+    def callback(data):
+        t = nb.carray(_i64p(data_address(data)), 3 * len(ARRAYS))
+        ictl = nb.carray(_i64p(t[0]), t[1])
+        ictl[I_IN_TICK] = 1
+        fctl = nb.carray(_f64p(t[3]), t[4])
+        hdt = nb.carray(_f64p(t[6]), t[7])
+        hdv = nb.carray(_f64p(t[9]), t[10])
+        hdf = nb.carray(_f64p(t[12]), t[13])
+        hdb = nb.carray(_i32p(t[15]), t[16])
+        ws = nb.carray(_f64p(t[18]), t[19])
+        prm = nb.carray(_f64p(t[21]), t[22])
+        coeffs = nb.carray(_f64p(t[24]), (t[25], t[26]))
+        centre = nb.carray(_f64p(t[27]), t[28])
+        lp = nb.carray(_f64p(t[30]), (t[31], t[32]))
+        npar = nb.carray(_f64p(t[33]), t[34])
+        pos = nb.carray(_f64p(t[36]), (t[37], t[38]))
+        rest_all = nb.carray(_f64p(t[39]), (t[40], t[41]))
+        axes = nb.carray(_f64p(t[42]), (t[43], t[44]))
+        nbr_all = nb.carray(_i64p(t[45]), (t[46], t[47]))
+        ring_all = nb.carray(_i64p(t[48]), t[49])
+        plane_all = nb.carray(_f64p(t[51]), (t[52], t[53]))
+        offs = nb.carray(_i64p(t[54]), t[55])
+        tab = nb.carray(_f64p(t[57]), t[58])
+        tmeta = nb.carray(_f64p(t[60]), (t[61], t[62]))
+        si = nb.carray(_i64p(t[63]), t[64])
+        sf = nb.carray(_f64p(t[66]), t[67])
+        holes = nb.carray(_f64p(t[69]), (t[70], t[71]))
+        radii = nb.carray(_f64p(t[72]), t[73])
+        scratch = nb.carray(_f64p(t[75]), t[76])
+        diag = nb.carray(_f64p(t[78]), t[79])
+        pbuf = nb.carray(_f64p(t[81]), t[82])
+        vbuf = nb.carray(_f64p(t[84]), t[85])
+        rbuf = nb.carray(_f64p(t[87]), (t[88], t[89]))
+        rctr = nb.carray(_i64p(t[90]), t[91])
+        errs = nb.carray(_f64p(t[93]), t[94])
+        rc = tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos, rest_all, axes, nbr_all,
+                  ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf, rbuf, rctr,
+                  errs)
+        ictl[I_IN_TICK] = 0
+        return rc
+
+    return callback
+
+
+@intrinsic
+def data_address(typingctx, ptr):
+    """A void* as an int64 address."""
+    sig = types.int64(types.voidptr)
+
+    def codegen(context, builder, signature, args):
+        return builder.ptrtoint(args[0], ir.IntType(64))
+
+    return sig, codegen
+
+
+def fault_message(ictl, fctl, hd_error_name) -> str | None:
+    """The one-line fault the Python callback would have reported, or None for a clean stop."""
+    st = int(ictl[I_STATUS])
+    d = tuple(float(x) for x in fctl[F_DETAIL:F_DETAIL + 3])
+    if st in (S_RUNNING, S_STOPPED):
+        return None
+    if st == S_HD_ERROR:
+        code, where = int(ictl[I_CODE]), int(ictl[I_WHERE])
+        internal = int(ictl[I_INTERNAL])
+        internal = internal - (1 << 32) if internal >= (1 << 31) else internal
+        if where == W_VELOCITY:
+            return f"{hd_error_name(code)} after {WHERE[where]}"
+        return f"{hd_error_name(code)} after {WHERE[where]} (internal error {internal})"
+    if st == S_CLOSED:
+        return "the servo was closed while running"
+    if st == S_POS_NAN:
+        return f"device reported a non-finite position {d} mm"
+    if st == S_STALL:
+        where = ", ".join(f"{c:.3f}" for c in d)
+        return (f"position frozen at ({where}) mm for {int(ictl[I_FROZEN])} ms of servo ticks "
+                "while a force was applied: device stalled")
+    if st == S_VEL_NAN:
+        return f"device reported a non-finite velocity {d} mm/s"
+    if st == S_FORCE_NAN:
+        return f"force mapped to a non-finite device force {d} N"
+    return f"servo callback ended with status {st}"
