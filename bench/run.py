@@ -5,8 +5,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
 * :func:`net_tables`: solving each net's static-response table (:mod:`haptic_acu.netresponse`),
   the one-off cost before a new set of net parameters' first tick.
 * :func:`servo`: the servo step on the :mod:`bench.scenarios` paths, three ways: ``model.step``
-  (what the engine calls), ``step_kernel(*args)`` alone (the compiled call with preassembled
-  arguments: the difference is the Python method's overhead), and ticks run inside one compiled
+  (a tick called from Python: through the step's C entry point, one pointer), ``step_kernel(*args)``
+  alone (numba's dispatch of the same step with its 22 arrays), and ticks run inside one compiled
   loop (:func:`haptic_acu.engine.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
   Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
   design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
@@ -114,9 +114,11 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
     """Time one scenario's ticks, the ways interleaved tick by tick (so each sees the same machine
     load), each on its own model brought to the same state:
 
-    * ``step``: ``NeedleModel.step(p, v)``, what the engine's servo tick calls;
-    * ``kernel``: ``step_kernel(p, v, *args)`` with preassembled arguments (p, v written before);
-    * ``dispatch``: :func:`empty_kernel` with the same arguments: the Python-to-compiled call cost;
+    * ``step``: ``NeedleModel.step(p, v)``, a tick called from Python (the keyboard's loop, the
+      ``--python-servo`` paths): p, v copied in, the step's C entry point called through ctypes;
+    * ``kernel``: ``step_kernel(p, v, *args)`` with preassembled arguments (p, v written before),
+      through numba's dispatcher;
+    * ``dispatch``: :func:`empty_kernel` with the same arguments: the dispatcher's own cost;
     * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
       (:func:`haptic_acu.engine.run_ticks`, as the headless replay runs them); per-tick means.
 

@@ -507,6 +507,59 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
     diag[D_FZ] = fz
 
 
+# What the C entry point of the servo step reads through its one pointer (cptr.address_table).
+STEP_ARRAYS = (("p", np.float64, 1), ("v", np.float64, 1), ("coeffs", np.float64, 2), ("centre", np.float64, 1),
+               ("lp", np.float64, 2), ("npar", np.float64, 1), ("pos", np.float64, 2), ("rest_all", np.float64, 2),
+               ("axes", np.float64, 2), ("nbr_all", np.int64, 2), ("ring_all", np.int64, 1),
+               ("plane_all", np.float64, 2), ("offs", np.int64, 1), ("tab", np.float64, 1), ("tmeta", np.float64, 2),
+               ("si", np.int64, 1), ("sf", np.float64, 1), ("holes", np.float64, 2), ("radii", np.float64, 1),
+               ("scratch", np.float64, 1), ("diag", np.float64, 1))
+_STEP_C = None
+
+
+def step_entry():
+    """:func:`step_kernel` as a C function ``void step(int64_t *table, int64_t lmax)`` (a cached numba
+    cfunc): called through ctypes with one pointer it costs about half of a numba dispatch that
+    checks and unboxes 22 arrays, which is most of a tick called from Python."""
+    global _STEP_C
+    if _STEP_C is None:
+        from numba import types
+
+        from .cptr import address_of, f64p, i64p
+
+        @nb.cfunc(types.void(types.voidptr, types.int64), nopython=True, cache=True)
+        def step_c(data, lmax):
+            t = nb.carray(i64p(address_of(data)), 63)
+            p = nb.carray(f64p(t[0]), t[1])
+            v = nb.carray(f64p(t[3]), t[4])
+            coeffs = nb.carray(f64p(t[6]), (t[7], t[8]))
+            centre = nb.carray(f64p(t[9]), t[10])
+            lp = nb.carray(f64p(t[12]), (t[13], t[14]))
+            npar = nb.carray(f64p(t[15]), t[16])
+            pos = nb.carray(f64p(t[18]), (t[19], t[20]))
+            rest_all = nb.carray(f64p(t[21]), (t[22], t[23]))
+            axes = nb.carray(f64p(t[24]), (t[25], t[26]))
+            nbr_all = nb.carray(i64p(t[27]), (t[28], t[29]))
+            ring_all = nb.carray(i64p(t[30]), t[31])
+            plane_all = nb.carray(f64p(t[33]), (t[34], t[35]))
+            offs = nb.carray(i64p(t[36]), t[37])
+            tab = nb.carray(f64p(t[39]), t[40])
+            tmeta = nb.carray(f64p(t[42]), (t[43], t[44]))
+            si = nb.carray(i64p(t[45]), t[46])
+            sf = nb.carray(f64p(t[48]), t[49])
+            holes = nb.carray(f64p(t[51]), (t[52], t[53]))
+            radii = nb.carray(f64p(t[54]), t[55])
+            scratch = nb.carray(f64p(t[57]), t[58])
+            diag = nb.carray(f64p(t[60]), t[61])
+            step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
+                        offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
+
+        import ctypes
+
+        _STEP_C = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64)(step_c.address), step_c
+    return _STEP_C[0]
+
+
 class NeedleModel:
     """The layered needle-tissue model for one scene: owns every array the servo step touches.
 
@@ -585,6 +638,7 @@ class NeedleModel:
         self.diag = np.zeros(D_SIZE)
         self._p = np.zeros(3)
         self._v = np.zeros(3)
+        self._step_c = None  # step()'s C entry point, bound on first use
         self.reset(keep_holes=False)
 
     def reset(self, keep_holes: bool = True) -> None:
@@ -606,13 +660,28 @@ class NeedleModel:
                 self.si, self.sf, self.holes, self.radii, self.scratch, self.diag)
 
     def step(self, p, v) -> np.ndarray:
-        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N)."""
+        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N).
+        Calls :func:`step_kernel` through its C entry point (:func:`step_entry`)."""
         self._p[:] = p
         self._v[:] = v
-        step_kernel(self._p, self._v, self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos,
-                    self.rest_all, self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.tab,
-                    self.tmeta, self.si, self.sf, self.holes, self.radii, self.scratch, self.diag)
+        if self._step_c is None:
+            self._bind_step()
+        self._step_c(self._step_arg, self.lmax)
         return self.diag[0:3]
+
+    def _bind_step(self) -> None:
+        from ctypes import c_void_p
+
+        from .cptr import address_table
+
+        arrays = dict(p=self._p, v=self._v, coeffs=self.coeffs, centre=self.centre, lp=self.lp, npar=self.npar,
+                      pos=self.pos, rest_all=self.rest_all, axes=self.axes_all, nbr_all=self.nbr_all,
+                      ring_all=self.ring_all, plane_all=self.plane_all, offs=self.offs, tab=self.tab,
+                      tmeta=self.tmeta, si=self.si, sf=self.sf, holes=self.holes, radii=self.radii,
+                      scratch=self.scratch, diag=self.diag)
+        self._step_table = address_table(arrays, STEP_ARRAYS)  # the arrays are never reallocated
+        self._step_arg = c_void_p(self._step_table.ctypes.data)
+        self._step_c = step_entry()
 
     def warm_up(self) -> None:
         """Compile (or load from cache) every kernel the servo step calls, and the visual loop's

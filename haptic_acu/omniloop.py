@@ -22,7 +22,6 @@ callback runs.
 """
 from __future__ import annotations
 
-import ctypes
 import math
 import platform
 import sys
@@ -34,6 +33,11 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from . import cptr
+from .cptr import address_of as data_address
+from .cptr import f64p as _f64p
+from .cptr import i32p as _i32p
+from .cptr import i64p as _i64p
 from .needle import D_FAULT, step_kernel
 from .rtloop import _fence, now_ns
 from .samples import write_sample
@@ -78,23 +82,6 @@ def supported() -> bool:
     return sys.platform.startswith("linux") and platform.machine() in ("x86_64", "AMD64", "aarch64", "arm64")
 
 
-def _ptr_intrinsic(nbtype):
-    @intrinsic
-    def as_ptr(typingctx, addr):
-        sig = types.CPointer(nbtype)(types.int64)
-
-        def codegen(context, builder, signature, args):
-            return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
-
-        return sig, codegen
-
-    return as_ptr
-
-
-_f64p = _ptr_intrinsic(types.float64)
-_i64p = _ptr_intrinsic(types.int64)
-_i32p = _ptr_intrinsic(types.int32)
-
 # The arrays the callback reaches, in table order: (name, dtype, ndim).
 ARRAYS = (("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
           ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1),
@@ -107,17 +94,8 @@ ARRAYS = (("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1)
 
 
 def address_table(arrays: dict) -> np.ndarray:
-    """(address, rows, columns) per array of :data:`ARRAYS`, checked for dtype and contiguity."""
-    tbl = np.zeros(3 * len(ARRAYS), dtype=np.int64)
-    for i, (name, dtype, ndim) in enumerate(ARRAYS):
-        a = arrays[name]
-        if a.dtype != dtype or a.ndim != ndim or not a.flags.c_contiguous:
-            raise TypeError(f"omniloop: array {name} must be C-contiguous {np.dtype(dtype).name} {ndim}-D, "
-                            f"got {a.dtype} {a.ndim}-D contiguous={a.flags.c_contiguous}")
-        tbl[3 * i] = a.ctypes.data
-        tbl[3 * i + 1] = a.shape[0]
-        tbl[3 * i + 2] = a.shape[1] if ndim == 2 else 0
-    return tbl
+    """(address, rows, columns) per array of :data:`ARRAYS`."""
+    return cptr.address_table(arrays, ARRAYS)
 
 
 def _external(name, ret, args):
@@ -416,17 +394,6 @@ def build_callback(lib):
         return rc
 
     return callback
-
-
-@intrinsic
-def data_address(typingctx, ptr):
-    """A void* as an int64 address."""
-    sig = types.int64(types.voidptr)
-
-    def codegen(context, builder, signature, args):
-        return builder.ptrtoint(args[0], ir.IntType(64))
-
-    return sig, codegen
 
 
 def fault_message(ictl, fctl, hd_error_name) -> str | None:
