@@ -27,6 +27,8 @@ where F is the net's reaction on the needle at N1. The solver is a Gauss-Seidel 
 Newton steps (3x3 for free particles, 1x1 along n for ring w), alternating direction, warm-started
 from the previous tick: a static solver, so it cannot ring; steps are limited to L/4, so it cannot
 explode. The surface breaks (puncture) when ring w's mean deflection passes the layer's threshold.
+By default the servo does not sweep at all: it reads the static response these sweeps converge to,
+tabulated once per parameter set (:mod:`haptic_acu.netresponse`, ``solver.servo_net = "table"``).
 
 All kernels are pure, numba-compiled (``nogil``, ``cache``), over plain arrays, allocation-free.
 """
