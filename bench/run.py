@@ -15,6 +15,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.rtloop`); in the full run also
   without rerun, with rerun in this process, with the servo loop in Python (the design before), and
   the machine's floor (a bare Python 1 kHz loop).
+* :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
+  the compiled servo callback and with the Python one.
 * :func:`sh`: SH evaluation (three layer meshes at 64 x 128 directions, lmax 15) and fitting
   (10,000 samples, lmax 15) against pyshtools (``MakeGridPoint``, ``SHExpandLSQ``, orthonormal
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
@@ -64,6 +66,7 @@ class Sizes:
     cold_runs: int  # measured runs
     cold_full_process: bool  # let the cold-start replays finish (process_total), or stop at the first tick
     scaling_ticks: int
+    omni_s: float = 0.0  # the OMNI through the HD emulator, per servo callback (0: not measured)
     scaling_w: tuple = (4, 8, 12, 16)
     scaling_lmax: tuple = (5, 10, 15, 20)
     trajectory: str | None = None  # None: the bundled default
@@ -72,10 +75,10 @@ class Sizes:
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
              numpy_scenarios=("press_skin_w10", "press_muscle_w10", "inside_muscle"), loop_s=30.0, loop_plain_s=10.0,
              sh_repeats=20, fit_samples=10_000, sh_grid=(64, 128), springback_calls=5000, replay_runs=3,
-             cold_runs=3, cold_full_process=True, scaling_ticks=3000)
+             cold_runs=3, cold_full_process=True, scaling_ticks=3000, omni_s=10.0)
 QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, loop_plain_s=0.0, sh_repeats=5,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
-                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"))
+                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0)
 
 # The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -418,6 +421,55 @@ def machine_floor(duration_s: float, progress=False) -> dict:
             "steal": measure.split_by_steal(errs, t0, 1e-3, steal)}
 
 
+# ---- the OMNI, through the HD API emulator ----------------------------------------------------------
+
+_SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; period error p50 (\d+) us, "
+                           r"p99 (\d+) us, max (\d+) us; (\w+) servo loop")
+
+
+def omni_loop(sizes: Sizes, progress=False) -> dict:
+    """``haptic-acu run --device omni`` against the HD API emulator (tests/hd_emulator, built with
+    the system C compiler), pressing the skin and letting go for ``sizes.omni_s``, with the compiled
+    callback and with the Python one (``--python-servo``), rerun logging to a file in both. The
+    emulator's 1 kHz scheduler thread is an ordinary thread with ``clock_nanosleep``, so its own
+    jitter is in both figures. Period errors from the session's closing line (us, rounded)."""
+    if not sizes.omni_s:
+        return {"omni_loop": None}
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    try:
+        from hd_emulator.build import build_emulator, emulator_env, find_compiler
+    except ImportError as e:
+        return {"omni_loop": None, "notes": [f"OMNI loop not measured: no HD emulator ({e})"]}
+    finally:
+        sys.path.pop(0)
+    if find_compiler() is None:
+        return {"omni_loop": None, "notes": ["OMNI loop not measured: no C compiler for the HD emulator"]}
+    from haptic_acu.config import load_config
+
+    z0 = -load_config().workspace.offset_mm[2]  # device z of the scene's z = 0 (the acupoint)
+    knots, t = [(0.0, 0.0, 0.0, z0 + 5.0)], 0.0
+    while t < sizes.omni_s + 2.0:  # press 1.2 mm into the skin and back, 0.6 s each way
+        knots += [(t + 0.6, 0.0, 0.0, z0 - 1.2), (t + 1.2, 0.0, 0.0, z0 + 2.0)]
+        t += 1.2
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+        lib = build_emulator(Path(tmp) / "hd")
+        for servo in ("compiled", "python"):
+            _log(progress, f"OMNI through the HD emulator, {sizes.omni_s:.0f} s, {servo} servo callback")
+            env = emulator_env(lib, path=knots, nominal_max_force=3.3)
+            cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(sizes.omni_s),
+                   "--no-status", "--rrd", str(Path(tmp) / f"{servo}.rrd")] + (["--python-servo"] if servo == "python" else [])
+            proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+            m = _SESSION_LINE.search(proc.stderr)
+            if proc.returncode != 0 or not m:
+                out[servo] = {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode}
+                continue
+            ticks, missed, p50, p99, mx, kind = m.groups()
+            out[servo] = {"ticks": int(ticks), "missed_ticks": int(missed), "period_error_us":
+                          {"p50": float(p50), "p99": float(p99), "max": float(mx)}, "servo_loop": kind}
+    return {"omni_loop": {"duration_s": sizes.omni_s, **out}}
+
+
 # ---- spherical harmonics -------------------------------------------------------------------------
 
 def to_pyshtools(coeffs: np.ndarray) -> np.ndarray:
@@ -724,7 +776,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("scaling", lambda: scaling(sizes, progress)),
               ("replay", lambda: replay(sizes, progress)),
               ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
-              ("loop", lambda: loop(sizes, progress))]
+              ("loop", lambda: loop(sizes, progress)),
+              ("omni_loop", lambda: omni_loop(sizes, progress))]
     for name, fn in pieces:
         t = time.perf_counter()
         part = fn()
@@ -823,6 +876,17 @@ def format_table(res: dict) -> str:
         prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
         lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
         steal_line(mf.get("steal"))
+    om = res.get("omni_loop")
+    if om:
+        for servo in ("compiled", "python"):
+            r = om.get(servo) or {}
+            if "period_error_us" in r:
+                pe = r["period_error_us"]
+                lines.append(f"OMNI via the HD emulator, {om['duration_s']:.0f} s, {servo} callback: period error p50 "
+                             f"{_fmt(pe['p50'])} us, p99 {_fmt(pe['p99'])} us, max {_fmt(pe['max'])} us; "
+                             f"{r['missed_ticks']} missed in {r['ticks']} ticks")
+            else:
+                lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:

@@ -313,3 +313,20 @@ def test_split_by_steal_counts_misses_inside_and_outside_steal_free_windows():
     assert out["stolen_s"] == pytest.approx(2 / s.hz)
     assert out["quiet_period_error_us"]["max"] == pytest.approx(2000.0)
     assert out["steal_share"] == pytest.approx((2 / s.hz) / (3.0 * (os.cpu_count() or 1)))
+
+
+@pytest.mark.slow
+def test_omni_loop_runs_both_callbacks_through_the_emulator():
+    sys.path.insert(0, os.path.dirname(__file__))
+    try:
+        from hd_emulator.build import find_compiler
+    finally:
+        sys.path.pop(0)
+    if find_compiler() is None:
+        pytest.skip("no C compiler to build the HD API emulator")
+    res = run.omni_loop(dataclasses.replace(run.QUICK, omni_s=1.0))["omni_loop"]
+    for servo in ("compiled", "python"):
+        r = res[servo]
+        assert r["servo_loop"] == servo, r
+        assert 900 <= r["ticks"] <= 1001 and 0 <= r["missed_ticks"] <= r["ticks"]
+        assert 0 <= r["period_error_us"]["p50"] <= r["period_error_us"]["p99"] <= r["period_error_us"]["max"]
