@@ -34,6 +34,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import sys
 import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -303,6 +304,9 @@ def table_for(p: NetParams, tol_m: float) -> ResponseTable:
             except (OSError, ValueError, KeyError):
                 table = None  # unreadable or stale: solve again
         if table is None:
+            if sys.stderr.isatty():  # a first run with these parameters: say why it pauses
+                print(f"haptic-acu: solving the {p.w}-ring force net's response table "
+                      "(once per set of net parameters, then cached)", file=sys.stderr)
             table = build(p, tol_m)
             if path is not None:
                 _save(path, table)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import platform
 import sys
+from pathlib import Path
 
 import numba as nb
 import numpy as np
@@ -350,6 +351,10 @@ def build_callback(lib):
     ``.address`` goes to hdScheduleAsynchronous with the address table as user data. The tick
     itself is cached; only this small wrapper is compiled per process."""
     load_library(lib)
+    index = Path(__file__).with_name("__pycache__")
+    if sys.stderr.isatty() and not any(index.glob("omniloop.tick-*.nbi")):
+        print("haptic-acu: compiling the OMNI servo callback (first run on this machine, about 10 s)",
+              file=sys.stderr)
 
     @nb.cfunc(types.uint32(types.voidptr), nopython=True, cache=True)
     def callback(data):
