@@ -65,14 +65,15 @@ def device_z_of_scene_z(z_scene_mm, workspace):
     return (z_scene_mm - offset[2]) / scale  # a turn about z leaves z alone
 
 
-def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, servo="compiled"):
+def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, servo="compiled", config=None):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
                        velocity=velocity)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else []),
+                           "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else [])
+                          + (["--config", str(config)] if config is not None else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     frames = np.zeros((0, 8))
     if log.exists():
@@ -103,7 +104,9 @@ def check_rows_match_frames(tr, frames, workspace):
     np.testing.assert_allclose(tr.pos_m * 1e3, to_scene_mm(frames[:n, 2:5], workspace), rtol=0, atol=1.0e-4)
     f_rec = np.stack([tr.extra["fx_n"], tr.extra["fy_n"], tr.extra["fz_n"]], axis=1)
     ramp = np.minimum(1.0, np.arange(n) / 200.0)[:, None]
-    expected = clamp(ramp * f_rec, NOMINAL_MAX_N)  # workspace rotation 0 in the default config
+    a = np.radians(workspace[2])
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    expected = clamp(ramp * f_rec, NOMINAL_MAX_N) @ R  # scene -> device: R^T f (row vectors: f R)
     np.testing.assert_allclose(frames[:n, 5:8], expected, rtol=0, atol=2e-5)  # the file's 10 uN
 
 
@@ -136,6 +139,26 @@ def test_omni_press_through_the_cli(emulator, tmp_path, workspace, servo, veloci
     assert np.any(np.linalg.norm(f, axis=1) >= NOMINAL_MAX_N * (1 - 1e-9))  # the device limit engaged
     assert np.all(f[z_scene > 0.05] == 0.0)  # nothing above the skin
     assert np.all(f[-1] == 0.0)  # the session ends commanding zero
+
+
+@pytest.mark.parametrize("servo", ["compiled", "python"])
+def test_omni_turned_scaled_workspace_through_the_cli(emulator, tmp_path, servo):
+    # The stylus frame turned 90 degrees about z, scaled 1.5x and offset 1.5 mm sideways: the press
+    # lands off the acupoint where the skin's normal tilts, so the force has sideways parts, and
+    # the emulator must get them turned back into its own frame (R^T), clamped to its limit.
+    text = (REPO / "config" / "tissue.toml").read_text()
+    start = text.index("[workspace]")
+    cfg_path = tmp_path / "turned.toml"
+    cfg_path.write_text(text[:start] + "[workspace]\noffset_mm = [1.5, 0.0, -20.0]\nscale = 1.5\n"
+                        "rotation_z_deg = 90.0\n")
+    workspace = (np.array([1.5, 0.0, -20.0]), 1.5, 90.0)
+    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), servo=servo, config=cfg_path)
+    assert proc.returncode == 0, proc.stderr
+    assert f"{servo} servo loop" in proc.stderr
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    check_rows_match_frames(tr, frames, workspace)
+    f_scene = np.stack([tr.extra["fx_n"], tr.extra["fy_n"]], axis=1)
+    assert np.abs(f_scene[:, 0]).max() > 1e-3  # a sideways force in the scene, turned into the device's y
 
 
 FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin, pressing, moving slowly
