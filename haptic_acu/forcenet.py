@@ -192,14 +192,9 @@ class Net:
 
 
 @nb.njit(cache=True, nogil=True)
-def build_net(coeffs, lmax, centre, contact, normal, spacing, plane, nbr, n, pretension,
-              X0, x, X0f, xf, rest_len, axis):
-    """Lay the lattice around ``contact`` with outward ``normal``: the flat reference lattice in the
-    tangent plane, and its radial projection onto the SH surface. Allocation-free."""
-    nn = math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
-    for k in range(3):
-        axis[k] = normal[k] / nn
-    # Tangent frame (e1, e2) at the contact point.
+def tangent_frame(axis):
+    """The net's tangent frame (e1, e2) at unit normal ``axis``: e1 = axis x (x, or y near the x
+    axis), normalised; e2 = axis x e1. Returns e1x, e1y, e1z, e2x, e2y, e2z."""
     if abs(axis[0]) < 0.9:
         ax, ay, az = 1.0, 0.0, 0.0
     else:
@@ -214,6 +209,18 @@ def build_net(coeffs, lmax, centre, contact, normal, spacing, plane, nbr, n, pre
     e2x = axis[1] * e1z - axis[2] * e1y
     e2y = axis[2] * e1x - axis[0] * e1z
     e2z = axis[0] * e1y - axis[1] * e1x
+    return e1x, e1y, e1z, e2x, e2y, e2z
+
+
+@nb.njit(cache=True, nogil=True)
+def build_net(coeffs, lmax, centre, contact, normal, spacing, plane, nbr, n, pretension,
+              X0, x, X0f, xf, rest_len, axis):
+    """Lay the lattice around ``contact`` with outward ``normal``: the flat reference lattice in the
+    tangent plane, and its radial projection onto the SH surface. Allocation-free."""
+    nn = math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+    for k in range(3):
+        axis[k] = normal[k] / nn
+    e1x, e1y, e1z, e2x, e2y, e2z = tangent_frame(axis)
     for i in range(plane.shape[0]):
         a = plane[i, 0] * spacing
         b = plane[i, 1] * spacing

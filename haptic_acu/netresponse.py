@@ -43,7 +43,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from .forcenet import NetParams, force_on, lattice, n_particles, relax, ring_w_mean_deflection
+from .forcenet import NetParams, force_on, lattice, n_particles, relax, ring_w_mean_deflection, tangent_frame
 
 VERSION = 1  # bump when the table's content or layout changes (invalidates the cache)
 ROWS_PER_SPACING = 400  # h = L / 400: linear interpolation in c is then exact to ~1e-6 relative
@@ -140,7 +140,7 @@ def lookup(tab, meta, rho2, c):
 @nb.njit(cache=True, nogil=True)
 def lay_field(tab, meta, c, n, X0f, axis, xf):
     """The centred equilibrium displacement at depth ``c`` laid onto a net: ``xf = X0f + D(c)`` in
-    the net's frame (e1, e2 from ``axis`` as :func:`haptic_acu.forcenet.build_net` makes them).
+    the net's frame (e1, e2 from ``axis``: :func:`haptic_acu.forcenet.tangent_frame`).
     N1 (particle 0) is left to the caller."""
     nc = int(meta[TM_NC])
     x = c / meta[TM_H]
@@ -151,20 +151,7 @@ def lay_field(tab, meta, c, n, X0f, axis, xf):
         i = nc - 2
         x = nc - 1.0  # the field is not extrapolated
     tc = x - i
-    if abs(axis[0]) < 0.9:
-        ax, ay, az = 1.0, 0.0, 0.0
-    else:
-        ax, ay, az = 0.0, 1.0, 0.0
-    e1x = axis[1] * az - axis[2] * ay
-    e1y = axis[2] * ax - axis[0] * az
-    e1z = axis[0] * ay - axis[1] * ax
-    m1 = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
-    e1x /= m1
-    e1y /= m1
-    e1z /= m1
-    e2x = axis[1] * e1z - axis[2] * e1y
-    e2y = axis[2] * e1x - axis[0] * e1z
-    e2z = axis[0] * e1y - axis[1] * e1x
+    e1x, e1y, e1z, e2x, e2y, e2z = tangent_frame(axis)
     od = int(meta[TM_D])
     stride = n * 3
     a = od + i * stride

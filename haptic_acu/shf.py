@@ -132,7 +132,8 @@ def eval_point(coeffs, lmax, theta, phi):
 
 @nb.njit(cache=True, nogil=True)
 def _eval_point4(coeffs, lmax, theta, phi, out):
-    """eval_point_many for exactly four rows (the tissue's boundaries), the sums in registers."""
+    """eval_point for four rows at once (the tissue's boundaries): one Legendre recurrence and one set
+    of cos/sin(m phi), the four sums in registers and formed in eval_point's order (bit for bit)."""
     t0 = 0.0
     t1 = 0.0
     t2 = 0.0
@@ -181,43 +182,13 @@ def _eval_point4(coeffs, lmax, theta, phi, out):
 
 @nb.njit(cache=True, nogil=True)
 def eval_point_many(coeffs, lmax, theta, phi, out):
-    """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs``, sharing one Legendre
-    recurrence and one set of cos/sin(m phi) (the sums are formed in the same order, so each equals
-    eval_point's bit for bit). Allocates nothing."""
-    nk = coeffs.shape[0]
-    if nk == 4:
+    """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs`` (bit for bit); four rows,
+    the tissue's boundaries, share one recurrence (:func:`_eval_point4`). Allocates nothing."""
+    if coeffs.shape[0] == 4:
         _eval_point4(coeffs, lmax, theta, phi, out)
         return
-    for k in range(nk):
-        out[k] = 0.0
-    x = math.cos(theta)
-    s = math.sin(theta)
-    pmm = _INV_SQRT_4PI
-    for m in range(lmax + 1):
-        if m > 0:
-            pmm = -_REC_MM[m] * s * pmm
-        cm = math.cos(m * phi)
-        sm = math.sin(m * phi)
-        p_lm2 = 0.0
-        p_lm1 = pmm
-        for l in range(m, lmax + 1):
-            if l == m:
-                p = pmm
-            elif l == m + 1:
-                p = _REC_M1[m] * x * pmm
-            else:
-                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
-            if l > m:
-                p_lm2 = p_lm1
-                p_lm1 = p
-            base = l * l + l
-            if m == 0:
-                for k in range(nk):
-                    out[k] += coeffs[k, base] * p
-            else:
-                sp = _SQRT2 * p
-                for k in range(nk):
-                    out[k] += sp * (coeffs[k, base + m] * cm + coeffs[k, base - m] * sm)
+    for k in range(coeffs.shape[0]):
+        out[k] = eval_point(coeffs[k], lmax, theta, phi)
 
 
 @nb.njit(cache=True, nogil=True)
