@@ -538,8 +538,8 @@ class Session:
         self._ctl = ctl
         if self._stop.is_set():
             ctl[rtloop.CT_STOP] = 1
-        t0_ns = rtloop.monotonic_ns() + 2_000_000
-        t0 = t0_ns * 1e-9  # CLOCK_MONOTONIC: time.perf_counter's clock
+        t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
+        t0 = t0_ns * 1e-9
 
         def servo():
             prev = self._try_fifo()

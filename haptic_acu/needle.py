@@ -47,6 +47,7 @@ import numba as nb
 import numpy as np
 
 from . import shf
+from .cptr import address_of, address_table, f64p, i64p
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
 from .netresponse import TM_NR, lay_field, lookup
@@ -507,13 +508,33 @@ def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_a
     diag[D_FZ] = fz
 
 
-# What the C entry point of the servo step reads through its one pointer (cptr.address_table).
-STEP_ARRAYS = (("p", np.float64, 1), ("v", np.float64, 1), ("coeffs", np.float64, 2), ("centre", np.float64, 1),
-               ("lp", np.float64, 2), ("npar", np.float64, 1), ("pos", np.float64, 2), ("rest_all", np.float64, 2),
-               ("axes", np.float64, 2), ("nbr_all", np.int64, 2), ("ring_all", np.int64, 1),
-               ("plane_all", np.float64, 2), ("offs", np.int64, 1), ("tab", np.float64, 1), ("tmeta", np.float64, 2),
-               ("si", np.int64, 1), ("sf", np.float64, 1), ("holes", np.float64, 2), ("radii", np.float64, 1),
-               ("scratch", np.float64, 1), ("diag", np.float64, 1))
+# step_kernel's model arrays (everything after p, v but lmax), in its order: what the C entry points
+# (step_entry here, the OMNI callback in omniloop.py) read through an address table (cptr.py).
+MODEL_ARRAYS = (("coeffs", np.float64, 2), ("centre", np.float64, 1), ("lp", np.float64, 2), ("npar", np.float64, 1),
+                ("pos", np.float64, 2), ("rest_all", np.float64, 2), ("axes", np.float64, 2),
+                ("nbr_all", np.int64, 2), ("ring_all", np.int64, 1), ("plane_all", np.float64, 2),
+                ("offs", np.int64, 1), ("tab", np.float64, 1), ("tmeta", np.float64, 2), ("si", np.int64, 1),
+                ("sf", np.float64, 1), ("holes", np.float64, 2), ("radii", np.float64, 1),
+                ("scratch", np.float64, 1), ("diag", np.float64, 1))
+STEP_ARRAYS = (("p", np.float64, 1), ("v", np.float64, 1)) + MODEL_ARRAYS
+
+
+@nb.njit(cache=True, nogil=True)
+def model_views(t, b):
+    """The :data:`MODEL_ARRAYS` of an address table ``t`` whose entry ``b`` is ``coeffs``, as arrays."""
+    o = 3 * b
+    return (nb.carray(f64p(t[o]), (t[o + 1], t[o + 2])), nb.carray(f64p(t[o + 3]), t[o + 4]),
+            nb.carray(f64p(t[o + 6]), (t[o + 7], t[o + 8])), nb.carray(f64p(t[o + 9]), t[o + 10]),
+            nb.carray(f64p(t[o + 12]), (t[o + 13], t[o + 14])), nb.carray(f64p(t[o + 15]), (t[o + 16], t[o + 17])),
+            nb.carray(f64p(t[o + 18]), (t[o + 19], t[o + 20])), nb.carray(i64p(t[o + 21]), (t[o + 22], t[o + 23])),
+            nb.carray(i64p(t[o + 24]), t[o + 25]), nb.carray(f64p(t[o + 27]), (t[o + 28], t[o + 29])),
+            nb.carray(i64p(t[o + 30]), t[o + 31]), nb.carray(f64p(t[o + 33]), t[o + 34]),
+            nb.carray(f64p(t[o + 36]), (t[o + 37], t[o + 38])), nb.carray(i64p(t[o + 39]), t[o + 40]),
+            nb.carray(f64p(t[o + 42]), t[o + 43]), nb.carray(f64p(t[o + 45]), (t[o + 46], t[o + 47])),
+            nb.carray(f64p(t[o + 48]), t[o + 49]), nb.carray(f64p(t[o + 51]), t[o + 52]),
+            nb.carray(f64p(t[o + 54]), t[o + 55]))
+
+
 _STEP_C = None
 
 
@@ -525,34 +546,14 @@ def step_entry():
     if _STEP_C is None:
         from numba import types
 
-        from .cptr import address_of, f64p, i64p
 
         @nb.cfunc(types.void(types.voidptr, types.int64), nopython=True, cache=True)
         def step_c(data, lmax):
-            t = nb.carray(i64p(address_of(data)), 63)
-            p = nb.carray(f64p(t[0]), t[1])
-            v = nb.carray(f64p(t[3]), t[4])
-            coeffs = nb.carray(f64p(t[6]), (t[7], t[8]))
-            centre = nb.carray(f64p(t[9]), t[10])
-            lp = nb.carray(f64p(t[12]), (t[13], t[14]))
-            npar = nb.carray(f64p(t[15]), t[16])
-            pos = nb.carray(f64p(t[18]), (t[19], t[20]))
-            rest_all = nb.carray(f64p(t[21]), (t[22], t[23]))
-            axes = nb.carray(f64p(t[24]), (t[25], t[26]))
-            nbr_all = nb.carray(i64p(t[27]), (t[28], t[29]))
-            ring_all = nb.carray(i64p(t[30]), t[31])
-            plane_all = nb.carray(f64p(t[33]), (t[34], t[35]))
-            offs = nb.carray(i64p(t[36]), t[37])
-            tab = nb.carray(f64p(t[39]), t[40])
-            tmeta = nb.carray(f64p(t[42]), (t[43], t[44]))
-            si = nb.carray(i64p(t[45]), t[46])
-            sf = nb.carray(f64p(t[48]), t[49])
-            holes = nb.carray(f64p(t[51]), (t[52], t[53]))
-            radii = nb.carray(f64p(t[54]), t[55])
-            scratch = nb.carray(f64p(t[57]), t[58])
-            diag = nb.carray(f64p(t[60]), t[61])
-            step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
-                        offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
+            t = nb.carray(i64p(address_of(data)), 3 * len(STEP_ARRAYS))
+            m = model_views(t, 2)
+            step_kernel(nb.carray(f64p(t[0]), t[1]), nb.carray(f64p(t[3]), t[4]), m[0], lmax, m[1], m[2], m[3],
+                        m[4], m[5], m[6], m[7], m[8], m[9], m[10], m[11], m[12], m[13], m[14], m[15], m[16], m[17],
+                        m[18])
 
         import ctypes
 
@@ -671,8 +672,6 @@ class NeedleModel:
 
     def _bind_step(self) -> None:
         from ctypes import c_void_p
-
-        from .cptr import address_table
 
         arrays = dict(p=self._p, v=self._v, coeffs=self.coeffs, centre=self.centre, lp=self.lp, npar=self.npar,
                       pos=self.pos, rest_all=self.rest_all, axes=self.axes_all, nbr_all=self.nbr_all,

@@ -184,15 +184,6 @@ class ResponseTable:
     def shape(self) -> tuple[int, int]:
         return self.F.shape
 
-    def depth_of(self, rho: float, threshold_m: float) -> float:
-        """Depth c at which ring w's deflection first passes ``threshold_m`` at offset ``rho`` (m),
-        from the table (inf if it never does)."""
-        cs = np.arange(self.F.shape[1]) * self.h
-        tab, meta = self.packed()
-        r = np.array([lookup(tab, meta, rho * rho, c)[1] for c in cs])
-        above = np.nonzero(r > threshold_m)[0]
-        return float(cs[above[0]]) if above.size else math.inf
-
     def packed(self) -> tuple[np.ndarray, np.ndarray]:
         """(tab, meta) as the kernels read them, for this table alone."""
         tab = np.concatenate([self.F.ravel(), self.R.ravel(), self.D.ravel()])

@@ -39,7 +39,7 @@ from .cptr import address_of as data_address
 from .cptr import f64p as _f64p
 from .cptr import i32p as _i32p
 from .cptr import i64p as _i64p
-from .needle import D_FAULT, step_kernel
+from .needle import D_FAULT, MODEL_ARRAYS, model_views, step_kernel
 from .rtloop import _fence, now_ns
 from .samples import write_sample
 
@@ -84,14 +84,13 @@ def supported() -> bool:
 
 
 # The arrays the callback reaches, in table order: (name, dtype, ndim).
-ARRAYS = (("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
-          ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1),
-          ("coeffs", np.float64, 2), ("centre", np.float64, 1), ("lp", np.float64, 2), ("npar", np.float64, 1),
-          ("pos", np.float64, 2), ("rest_all", np.float64, 2), ("axes", np.float64, 2), ("nbr_all", np.int64, 2),
-          ("ring_all", np.int64, 1), ("plane_all", np.float64, 2), ("offs", np.int64, 1), ("tab", np.float64, 1),
-          ("tmeta", np.float64, 2), ("si", np.int64, 1), ("sf", np.float64, 1), ("holes", np.float64, 2),
-          ("radii", np.float64, 1), ("scratch", np.float64, 1), ("diag", np.float64, 1), ("pbuf", np.float64, 1),
-          ("vbuf", np.float64, 1), ("rbuf", np.float64, 2), ("rctr", np.int64, 1), ("errs", np.float64, 1))
+ARRAYS = ((("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
+           ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1))
+          + MODEL_ARRAYS
+          + (("pbuf", np.float64, 1), ("vbuf", np.float64, 1), ("rbuf", np.float64, 2), ("rctr", np.int64, 1),
+             ("errs", np.float64, 1)))
+_M0 = 8  # the table entry of the first model array
+_E0 = _M0 + len(MODEL_ARRAYS)  # the entry after the last
 
 
 def address_table(arrays: dict) -> np.ndarray:
@@ -368,33 +367,13 @@ def build_callback(lib):
         hdb = nb.carray(_i32p(t[15]), t[16])
         ws = nb.carray(_f64p(t[18]), t[19])
         prm = nb.carray(_f64p(t[21]), t[22])
-        coeffs = nb.carray(_f64p(t[24]), (t[25], t[26]))
-        centre = nb.carray(_f64p(t[27]), t[28])
-        lp = nb.carray(_f64p(t[30]), (t[31], t[32]))
-        npar = nb.carray(_f64p(t[33]), t[34])
-        pos = nb.carray(_f64p(t[36]), (t[37], t[38]))
-        rest_all = nb.carray(_f64p(t[39]), (t[40], t[41]))
-        axes = nb.carray(_f64p(t[42]), (t[43], t[44]))
-        nbr_all = nb.carray(_i64p(t[45]), (t[46], t[47]))
-        ring_all = nb.carray(_i64p(t[48]), t[49])
-        plane_all = nb.carray(_f64p(t[51]), (t[52], t[53]))
-        offs = nb.carray(_i64p(t[54]), t[55])
-        tab = nb.carray(_f64p(t[57]), t[58])
-        tmeta = nb.carray(_f64p(t[60]), (t[61], t[62]))
-        si = nb.carray(_i64p(t[63]), t[64])
-        sf = nb.carray(_f64p(t[66]), t[67])
-        holes = nb.carray(_f64p(t[69]), (t[70], t[71]))
-        radii = nb.carray(_f64p(t[72]), t[73])
-        scratch = nb.carray(_f64p(t[75]), t[76])
-        diag = nb.carray(_f64p(t[78]), t[79])
-        pbuf = nb.carray(_f64p(t[81]), t[82])
-        vbuf = nb.carray(_f64p(t[84]), t[85])
-        rbuf = nb.carray(_f64p(t[87]), (t[88], t[89]))
-        rctr = nb.carray(_i64p(t[90]), t[91])
-        errs = nb.carray(_f64p(t[93]), t[94])
-        rc = tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos, rest_all, axes, nbr_all,
-                  ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf, rbuf, rctr,
-                  errs)
+        m = model_views(t, _M0)
+        e = 3 * _E0
+        rc = tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8],
+                  m[9], m[10], m[11], m[12], m[13], m[14], m[15], m[16], m[17], m[18],
+                  nb.carray(_f64p(t[e]), t[e + 1]), nb.carray(_f64p(t[e + 3]), t[e + 4]),
+                  nb.carray(_f64p(t[e + 6]), (t[e + 7], t[e + 8])), nb.carray(_i64p(t[e + 9]), t[e + 10]),
+                  nb.carray(_f64p(t[e + 12]), t[e + 13]))
         ictl[I_IN_TICK] = 0
         return rc
 

@@ -22,7 +22,6 @@ skips ahead to the present (the skipped ticks count as missed) instead of bursti
 from __future__ import annotations
 
 import threading
-import time
 
 import numba as nb
 import numpy as np
@@ -42,7 +41,6 @@ CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T
 CT_SIZE = 10  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
-STATUS_NAMES = ("running", "trajectory ended", "stopped", "non-finite state", "feed starved", "duration reached")
 # float outputs
 FL_MAXF, FL_F = 0, 1  # largest |F| commanded; last force (3)
 FL_SIZE = 4
@@ -243,19 +241,7 @@ class Feed:
 
 
 def warm_up() -> None:
-    """Compile (or load) the loop and the clock kernels with a zero-tick run."""
+    """Compile (or load) the clock kernels (the engine loads the loop itself with a zero-tick run)."""
     ts = np.zeros(2, np.int64)
     now_ns(ts)
     sleep_until_ns(ts, 0)
-
-
-def monotonic_ns() -> int:
-    """The compiled loop's clock, read from Python."""
-    return int(now_ns(np.zeros(2, np.int64)))
-
-
-def wall_clock_matches() -> bool:
-    """CLOCK_MONOTONIC is ``time.perf_counter``'s clock here (Linux): within 1 ms."""
-    a = monotonic_ns()
-    b = time.perf_counter_ns()
-    return abs(a - b) < 1_000_000
