@@ -169,12 +169,16 @@ class Session:
 
     ``run()`` blocks until the device is done (end of trajectory, quit key), ``duration_s`` of
     session time has passed, :meth:`stop` is called (or SIGINT/SIGTERM arrives), or a fault occurs.
+
+    ``skip_after_ticks`` (the compiled real-time loop of a device read ahead): a tick later than this
+    many periods skips ahead to the present, the skipped ticks counted missed; ``None``: never skip,
+    run late ticks back to back so every tick of the trajectory is a row.
     """
 
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
-                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True):
+                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -190,6 +194,9 @@ class Session:
         self.want_dents = dents
         self.stale_s = stale_s
         self.servo_watchdog_s = servo_watchdog_s
+        if skip_after_ticks is not None and not (isinstance(skip_after_ticks, int) and skip_after_ticks >= 1):
+            raise ValueError(f"skip_after_ticks must be a whole number >= 1 or None, got {skip_after_ticks!r}")
+        self.skip_after_ticks = skip_after_ticks
         self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
         self.tick = 0
         self.frame_index = 0
@@ -498,7 +505,7 @@ class Session:
                 frames += 1
                 compiled = False  # a compiled servo counts its ticks in its control words
                 if self._ctl is not None:
-                    self.tick = int(self._ctl[9])  # rtloop.CT_RAN
+                    self.tick = int(self._ctl[9])  # rtloop.CT_RAN (rtloop is imported in the compiled path only)
                     compiled = True
                 elif self._ctl_omni is not None:
                     self.tick = int(self._ctl_omni[13])  # omniloop.I_ETICK
@@ -525,6 +532,7 @@ class Session:
         dt = self.servo_dt
         ctl = np.zeros(rtloop.CT_SIZE, np.int64)
         ctl[rtloop.CT_END] = rtloop.NO_END
+        ctl[rtloop.CT_SKIP_AFTER] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
         fl = np.zeros(rtloop.FL_SIZE)
         feed = rtloop.Feed(self.device, ctl, dt)
         feed.fill()  # the first second before the clock starts

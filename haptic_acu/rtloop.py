@@ -16,8 +16,11 @@ The clock calls are LLVM declarations of libc's ``clock_gettime`` / ``clock_nano
 pointers), so the functions stay cacheable like every other kernel.
 
 Ticks happen at ``t0 + k * period``; tick k reads the position at session time ``k * period`` and
-its sample row carries that time and its lateness (``period_err_s``). A stall longer than 10 periods
-skips ahead to the present (the skipped ticks count as missed) instead of bursting through them.
+its sample row carries that time and its lateness (``period_err_s``). A stall longer than
+``ctl[CT_SKIP_AFTER]`` periods (the session's default: 10) skips ahead to the present (the skipped
+ticks count as missed) instead of bursting through them; with :data:`NO_END` there the loop never
+skips and runs late ticks back to back, so every tick of the trajectory is a row whatever the host
+does (what a comparison against the headless replay needs).
 """
 from __future__ import annotations
 
@@ -37,8 +40,9 @@ CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
 # control words (int64 array shared between the compiled loop and Python)
-CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0, CT_RAN = range(10)
-CT_SIZE = 10  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
+CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0, CT_RAN, CT_SKIP_AFTER = range(11)
+CT_SIZE = 11  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
+# CT_SKIP_AFTER: a tick later than this many periods skips ahead to the present (0 reads as 10)
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
 # float outputs
@@ -121,6 +125,7 @@ def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, e
     dt = period_ns * 1e-9
     k = ctl[CT_TICK]
     status = RUNNING
+    skip_after = ctl[CT_SKIP_AFTER] if ctl[CT_SKIP_AFTER] > 0 else 10
     start = now_ns(ts)
     if start > t0_ns + k * period_ns:
         t0_ns = start - k * period_ns  # entered late (thread start-up): the clock starts now
@@ -137,14 +142,15 @@ def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, e
         while now < deadline:
             now = now_ns(ts)
         late = now - deadline
-        if late > 10 * period_ns:
+        if skip_after < NO_END and late > skip_after * period_ns:
             skip = late // period_ns
+            last = min(k_limit, ctl[CT_END])  # skipped ticks past the session's end are not missed
+            if k + skip > last:
+                skip = max(last - k, 0)
             ctl[CT_MISSED] += skip
             k += skip
             deadline += skip * period_ns
             late = now - deadline
-        if late > period_ns:
-            ctl[CT_MISSED] += 1
         if k >= k_limit:
             status = LIMIT
             break
@@ -154,6 +160,8 @@ def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, e
         if k >= ctl[CT_FED]:
             status = STARVED
             break
+        if late > period_ns:
+            ctl[CT_MISSED] += 1
         n = ctl[CT_NERR]
         if n < ecap:
             errs[n] = late * 1e-9
