@@ -150,6 +150,53 @@ def test_parametric_fit_of_a_sphere_recovers_its_points():
     np.testing.assert_allclose(shf.evaluate(coeffs, t2, p2), centre + R * u2, rtol=0, atol=1e-12)
 
 
+def _cap_samples(n, cap_deg, seed):
+    """``n`` random directions within ``cap_deg`` of the north pole, and a smooth, not band-limited
+    function sampled there with noise (so the least-squares residual is not zero)."""
+    rng = np.random.default_rng(seed)
+    theta = np.arccos(rng.uniform(math.cos(math.radians(cap_deg)), 1.0, n))
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    values = np.exp(np.cos(theta)) * np.sin(3 * phi) + 0.01 * rng.normal(size=n)
+    return theta, phi, values
+
+
+@pytest.mark.parametrize("cap_deg, lmax", [(180, 15), (120, 10), (90, 10), (60, 10)])
+def test_fit_equals_an_svd_least_squares_solution_however_the_samples_are_spread(cap_deg, lmax):
+    # The fit solves the semi-normal equations with a correction step, falling back to an SVD solve
+    # when the basis is ill conditioned; either way it must give numpy's SVD-based least squares
+    # (cond(B) here: ~2, ~1e4, ~1e7, ~1e11). Compared on what a fit is for, the fitted surface at
+    # the samples, and on the coefficients where the basis leaves them well determined. (The basis
+    # itself is checked against scipy above; at cond 1e7 its 1e-16 differences would move the SVD
+    # solution by more than the solvers differ.)
+    theta, phi, values = _cap_samples(4000, cap_deg, seed=cap_deg)
+    basis = shf.real_sph_harm(lmax, theta, phi)
+    ref = np.linalg.lstsq(basis, values, rcond=None)[0]
+    ours = shf.fit(theta, phi, values, lmax)
+    scale = np.abs(values).max()
+    np.testing.assert_allclose(basis @ ours, basis @ ref, rtol=0, atol=1e-10 * scale)
+    if np.linalg.cond(basis) < 1e5:
+        np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    # the residual is orthogonal to the basis (the normal equations hold, to the rounding of the
+    # sums B^T (y - B x), which grows with |B| |x| where the coefficients are large)
+    resid = values - basis @ ours
+    size = np.abs(values).sum() + (np.abs(basis) @ np.abs(ours)).sum()
+    assert np.abs(basis.T @ resid).max() < 1e-12 * np.abs(basis).max() * size
+
+
+def test_seminormal_solve_hands_an_ill_conditioned_basis_to_the_svd_solver():
+    # cond(B) ~ 1e7 at a 90 degree cap, lmax 10: Cholesky of B^T B loses everything past
+    # eps * cond^2 ~ 1e-2, so the correction step is large and the fit must not keep it.
+    theta, phi, values = _cap_samples(4000, 90, seed=90)
+    basis = shf.real_sph_harm(10, theta, phi)
+    assert np.linalg.cond(basis) > 1e6
+    assert shf._fit_seminormal(basis, values) is None
+    theta, phi, values = _cap_samples(4000, 180, seed=180)  # well spread: kept
+    basis = shf.real_sph_harm(10, theta, phi)
+    x = shf._fit_seminormal(basis, values)
+    assert x is not None
+    np.testing.assert_allclose(x, np.linalg.lstsq(basis, values, rcond=None)[0], rtol=0, atol=1e-13)
+
+
 def test_bad_inputs_raise_value_error():
     theta, phi, _ = random_directions(30, seed=13)
     values = np.ones(30)
