@@ -324,45 +324,16 @@ class OmniDevice(Device):
             raise DeviceFault(f"OMNI already faulted ({self._fault}); close and reopen it")
         servo = _Servo(step, stop, self._stall_ticks, self._ramp_ticks)
         self._servo = servo
-        hd = self._hd
-        self._callback = _CALLBACK(lambda data: self._tick(servo))
-        handle = hd.schedule_async(self._callback, None, HD_MAX_SCHEDULER_PRIORITY)
-        msg = hd.error("hdScheduleAsynchronous")
-        if msg:
-            servo.finish(fault=msg)
-            self._fail(servo, None)
-            raise DeviceFault(f"OMNI: {msg}")
+        handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)
 
-        last_ticks, last_change = 0, time.monotonic()
-        grace = max(1.0, self._watchdog_s)  # the first tick may take a little longer to arrive
-        try:
-            while not servo.finished.wait(0.005):
-                now = time.monotonic()
-                if stop.is_set():
-                    servo.stop_requested = True
-                ticks = servo.ticks
-                if ticks != last_ticks:
-                    last_ticks, last_change = ticks, now
-                elif now - last_change > (self._watchdog_s if ticks else grace):
-                    servo.abort_requested = True
-                    ms = 1e3 * (now - last_change)
-                    servo.finish(fault=f"servo step has not returned for {ms:.0f} ms (tick {ticks}): too slow for "
-                                       "the 1 kHz servo (compile kernels before run_servo)" if servo.in_tick else
-                                       f"servo callback not called for {ms:.0f} ms (after {ticks} ticks): "
-                                       "HD scheduler stalled")
-                    break
-        except BaseException as e:  # KeyboardInterrupt in the waiting thread
+        def request_stop():
+            servo.stop_requested = True
+
+        def request_abort():
             servo.abort_requested = True
-            servo.finish(exc=e)
 
-        if servo.fault is None and servo.exc is None:
-            self._callback_done(handle)
-            return
-        self._fail(servo, handle)
-        if servo.exc is not None:
-            exc, servo.exc = servo.exc, None
-            raise exc
-        raise DeviceFault(f"OMNI: {servo.fault}")
+        self._watch(servo, lambda: True, lambda: (servo.ticks, servo.in_tick), request_stop, request_abort)
+        self._end_run(servo, handle)
 
     @staticmethod
     def servo_library():
@@ -387,47 +358,69 @@ class OmniDevice(Device):
         servo = _Servo(None, stop, self._stall_ticks, self._ramp_ticks)
         self._servo = servo
         self._compiled_ctl = ictl
-        hd = self._hd
-        self._callback = ctypes.cast(callback.address, _CALLBACK)
-        handle = hd.schedule_async(self._callback, ctypes.c_void_p(table.ctypes.data), HD_MAX_SCHEDULER_PRIORITY)
-        msg = hd.error("hdScheduleAsynchronous")
+        try:
+            handle = self._schedule(servo, ctypes.cast(callback.address, _CALLBACK), ctypes.c_void_p(table.ctypes.data))
+        except DeviceFault:
+            self._compiled_ctl = None
+            raise
+
+        def request_stop():
+            ictl[ol.I_STOP] = 1
+
+        def request_abort():
+            ictl[ol.I_ABORT] = 1
+
+        self._watch(servo, lambda: ictl[ol.I_STATUS] == ol.S_RUNNING,
+                    lambda: (int(ictl[ol.I_TICKS]), bool(ictl[ol.I_IN_TICK])), request_stop, request_abort)
+        if servo.fault is None and servo.exc is None:  # how the callback itself ended
+            servo.finish(fault=ol.fault_message(ictl, fctl, hd_error_name))
+        self._compiled_ctl = None
+        self._end_run(servo, handle)
+
+    def _schedule(self, servo: _Servo, callback, data):
+        """Put ``callback`` (kept referenced while it runs) on the HD scheduler at the highest
+        priority; a refusal is a DeviceFault with the output zeroed."""
+        self._callback = callback
+        handle = self._hd.schedule_async(callback, data, HD_MAX_SCHEDULER_PRIORITY)
+        msg = self._hd.error("hdScheduleAsynchronous")
         if msg:
             servo.finish(fault=msg)
             self._fail(servo, None)
-            self._compiled_ctl = None
             raise DeviceFault(f"OMNI: {msg}")
+        return handle
 
+    def _watch(self, servo: _Servo, running, read, request_stop, request_abort) -> None:
+        """Wait in this thread while the servo callback runs (``running()``), every 5 ms: pass the
+        engine's stop on (``request_stop``), and if no tick completes within the watchdog window
+        (1 s before the first), ask the callback to end (``request_abort``) and record the fault.
+        ``read()`` gives (ticks so far, a tick in progress)."""
         last_ticks, last_change = 0, time.monotonic()
-        grace = max(1.0, self._watchdog_s)
+        grace = max(1.0, self._watchdog_s)  # the first tick may take a little longer to arrive
         try:
-            while ictl[ol.I_STATUS] == ol.S_RUNNING:
-                servo.finished.wait(0.005)
-                if servo.finished.is_set():  # close() from another thread
+            while running():
+                if servo.finished.wait(0.005):  # the callback finished, or close() from another thread
                     break
                 now = time.monotonic()
-                if stop.is_set():
-                    ictl[ol.I_STOP] = 1
-                ticks = int(ictl[ol.I_TICKS])
+                if servo.stop.is_set():
+                    request_stop()
+                ticks, in_tick = read()
                 if ticks != last_ticks:
                     last_ticks, last_change = ticks, now
                 elif now - last_change > (self._watchdog_s if ticks else grace):
-                    ictl[ol.I_ABORT] = 1
+                    request_abort()
                     ms = 1e3 * (now - last_change)
                     servo.finish(fault=f"servo step has not returned for {ms:.0f} ms (tick {ticks}): too slow for "
-                                       "the 1 kHz servo" if ictl[ol.I_IN_TICK] else
+                                       "the 1 kHz servo" if in_tick else
                                        f"servo callback not called for {ms:.0f} ms (after {ticks} ticks): "
                                        "HD scheduler stalled")
                     break
         except BaseException as e:  # KeyboardInterrupt in the waiting thread
-            ictl[ol.I_ABORT] = 1
+            request_abort()
             servo.finish(exc=e)
-        if servo.fault is None and servo.exc is None:
-            msg = ol.fault_message(ictl, fctl, hd_error_name)
-            if msg is not None:
-                servo.finish(fault=msg)
-            else:
-                servo.finish()
-        self._compiled_ctl = None
+
+    def _end_run(self, servo: _Servo, handle) -> None:
+        """After the callback: release it on a clean end; otherwise zero the force, stop the
+        scheduler and raise the fault (or the step's exception)."""
         if servo.fault is None and servo.exc is None:
             self._callback_done(handle)
             return

@@ -11,7 +11,6 @@ devices/base.py, not taken from OmniDevice.
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path

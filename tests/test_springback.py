@@ -1,6 +1,5 @@
 """Springback (haptic_acu.springback, eq. 7-9, MODEL.md section 4): shape matching goals, the polar
 rotation against scipy, eta's two ends, and the net's return to rest with its centroid kept."""
-import math
 
 import numpy as np
 import pytest
