@@ -113,9 +113,10 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
       < 1 mN at the stiffest (~0.7 N/mm while the skin is pressed);
     * velocity (damping): both are backward differences over 1 ms of nearly the same path;
       mm/s-level differences at ramp corners times <= 3 N s/m per mm over ~20 mm: < 10 mN;
-    * the force net's relaxation (2 sweeps per tick) is history-dependent: a live tick that came
-      late (a missed deadline on a loaded machine) moved the tip further in one step, leaving the
-      net a little further from equilibrium for a few ticks: a few percent of the force;
+    * a stall on a loaded machine: the live loop skips the ticks it missed (over 10 ms late), so
+      the recording has a gap the replay interpolates across, cutting the path's corner there;
+      and with `solver.servo_net = "sweeps"` the net lags its equilibrium by a few percent of the
+      force for a few ticks after a larger step (the default tabulated net has no such memory);
     * interpolating the replay's 1 ms force to t_i: the force's curvature over 1 ms (< 1 mN away
       from a puncture).
 
