@@ -234,3 +234,10 @@ def test_duration_limit_counts_ticks_like_the_python_loop(cfg, tissue):
     assert not s2.compiled_loop and result2.fault is None and result2.ticks == len(rows2) > 0
     assert rows2[-1, COL["t_s"]] <= 0.3 and result2.duration_s == pytest.approx(rows2[-1, COL["t_s"]], abs=1e-6)
     assert ended - s2.t0_perf > 0.3  # it ran until the limit, not less
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, "10"])
+def test_a_skip_threshold_that_is_not_a_whole_number_of_ticks_is_refused(cfg, tissue, bad):
+    with pytest.raises(ValueError, match="skip_after_ticks"):
+        Session(cfg, ScriptedDevice(DEFAULT_TRAJ, realtime=True), clock="realtime", model=NeedleModel(cfg, tissue),
+                skip_after_ticks=bad)
