@@ -431,8 +431,9 @@ def omni_loop(sizes: Sizes, progress=False) -> dict:
     """``haptic-acu run --device omni`` against the HD API emulator (tests/hd_emulator, built with
     the system C compiler), pressing the skin and letting go for ``sizes.omni_s``, with the compiled
     callback and with the Python one (``--python-servo``), rerun logging to a file in both. The
-    emulator's 1 kHz scheduler thread is an ordinary thread with ``clock_nanosleep``, so its own
-    jitter is in both figures. Period errors from the session's closing line (us, rounded)."""
+    emulator's 1 kHz scheduler thread asks for SCHED_FIFO (priority 10), as a servo thread on a
+    real-time setup runs (``emulator_sched_fifo`` says whether it got it; if not, that thread's own
+    jitter is in both figures). Period errors from the session's closing line (us, rounded)."""
     if not sizes.omni_s:
         return {"omni_loop": None}
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -456,7 +457,7 @@ def omni_loop(sizes: Sizes, progress=False) -> dict:
         lib = build_emulator(Path(tmp) / "hd")
         for servo in ("compiled", "python"):
             _log(progress, f"OMNI through the HD emulator, {sizes.omni_s:.0f} s, {servo} servo callback")
-            env = emulator_env(lib, path=knots, nominal_max_force=3.3)
+            env = emulator_env(lib, path=knots, nominal_max_force=3.3, sched_fifo=10)
             cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(sizes.omni_s),
                    "--no-status", "--rrd", str(Path(tmp) / f"{servo}.rrd")] + (["--python-servo"] if servo == "python" else [])
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
@@ -466,7 +467,8 @@ def omni_loop(sizes: Sizes, progress=False) -> dict:
                 continue
             ticks, missed, p50, p99, mx, kind = m.groups()
             out[servo] = {"ticks": int(ticks), "missed_ticks": int(missed), "period_error_us":
-                          {"p50": float(p50), "p99": float(p99), "max": float(mx)}, "servo_loop": kind}
+                          {"p50": float(p50), "p99": float(p99), "max": float(mx)}, "servo_loop": kind,
+                          "emulator_sched_fifo": "hd_emulator: SCHED_FIFO" not in proc.stderr}
     return {"omni_loop": {"duration_s": sizes.omni_s, **out}}
 
 
@@ -884,7 +886,8 @@ def format_table(res: dict) -> str:
                 pe = r["period_error_us"]
                 lines.append(f"OMNI via the HD emulator, {om['duration_s']:.0f} s, {servo} callback: period error p50 "
                              f"{_fmt(pe['p50'])} us, p99 {_fmt(pe['p99'])} us, max {_fmt(pe['max'])} us; "
-                             f"{r['missed_ticks']} missed in {r['ticks']} ticks")
+                             f"{r['missed_ticks']} missed in {r['ticks']} ticks; emulator's scheduler thread "
+                             + ("SCHED_FIFO" if r.get("emulator_sched_fifo") else "ordinary (SCHED_FIFO refused)"))
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
     g = res["sh_grid"]

@@ -52,13 +52,14 @@ def _path_spec(path) -> str:
 
 
 def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velocity=True,
-                 init_error=None, buttons=None, device_name=None, log=None, base=None) -> dict:
+                 init_error=None, buttons=None, device_name=None, log=None, sched_fifo=None, base=None) -> dict:
     """An environment whose dynamic loader finds the emulator as ``libHD.so``.
 
     ``path``: knots ``(t_s, x_mm, y_mm, z_mm)`` of the stylus path in the device frame;
     ``faults``: ``(kind, at_s)`` pairs, kind one of :data:`FAULT_CODES`; ``velocity=False`` makes
     HD_CURRENT_VELOCITY unsupported; ``init_error``: an HD error code hdInitDevice fails with;
-    ``log``: a CSV file the force log is written to when the device is disabled and at exit.
+    ``log``: a CSV file the force log is written to when the device is disabled and at exit;
+    ``sched_fifo``: a priority the scheduler thread asks SCHED_FIFO for (refused: a line on stderr).
     """
     env = dict(os.environ if base is None else base)
     for key in [k for k in env if k.startswith("HD_EMU_")]:
@@ -85,6 +86,8 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
         env["HD_EMU_DEVICE_NAME"] = device_name
     if log is not None:
         env["HD_EMU_LOG"] = str(log)
+    if sched_fifo is not None:
+        env["HD_EMU_SCHED_FIFO"] = str(int(sched_fifo))
     return env
 
 

@@ -30,6 +30,9 @@
  *   HD_EMU_BUTTONS=1                     HD_CURRENT_BUTTONS
  *   HD_EMU_DEVICE_NAME=name              an extra device name hdInitDevice accepts
  *   HD_EMU_LOG=file                      the force log as CSV, written by hdDisableDevice and at exit
+ *   HD_EMU_SCHED_FIFO=10                 the scheduler thread asks for SCHED_FIFO at this priority, as a
+ *                                        servo thread on a real-time setup runs; refused: one line on
+ *                                        stderr, and it runs as an ordinary thread
  *
  * Written for this project from the public HD API signatures; no OpenHaptics code is used.
  */
@@ -37,6 +40,7 @@
 #include <errno.h>
 #include <math.h>
 #include <pthread.h>
+#include <sched.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -165,6 +169,7 @@ static struct {
     char device_name[128];
     char model[128];
     char log_path[1024];
+    int fifo_priority; /* > 0: the scheduler thread asks for SCHED_FIFO */
 
     long tick; /* since hdStartScheduler */
     struct timespec tick_start;
@@ -308,6 +313,13 @@ static void *scheduler_main(void *arg)
 {
     (void)arg;
     in_scheduler_thread = 1;
+    if (E.fifo_priority > 0) {
+        struct sched_param sp = {.sched_priority = E.fifo_priority};
+        int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+        if (rc)
+            fprintf(stderr, "hd_emulator: SCHED_FIFO priority %d refused (%s); the scheduler thread runs as an ordinary thread\n",
+                    E.fifo_priority, strerror(rc));
+    }
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
     for (;;) {
@@ -1112,6 +1124,13 @@ __attribute__((constructor)) static void emu_init(void)
         snprintf(E.device_name, sizeof E.device_name, "%s", v);
     if ((v = getenv("HD_EMU_LOG")) && *v)
         snprintf(E.log_path, sizeof E.log_path, "%s", v);
+    if ((v = getenv("HD_EMU_SCHED_FIFO")) && *v) {
+        char *end;
+        long prio = strtol(v, &end, 10);
+        if (*end || prio < 1 || prio > 99)
+            die("HD_EMU_SCHED_FIFO", "expected a priority from 1 to 99");
+        E.fifo_priority = (int)prio;
+    }
 }
 
 __attribute__((destructor)) static void emu_fini(void)

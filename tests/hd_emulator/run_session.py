@@ -10,7 +10,8 @@ out of the half-space z < 0), optionally raising ``StepBoom`` from ``raise_at_s`
 NaN force from ``nan_at_s`` or sleeping ``sleep_s`` once at ``sleep_at_s``. The session stops
 when the servo time reaches ``duration_s``.
 
-The result holds the outcome of run_servo, every state handed to the step, the emulator's force
+The result holds the outcome of run_servo, the scheduling policy of the thread the step ran on,
+every state handed to the step, the emulator's force
 log (``t_s, kind, x, y, z (mm, device frame), fx, fy, fz (N, device frame)``) and the force the
 emulated motors output once run_servo had returned or raised.
 """
@@ -19,6 +20,7 @@ from __future__ import annotations
 import ctypes
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -103,6 +105,8 @@ def main(scenario_path: str, result_path: str) -> int:
     raised = {"done": False}
 
     def step(state):
+        if "step_thread_policy" not in res and hasattr(os, "sched_getscheduler"):
+            res["step_thread_policy"] = os.sched_getscheduler(0)  # Linux: 0 is this thread (HD's scheduler)
         if raised["done"]:
             res["step_calls_after_raise"] += 1
         res["states"].append([state.t_s, *state.position_m, *state.velocity_m_s, state.buttons])
