@@ -218,7 +218,7 @@ class Session:
         self.compiled_servo_callback = bool(compiled_loop) and hasattr(device, "run_servo_compiled")
         self._omni_callback = None
         self._ctl = None  # the compiled loop's control words while it runs
-        self._ctl_omni = None  # the OMNI's compiled callback's control words while it runs
+        self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
 
     # -- set-up -----------------------------------------------------------------------------------
@@ -503,13 +503,10 @@ class Session:
                 if next_t < now:
                     next_t = now + self.frame_dt  # fell behind: do not try to catch up
                 frames += 1
-                compiled = False  # a compiled servo counts its ticks in its control words
-                if self._ctl is not None:
-                    self.tick = int(self._ctl[9])  # rtloop.CT_RAN (rtloop is imported in the compiled path only)
-                    compiled = True
-                elif self._ctl_omni is not None:
-                    self.tick = int(self._ctl_omni[13])  # omniloop.I_ETICK
-                    compiled = True
+                word = self._tick_word  # a compiled servo counts its ticks in its control words
+                compiled = word is not None
+                if compiled:
+                    self.tick = int(word[0][word[1]])
                 if now - last >= 0.5:
                     self.rates["visual_hz"] = frames / (now - last)
                     if compiled:
@@ -544,6 +541,7 @@ class Session:
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
+        self._tick_word = (ctl, rtloop.CT_RAN)
         if self._stop.is_set():
             ctl[rtloop.CT_STOP] = 1
         t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
@@ -580,6 +578,7 @@ class Session:
             feed.join()
             self._rt_teardown(old)
             self._ctl = None
+            self._tick_word = None
             self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
             self.tick = int(ctl[rtloop.CT_RAN])  # ticks run (a stall's skipped ticks are not rows)
             last_index = int(ctl[rtloop.CT_TICK]) - 1
@@ -702,10 +701,7 @@ class Session:
         prm[ol.P_RATE] = dev.info.rate_hz
         ictl[ol.I_VEL_DEV] = 1
         arrays = dict(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                      hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, coeffs=m.coeffs, centre=m.centre, lp=m.lp,
-                      npar=m.npar, pos=m.pos, rest_all=m.rest_all, axes=m.axes_all, nbr_all=m.nbr_all,
-                      ring_all=m.ring_all, plane_all=m.plane_all, offs=m.offs, tab=m.tab, tmeta=m.tmeta, si=m.si,
-                      sf=m.sf, holes=m.holes, radii=m.radii, scratch=m.scratch, diag=m.diag, pbuf=m._p, vbuf=m._v,
+                      hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, **m.model_arrays(), pbuf=m._p, vbuf=m._v,
                       rbuf=self.ring.buf, rctr=self.ring.ctr, errs=self._period_err)
         table = ol.address_table(arrays)
         old = self._rt_setup()
@@ -714,7 +710,7 @@ class Session:
         ictl[ol.I_T0_NS] = t0_ns
         ictl[ol.I_LAST_NS] = t0_ns
         self.t0_perf = t0
-        self._ctl_omni = ictl
+        self._tick_word = (ictl, ol.I_ETICK)
         vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
         vis.start()
         try:
@@ -723,7 +719,7 @@ class Session:
             self._stop.set()
             vis.join(timeout=2.0)
             self._rt_teardown(old)
-            self._ctl_omni = None
+            self._tick_word = None
             self.tick = int(ictl[ol.I_ETICK])
             self.missed = int(ictl[ol.I_MISSED])
             self._n_err = int(ictl[ol.I_NERR])

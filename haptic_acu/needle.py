@@ -546,7 +546,6 @@ def step_entry():
     if _STEP_C is None:
         from numba import types
 
-
         @nb.cfunc(types.void(types.voidptr, types.int64), nopython=True, cache=True)
         def step_c(data, lmax):
             t = nb.carray(i64p(address_of(data)), 3 * len(STEP_ARRAYS))
@@ -654,11 +653,18 @@ class NeedleModel:
             self.holes[:] = 0.0
         self.diag[:] = 0.0
 
+    def model_arrays(self) -> dict:
+        """The model's arrays by their :data:`MODEL_ARRAYS` names, in that order (what the C entry
+        points' address tables hold, and :func:`step_kernel`'s arguments but ``lmax``)."""
+        return dict(coeffs=self.coeffs, centre=self.centre, lp=self.lp, npar=self.npar, pos=self.pos,
+                    rest_all=self.rest_all, axes=self.axes_all, nbr_all=self.nbr_all, ring_all=self.ring_all,
+                    plane_all=self.plane_all, offs=self.offs, tab=self.tab, tmeta=self.tmeta, si=self.si,
+                    sf=self.sf, holes=self.holes, radii=self.radii, scratch=self.scratch, diag=self.diag)
+
     def kernel_args(self) -> tuple:
         """Everything :func:`step_kernel` takes after ``p, v``, in order."""
-        return (self.coeffs, self.lmax, self.centre, self.lp, self.npar, self.pos, self.rest_all,
-                self.axes_all, self.nbr_all, self.ring_all, self.plane_all, self.offs, self.tab, self.tmeta,
-                self.si, self.sf, self.holes, self.radii, self.scratch, self.diag)
+        coeffs, *rest = self.model_arrays().values()
+        return (coeffs, self.lmax, *rest)
 
     def step(self, p, v) -> np.ndarray:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N).
@@ -673,11 +679,7 @@ class NeedleModel:
     def _bind_step(self) -> None:
         from ctypes import c_void_p
 
-        arrays = dict(p=self._p, v=self._v, coeffs=self.coeffs, centre=self.centre, lp=self.lp, npar=self.npar,
-                      pos=self.pos, rest_all=self.rest_all, axes=self.axes_all, nbr_all=self.nbr_all,
-                      ring_all=self.ring_all, plane_all=self.plane_all, offs=self.offs, tab=self.tab,
-                      tmeta=self.tmeta, si=self.si, sf=self.sf, holes=self.holes, radii=self.radii,
-                      scratch=self.scratch, diag=self.diag)
+        arrays = dict(p=self._p, v=self._v, **self.model_arrays())
         self._step_table = address_table(arrays, STEP_ARRAYS)  # the arrays are never reallocated
         self._step_arg = c_void_p(self._step_table.ctypes.data)
         self._step_c = step_entry()
