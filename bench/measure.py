@@ -134,16 +134,16 @@ class StealSampler:
         except (OSError, ValueError):
             return None
 
+    def _sample(self):
+        v = self._read()
+        if v is not None:
+            self.samples.append((time.perf_counter(), v))
+
     def _run(self):
-        while True:
-            v = self._read()
-            if v is not None:
-                self.samples.append((time.perf_counter(), v))
-            if self._stop.wait(self.period_s):
-                v = self._read()
-                if v is not None:
-                    self.samples.append((time.perf_counter(), v))
-                return
+        self._sample()
+        while not self._stop.wait(self.period_s):
+            self._sample()
+        self._sample()  # the last window ends at the stop
 
     def __enter__(self):
         if self.available:
