@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 import time
 
-from devices.scripted import ScriptedDevice
+from haptic_acu.devices.scripted import ScriptedDevice
 
 _set_force = ScriptedDevice.set_force
 _reported = []

@@ -297,7 +297,7 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
     with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
     missing); ``compiled_loop=False``: the Python servo loop instead of the compiled one. Returns the
     session's stats plus what ran."""
-    from devices.scripted import ScriptedDevice
+    from haptic_acu.devices.scripted import ScriptedDevice
     from haptic_acu.engine import Session
 
     traj = Path(tmp) / "looped.csv"
@@ -660,7 +660,7 @@ def cold_start(sizes: Sizes, progress=False) -> dict:
     with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
         for i in range(sizes.cold_runs):
             _log(progress, f"cold start, run {i + 1}")
-            cmd = [sys.executable, "-m", "bench.cold_start_child", "replay", traj, "--no-rrd", "--quiet",
+            cmd = [sys.executable, "-m", "haptic_acu.bench.cold_start_child", "replay", traj, "--no-rrd", "--quiet",
                    "--out", str(Path(tmp) / f"run{i}")]
             t0 = time.time()
             # cwd: a clean folder, so nothing there can shadow the packages on sys.path

@@ -15,6 +15,6 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from bench.run import main
+    from haptic_acu.bench.run import main
 
     return main(quick=args.quick, json_path=args.json)

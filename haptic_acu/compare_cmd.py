@@ -53,7 +53,7 @@ def register(sub) -> None:
 
 def open_trajectory(path: Path, cfg):
     """A ScriptedDevice on ``path``, opened (the whole file validated). UserError if bad."""
-    from devices.scripted import ScriptedDevice
+    from haptic_acu.devices.scripted import ScriptedDevice
 
     if not path.is_file():
         raise UserError(f"{path}: trajectory file not found")

@@ -14,9 +14,10 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+from .bundled import bundled_dir
 from .errors import UserError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+CONFIG_DIR = bundled_dir("config")
 DEFAULT_CONFIG = CONFIG_DIR / "tissue.toml"
 LAYER_NAMES = ("skin", "fat", "muscle")
 

@@ -21,10 +21,11 @@ import sys
 import time
 from pathlib import Path
 
-from .config import CONFIG_DIR, load_config
+from .bundled import bundled_dir
+from .config import load_config
 from .errors import UserError
 
-BUNDLED_DIR = CONFIG_DIR.parent / "trajectories"
+BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
 
 
@@ -57,7 +58,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
     input (nothing is left in ``out_dir``) and on a fault during the replay."""
-    from devices.scripted import ScriptedDevice
+    from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
     from .report import SamplesCsvSink, SummarySink, plot_force_depth

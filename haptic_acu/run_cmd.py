@@ -27,21 +27,21 @@ def register(sub) -> None:
 
 
 def make_device(args, cfg):
-    from devices.base import Workspace
+    from haptic_acu.devices.base import Workspace
 
     ws = Workspace.from_config(cfg.workspace)
     limit = cfg.safety.force_limit_n
     if args.device == "scripted":
         if not args.trajectory:
             raise UserError("--device scripted needs --trajectory FILE")
-        from devices.scripted import ScriptedDevice
+        from haptic_acu.devices.scripted import ScriptedDevice
         return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
     if args.trajectory:
         raise UserError(f"--trajectory is for --device scripted, not {args.device}")
     if args.device == "keyboard":
-        from devices.keyboard import KeyboardDevice
+        from haptic_acu.devices.keyboard import KeyboardDevice
         return KeyboardDevice(workspace=ws, force_limit_n=limit, stdin=sys.stdin, out=sys.stderr)
-    from devices.omni import OmniDevice, load_hd_library
+    from haptic_acu.devices.omni import OmniDevice, load_hd_library
     load_hd_library()  # a missing pyOpenHaptics / libHD.so fails now, before the simulator warms up
     return OmniDevice(ws, force_limit_n=limit)
 

@@ -15,8 +15,8 @@ import sys
 import numpy as np
 import pytest
 
-from bench import run, scenarios
-from bench.numpy_reference import HexNet, NumpyNeedle, SHBasis
+from haptic_acu.bench import run, scenarios
+from haptic_acu.bench.numpy_reference import HexNet, NumpyNeedle, SHBasis
 from haptic_acu import shf
 from haptic_acu.forcenet import lattice, n_particles
 from haptic_acu.needle import D_PUNCTURE, NP_SWEEPS, PRESSING, PUNCTURED
@@ -299,7 +299,7 @@ def test_split_by_steal_counts_misses_inside_and_outside_steal_free_windows():
     # Three 1 s windows; the hypervisor took 20 ms in the middle one. 3000 ticks at 1 ms from t0 = 10 s,
     # late by 2 ms at ticks 100 (first window), 1500 and 1501 (middle) and 2999 (last): the split
     # must put one miss in the quiet windows' 2000 ticks and two in the middle's 1000.
-    from bench.measure import StealSampler, split_by_steal
+    from haptic_acu.bench.measure import StealSampler, split_by_steal
 
     s = StealSampler()
     s.samples = [(10.0, 500), (11.0, 500), (12.0, 502), (13.0, 502)]

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from devices.base import Device, DeviceInfo, DeviceState
-from devices.scripted import ScriptedDevice
+from haptic_acu.devices.base import Device, DeviceInfo, DeviceState
+from haptic_acu.devices.scripted import ScriptedDevice
 from haptic_acu import trajectory
 from haptic_acu.config import load_config
 from haptic_acu.engine import Session

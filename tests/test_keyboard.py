@@ -25,8 +25,8 @@ import pytest
 
 from physics_helpers import sphere_config
 
-from devices.base import Device, DeviceState
-from devices.keyboard import (LATERAL_STEP_M, LATERAL_STEP_S, NOT_A_TTY, SPEED_DEFAULT_M_S, SPEED_MAX_M_S,
+from haptic_acu.devices.base import Device, DeviceState
+from haptic_acu.devices.keyboard import (LATERAL_STEP_M, LATERAL_STEP_S, NOT_A_TTY, SPEED_DEFAULT_M_S, SPEED_MAX_M_S,
                               SPEED_MIN_M_S, START_MM, KeyboardDevice, KeyParser)
 from haptic_acu.engine import Frame, Session, SessionResult
 from haptic_acu.errors import UserError
@@ -153,7 +153,7 @@ def test_mode_restored_when_the_session_code_raises(pty_pair):
 
 _SIGTERM_CHILD = """
 import sys, time
-from devices.keyboard import KeyboardDevice
+from haptic_acu.devices.keyboard import KeyboardDevice
 dev = KeyboardDevice(stdin=sys.stdin, out=sys.stdout)
 dev.open()
 sys.stdout.flush()

@@ -347,7 +347,7 @@ def test_bad_rows_shape(cfg):
 # ----------------------------------------------------------------------- end to end: bundled sessions
 @pytest.fixture(scope="module")
 def bundled(cfg):
-    from devices.scripted import ScriptedDevice
+    from haptic_acu.devices.scripted import ScriptedDevice
     from haptic_acu.engine import Session as EngineSession
     from haptic_acu.needle import NeedleModel
     from haptic_acu.tissue import Tissue

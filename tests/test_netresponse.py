@@ -14,8 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from bench import scenarios
-from bench.numpy_reference import NumpyNeedle
+from haptic_acu.bench import scenarios
+from haptic_acu.bench.numpy_reference import NumpyNeedle
 from haptic_acu import netresponse
 from haptic_acu.config import load_config
 from haptic_acu.forcenet import NetParams, lattice, n_particles

@@ -281,8 +281,8 @@ def test_exit_without_close_zeroes_and_disables_the_device(emulator, tmp_path, l
 
 
 def test_bad_force_limit_is_a_user_error_before_any_library_is_loaded():
-    from devices.base import Workspace
-    from devices.omni import OmniDevice
+    from haptic_acu.devices.base import Workspace
+    from haptic_acu.devices.omni import OmniDevice
     from haptic_acu.errors import UserError
 
     for bad in (float("nan"), 0.0, -1.0, float("inf")):

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from devices.scripted import ScriptedDevice
+from haptic_acu.devices.scripted import ScriptedDevice
 from haptic_acu import rtloop
 from haptic_acu.config import load_config
 from haptic_acu.engine import Session

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from devices.base import Device, DeviceState
-from devices.scripted import ScriptedDevice
+from haptic_acu.devices.base import Device, DeviceState
+from haptic_acu.devices.scripted import ScriptedDevice
 from haptic_acu.errors import UserError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,7 +6,7 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
-from devices.scripted import ScriptedDevice
+from haptic_acu.devices.scripted import ScriptedDevice
 from haptic_acu.config import load_config
 from haptic_acu.engine import Session
 from haptic_acu.errors import UserError

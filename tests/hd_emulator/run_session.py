@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np  # noqa: E402
 
-from devices.base import Workspace  # noqa: E402
+from haptic_acu.devices.base import Workspace  # noqa: E402
 from haptic_acu.errors import DeviceFault, UserError  # noqa: E402
 
 
@@ -65,7 +65,7 @@ def main(scenario_path: str, result_path: str) -> int:
     sc = json.loads(Path(scenario_path).read_text())
     res: dict = {"outcome": None, "message": None, "states": [], "step_calls_after_raise": 0}
 
-    from devices.omni import OmniDevice  # noqa: PLC0415
+    from haptic_acu.devices.omni import OmniDevice  # noqa: PLC0415
 
     res["pyOpenHaptics_imported_by_devices_omni"] = "pyOpenHaptics" in sys.modules
     ws = Workspace(**sc.get("workspace", {}))
