@@ -19,7 +19,9 @@ running extreme from which the signal has come back by at least ``min_swing`` (5
 roll, 1 mm for the depth, beyond encoder and hand tremor). The start and end of the table are not
 reversals.
 
-Twirling (:func:`twirl_metrics`): ``cycles`` = reversals // 2; ``swing_deg`` the mean angle
+Twirling (:func:`twirl_metrics`): ``cycles`` = (reversals + 1) // 2 (a twirl from rest and back
+to rest has an odd or even number of reversals as it starts at one end of its swing or in the
+middle: both count N for N back-and-forth turns); ``swing_deg`` the mean angle
 turned between consecutive reversals (the textbooks' "twirling angle"), ``amplitude_deg`` half
 of it (a roll of A sin(2 pi f t) has amplitude A and swing 2A); ``frequency_hz`` = (reversals - 1)
 / 2 over the time from the first reversal to the last (exact for a sinusoid); ``net_rotation_deg``
@@ -132,7 +134,7 @@ def twirl_metrics(t_s, roll_deg, torque_nmm=None, min_swing_deg: float = ROLL_MI
     if torque_nmm is not None and len(roll):
         peak = float(np.abs(np.asarray(torque_nmm, dtype=np.float64)).max())
     return {
-        "cycles": n // 2,
+        "cycles": (n + 1) // 2,
         "reversals": n,
         "swing_deg": _r(swing, 2),
         "amplitude_deg": _r(None if swing is None else swing / 2.0, 2),

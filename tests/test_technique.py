@@ -31,6 +31,19 @@ def test_sinusoidal_twirl(amp, freq, periods):
     assert m["mean_speed_deg_s"] == pytest.approx(4 * amp * freq, rel=1e-3)
 
 
+@pytest.mark.parametrize("cycles", [1, 2, 7])
+def test_one_sided_cosine_twirl(cycles):
+    """0 -> S -> 0 back and forth from rest at one end of the swing: 2N - 1 reversals, N cycles."""
+    swing, freq = 90.0, 1.5
+    t = np.arange(int(round(cycles / freq / DT)) + 1001) * DT
+    roll = np.where(t < cycles / freq, 0.5 * swing * (1 - np.cos(2 * np.pi * freq * t)), 0.0)
+    m = TQ.twirl_metrics(t, roll)
+    assert m["cycles"] == cycles and m["reversals"] == 2 * cycles - 1
+    assert m["swing_deg"] == pytest.approx(swing, abs=0.01) if cycles > 1 else m["swing_deg"] is None
+    if cycles > 1:
+        assert m["frequency_hz"] == pytest.approx(freq, rel=1e-3)
+
+
 def test_twirl_metrics_ignore_jitter_below_the_hysteresis():
     t, roll = sine_roll(60.0, 1.0, 4)
     rng = np.random.default_rng(1)
