@@ -122,7 +122,7 @@ def default_roll_params() -> RollParams:
     return RollParams(RATE_TAU_S)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _roll_advance(rs, d, raw, dt, rp):
     rs.angle[0] += d
     if dt > 0.0:
@@ -228,57 +228,41 @@ def default_params(n_layers: int = N_LAYERS, grasp_coil: float = GRASP_COIL,
                        PLAY_RAD)
 
 
-@nb.njit(cache=True, nogil=True)
-def _play(ws, roll_rad, half):
-    """Backlash operator: the output follows the input only beyond +-half. Returns its increment."""
-    y = ws.roll_play[0]
-    if roll_rad > y + half:
-        d = roll_rad - half - y
-    elif roll_rad < y - half:
-        d = roll_rad + half - y
-    else:
+@nb.njit(cache=True, nogil=True, inline="always")
+def play(y, x, half):
+    """Backlash operator of half-width ``half``: the new output for input ``x`` and output ``y``
+    (it follows the input only beyond +-half)."""
+    if x > y + half:
+        return x - half
+    if x < y - half:
+        return x + half
+    return y
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def dilute(old_m, new_m):
+    """Factor on a layer's twist and engagement when its length goes from ``old_m`` to ``new_m``:
+    0 for a layer entered or left, old/new on advancing into fresh tissue, else 1."""
+    if new_m <= 0.0 or old_m <= 0.0:
         return 0.0
-    ws.roll_play[0] = y + d
-    return d
+    if new_m > old_m:
+        return old_m / new_m
+    return 1.0
 
 
-@nb.njit(cache=True, nogil=True)
-def _layer_length(ws, i, length):
-    """New length of needle in layer i: clear a layer left, dilute on advance into fresh tissue."""
-    old = ws.length_m[i]
-    if length <= 0.0:
-        ws.twist_rad[i] = 0.0
-        ws.engage[i] = 0.0
-        ws.length_m[i] = 0.0
-        return 0.0
-    if old <= 0.0:
-        ws.twist_rad[i] = 0.0
-        ws.engage[i] = 0.0
-    elif length > old:
-        ws.twist_rad[i] *= old / length
-        ws.engage[i] *= old / length
-    ws.length_m[i] = length
-    return length
-
-
-@nb.njit(cache=True, nogil=True)
-def _layer_wind(ws, i, d, dt, p):
-    """Wind, relax and slip layer i by the roll increment d; set its torque and grasp."""
-    phi = ws.twist_rad[i] + d
-    e = ws.engage[i]
+@nb.njit(cache=True, nogil=True, inline="always")
+def wind_layer(phi, e, d, dt, slip, twist_tau, engage_rad, engage_tau):
+    """One layer's (twist, engagement) after a roll increment ``d`` over ``dt``: wind, relax, slip."""
+    phi += d
     if d != 0.0:
-        e += (1.0 - e) * (1.0 - math.exp(-abs(d) / p.engage_rad[i]))
-    phi *= math.exp(-dt / p.twist_tau_s[i])
-    e *= math.exp(-dt / p.engage_tau_s[i])
-    slip = p.twist_slip_rad[i]
+        e += (1.0 - e) * (1.0 - math.exp(-abs(d) / engage_rad))
+    phi *= math.exp(-dt / twist_tau)
+    e *= math.exp(-dt / engage_tau)
     if phi > slip:
         phi = slip
     elif phi < -slip:
         phi = -slip
-    ws.twist_rad[i] = phi
-    ws.engage[i] = e
-    ws.torque_nm[i] = p.k_twist[i] * ws.length_m[i] * phi
-    ws.grasp[i] = 1.0 + p.grasp_coil[i] * abs(phi) / slip + p.grasp_engage[i] * e
+    return phi, e
 
 
 @nb.njit(cache=True, nogil=True)
@@ -286,18 +270,32 @@ def wind_step(ws, roll_rad, length_m, dt, p):
     """One step of every layer's winding: ``roll_rad`` the needle's roll (rad, unwrapped),
     ``length_m`` (n_layers,) the needle length in each layer (m), ``dt`` (s). Updates ``ws``
     (its ``torque_nm`` and ``grasp`` are the outputs) and returns the total torque (N*m)."""
+    twist, engage, length, torque, grasp = ws.twist_rad, ws.engage, ws.length_m, ws.torque_nm, ws.grasp
     if ws.primed[0] == 0:
         ws.primed[0] = 1
         ws.roll_play[0] = roll_rad
-    d = _play(ws, roll_rad, 0.5 * p.play_rad)
+    y = ws.roll_play[0]
+    ws.roll_play[0] = play(y, roll_rad, 0.5 * p.play_rad)
+    d = ws.roll_play[0] - y
     total = 0.0
-    for i in range(ws.twist_rad.shape[0]):
-        if _layer_length(ws, i, length_m[i]) <= 0.0:
-            ws.torque_nm[i] = 0.0
-            ws.grasp[i] = 1.0
+    for i in range(twist.shape[0]):
+        L = length_m[i]
+        f = dilute(length[i], L)
+        length[i] = L if L > 0.0 else 0.0
+        if L <= 0.0:
+            twist[i] = 0.0
+            engage[i] = 0.0
+            torque[i] = 0.0
+            grasp[i] = 1.0
             continue
-        _layer_wind(ws, i, d, dt, p)
-        total += ws.torque_nm[i]
+        slip = p.twist_slip_rad[i]
+        phi, e = wind_layer(twist[i] * f, engage[i] * f, d, dt, slip, p.twist_tau_s[i],
+                            p.engage_rad[i], p.engage_tau_s[i])
+        twist[i] = phi
+        engage[i] = e
+        torque[i] = p.k_twist[i] * L * phi
+        grasp[i] = 1.0 + p.grasp_coil[i] * abs(phi) / slip + p.grasp_engage[i] * e
+        total += torque[i]
     return total
 
 
