@@ -6,7 +6,10 @@ from column name to a 1-D array, one entry per sample, oldest first. Columns and
 ``samples.csv``):
 
 * ``t_s``       time (s), strictly increasing;
-* ``depth_mm``  depth of the tip along the insertion below the skin entry (mm, positive in);
+* ``depth_mm``  the tip's displacement along the insertion below the skin entry (mm, positive in),
+  a continuous signal such as (p - entry) . u: not the model's ``depth_skin`` as it is today,
+  which steps back about 1 mm in one tick at the fat and muscle punctures (those steps read as
+  lifts; :func:`haptic_acu.metrics.continuous_depth` removes them);
 * ``roll_deg``  the needle's cumulative roll (deg, positive clockwise seen from the handle);
 * ``torque_nmm`` the twist torque (N*mm; optional);
 * ``f_axial_n`` the tissue's force on the needle along its axis (N), positive pushing the needle
