@@ -357,9 +357,15 @@ def pullout_ratios(p: TwirlParams | None = None, uni: Protocol = UNI, bi: Protoc
 
 
 def calibrate_grasp(uni: Protocol = UNI, bi: Protocol = BI,
-                    targets=(LANGEVIN_UNI_RATIO, LANGEVIN_BI_RATIO)) -> tuple[float, float]:
-    """(grasp_coil, grasp_engage) that make ``uni`` and ``bi`` give the target ratios. The grasp is
-    linear in both gains given the state, so two unit-gain runs per protocol solve it exactly."""
+                    targets=(LANGEVIN_UNI_RATIO, LANGEVIN_BI_RATIO), pullout=None) -> tuple[float, float]:
+    """(grasp_coil, grasp_engage) that make ``uni`` and ``bi`` give the target pull-out ratios
+    against :data:`NO`.
+
+    ``pullout(protocol, params) -> force`` measures a pull-out; None is the stand-in
+    (:func:`run_protocol`), in which the grasp is linear in both gains given the state, so two
+    unit-gain runs per protocol solve it exactly. Any other (a pull-out through the real friction,
+    whose compliance lets the needle move before it breaks away) is solved by ``scipy.optimize.root``
+    from the stand-in's answer."""
     rows = []
     for proto in (uni, bi):
         c = run_protocol(proto, default_params(grasp_coil=1.0, grasp_engage=0.0))[0]
@@ -370,4 +376,16 @@ def calibrate_grasp(uni: Protocol = UNI, bi: Protocol = BI,
     A = np.array([[r[0], r[1]] for r in rows])
     b = np.array([targets[k] * f_no - rows[k][2] for k in range(2)])
     coil, engage = np.linalg.solve(A, b)
-    return float(coil), float(engage)
+    if pullout is None:
+        return float(coil), float(engage)
+    from scipy.optimize import root
+
+    def resid(x):
+        p = default_params(grasp_coil=x[0], grasp_engage=x[1])
+        f_none = pullout(NO, p)
+        return [pullout(uni, p) / f_none - targets[0], pullout(bi, p) / f_none - targets[1]]
+
+    sol = root(resid, [coil, engage], method="hybr", options={"xtol": 1e-6})
+    if not sol.success:
+        raise RuntimeError(f"grasp calibration did not converge: {sol.message}")
+    return float(sol.x[0]), float(sol.x[1])
