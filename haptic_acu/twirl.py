@@ -321,6 +321,20 @@ def compile_kernels() -> None:
     grasped_friction(ws, np.zeros(N_LAYERS), np.zeros(N_LAYERS))
 
 
+# ------------------------------------------------------------------------------ display (Python)
+def twist_direction(axis_to_tip, roll_rad: float) -> np.ndarray:
+    """A unit vector across the needle that turns with its roll, for drawing the twist: the scene's
+    +x (or +y if the needle lies along x) made perpendicular to the needle, turned by ``roll_rad``
+    clockwise as seen from the handle (a right-handed turn about ``axis_to_tip``, the unit vector
+    from the handle to the tip)."""
+    d = np.asarray(axis_to_tip, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e0 = ref - (ref @ d) * d
+    e0 /= np.linalg.norm(e0)
+    return math.cos(roll_rad) * e0 + math.sin(roll_rad) * np.cross(d, e0)
+
+
 # ----------------------------------------------------------------------------- protocols (Python)
 def protocol_roll(proto: Protocol, dt: float = 1e-3) -> np.ndarray:
     """The roll (rad) per tick of a protocol up to the start of the pull-out, from 0."""

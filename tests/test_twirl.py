@@ -261,5 +261,22 @@ def test_kernel_matches_reference_on_random_motion():
     assert ws.engage == pytest.approx(st["e"], rel=1e-12, abs=1e-15)
 
 
+def test_twist_direction_turns_clockwise_seen_from_the_handle():
+    down = np.array([0.0, 0.0, -1.0])  # handle above, tip below: seen from the handle we look down
+    assert T.twist_direction(down, 0.0) == pytest.approx([1.0, 0.0, 0.0])
+    # looking down on the xy-plane (x right, y up), clockwise from +x goes to -y
+    assert T.twist_direction(down, np.pi / 2) == pytest.approx([0.0, -1.0, 0.0], abs=1e-12)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        a, b = rng.uniform(-7, 7, 2)
+        ea, eb = T.twist_direction(d, a), T.twist_direction(d, b)
+        assert abs(ea @ d) < 1e-12 and np.linalg.norm(ea) == pytest.approx(1.0)
+        # the angle between the two markers, signed about d, is b - a
+        ang = math.atan2(np.cross(ea, eb) @ d, ea @ eb)
+        assert ang == pytest.approx(math.remainder(b - a, 2 * math.pi), abs=1e-9)
+
+
 def test_compile_kernels_runs():
     T.compile_kernels()
