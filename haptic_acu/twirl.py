@@ -300,6 +300,19 @@ def wind_step(ws, roll_rad, length_m, dt, p):
 
 
 @nb.njit(cache=True, nogil=True)
+def wind_reset(ws):
+    """Forget all winding (fresh tissue): every layer unwound, grasp 1, torque 0; the next
+    :func:`wind_step` takes the roll it is given as the start."""
+    for i in range(ws.twist_rad.shape[0]):
+        ws.twist_rad[i] = 0.0
+        ws.engage[i] = 0.0
+        ws.length_m[i] = 0.0
+        ws.torque_nm[i] = 0.0
+        ws.grasp[i] = 1.0
+    ws.primed[0] = 0
+
+
+@nb.njit(cache=True, nogil=True)
 def grasped_friction(ws, friction_n, out):
     """``out[i] = grasp[i] * friction_n[i]``: the layers' friction levels under the grasp; returns
     their sum. (The stand-in pull-out force when ``friction_n`` holds the layers' breakaway
@@ -318,6 +331,7 @@ def compile_kernels() -> None:
     roll_from_cumulative(new_roll_state(), 0.0, 1e-3, rp)
     ws, p = new_wind_state(), default_params()
     wind_step(ws, 0.0, np.zeros(N_LAYERS), 1e-3, p)
+    wind_reset(ws)
     grasped_friction(ws, np.zeros(N_LAYERS), np.zeros(N_LAYERS))
 
 

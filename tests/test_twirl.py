@@ -278,5 +278,17 @@ def test_twist_direction_turns_clockwise_seen_from_the_handle():
         assert ang == pytest.approx(math.remainder(b - a, 2 * math.pi), abs=1e-9)
 
 
+def test_reset_forgets_the_winding_and_the_roll_origin():
+    _, ws = run(np.linspace(0, 3.0, 500))
+    assert ws.grasp[0] > 1.5
+    T.wind_reset(ws)
+    fresh = T.new_wind_state()
+    for name in T.WindState._fields:
+        if name != "roll_play":  # kept, but unused until the next step re-primes it
+            assert np.array_equal(getattr(ws, name), getattr(fresh, name)), name
+    tq, _ = run(np.full(5, 3.0), ws=ws)  # the roll it resumes at is the new start: nothing wound
+    assert np.all(tq == 0.0) and np.all(ws.grasp == 1.0)
+
+
 def test_compile_kernels_runs():
     T.compile_kernels()
