@@ -40,6 +40,7 @@ import numpy as np
 N_LAYERS = 3
 MAX_TRACKS = 32
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
+V_BAND = 1e-4  # m/s: Karnopp's stick band for the stick point: slower than this, a sliding needle sticks again
 
 
 class MechParams(NamedTuple):
@@ -121,9 +122,8 @@ def overlap_damage(r, radius):
     r = abs(r)
     if r >= 2.0 * radius:
         return 0.0
-    x = r / (2.0 * radius)
-    lens = 2.0 * radius * radius * math.acos(x) - 0.5 * r * math.sqrt(4.0 * radius * radius - r * r)
-    return lens / (math.pi * radius * radius)
+    x = r / (2.0 * radius)  # lens area / disc area = (2 acos x - 2 x sqrt(1 - x^2)) / pi
+    return (2.0 * math.acos(x) - 2.0 * x * math.sqrt(1.0 - x * x)) / math.pi
 
 
 @nb.njit(cache=True, nogil=True)
@@ -257,11 +257,14 @@ def friction_reset(st):
 
 
 @nb.njit(cache=True, nogil=True)
-def stick_slip(st, prm, s, thr):
-    """One tick of the stick point for a needle at arc length ``s``. ``thr``: slip thresholds in N,
+def stick_slip(st, prm, s, v, thr):
+    """One tick of the stick point for a needle at arc length ``s`` moving at ``v`` (m/s). ``thr``: slip thresholds in N,
     a 4-tuple (stuck forward, stuck backward, sliding forward, sliding backward), all >= 0, the
-    forward ones including any cutting (:func:`shaft_thresholds`). Returns the force on the needle along +s. Passive: the anchor only moves
-    toward the needle (relaxation and slip both shrink the spring)."""
+    forward ones including any cutting (:func:`shaft_thresholds`). Returns the force on the needle
+    along +s. A sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way
+    faster than V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold)
+    only when it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
+    both shrink the spring)."""
     if st.engaged[0] == 0:
         st.anchor[0] = s
         st.engaged[0] = 1
@@ -277,7 +280,7 @@ def stick_slip(st, prm, s, thr):
     elif f > back:
         u = back / prm.k_stick
         st.mode[0] = SLIP_BACK
-    else:
+    elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
         st.mode[0] = STUCK
     st.anchor[0] = s + u
     return prm.k_stick * u
@@ -334,7 +337,7 @@ def post_puncture_force(prm, st, tracks, j, tip):
     stick-slip shaft friction with the cutting force on its forward threshold, plus viscous
     friction. Then records on the track what the tip has opened (:func:`record_passage`)."""
     cut = cutting_now(prm, tracks, tip)
-    f = stick_slip(st, prm, tip.s, shaft_thresholds(prm, tip.lengths, cut))
+    f = stick_slip(st, prm, tip.s, tip.v, shaft_thresholds(prm, tip.lengths, cut))
     record_passage(tracks, j, tip.bounds, tip.s, tip.punctured)
     return f + viscous_force(prm, tip.lengths, tip.v)
 
