@@ -352,13 +352,14 @@ def run(args) -> int:
               f"{cfg.path}\nfitted: skin (the first layer) net, thickness, cutting and Coulomb friction; "
               f"the rest is the base config's")
     _write_checked(out, config_toml(cfg, header))
-    _print_report(args, x, f, ib, fit, rep, cut, fc, cfg, post_err, time.perf_counter() - t0)
+    _print_report(args, x, f, ib, fit, rep, cfg, post_err, time.perf_counter() - t0)
     return 0
 
 
-def _print_report(args, x, f, ib, fit, rep, cut, fc, cfg, post_err, elapsed):  # noqa: PLR0913
+def _print_report(args, x, f, ib, fit, rep, cfg, post_err, elapsed):
     xb, fb = float(x[ib]), float(f[ib])
     d = cfg.needle.diameter_mm
+    cut, fc = cfg.skin.cutting_n_per_mm_diameter, cfg.skin.coulomb_n_per_mm2
     print(f"{args.curve}: {len(x)} points, break at {xb:.3g} mm, {fb:.3g} N")
     print(f"  first layer net: K {fit['k_virtual_n_per_mm']:.4g} N/mm, surface springs "
           f"{fit['k_surface_n_per_mm']:.4g} N/mm, pre-tension {fit['pretension']:.3g}, L {fit['spring_length_mm']:.4g} mm, "

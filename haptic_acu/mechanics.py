@@ -26,6 +26,11 @@ Parts (Okamura, Simone and O'Leary 2004 split the force the same way):
 * **Table 1 mode** (the paper's preset): ``F = -(sum_k d_k h_k) v`` with ``h_k`` the needle length in
   layer k (the physical depth below that layer's rest surface, clipped to its thickness).
 
+Cost: every call between compiled functions that passes arrays (or tuples of them) pays numba's
+reference counting, about 30-45 ns per array on this project's loaded host, and every ``tuple.field``
+access of an array is one more; kernels therefore bind each array to a local once. One
+:func:`post_puncture_force` measured 1.4-2.3 us per tick under a load average of 11 on 2 cores.
+
 The needle's diameter scales cutting and friction linearly (config keys are per mm of diameter:
 docs/model.md cites the measurements); :func:`mech_params` does that conversion.
 """
@@ -163,70 +168,73 @@ def begin_track(tracks, entry, axis, radius):
     """The track an insertion at ``entry`` along unit ``axis`` extends: an existing one whose line
     passes within ``radius`` of the entry with an axis within ~1 degree, else a new one (the oldest is
     overwritten past MAX_TRACKS). Returns its slot."""
-    n = min(tracks.count[0], MAX_TRACKS)
+    te, ta, lo, hi, count = tracks.entry, tracks.axis, tracks.cut_lo, tracks.cut_hi, tracks.count
+    n = min(count[0], MAX_TRACKS)
     for j in range(n):
-        c = (tracks.axis[j, 0] * axis[0] + tracks.axis[j, 1] * axis[1] + tracks.axis[j, 2] * axis[2])
+        c = ta[j, 0] * axis[0] + ta[j, 1] * axis[1] + ta[j, 2] * axis[2]
         if c < 0.99985:
             continue
-        dx = entry[0] - tracks.entry[j, 0]
-        dy = entry[1] - tracks.entry[j, 1]
-        dz = entry[2] - tracks.entry[j, 2]
-        t = dx * tracks.axis[j, 0] + dy * tracks.axis[j, 1] + dz * tracks.axis[j, 2]
-        r2 = (dx - t * tracks.axis[j, 0]) ** 2 + (dy - t * tracks.axis[j, 1]) ** 2 + (dz - t * tracks.axis[j, 2]) ** 2
+        dx = entry[0] - te[j, 0]
+        dy = entry[1] - te[j, 1]
+        dz = entry[2] - te[j, 2]
+        t = dx * ta[j, 0] + dy * ta[j, 1] + dz * ta[j, 2]
+        r2 = (dx - t * ta[j, 0]) ** 2 + (dy - t * ta[j, 1]) ** 2 + (dz - t * ta[j, 2]) ** 2
         if r2 <= radius * radius:
             return j
-    j = tracks.count[0] % MAX_TRACKS
+    j = count[0] % MAX_TRACKS
     for c in range(3):
-        tracks.entry[j, c] = entry[c]
-        tracks.axis[j, c] = axis[c]
+        te[j, c] = entry[c]
+        ta[j, c] = axis[c]
     for k in range(N_LAYERS):
-        tracks.cut_lo[j, k] = np.inf
-        tracks.cut_hi[j, k] = -np.inf
-    tracks.count[0] += 1
+        lo[j, k] = np.inf
+        hi[j, k] = -np.inf
+    count[0] += 1
     return j
 
 
 @nb.njit(cache=True, nogil=True)
-def record_cut(tracks, j, layer, lo, hi):
-    """Track ``j``'s layer ``layer`` is cut over arc lengths [lo, hi] (extends its range)."""
+def record_cut(cut_lo, cut_hi, j, layer, lo, hi):
+    """Track ``j``'s layer ``layer`` is cut over arc lengths [lo, hi]: extends its range in the
+    tracks' ``cut_lo`` / ``cut_hi`` arrays."""
     if layer < 0 or layer >= N_LAYERS or hi < lo:
         return
-    if lo < tracks.cut_lo[j, layer]:
-        tracks.cut_lo[j, layer] = lo
-    if hi > tracks.cut_hi[j, layer]:
-        tracks.cut_hi[j, layer] = hi
+    if lo < cut_lo[j, layer]:
+        cut_lo[j, layer] = lo
+    if hi > cut_hi[j, layer]:
+        cut_hi[j, layer] = hi
 
 
 @nb.njit(cache=True, nogil=True)
 def record_passage(tracks, j, bounds, s_tip, punctured):
     """The tip at ``s_tip`` has opened every punctured layer (k < ``punctured``) of track ``j`` from
     its rest surface down to the tip (a straight needle cuts contiguously)."""
+    cut_lo, cut_hi = tracks.cut_lo, tracks.cut_hi
     for k in range(min(punctured, N_LAYERS)):
-        hi = min(s_tip, bounds[k + 1])
-        record_cut(tracks, j, k, bounds[k], hi)
+        record_cut(cut_lo, cut_hi, j, k, bounds[k], min(s_tip, bounds[k + 1]))
 
 
 @nb.njit(cache=True, nogil=True)
 def track_damage(tracks, px, py, pz, layer, radius):
-    """How much of layer ``layer``'s tissue at point (px, py, pz) (scene frame, m) earlier passes have opened
-    (0 intact .. 1 cut): the largest :func:`overlap_damage` over the tracks whose cut range in that
-    layer contains p's projection."""
+    """How much of layer ``layer``'s tissue at point (px, py, pz) (scene frame, m) earlier passes have
+    opened (0 intact .. 1 cut): the largest :func:`overlap_damage` over the tracks whose cut range in
+    that layer contains the point's projection."""
+    te, ta, clo, chi = tracks.entry, tracks.axis, tracks.cut_lo, tracks.cut_hi
     n = min(tracks.count[0], MAX_TRACKS)
     best = 0.0
     if layer < 0 or layer >= N_LAYERS:
         return best
     for j in range(n):
-        lo = tracks.cut_lo[j, layer]
-        hi = tracks.cut_hi[j, layer]
+        lo = clo[j, layer]
+        hi = chi[j, layer]
         if hi < lo:
             continue
-        dx = px - tracks.entry[j, 0]
-        dy = py - tracks.entry[j, 1]
-        dz = pz - tracks.entry[j, 2]
-        s = dx * tracks.axis[j, 0] + dy * tracks.axis[j, 1] + dz * tracks.axis[j, 2]
+        dx = px - te[j, 0]
+        dy = py - te[j, 1]
+        dz = pz - te[j, 2]
+        s = dx * ta[j, 0] + dy * ta[j, 1] + dz * ta[j, 2]
         if s < lo or s > hi:
             continue
-        r2 = (dx - s * tracks.axis[j, 0]) ** 2 + (dy - s * tracks.axis[j, 1]) ** 2 + (dz - s * tracks.axis[j, 2]) ** 2
+        r2 = (dx - s * ta[j, 0]) ** 2 + (dy - s * ta[j, 1]) ** 2 + (dz - s * ta[j, 2]) ** 2
         d = overlap_damage(math.sqrt(r2), radius)
         if d > best:
             best = d
@@ -251,9 +259,10 @@ def karnopp_force(v, f_applied, fs, fc, b, v_band):
 @nb.njit(cache=True, nogil=True)
 def friction_reset(st):
     """Forget the stick point (a new insertion): the next :func:`stick_slip` places it at the tip."""
-    st.engaged[0] = 0
-    st.mode[0] = STUCK
-    st.anchor[0] = 0.0
+    engaged, mode, anchor = st.engaged, st.mode, st.anchor
+    engaged[0] = 0
+    mode[0] = STUCK
+    anchor[0] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -265,25 +274,27 @@ def stick_slip(st, prm, s, v, thr):
     faster than V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold)
     only when it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
     both shrink the spring)."""
-    if st.engaged[0] == 0:
-        st.anchor[0] = s
-        st.engaged[0] = 1
-        st.mode[0] = STUCK
-    u = (st.anchor[0] - s) * prm.decay  # anchor - needle, relaxed toward the needle
-    mode = st.mode[0]
-    f = prm.k_stick * u
+    anchor, mode_a, engaged = st.anchor, st.mode, st.engaged
+    k = prm.k_stick
+    if engaged[0] == 0:
+        anchor[0] = s
+        engaged[0] = 1
+        mode_a[0] = STUCK
+    u = (anchor[0] - s) * prm.decay  # anchor - needle, relaxed toward the needle
+    mode = mode_a[0]
+    f = k * u
     fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
     back = thr[1] if mode != SLIP_BACK else thr[3]
     if f < -fwd:
-        u = -fwd / prm.k_stick
-        st.mode[0] = SLIP_FWD
+        u = -fwd / k
+        mode_a[0] = SLIP_FWD
     elif f > back:
-        u = back / prm.k_stick
-        st.mode[0] = SLIP_BACK
+        u = back / k
+        mode_a[0] = SLIP_BACK
     elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
-        st.mode[0] = STUCK
-    st.anchor[0] = s + u
-    return prm.k_stick * u
+        mode_a[0] = STUCK
+    anchor[0] = s + u
+    return k * u
 
 
 @nb.njit(cache=True, nogil=True)
@@ -291,20 +302,22 @@ def shaft_thresholds(prm, lengths, cut_now):
     """Slip thresholds (N) for :func:`stick_slip`, a 4-tuple (stuck forward, stuck backward, sliding
     forward, sliding backward): friction of the needle lengths per layer plus the cutting force
     ``cut_now`` (N) on the forward ones."""
+    fs, fc = prm.fs, prm.fc
     s_st = 0.0
     s_c = 0.0
     for k in range(N_LAYERS):
-        s_st += prm.fs[k] * lengths[k]
-        s_c += prm.fc[k] * lengths[k]
+        s_st += fs[k] * lengths[k]
+        s_c += fc[k] * lengths[k]
     return (s_st + cut_now, s_st, s_c + cut_now, s_c)
 
 
 @nb.njit(cache=True, nogil=True)
 def viscous_force(prm, lengths, v):
     """Viscous shaft friction along +s: ``-(sum_k b_k L_k) v``."""
+    b = prm.b
     c = 0.0
     for k in range(N_LAYERS):
-        c += prm.b[k] * lengths[k]
+        c += b[k] * lengths[k]
     return -c * v
 
 
@@ -327,7 +340,8 @@ def cutting_now(prm, tracks, tip):
         return 0.0
     r = prm.radius
     a = tip.axis
-    dmg = track_damage(tracks, tip.p[0] + r * a[0], tip.p[1] + r * a[1], tip.p[2] + r * a[2], k, r)
+    p = tip.p
+    dmg = track_damage(tracks, p[0] + r * a[0], p[1] + r * a[1], p[2] + r * a[2], k, r)
     return prm.cut[k] * (1.0 - dmg)
 
 
@@ -336,10 +350,12 @@ def post_puncture_force(prm, st, tracks, j, tip):
     """The post-puncture axial force (N along +s) for one tick of an insertion on track ``j``:
     stick-slip shaft friction with the cutting force on its forward threshold, plus viscous
     friction. Then records on the track what the tip has opened (:func:`record_passage`)."""
+    lengths = tip.lengths
     cut = cutting_now(prm, tracks, tip)
-    f = stick_slip(st, prm, tip.s, tip.v, shaft_thresholds(prm, tip.lengths, cut))
-    record_passage(tracks, j, tip.bounds, tip.s, tip.punctured)
-    return f + viscous_force(prm, tip.lengths, tip.v)
+    f = stick_slip(st, prm, tip.s, tip.v, shaft_thresholds(prm, lengths, cut))
+    if tip.v > 0.0:  # only an advancing tip opens tissue (and the call costs refcounts)
+        record_passage(tracks, j, tip.bounds, tip.s, tip.punctured)
+    return f + viscous_force(prm, lengths, tip.v)
 
 
 @nb.njit(cache=True, nogil=True)
