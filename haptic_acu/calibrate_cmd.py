@@ -67,7 +67,8 @@ def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as e:
         raise UserError(f"{path}: cannot read: {e}") from None
-    rows = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+    rows = [(i + 1, line) for i, line in enumerate(text.splitlines())
+            if line.strip() and not line.lstrip().startswith("#")]
     if not rows:
         raise UserError(f"{path}: empty (expected a header depth_mm,force_n and rows)")
     header = [h.strip() for h in next(csv.reader([rows[0][1]]))]
@@ -343,7 +344,8 @@ def run(args) -> int:
     v = args.speed_mm_s * 1e-3
     skin = dataclasses.replace(cfg.skin, thickness_mm=first_mm, **fit)
     cut, fc, visc = fit_post(x, f, ib, v, skin, cfg.needle, first_mm)
-    skin = dataclasses.replace(skin, cutting_n_per_mm_diameter=cut, coulomb_n_per_mm2=fc, viscous_n_s_per_m_per_mm2=visc)
+    skin = dataclasses.replace(skin, cutting_n_per_mm_diameter=cut, coulomb_n_per_mm2=fc,
+                               viscous_n_s_per_m_per_mm2=visc)
     cfg = dataclasses.replace(cfg, skin=skin, needle=dataclasses.replace(cfg.needle, mechanics="rich"))
     post = slice(ib + 1, None)
     pred = post_model(skin, cfg.needle, first_mm, x[post], float(x[ib]), v)
@@ -362,7 +364,8 @@ def _print_report(args, x, f, ib, fit, rep, cfg, post_err, elapsed):
     cut, fc = cfg.skin.cutting_n_per_mm_diameter, cfg.skin.coulomb_n_per_mm2
     print(f"{args.curve}: {len(x)} points, break at {xb:.3g} mm, {fb:.3g} N")
     print(f"  first layer net: K {fit['k_virtual_n_per_mm']:.4g} N/mm, surface springs "
-          f"{fit['k_surface_n_per_mm']:.4g} N/mm, pre-tension {fit['pretension']:.3g}, L {fit['spring_length_mm']:.4g} mm, "
+          f"{fit['k_surface_n_per_mm']:.4g} N/mm, pre-tension {fit['pretension']:.3g}, "
+          f"L {fit['spring_length_mm']:.4g} mm, "
           f"w {fit['rings']}, threshold {fit['puncture_threshold_um']:.4g} um; thickness {cfg.skin.thickness_mm:g} mm")
     sk = cfg.skin
     print(f"  after the break ({d:g} mm needle): cutting {cut * d:.4g} N ({cut:.4g} N/mm of diameter), Coulomb "

@@ -21,8 +21,9 @@ Parts (Okamura, Simone and O'Leary 2004 split the force the same way):
   and then trails at the Coulomb force (an elasto-plastic, Dahl-like element; Hayward and Armstrong
   2000 render friction for haptics the same way). The anchor only ever moves toward the needle, so the
   element stores at most ``f^2 / 2k`` and dissipates the rest: it is passive over any closed path.
-  The cutting force joins the forward (advancing) slip threshold only. ``relax_s`` lets the held
-  force relax exponentially (tissue stress relaxation), so a needle held still ends with no force.
+  The cutting force joins the forward (advancing) slip threshold only. ``decay`` (from the config's
+  ``friction_relaxation_s``) lets the held force relax exponentially (tissue stress relaxation), so
+  a needle held still ends with no force.
 * **Table 1 mode** (the paper's preset): ``F = -(sum_k d_k h_k) v`` with ``h_k`` the needle length in
   layer k (the physical depth below that layer's rest surface, clipped to its thickness).
 
@@ -45,7 +46,7 @@ import numpy as np
 N_LAYERS = 3
 MAX_TRACKS = 32
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
-V_BAND = 1e-4  # m/s: Karnopp's stick band for the stick point: slower than this, a sliding needle sticks again
+V_BAND = 1e-4  # m/s, ours: Karnopp's stick band for the stick point: slower than this a sliding needle sticks again
 
 
 class MechParams(NamedTuple):
@@ -267,10 +268,10 @@ def friction_reset(st):
 
 @nb.njit(cache=True, nogil=True)
 def stick_slip(st, prm, s, v, thr):
-    """One tick of the stick point for a needle at arc length ``s`` moving at ``v`` (m/s). ``thr``: slip thresholds in N,
-    a 4-tuple (stuck forward, stuck backward, sliding forward, sliding backward), all >= 0, the
-    forward ones including any cutting (:func:`shaft_thresholds`). Returns the force on the needle
-    along +s. A sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way
+    """One tick of the stick point for a needle at arc length ``s`` moving at ``v`` (m/s). ``thr``:
+    slip thresholds in N, a 4-tuple (stuck forward, stuck backward, sliding forward, sliding
+    backward), all >= 0, the forward ones including any cutting (:func:`shaft_thresholds`). Returns
+    the force on the needle along +s. A sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way
     faster than V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold)
     only when it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
     both shrink the spring)."""
