@@ -147,3 +147,5 @@ def test_missing_column_and_existing_out_are_refused(tmp_path):
     r = run_cli(curve, "--speed-mm-s", "3", "--out", out)
     assert r.returncode == 2 and "exists" in r.stderr
     assert out.read_text() == "keep me\n"
+    r = run_cli(curve, "--speed-mm-s", "-1", "--out", tmp_path / "o.toml")
+    assert r.returncode == 2 and "--speed-mm-s" in r.stderr and len(r.stderr.strip().splitlines()) == 1
