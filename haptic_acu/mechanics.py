@@ -29,8 +29,9 @@ Parts (Okamura, Simone and O'Leary 2004 split the force the same way):
 
 Cost: every call between compiled functions that passes arrays (or tuples of them) pays numba's
 reference counting, about 30-45 ns per array on this project's loaded host, and every ``tuple.field``
-access of an array is one more; kernels therefore bind each array to a local once. One
-:func:`post_puncture_force` measured 1.4-2.3 us per tick under a load average of 11 on 2 cores.
+access of an array is one more; kernels therefore bind each array to a local once and take plain
+arrays and scalars below :func:`post_puncture_force`. One call measured 1.4 us per tick under a
+load average of 9-11 on 2 cores (mostly those atomic reference counts).
 
 The needle's diameter scales cutting and friction linearly (config keys are per mm of diameter:
 docs/model.md cites the measurements); :func:`mech_params` does that conversion.
@@ -46,7 +47,7 @@ import numpy as np
 N_LAYERS = 3
 MAX_TRACKS = 32
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
-V_BAND = 1e-4  # m/s, ours: Karnopp's stick band for the stick point: slower than this a sliding needle sticks again
+V_BAND = 1e-4  # m/s, ours: Karnopp's stick band: slower than this a sliding needle sticks again
 
 
 class MechParams(NamedTuple):
@@ -267,21 +268,21 @@ def friction_reset(st):
 
 
 @nb.njit(cache=True, nogil=True)
-def stick_slip(st, prm, s, v, thr):
-    """One tick of the stick point for a needle at arc length ``s`` moving at ``v`` (m/s). ``thr``:
-    slip thresholds in N, a 4-tuple (stuck forward, stuck backward, sliding forward, sliding
-    backward), all >= 0, the forward ones including any cutting (:func:`shaft_thresholds`). Returns
-    the force on the needle along +s. A sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way
-    faster than V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold)
-    only when it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
+def stick_slip(st, k, decay, s, v, thr):
+    """One tick of the stick point (spring ``k`` N/m, held force times ``decay`` per tick) for a
+    needle at arc length ``s`` moving at ``v`` (m/s). ``thr``: slip thresholds in N, a 4-tuple
+    (stuck forward, stuck backward, sliding forward, sliding backward), all >= 0, the forward ones
+    including any cutting (:func:`shaft_thresholds`). Returns the force on the needle along +s. A
+    sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way faster than
+    V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold) only when
+    it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
     both shrink the spring)."""
     anchor, mode_a, engaged = st.anchor, st.mode, st.engaged
-    k = prm.k_stick
     if engaged[0] == 0:
         anchor[0] = s
         engaged[0] = 1
         mode_a[0] = STUCK
-    u = (anchor[0] - s) * prm.decay  # anchor - needle, relaxed toward the needle
+    u = (anchor[0] - s) * decay  # anchor - needle, relaxed toward the needle
     mode = mode_a[0]
     f = k * u
     fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
@@ -299,11 +300,10 @@ def stick_slip(st, prm, s, v, thr):
 
 
 @nb.njit(cache=True, nogil=True)
-def shaft_thresholds(prm, lengths, cut_now):
+def shaft_thresholds(fs, fc, lengths, cut_now):
     """Slip thresholds (N) for :func:`stick_slip`, a 4-tuple (stuck forward, stuck backward, sliding
     forward, sliding backward): friction of the needle lengths per layer plus the cutting force
-    ``cut_now`` (N) on the forward ones."""
-    fs, fc = prm.fs, prm.fc
+    ``cut_now`` (N) on the forward ones. ``fs``, ``fc``: MechParams' breakaway and Coulomb (N/m)."""
     s_st = 0.0
     s_c = 0.0
     for k in range(N_LAYERS):
@@ -313,9 +313,8 @@ def shaft_thresholds(prm, lengths, cut_now):
 
 
 @nb.njit(cache=True, nogil=True)
-def viscous_force(prm, lengths, v):
-    """Viscous shaft friction along +s: ``-(sum_k b_k L_k) v``."""
-    b = prm.b
+def viscous_force(b, lengths, v):
+    """Viscous shaft friction along +s: ``-(sum_k b_k L_k) v`` (``b``: MechParams.b)."""
     c = 0.0
     for k in range(N_LAYERS):
         c += b[k] * lengths[k]
@@ -323,40 +322,35 @@ def viscous_force(prm, lengths, v):
 
 
 @nb.njit(cache=True, nogil=True)
-def cutting_layer(tip):
-    """The layer the tip cuts into: the one it is in, if this insertion has broken its surface (-1
-    while it presses a surface, is above the skin or is in bone)."""
-    k = layer_at(tip.s, tip.bounds)
-    if 0 <= k < min(tip.punctured, N_LAYERS):
+def cutting_layer(s, bounds, punctured):
+    """The layer a tip at arc length ``s`` cuts into: the one it is in, if this insertion has broken
+    its surface (``punctured`` layers from the skin down); -1 while it presses a surface, is above the
+    skin or is in bone."""
+    k = layer_at(s, bounds)
+    if 0 <= k < min(punctured, N_LAYERS):
         return k
     return -1
-
-
-@nb.njit(cache=True, nogil=True)
-def cutting_now(prm, tracks, tip):
-    """Cutting force (N) the tip meets advancing: its layer's cutting force times the uncut fraction
-    one needle radius ahead of the tip (0 where :func:`cutting_layer` is -1)."""
-    k = cutting_layer(tip)
-    if k < 0:
-        return 0.0
-    r = prm.radius
-    a = tip.axis
-    p = tip.p
-    dmg = track_damage(tracks, p[0] + r * a[0], p[1] + r * a[1], p[2] + r * a[2], k, r)
-    return prm.cut[k] * (1.0 - dmg)
 
 
 @nb.njit(cache=True, nogil=True)
 def post_puncture_force(prm, st, tracks, j, tip):
     """The post-puncture axial force (N along +s) for one tick of an insertion on track ``j``:
     stick-slip shaft friction with the cutting force on its forward threshold, plus viscous
-    friction. Then records on the track what the tip has opened (:func:`record_passage`)."""
-    lengths = tip.lengths
-    cut = cutting_now(prm, tracks, tip)
-    f = stick_slip(st, prm, tip.s, tip.v, shaft_thresholds(prm, lengths, cut))
-    if tip.v > 0.0:  # only an advancing tip opens tissue (and the call costs refcounts)
-        record_passage(tracks, j, tip.bounds, tip.s, tip.punctured)
-    return f + viscous_force(prm, lengths, tip.v)
+    friction; then records on the track what an advancing tip has opened (:func:`record_passage`).
+    The cutting force is the tip's layer's times the uncut fraction one needle radius ahead of the
+    tip (:func:`track_damage`), 0 where :func:`cutting_layer` is -1. Each NamedTuple field is read
+    once: numba reference-counts every array field access and every array passed to a call."""
+    s, v, bounds, lengths, ax, p = tip.s, tip.v, tip.bounds, tip.lengths, tip.axis, tip.p
+    r = prm.radius
+    k = cutting_layer(s, bounds, tip.punctured)
+    cut = 0.0
+    if k >= 0:
+        dmg = track_damage(tracks, p[0] + r * ax[0], p[1] + r * ax[1], p[2] + r * ax[2], k, r)
+        cut = prm.cut[k] * (1.0 - dmg)
+    f = stick_slip(st, prm.k_stick, prm.decay, s, v, shaft_thresholds(prm.fs, prm.fc, lengths, cut))
+    if v > 0.0:  # only an advancing tip opens tissue
+        record_passage(tracks, j, bounds, s, tip.punctured)
+    return f + viscous_force(prm.b, lengths, v)
 
 
 @nb.njit(cache=True, nogil=True)

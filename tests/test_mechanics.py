@@ -92,14 +92,14 @@ def test_stick_point_breakaway_sliding_and_reversal():
     k, fs, fc = prm.k_stick, 0.3, 0.2
     thr = (fs, fs, fc, fc)
     ss = np.arange(0, 2e-3, 1e-6)
-    f = np.array([m.stick_slip(st_, prm, s, 1e-3, thr) for s in ss])
+    f = np.array([m.stick_slip(st_, prm.k_stick, prm.decay, s, 1e-3, thr) for s in ss])
     stuck = ss < fs / k - 1e-9
     np.testing.assert_allclose(f[stuck], -k * ss[stuck], atol=1e-12)
     i = np.count_nonzero(stuck)
     assert f[i] == pytest.approx(-fs) and f.min() == pytest.approx(-fs)  # the breakaway peak
     np.testing.assert_allclose(f[i + 2:], -fc)  # then sliding at the Coulomb force
     back = ss[-1] - np.arange(1, 2000) * 1e-6
-    g = np.array([m.stick_slip(st_, prm, s, -1e-3, thr) for s in back])
+    g = np.array([m.stick_slip(st_, prm.k_stick, prm.decay, s, -1e-3, thr) for s in back])
     travel = ss[-1] - back  # since the turn
     swing = travel < (fc + fs) / k - 1e-9
     np.testing.assert_allclose(g[swing], -fc + k * travel[swing], atol=1e-9)
