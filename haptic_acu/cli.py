@@ -22,6 +22,7 @@ COMMANDS = {
     "score": "haptic_acu.score_cmd",
     "bench": "haptic_acu.bench_cmd",
     "compare": "haptic_acu.compare_cmd",
+    "calibrate": "haptic_acu.calibrate_cmd",
 }
 
 

@@ -45,6 +45,11 @@ class LayerParams:
     k_surface_n_per_mm: float  # ours: surface-spring stiffness
     pretension: float  # ours: surface springs' rest length is (1 - pretension) * spacing
     puncture_threshold_um: float  # ours: ring-w mean deflection at which the surface breaks
+    # post-puncture mechanics (haptic_acu/mechanics.py; needle.mechanics = "rich"), per mm of needle diameter
+    cutting_n_per_mm_diameter: float  # cutting force at the tip advancing into uncut tissue
+    coulomb_n_per_mm2: float  # Coulomb shaft friction per mm of needle in the layer
+    stiction_ratio: float  # breakaway / Coulomb friction (>= 1)
+    viscous_n_s_per_m_per_mm2: float  # viscous shaft friction per mm of needle in the layer
     name: str = ""
 
 
@@ -54,6 +59,11 @@ class NeedleParams:
     lateral_constraint: bool  # resist tip motion off the insertion line once the skin is pierced
     lateral_stiffness_n_per_mm: float
     bone_stiffness_n_per_mm: float  # penalty wall at the muscle/bone boundary
+    mechanics: str  # after a puncture: "rich" (cutting + Karnopp friction, mechanics.py) or "table1" (the paper)
+    diameter_mm: float  # needle shaft diameter (scales cutting and friction)
+    length_mm: float  # needle shaft length (no more than this is in tissue)
+    stick_stiffness_n_per_mm: float  # spring of the friction's stick point (position-input rendering)
+    friction_relaxation_s: float  # the held friction force relaxes with this time constant (0: never)
 
 
 @dataclass(frozen=True)
@@ -115,9 +125,12 @@ _POSITIVE = {
     "puncture_threshold_um", "hole_radius_mm", "lateral_stiffness_n_per_mm",
     "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
     "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
+    "diameter_mm", "length_mm", "stick_stiffness_n_per_mm", "stiction_ratio",
 }
 _NON_NEGATIVE = {"damping_n_s_per_m_per_mm", "bulge", "eta_rate_per_frame", "eta_min",
-                 "margin_rings", "lmax", "pretension"}
+                 "margin_rings", "lmax", "pretension",
+                 "cutting_n_per_mm_diameter", "coulomb_n_per_mm2", "viscous_n_s_per_m_per_mm2",
+                 "friction_relaxation_s"}
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,
     "needle": NeedleParams, "springback": SpringbackParams, "solver": SolverParams,
@@ -192,6 +205,11 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
             _fail(path, f"{layer.name}.rings", f"w must be <= 40, got {layer.rings}")
         if not layer.pretension < 0.5:
             _fail(path, f"{layer.name}.pretension", f"must be < 0.5, got {layer.pretension}")
+    for layer in cfg.layers:  # post-puncture mechanics
+        if not layer.stiction_ratio >= 1.0:
+            _fail(path, f"{layer.name}.stiction_ratio", f"breakaway must be >= Coulomb (>= 1), got {layer.stiction_ratio}")
+    if cfg.needle.mechanics not in ("rich", "table1"):
+        _fail(path, "needle.mechanics", f"must be \"rich\" or \"table1\", got {cfg.needle.mechanics!r}")
     if cfg.body.lmax > 40:
         _fail(path, "body.lmax", f"must be <= 40, got {cfg.body.lmax}")
     need = (cfg.body.lmax + 1) ** 2
