@@ -23,7 +23,10 @@ high-pass over the session, 30 ms before to 60 ms after each puncture left out, 
 drop is content above 40 Hz by design and the filter is zero-phase); each puncture's force: the
 largest of the 5 ms before it, the smallest within 20 ms after it, and the force 20 ms after it;
 the largest difference between the rendered and the simulated force while the hand moves
-smoothly (inserting or sliding, not within 100 ms of a puncture or a phase change); the energy the
+smoothly (inserting or sliding, not within 100 ms of a puncture or a phase change), at the same
+tick and against the tick before (the rendering uses the tissue's report of the tick before: a
+jump of the simulated force, such as a pressed net re-centring under a sliding tip, reaches the
+device one tick later); the energy the
 device puts into the hand over each lift-thrust cycle and over the whole closed session.
 
 Run: ``python -m bench.closed_loop`` (a table; ``--json`` for the numbers).
@@ -238,12 +241,13 @@ def metrics(res) -> dict:
     hp = sosfiltfilt(sos, F, axis=0)
     punct = np.where(res["puncture"] >= 0)[0]
     keep = buzz_mask(n, punct)
-    out = {"buzz_n": {}, "punctures": [], "energy_into_hand_j": {}}
+    out = {"buzz_n": {}, "punctures": [], "energy_into_hand_j": {}, "punctures_per_phase": {}}
     for name, i0, i1 in res["phases"]:
         sel = np.zeros(n, bool)
         sel[i0:i1] = True
         sel &= keep
         out["buzz_n"][name] = float(np.sqrt(np.mean(np.sum(hp[sel] ** 2, axis=1)))) if sel.any() else 0.0
+        out["punctures_per_phase"][name] = int(np.count_nonzero((punct >= i0) & (punct < i1)))
     mag = np.linalg.norm(F, axis=1)
     for i in punct:
         before = float(mag[max(0, i - 5):i + 1].max())
@@ -259,6 +263,9 @@ def metrics(res) -> dict:
         smooth[max(0, i - 100):i + 100] = False
     diff = np.linalg.norm(res["rendered"] - res["simulated"], axis=1)
     out["render_minus_sim_max_n"] = float(diff[smooth].max()) if smooth.any() else 0.0
+    # the rendering runs on the tissue's report of the tick before: compare with that tick's force
+    lag1 = np.linalg.norm(res["rendered"][1:] - res["simulated"][:-1], axis=1)
+    out["render_minus_sim_lag1_max_n"] = float(lag1[smooth[1:]].max()) if smooth.any() else 0.0
     # energy the device puts into the hand: the stylus pushes the hand with -hand_force
     p = -np.sum(res["hand_force"] * res["hand_v"], axis=1) * DT
     for name, i0, i1 in res["phases"]:
@@ -268,6 +275,7 @@ def metrics(res) -> dict:
                                                                for k in range(3)]
     out["energy_into_hand_j"]["closed_session"] = float(p.sum())
     out["max_force_n"] = float(mag.max())
+    out["mean_force_n"] = {name: float(mag[i0:i1].mean()) for name, i0, i1 in res["phases"]}
     out["limiting_ticks"] = int(np.count_nonzero(res["status"] & R.LIMITING))
     return out
 
@@ -293,7 +301,8 @@ def main(argv=None) -> int:
         pun = ", ".join(f"L{p['layer']} {p['before_n']:.2f}->{p['min_within_20ms_n']:.2f} ({p['at_20ms_n']:.2f}) N"
                         for p in m["punctures"])
         e = m["energy_into_hand_j"]
-        print(f"{key}: punctures [{pun}]; |rendered - simulated| max {m['render_minus_sim_max_n']:.3f} N; "
+        print(f"{key}: punctures [{pun}]; |rendered - simulated| max {m['render_minus_sim_max_n']:.3f} N "
+              f"(vs the tick before: {m['render_minus_sim_lag1_max_n']:.3f} N); "
               f"energy into hand: cycles {[round(x * 1e3, 3) for x in e.get('lift_thrust_cycles', [])]} mJ, "
               f"session {e['closed_session'] * 1e3:.3f} mJ; max force {m['max_force_n']:.2f} N; "
               f"limiting ticks {m['limiting_ticks']}")
