@@ -192,3 +192,26 @@ def test_physical_options_need_the_mass_and_bad_values_are_one_line(emulator, tm
     proc = subprocess.run([sys.executable, "-c", "import ctypes; ctypes.CDLL('libHD.so')"], env=env,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "bad HD_EMU_ENCODER_STEP_MM" in proc.stderr
+
+
+def test_a_closed_loop_session_through_pyopenhaptics_settles_where_hand_and_spring_balance(emulator, tmp_path):
+    # devices.omni.OmniDevice (through the real pyOpenHaptics) with the spring stand-in for the physics
+    # (tests/hd_emulator/run_session.py: F = k max(0, -z_scene) along +z; scene z = device z - 20 mm).
+    # The hand goes to device z = 10 mm and stays; the stylus settles where the hand's spring and the
+    # rendered spring balance: k_h (10 - z) = k (20 - z), encoder-quantised.
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_omni import WS, frames, run_session  # noqa: PLC0415
+
+    k, kh = 150.0, 300.0
+    res = run_session(emulator, tmp_path, {"workspace": WS, "spring_k_n_per_m": k, "force_limit_n": 3.3,
+                                            "duration_s": 1.5},
+                      path=[(0.0, 0.0, 0.0, 30.0), (0.3, 0.0, 0.0, 10.0)],
+                      stylus={"mass_g": 45, "hand_stiffness_n_per_mm": kh * 1e-3, "hand_damping_n_s_per_m": 2.0})
+    assert res["outcome"] == "returned", res["message"]
+    fr = frames(res)
+    z = fr[:, 4]
+    np.testing.assert_allclose(z / 0.055, np.round(z / 0.055), atol=1e-9)  # encoder steps
+    z_eq = (kh * 10.0 + k * 20.0) / (kh + k)
+    n = len(res["states"])
+    assert np.abs(z[n - 200:n] - z_eq).max() <= 0.055  # within one encoder step
+    np.testing.assert_allclose(fr[n - 1, 7], k * (20.0 - z[n - 1]) * 1e-3, rtol=1e-9)  # the force from that position
