@@ -224,6 +224,7 @@ def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | 
     out["hand"] = H[1:]
     out["hand_v"] = hand_v
     out["phases"] = phases
+    out["mode"] = mode
     return out
 
 
@@ -266,6 +267,8 @@ def metrics(res) -> dict:
     # the rendering runs on the tissue's report of the tick before: compare with that tick's force
     lag1 = np.linalg.norm(res["rendered"][1:] - res["simulated"][:-1], axis=1)
     out["render_minus_sim_lag1_max_n"] = float(lag1[smooth[1:]].max()) if smooth.any() else 0.0
+    if res["mode"] == "naive":  # the device gets the simulated force itself, at the same tick
+        out["render_minus_sim_lag1_max_n"] = None
     # energy the device puts into the hand: the stylus pushes the hand with -hand_force
     p = -np.sum(res["hand_force"] * res["hand_v"], axis=1) * DT
     for name, i0, i1 in res["phases"]:
@@ -301,8 +304,9 @@ def main(argv=None) -> int:
         pun = ", ".join(f"L{p['layer']} {p['before_n']:.2f}->{p['min_within_20ms_n']:.2f} ({p['at_20ms_n']:.2f}) N"
                         for p in m["punctures"])
         e = m["energy_into_hand_j"]
-        print(f"{key}: punctures [{pun}]; |rendered - simulated| max {m['render_minus_sim_max_n']:.3f} N "
-              f"(vs the tick before: {m['render_minus_sim_lag1_max_n']:.3f} N); "
+        lag1 = m["render_minus_sim_lag1_max_n"]
+        print(f"{key}: punctures [{pun}]; |rendered - simulated| max {m['render_minus_sim_max_n']:.3f} N"
+              + (f" (vs the tick before: {lag1:.3f} N); " if lag1 is not None else "; ") +
               f"energy into hand: cycles {[round(x * 1e3, 3) for x in e.get('lift_thrust_cycles', [])]} mJ, "
               f"session {e['closed_session'] * 1e3:.3f} mJ; max force {m['max_force_n']:.2f} N; "
               f"limiting ticks {m['limiting_ticks']}")

@@ -8,7 +8,7 @@ massless and is moved once per tick by an implicit (backward-Euler) step of
     0 = f_tissue(x_p, v_p) + K (x_d - x_p) + B (v_d - v_p)
 
 with the tissue force linearised about the proxy's last position from what the tissue step
-reports there (:class:`TissueLocal`): its position-dependent force, and along its axis a damping
+reports there (:class:`TissueLocal`, which also flags a puncture: see ``released``): its position-dependent force, and along its axis a damping
 coefficient, a stiffness and a Coulomb friction level, and a stiffness across the axis. Solved
 per direction in closed form, with the friction as a set-valued (stick/slip) term, so a tissue
 damping of 93 N*s/m or a stiff stick-slip friction cannot make the update unstable, however large.
@@ -98,10 +98,12 @@ class TissueLocal(NamedTuple):
     axis inside tissue, a pressed net's axis; zeros: none, then ``stiffness_across`` acts in every
     direction). ``damping``: N*s/m along the axis; ``stiffness_along``/``stiffness_across``: N/m
     (an upper bound is safe: it only slows the proxy); ``friction``: Coulomb level along the axis (N).
-    ``released``: 1.0 when the tissue let go this tick (a puncture): the coupling relaxes at once (the
-    proxy goes to the device, taking its velocity), as the needle lunges to where the hand holds it,
-    so the drop is felt at once and not bled out through the tissue's damping. It only removes the
-    coupling spring's energy: passive.
+    ``released``: 1.0 when the tissue let go this tick (a puncture): for this one proxy step the
+    tissue's damping and friction are left out, so the coupling spring's compression (a rendering
+    artefact: the device is deeper than a rigid needle would be) is spent moving the proxy into the
+    next layer at once, rather than bled out through the damping of the layers above; the drop is
+    felt within a tick and the next layer still meets the needle (and pops) on its own. Dropping a
+    dissipative term for one step stores no energy: passive.
     """
     force: np.ndarray
     axis: np.ndarray
@@ -186,8 +188,12 @@ def move_proxy(k, b, tissue, state, device_pos, dt):
         a1 = a[1] / an
         a2 = a[2] / an
         ra = r0 * a0 + r1 * a1 + r2 * a2
-        along = tissue.stiffness_along + (tissue.damping + b) / dt + k
-        ua = _solve_dir(ra, along, tissue.friction)
+        if tissue.released != 0.0:
+            along = tissue.stiffness_along + b / dt + k
+            ua = _solve_dir(ra, along, 0.0)
+        else:
+            along = tissue.stiffness_along + (tissue.damping + b) / dt + k
+            ua = _solve_dir(ra, along, tissue.friction)
     u0 = ua * a0 + (r0 - ra * a0) / across
     u1 = ua * a1 + (r1 - ra * a1) / across
     u2 = ua * a2 + (r2 - ra * a2) / across
@@ -279,12 +285,7 @@ def render_step(limits, params, state, tissue, device_pos):
     foaw_velocity(state.history, aux.n_hist, aux.head, params.encoder_step_m, params.dt_s, state.device_v)
     k = min(params.stiffness_n_per_m, limits.stiffness_n_per_m)
     b = min(params.damping_n_s_per_m, limits.damping_n_s_per_m)
-    if tissue.released != 0.0:
-        for c in range(3):
-            state.proxy[c] = device_pos[c]
-            state.proxy_v[c] = state.device_v[c]
-    else:
-        move_proxy(k, b, tissue, state, device_pos, params.dt_s)
+    move_proxy(k, b, tissue, state, device_pos, params.dt_s)
     for c in range(3):
         state.demand[c] = k * (state.proxy[c] - device_pos[c]) + b * (state.proxy_v[c] - state.device_v[c])
     status = _protect(limits, params, state, aux)
