@@ -151,6 +151,12 @@ class NeedleAdapter:
         self.m = model
         self.c = 0.0
 
+    def naive(self, p, v):
+        return np.array(self.m.step(p, v), float)
+
+    def puncture(self):
+        return int(self.m.diag[D_PUNCTURE])
+
     def step(self, p, v):
         m = self.m
         f = np.array(m.step(p, v), float)
@@ -180,13 +186,66 @@ class NeedleAdapter:
 
 def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | None = None,
         cfg=None, limits: R.DeviceLimits = OMNI_LIMITS) -> dict:
-    """One closed-loop session; returns per-tick arrays and the phases."""
+    """The issue's session (:func:`session_path`) on today's tissue model; see :func:`closed_loop`."""
     cfg = cfg if cfg is not None else load_config()
     model = NeedleModel(cfg)
     H, phases = session_path(model)
     model.reset(keep_holes=False)
+    return closed_loop(grip, H, phases, NeedleAdapter(model), mode, velocity, params, limits)
+
+
+class FrictionTissue:
+    """A stand-in for a tissue with Coulomb friction (the model's next step: cutting and friction
+    along the needle): below z = 0, friction ``mu`` (N) and damping ``c`` (N*s/m) along z."""
+
+    def __init__(self, mu: float = 0.5, c: float = 50.0):
+        self.mu, self.c = mu, c
+        self.axis = np.array([0.0, 0.0, 1.0])
+
+    def force(self, p, v):
+        if p[2] >= 0.0:
+            return np.zeros(3)
+        s = 0.0 if v[2] == 0.0 else math.copysign(1.0, v[2])
+        return -(self.c * v[2] + self.mu * s) * self.axis
+
+    def naive(self, p, v):
+        return self.force(p, v)
+
+    def step(self, p, v):
+        inside = p[2] < 0.0
+        local = R.TissueLocal(np.zeros(3), self.axis.copy(), self.c if inside else 0.0, 0.0, 0.0,
+                              self.mu if inside else 0.0, 0.0)
+        return self.force(p, v), local
+
+    def puncture(self):
+        return -1
+
+
+def friction_path():
+    """Into the friction region 10 mm at 10 mm/s, three 5 mm lift-thrust cycles at 1 Hz, hold 1 s."""
+    top = np.array([0.0, 0.0, 1e-3])
+    deep = np.array([0.0, 0.0, -10e-3])
+    rows = [top[None, :]]
+    phases = []
+
+    def add(name, pts):
+        i0 = sum(len(r) for r in rows) - 1
+        rows.append(pts)
+        phases.append((name, i0, i0 + len(pts)))
+
+    add("insert", _segment(top, deep, 0.01))
+    t = DT * np.arange(1, 3001)
+    add("lift_thrust", np.column_stack([np.zeros(3000), np.zeros(3000), deep[2] + 2.5e-3 * (1 - np.cos(2 * np.pi * t))]))
+    add("hold", np.tile(deep, (1000, 1)))
+    return np.vstack(rows), phases
+
+
+def closed_loop(grip: Grip, H, phases, tissue_model, mode: str, velocity: str = "hd",
+                params: R.CouplingParams | None = None, limits: R.DeviceLimits = OMNI_LIMITS) -> dict:
+    """One closed-loop session along the hand path ``H`` (m, one row per tick); returns per-tick
+    arrays and the phases. ``tissue_model`` has ``naive(p, v)`` (the force at the device) and
+    ``step(p, v)`` (the force and a :class:`TissueLocal` at the proxy) and ``puncture()``."""
     n = len(H) - 1
-    adapter = NeedleAdapter(model)
     params = params if params is not None else R.default_params(limits, DT, ENCODER_STEP_M)
     st = R.new_state()
     plant = np.zeros(6)
@@ -208,15 +267,15 @@ def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | 
         xq_prev = xq
         v_hd = raw if velocity == "raw" else v_hd + alpha * (raw - v_hd)
         if mode == "naive":
-            sim = np.array(model.step(xq, v_hd), float)
+            sim = tissue_model.naive(xq, v_hd)
             mag = np.linalg.norm(sim)
             force = sim * (min(1.0, limits.max_force_n / mag) if mag > 0 else 1.0)
         else:
             out["status"][i] = R.render_step(limits, params, st, tissue, xq)
             force = st.force.copy()
-            sim, tissue = adapter.step(st.proxy.copy(), st.proxy_v.copy())
+            sim, tissue = tissue_model.step(st.proxy.copy(), st.proxy_v.copy())
             out["proxy"][i] = st.proxy
-        out["puncture"][i] = int(model.diag[D_PUNCTURE])
+        out["puncture"][i] = tissue_model.puncture()
         out["rendered"][i] = force
         out["simulated"][i] = sim
         out["stylus"][i] = plant[:3]
