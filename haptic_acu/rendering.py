@@ -86,8 +86,18 @@ def default_params(limits: DeviceLimits, dt_s: float = 1e-3, encoder_step_m: flo
     """Half the device's nominal stiffness and damping (a margin below where OpenHaptics says the
     device buzzes), a 5 s RMS window (a motor's windings heat over seconds: a puncture's 1.5 N peak
     is not sustained force) and a ramp of 0.5 per second."""
-    return CouplingParams(0.5 * limits.stiffness_n_per_m, 0.5 * limits.damping_n_s_per_m, encoder_step_m,
-                          5.0, 0.5, dt_s)
+    return check_params(CouplingParams(0.5 * limits.stiffness_n_per_m, 0.5 * limits.damping_n_s_per_m,
+                                       encoder_step_m, 5.0, 0.5, dt_s))
+
+
+def check_params(params: CouplingParams) -> CouplingParams:
+    """``params`` if every field is finite and positive (the encoder step may be 0: exact
+    positions); else ValueError naming the field."""
+    for name, v in zip(CouplingParams._fields, params):
+        v = float(v)
+        if not math.isfinite(v) or v < 0.0 or (v == 0.0 and name != "encoder_step_m"):
+            raise ValueError(f"coupling parameter {name} = {v!r}: expected a positive number")
+    return params
 
 
 class TissueLocal(NamedTuple):

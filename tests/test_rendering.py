@@ -63,6 +63,15 @@ def test_limits_from_hd_converts_the_hd_units_and_refuses_nonsense():
             R.limits_from_hd(*bad)
 
 
+def test_coupling_parameters_are_checked():
+    assert R.check_params(PAR) is PAR
+    for field, bad in (("stiffness_n_per_m", -1.0), ("damping_n_s_per_m", math.nan), ("dt_s", 0.0),
+                       ("continuous_tau_s", math.inf), ("encoder_step_m", -1e-5)):
+        with pytest.raises(ValueError, match=field):
+            R.check_params(PAR._replace(**{field: bad}))
+    assert R.check_params(PAR._replace(encoder_step_m=0.0)).encoder_step_m == 0.0
+
+
 def test_coupling_stays_within_the_devices_stiffness_and_damping():
     # a request far above the device's nominal values is cut to them: a spring tissue of 1e6 N/m met
     # 1 mm deep renders the coupling's stiffness (in series with a much stiffer tissue: ~K)
@@ -244,3 +253,21 @@ def test_the_passivity_measure_catches_a_naive_stiff_tissue():
     F = -kt * path
     dx = np.diff(path, axis=0)
     assert float(np.sum(F[:-1] * dx)) > 0.5 * K * float(np.sum(dx * dx)) + 1e-6
+
+
+def test_render_step_is_callable_from_a_compiled_tick():
+    # what the OMNI's compiled servo tick will do: build the named tuples inside nopython code
+    import numba as nb
+
+    @nb.njit(nogil=True)
+    def tick(limits, params, state, f, axis, coef, x):
+        tissue = R.TissueLocal(f, axis, coef[0], coef[1], coef[2], coef[3], 0.0)
+        return R.render_step(limits, params, state, tissue, x)
+
+    state = R.new_state()
+    x = np.array([0.0, 0.0, -1e-3])
+    for _ in range(300):
+        f = -2000.0 * state.proxy
+        status = tick(LIM, PAR, state, f, Z.copy(), np.array([0.0, 2000.0, 2000.0, 0.0]), x)
+    assert status == 0
+    assert state.force[2] == pytest.approx(K * 2000.0 / (K + 2000.0) * 1e-3, rel=1e-6)
