@@ -215,3 +215,24 @@ def test_a_closed_loop_session_through_pyopenhaptics_settles_where_hand_and_spri
     n = len(res["states"])
     assert np.abs(z[n - 200:n] - z_eq).max() <= 0.055  # within one encoder step
     np.testing.assert_allclose(fr[n - 1, 7], k * (20.0 - z[n - 1]) * 1e-3, rtol=1e-9)  # the force from that position
+
+
+@pytest.mark.parametrize("tremor", [None, (0.05, 9.0)])
+def test_a_still_hand_is_bit_identical_unless_it_trembles(emulator, tmp_path, tremor):
+    # The issue: a trainee holding still gives a position bit-identical for 100 ms, as a frozen
+    # device does. A physiological tremor (here 0.05 mm at 9 Hz) moves the encoders in every window.
+    stylus = {"mass_g": 45, "hand_stiffness_n_per_mm": 0.3, "hand_damping_n_s_per_m": 2.0}
+    if tremor is not None:
+        stylus["hand_tremor"] = tremor
+    res = run_wall(emulator, tmp_path, {"ticks": 1000}, path=[(0.0, 1.0, 2.0, 3.0)], stylus=stylus)
+    seen, tr = res["seen"], res["trace"]
+    late = seen[seen[:, 0] > 0.5, 1:4]
+    windows = [late[i:i + 100] for i in range(0, len(late) - 100, 50)]
+    moved = [np.ptp(w, axis=0).max() > 0 for w in windows]
+    if tremor is None:
+        assert not any(moved)
+    else:
+        assert all(moved)
+        t = tr[:, COL["t_s"]]
+        expected = np.array([1.0, 2.0, 3.0]) + tremor[0] * np.sin(2 * np.pi * (tremor[1] * t[:, None] + np.arange(3) / 3))
+        np.testing.assert_allclose(tr[:, COL["hand_x_mm"]:COL["hand_x_mm"] + 3], expected, atol=1e-12)

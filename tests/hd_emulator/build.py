@@ -54,7 +54,8 @@ def _path_spec(path) -> str:
 # Physical stylus mode (hd_emulator.c): the keys of ``stylus=`` and their HD_EMU_* variables.
 STYLUS_VARS = {"mass_g": "HD_EMU_STYLUS_MASS_G", "hand_stiffness_n_per_mm": "HD_EMU_HAND_STIFFNESS",
                "hand_damping_n_s_per_m": "HD_EMU_HAND_DAMPING", "device_damping_n_s_per_m": "HD_EMU_DEVICE_DAMPING",
-               "encoder_step_mm": "HD_EMU_ENCODER_STEP_MM", "velocity_cutoff_hz": "HD_EMU_VELOCITY_CUTOFF_HZ"}
+               "encoder_step_mm": "HD_EMU_ENCODER_STEP_MM", "velocity_cutoff_hz": "HD_EMU_VELOCITY_CUTOFF_HZ",
+               "hand_tremor": "HD_EMU_HAND_TREMOR"}
 NOMINAL_VARS = {"stiffness_n_per_mm": "HD_EMU_NOMINAL_MAX_STIFFNESS", "damping_n_per_mm_s": "HD_EMU_NOMINAL_MAX_DAMPING",
                 "continuous_force_n": "HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE"}
 # The grips: a 45 g stylus held loosely (0.3 N/mm) or firmly (2 N/mm).
@@ -111,7 +112,10 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
         for key, value in (given or {}).items():
             if key not in table:
                 raise ValueError(f"unknown emulator option {key!r}; one of {sorted(table)}")
-            env[table[key]] = repr(float(value))
+            if key == "hand_tremor":  # (amplitude_mm, frequency_hz)
+                env[table[key]] = ",".join(repr(float(x)) for x in value)
+            else:
+                env[table[key]] = repr(float(value))
     if gimbal is not None:
         env["HD_EMU_GIMBAL"] = _path_spec(gimbal)
     if trace is not None:

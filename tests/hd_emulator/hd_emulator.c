@@ -57,6 +57,8 @@
  *   HD_EMU_VELOCITY_CUTOFF_HZ=50         HD_CURRENT_VELOCITY is the backward difference of successive
  *                                        reported positions through a first-order low-pass at this
  *                                        cutoff (a filtered estimate, not a raw one-tick difference)
+ *   HD_EMU_HAND_TREMOR="0.05,9"          a tremor added to the hand path: amplitude (mm) and frequency (Hz)
+ *                                        of a sine on each axis (phases 0, 2 pi/3, 4 pi/3); default none
  *   HD_EMU_TRACE=file                    per tick: t_s, hand xyz (mm), hand velocity (mm/s), stylus xyz
  *                                        (mm, exact), stylus velocity (mm/s), motor force (N), hand
  *                                        force on the stylus (N) as CSV, written with the log
@@ -207,7 +209,7 @@ static struct {
 
     /* physical stylus mode */
     int physical;
-    double mass_kg, hand_k, hand_b, dev_b, enc_step_mm, vel_cutoff_hz;
+    double mass_kg, hand_k, hand_b, dev_b, enc_step_mm, vel_cutoff_hz, tremor_mm, tremor_hz;
     double xs[3], vs[3];        /* the stylus, exact (m, m/s) */
     double hand_f[3], motor_f[3]; /* over the last tick (N) */
     double *trace;
@@ -290,6 +292,15 @@ static void knots_at(const double *kt, const double *kx, int n, double t, double
 }
 
 static void path_at(double t, double out[3]) { knots_at(E.path_t, E.path_xyz, E.path_n, t, out); }
+
+/* physical mode: the hand's position, the path plus its tremor (mm) */
+static void hand_at(double t, double out[3])
+{
+    path_at(t, out);
+    if (E.tremor_mm > 0.0)
+        for (int k = 0; k < 3; k++)
+            out[k] += E.tremor_mm * sin(2.0 * M_PI * (E.tremor_hz * t + k / 3.0));
+}
 
 static void log_record(int kind, const double f[3])
 {
@@ -376,14 +387,14 @@ static void advance_stylus(void)
     const int nsub = PHYS_SUBSTEPS;
     const double h = DT / nsub, t0 = (E.tick - 1) * DT;
     double hp0[3], hp1[3], hv[3], hand[3];
-    path_at(t0, hp0);
-    path_at(t0 + DT, hp1);
-    for (int k = 0; k < 3; k++) { /* the hand path is piecewise linear: its velocity over the tick */
+    hand_at(t0, hp0);
+    hand_at(t0 + DT, hp1);
+    for (int k = 0; k < 3; k++) { /* the hand's mean velocity over the tick */
         hv[k] = 1e-3 * (hp1[k] - hp0[k]) / DT;
         E.hand_f[k] = 0.0;
     }
     for (int i = 1; i <= nsub; i++) {
-        path_at(t0 + i * h, hand);
+        hand_at(t0 + i * h, hand);
         for (int k = 0; k < 3; k++) {
             double fh = E.hand_k * (1e-3 * hand[k] - E.xs[k]) + E.hand_b * (hv[k] - E.vs[k]);
             double a = (f[k] + fh - E.dev_b * E.vs[k]) / E.mass_kg;
@@ -1274,6 +1285,17 @@ static void parse_physical(void)
         E.enc_step_mm = env_number("HD_EMU_ENCODER_STEP_MM", 0.0, 10.0, "expected a step >= 0 in mm");
     if (env_set("HD_EMU_VELOCITY_CUTOFF_HZ"))
         E.vel_cutoff_hz = env_number("HD_EMU_VELOCITY_CUTOFF_HZ", 1e-3, 1e5, "expected a positive cutoff in Hz");
+    if (env_set("HD_EMU_HAND_TREMOR")) {
+        const char *v = getenv("HD_EMU_HAND_TREMOR");
+        char *end;
+        E.tremor_mm = strtod(v, &end);
+        if (end == v || *end != ',' || !isfinite(E.tremor_mm) || E.tremor_mm < 0.0)
+            die("HD_EMU_HAND_TREMOR", "expected amplitude_mm,frequency_hz");
+        const char *w = end + 1;
+        E.tremor_hz = strtod(w, &end);
+        if (end == w || *end || !isfinite(E.tremor_hz) || E.tremor_hz <= 0.0)
+            die("HD_EMU_HAND_TREMOR", "expected amplitude_mm,frequency_hz");
+    }
 }
 
 static void parse_path(const char *s)
@@ -1387,7 +1409,7 @@ __attribute__((constructor)) static void emu_init(void)
     if (env_set("HD_EMU_STYLUS_MASS_G"))
         parse_physical();
     else if (env_set("HD_EMU_HAND_STIFFNESS") || env_set("HD_EMU_HAND_DAMPING") || env_set("HD_EMU_DEVICE_DAMPING") ||
-             env_set("HD_EMU_ENCODER_STEP_MM") || env_set("HD_EMU_VELOCITY_CUTOFF_HZ"))
+             env_set("HD_EMU_ENCODER_STEP_MM") || env_set("HD_EMU_VELOCITY_CUTOFF_HZ") || env_set("HD_EMU_HAND_TREMOR"))
         die("physical stylus options", "they need HD_EMU_STYLUS_MASS_G (the physical stylus mode)");
     if (env_set("HD_EMU_TRACE"))
         snprintf(E.trace_path, sizeof E.trace_path, "%s", getenv("HD_EMU_TRACE"));
