@@ -1,7 +1,7 @@
 """Offline closed-loop harness: a hand holding the stylus of an OMNI-like device, the tissue model,
 and the force the device renders, with or without :mod:`haptic_acu.rendering` (SI units, 1 kHz).
 
-The plant is the HD emulator's physical stylus (tests/hd_emulator/hd_emulator.c) in numba: a 45 g
+The plant is :mod:`haptic_acu.stylus`, the HD emulator's physical stylus in numba: a 45 g
 stylus held by a hand (a spring-damper to a scripted hand path), pushed by the commanded force
 held over each tick, its position reported quantised to the 0.055 mm encoder step. The tissue is
 today's :class:`haptic_acu.needle.NeedleModel`, driven through its public ``step``.
@@ -38,17 +38,16 @@ import dataclasses
 import json
 import math
 
-import numba as nb
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from haptic_acu import rendering as R
+from haptic_acu import stylus
 from haptic_acu.config import load_config
 from haptic_acu.needle import D_F_DAMP, D_PUNCTURE, LP_D, NP_K_BONE, NP_K_LAT, PRESSING, PUNCTURED, SF_OFFSET, NeedleModel
 
 DT = 1e-3
 ENCODER_STEP_M = 0.055e-3
-SUBSTEPS = 20
 # The emulator's defaults for an OMNI (hd_emulator.c): HD_NOMINAL_MAX_* (SI here).
 OMNI_LIMITS = R.limits_from_hd(3.3, 0.88, 1.26, 0.003)
 # The stiffness reported while a layer is pressed. The nets stiffen to 1.5 N/mm (skin) and 2.2 N/mm
@@ -65,30 +64,13 @@ class Grip:
     damping_n_s_per_m: float
     mass_kg: float = 0.045
 
+    @property
+    def model(self) -> stylus.Grip:
+        return stylus.Grip(self.stiffness_n_per_m, self.damping_n_s_per_m, self.mass_kg)
 
-LOOSE = Grip("loose", 300.0, 2.0)
-FIRM = Grip("firm", 2000.0, 5.0)
 
-
-@nb.njit(cache=True, nogil=True)
-def plant_tick(state, hand0, hand1, force, k_h, b_h, m, out_hand_force):
-    """One 1 ms tick of the stylus (``state``: x(3), v(3)) with ``force`` held, the hand moving
-    linearly from ``hand0`` to ``hand1``; writes the tick's mean hand force on the stylus."""
-    h = DT / SUBSTEPS
-    for c in range(3):
-        hv = (hand1[c] - hand0[c]) / DT
-        x = state[c]
-        v = state[3 + c]
-        acc_f = 0.0
-        for i in range(1, SUBSTEPS + 1):
-            hp = hand0[c] + hv * i * h
-            fh = k_h * (hp - x) + b_h * (hv - v)
-            v += h * (force[c] + fh) / m
-            x += h * v
-            acc_f += fh
-        state[c] = x
-        state[3 + c] = v
-        out_hand_force[c] = acc_f / SUBSTEPS
+LOOSE = Grip("loose", *stylus.LOOSE[:2])
+FIRM = Grip("firm", *stylus.FIRM[:2])
 
 
 def _contact_z(model: NeedleModel, x: float) -> float:
@@ -261,7 +243,7 @@ def closed_loop(grip: Grip, H, phases, tissue_model, mode: str, velocity: str = 
     v_hd = np.zeros(3)
     alpha = 1.0 - math.exp(-2 * math.pi * 50.0 * DT)
     for i in range(n):
-        plant_tick(plant, H[i], H[i + 1], force, grip.stiffness_n_per_m, grip.damping_n_s_per_m, grip.mass_kg, hand_f)
+        stylus.stylus_tick(plant, H[i], H[i + 1], force, grip.model, DT, hand_f)
         xq = ENCODER_STEP_M * np.round(plant[:3] / ENCODER_STEP_M)
         raw = np.zeros(3) if xq_prev is None else (xq - xq_prev) / DT
         xq_prev = xq

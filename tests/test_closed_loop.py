@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import TRACE_COLUMNS, build_emulator, emulator_env, find_compiler  # noqa: E402
 
+from haptic_acu import stylus  # noqa: E402
 from haptic_acu.bench import closed_loop as C  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,9 +37,9 @@ def emulator(tmp_path_factory):
     return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
 
 
-def test_the_harness_plant_is_the_emulators_physical_stylus(emulator, tmp_path):
+def test_the_stylus_model_is_the_emulators_physical_stylus(emulator, tmp_path):
     # hand path, grip, encoder and a naive 0.5 N/mm spring about z = 0.3 mm, in the emulator (C, HD API)
-    # and in the harness's numba plant: the same stylus trajectory
+    # and in haptic_acu.stylus (the harness's plant, numba): the same stylus trajectory
     knots = [(0.0, 0.0, 0.0, 0.0), (0.2, 0.0, 0.0, 2.0), (0.4, 1.0, 0.0, 2.0)]
     grip = C.LOOSE
     (tmp_path / "sc.json").write_text(json.dumps({"kind": "spring", "k_n_per_mm": 0.5, "z_wall_mm": 0.3,
@@ -57,9 +58,10 @@ def test_the_harness_plant_is_the_emulators_physical_stylus(emulator, tmp_path):
     force = np.zeros(3)
     xs = []
     for i in range(400):
-        C.plant_tick(state, H[i], H[i + 1], force, grip.stiffness_n_per_m, grip.damping_n_s_per_m, grip.mass_kg, hand_f)
+        stylus.stylus_tick(state, H[i], H[i + 1], force, grip.model, 1e-3, hand_f)
         xs.append(state[:3].copy())
-        xq = C.ENCODER_STEP_M * np.round(state[:3] / C.ENCODER_STEP_M)
+        xq = np.zeros(3)
+        stylus.encoder(state[:3], C.ENCODER_STEP_M, xq)
         force = np.array([0.0, 0.0, -500.0 * (xq[2] - 0.3e-3)])
     xs = np.array(xs)
     emu = tr[:400, COL["x_mm"]:COL["x_mm"] + 3] * 1e-3
