@@ -44,7 +44,7 @@ from scipy.signal import butter, sosfiltfilt
 from haptic_acu import rendering as R
 from haptic_acu import stylus
 from haptic_acu.config import load_config
-from haptic_acu.needle import D_F_DAMP, D_PUNCTURE, LP_D, NP_K_BONE, NP_K_LAT, PRESSING, PUNCTURED, SF_OFFSET, NeedleModel
+from haptic_acu.needle import D_F_DAMP, D_PUNCTURE, NP_K_BONE, NP_K_LAT, PRESSING, PUNCTURED, NeedleModel
 
 DT = 1e-3
 ENCODER_STEP_M = 0.055e-3
