@@ -51,8 +51,24 @@ def _path_spec(path) -> str:
     return ";".join(",".join(repr(float(v)) for v in knot) for knot in path)
 
 
+# Physical stylus mode (hd_emulator.c): the keys of ``stylus=`` and their HD_EMU_* variables.
+STYLUS_VARS = {"mass_g": "HD_EMU_STYLUS_MASS_G", "hand_stiffness_n_per_mm": "HD_EMU_HAND_STIFFNESS",
+               "hand_damping_n_s_per_m": "HD_EMU_HAND_DAMPING", "device_damping_n_s_per_m": "HD_EMU_DEVICE_DAMPING",
+               "encoder_step_mm": "HD_EMU_ENCODER_STEP_MM", "velocity_cutoff_hz": "HD_EMU_VELOCITY_CUTOFF_HZ",
+               "hand_tremor": "HD_EMU_HAND_TREMOR"}
+NOMINAL_VARS = {"stiffness_n_per_mm": "HD_EMU_NOMINAL_MAX_STIFFNESS", "damping_n_per_mm_s": "HD_EMU_NOMINAL_MAX_DAMPING",
+                "continuous_force_n": "HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE"}
+# The issue's grips: a 45 g stylus held loosely (0.3 N/mm) or firmly (2 N/mm).
+LOOSE_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 0.3, "hand_damping_n_s_per_m": 2.0}
+FIRM_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 2.0, "hand_damping_n_s_per_m": 5.0}
+TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "hand_vy_mm_s", "hand_vz_mm_s",
+                 "x_mm", "y_mm", "z_mm", "vx_mm_s", "vy_mm_s", "vz_mm_s", "motor_fx_n", "motor_fy_n", "motor_fz_n",
+                 "hand_fx_n", "hand_fy_n", "hand_fz_n")
+
+
 def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velocity=True,
-                 init_error=None, buttons=None, device_name=None, log=None, sched_fifo=None, base=None) -> dict:
+                 init_error=None, buttons=None, device_name=None, log=None, sched_fifo=None, base=None,
+                 stylus=None, nominal=None, gimbal=None, trace=None) -> dict:
     """An environment whose dynamic loader finds the emulator as ``libHD.so``.
 
     ``path``: knots ``(t_s, x_mm, y_mm, z_mm)`` of the stylus path in the device frame;
@@ -60,6 +76,10 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
     HD_CURRENT_VELOCITY unsupported; ``init_error``: an HD error code hdInitDevice fails with;
     ``log``: a CSV file the force log is written to when the device is disabled and at exit;
     ``sched_fifo``: a priority the scheduler thread asks SCHED_FIFO for (refused: a line on stderr).
+    ``stylus``: the physical stylus mode, a dict with keys of :data:`STYLUS_VARS` (``mass_g`` needed;
+    e.g. :data:`LOOSE_GRIP`): ``path`` is then the hand's path; ``nominal``: keys of
+    :data:`NOMINAL_VARS` (HD_NOMINAL_MAX_*); ``gimbal``: knots ``(t_s, a, b, c)`` of the gimbal angles
+    (rad, c the stylus roll); ``trace``: a CSV file of the stylus physics per tick (:data:`TRACE_COLUMNS`).
     """
     env = dict(os.environ if base is None else base)
     for key in [k for k in env if k.startswith("HD_EMU_")]:
@@ -88,6 +108,18 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
         env["HD_EMU_LOG"] = str(log)
     if sched_fifo is not None:
         env["HD_EMU_SCHED_FIFO"] = str(int(sched_fifo))
+    for given, table in ((stylus, STYLUS_VARS), (nominal, NOMINAL_VARS)):
+        for key, value in (given or {}).items():
+            if key not in table:
+                raise ValueError(f"unknown emulator option {key!r}; one of {sorted(table)}")
+            if key == "hand_tremor":  # (amplitude_mm, frequency_hz)
+                env[table[key]] = ",".join(repr(float(x)) for x in value)
+            else:
+                env[table[key]] = repr(float(value))
+    if gimbal is not None:
+        env["HD_EMU_GIMBAL"] = _path_spec(gimbal)
+    if trace is not None:
+        env["HD_EMU_TRACE"] = str(trace)
     return env
 
 

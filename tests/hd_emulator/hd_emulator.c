@@ -33,6 +33,37 @@
  *   HD_EMU_SCHED_FIFO=10                 the scheduler thread asks for SCHED_FIFO at this priority, as a
  *                                        servo thread on a real-time setup runs; refused: one line on
  *                                        stderr, and it runs as an ordinary thread
+ *   HD_EMU_NOMINAL_MAX_STIFFNESS=1.26    N/mm   (HD_NOMINAL_MAX_STIFFNESS)
+ *   HD_EMU_NOMINAL_MAX_DAMPING=0.003     N/(mm/s) (HD_NOMINAL_MAX_DAMPING)
+ *   HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE=0.88  N (HD_NOMINAL_MAX_CONTINUOUS_FORCE)
+ *   HD_EMU_GIMBAL="t,a,b,c;..."          HD_CURRENT_GIMBAL_ANGLES (rad) against device time, piecewise
+ *                                        linear; the third angle is the stylus roll (default all 0)
+ *
+ * Physical stylus mode (on when HD_EMU_STYLUS_MASS_G is set): the stylus is a point mass pushed by
+ * the committed force (what the motors output: zero when output is off, clamped to the nominal
+ * maximum while HD_MAX_FORCE_CLAMPING is on), by its own viscous damping and by a hand holding it
+ * through a spring-damper; HD_EMU_PATH is then the path of the HAND, not of the stylus. The dynamics
+ * are integrated in 20 semi-implicit Euler substeps per 1 ms tick with the force held over the tick
+ * (a zero-order hold, as a real servo loop applies it):
+ *
+ *   m x'' = F_cmd + k_h (h(t) - x) + b_h (h'(t) - x') - b_d x'
+ *
+ *   HD_EMU_STYLUS_MASS_G=45              m (g)
+ *   HD_EMU_HAND_STIFFNESS=0.3            k_h (N/mm): 0.3 a loose grip, 2 a firm one, 0 no hand
+ *   HD_EMU_HAND_DAMPING=2.0              b_h (N*s/m)
+ *   HD_EMU_DEVICE_DAMPING=0              b_d (N*s/m), the mechanism's own viscous friction
+ *   HD_EMU_ENCODER_STEP_MM=0.055         positions are reported quantised to this step per axis
+ *                                        (round to nearest); 0: exact
+ *   HD_EMU_VELOCITY_CUTOFF_HZ=50         HD_CURRENT_VELOCITY is the backward difference of successive
+ *                                        reported positions through a first-order low-pass at this
+ *                                        cutoff (a filtered estimate, not a raw one-tick difference)
+ *   HD_EMU_HAND_TREMOR="0.05,9"          a tremor added to the hand path: amplitude (mm) and frequency (Hz)
+ *                                        of a sine on each axis (phases 0, 2 pi/3, 4 pi/3); default none
+ *   HD_EMU_TRACE=file                    per tick: t_s, hand xyz (mm), hand velocity (mm/s), stylus xyz
+ *                                        (mm, exact), stylus velocity (mm/s), motor force (N), hand
+ *                                        force on the stylus (N) as CSV, written with the log
+ *
+ * Without HD_EMU_STYLUS_MASS_G the stylus follows HD_EMU_PATH exactly (the kinematic mode above).
  *
  * Written for this project from the public HD API signatures; no OpenHaptics code is used.
  */
@@ -134,6 +165,8 @@ enum {
 #define LOG_DEVICE_DISABLED 3
 #define LOG_OUTPUT_ENABLED 4
 #define LOG_FIELDS 8 /* t_s, kind, px, py, pz, fx, fy, fz */
+#define TRACE_FIELDS 19 /* t_s, hand xyz, hand v xyz, stylus xyz, stylus v xyz, motor f xyz, hand f xyz */
+#define PHYS_SUBSTEPS 20
 
 #define DT 1e-3
 #define MAX_FAULTS 8
@@ -170,6 +203,18 @@ static struct {
     char model[128];
     char log_path[1024];
     int fifo_priority; /* > 0: the scheduler thread asks for SCHED_FIFO */
+    double nominal_max_stiffness, nominal_max_damping, nominal_max_continuous;
+    double *gimbal_t, *gimbal_abc;
+    int gimbal_n;
+
+    /* physical stylus mode */
+    int physical;
+    double mass_kg, hand_k, hand_b, dev_b, enc_step_mm, vel_cutoff_hz, tremor_mm, tremor_hz;
+    double xs[3], vs[3];        /* the stylus, exact (m, m/s) */
+    double hand_f[3], motor_f[3]; /* over the last tick (N) */
+    double *trace;
+    long trace_n, trace_cap;
+    char trace_path[1024];
 
     long tick; /* since hdStartScheduler */
     struct timespec tick_start;
@@ -223,28 +268,38 @@ static int hd_fault_code(void)
     return 0;
 }
 
-static void path_at(double t, double out[3])
+static void knots_at(const double *kt, const double *kx, int n, double t, double out[3])
 {
-    if (E.path_n <= 0) {
+    if (n <= 0) {
         out[0] = out[1] = out[2] = 0.0;
         return;
     }
-    int n = E.path_n;
-    if (t <= E.path_t[0]) {
-        memcpy(out, E.path_xyz, 3 * sizeof(double));
+    if (t <= kt[0]) {
+        memcpy(out, kx, 3 * sizeof(double));
         return;
     }
-    if (t >= E.path_t[n - 1]) {
-        memcpy(out, E.path_xyz + 3 * (n - 1), 3 * sizeof(double));
+    if (t >= kt[n - 1]) {
+        memcpy(out, kx + 3 * (n - 1), 3 * sizeof(double));
         return;
     }
     int i = 0;
-    while (i + 1 < n && E.path_t[i + 1] < t)
+    while (i + 1 < n && kt[i + 1] < t)
         i++;
-    double t0 = E.path_t[i], t1 = E.path_t[i + 1];
+    double t0 = kt[i], t1 = kt[i + 1];
     double a = t1 > t0 ? (t - t0) / (t1 - t0) : 1.0;
     for (int k = 0; k < 3; k++)
-        out[k] = (1.0 - a) * E.path_xyz[3 * i + k] + a * E.path_xyz[3 * (i + 1) + k];
+        out[k] = (1.0 - a) * kx[3 * i + k] + a * kx[3 * (i + 1) + k];
+}
+
+static void path_at(double t, double out[3]) { knots_at(E.path_t, E.path_xyz, E.path_n, t, out); }
+
+/* physical mode: the hand's position, the path plus its tremor (mm) */
+static void hand_at(double t, double out[3])
+{
+    path_at(t, out);
+    if (E.tremor_mm > 0.0)
+        for (int k = 0; k < 3; k++)
+            out[k] += E.tremor_mm * sin(2.0 * M_PI * (E.tremor_hz * t + k / 3.0));
 }
 
 static void log_record(int kind, const double f[3])
@@ -267,27 +322,112 @@ static void log_record(int kind, const double f[3])
 
 static const double ZERO3[3] = {0.0, 0.0, 0.0};
 
+static double quantise(double x_mm)
+{
+    return E.enc_step_mm > 0.0 ? E.enc_step_mm * nearbyint(x_mm / E.enc_step_mm) : x_mm;
+}
+
 static void reset_device(void)
 {
     E.tick = 0;
     path_at(0.0, E.pos);
     memset(E.vel, 0, sizeof E.vel);
     E.pos_valid = 1;
+    if (E.physical) {
+        for (int k = 0; k < 3; k++) {
+            E.xs[k] = 1e-3 * E.pos[k]; /* the stylus starts at rest in the hand */
+            E.vs[k] = 0.0;
+            E.pos[k] = quantise(E.pos[k]);
+        }
+        memset(E.hand_f, 0, sizeof E.hand_f);
+        memset(E.motor_f, 0, sizeof E.motor_f);
+        E.trace_n = 0;
+    }
+}
+
+static void trace_record(const double h[3], const double hv[3])
+{
+    if (E.trace_n == E.trace_cap) {
+        long cap = E.trace_cap ? 2 * E.trace_cap : 4096;
+        double *p = realloc(E.trace, (size_t)cap * TRACE_FIELDS * sizeof(double));
+        if (!p)
+            return;
+        E.trace = p;
+        E.trace_cap = cap;
+    }
+    double *r = E.trace + E.trace_n * TRACE_FIELDS;
+    r[0] = E.tick * DT;
+    for (int k = 0; k < 3; k++) {
+        r[1 + k] = h[k];
+        r[4 + k] = hv[k];
+        r[7 + k] = 1e3 * E.xs[k];
+        r[10 + k] = 1e3 * E.vs[k];
+        r[13 + k] = E.motor_f[k];
+        r[16 + k] = E.hand_f[k];
+    }
+    E.trace_n++;
+}
+
+/* One tick of the stylus' dynamics with the motor force held (mu held). */
+static void advance_stylus(void)
+{
+    double f[3] = {0.0, 0.0, 0.0};
+    if (E.initialized && E.running && E.force_output) {
+        double n2 = 0.0;
+        for (int k = 0; k < 3; k++) {
+            f[k] = isfinite(E.force_last[k]) ? E.force_last[k] : 0.0;
+            n2 += f[k] * f[k];
+        }
+        double n = sqrt(n2);
+        if (E.clamping && n > E.nominal_max_force)
+            for (int k = 0; k < 3; k++)
+                f[k] *= E.nominal_max_force / n;
+    }
+    memcpy(E.motor_f, f, sizeof f);
+    const int nsub = PHYS_SUBSTEPS;
+    const double h = DT / nsub, t0 = (E.tick - 1) * DT;
+    double hp0[3], hp1[3], hv[3], hand[3];
+    hand_at(t0, hp0);
+    hand_at(t0 + DT, hp1);
+    for (int k = 0; k < 3; k++) { /* the hand's mean velocity over the tick */
+        hv[k] = 1e-3 * (hp1[k] - hp0[k]) / DT;
+        E.hand_f[k] = 0.0;
+    }
+    for (int i = 1; i <= nsub; i++) {
+        hand_at(t0 + i * h, hand);
+        for (int k = 0; k < 3; k++) {
+            double fh = E.hand_k * (1e-3 * hand[k] - E.xs[k]) + E.hand_b * (hv[k] - E.vs[k]);
+            double a = (f[k] + fh - E.dev_b * E.vs[k]) / E.mass_kg;
+            E.vs[k] += h * a; /* semi-implicit (symplectic) Euler */
+            E.xs[k] += h * E.vs[k];
+            E.hand_f[k] += fh / nsub; /* the tick's mean hand force */
+        }
+    }
+    double hvm[3] = {1e3 * hv[0], 1e3 * hv[1], 1e3 * hv[2]};
+    trace_record(hp1, hvm);
 }
 
 static void advance_device(void)
 {
     E.tick++;
     double p[3];
+    if (E.physical)
+        advance_stylus();
     if (fault_active(EMU_NAN)) {
         p[0] = p[1] = p[2] = NAN;
     } else if (fault_active(EMU_FREEZE)) {
         return; /* position and velocity stay as they were */
+    } else if (E.physical) {
+        for (int k = 0; k < 3; k++)
+            p[k] = quantise(1e3 * E.xs[k]);
     } else {
         path_at(E.tick * DT, p);
     }
+    /* physical mode: a first-order low-pass of the backward difference (alpha = 1 - exp(-2 pi fc T)) */
+    double alpha = E.physical ? 1.0 - exp(-2.0 * M_PI * E.vel_cutoff_hz * DT) : 1.0;
     for (int k = 0; k < 3; k++) {
-        E.vel[k] = E.pos_valid ? (p[k] - E.pos[k]) / DT : 0.0;
+        double raw = E.pos_valid ? (p[k] - E.pos[k]) / DT : 0.0;
+        E.vel[k] = (E.physical && isfinite(raw) && isfinite(E.vel[k])) ? E.vel[k] + alpha * (raw - E.vel[k]) : raw;
         E.pos[k] = p[k];
     }
     E.pos_valid = 1;
@@ -554,8 +694,10 @@ static int get_values(HDenum what, double *out)
         memcpy(out + 12, E.pos, 3 * sizeof(double));
         return 16;
     case HD_CURRENT_JOINT_ANGLES:
-    case HD_CURRENT_GIMBAL_ANGLES:
         memset(out, 0, 3 * sizeof(double));
+        return 3;
+    case HD_CURRENT_GIMBAL_ANGLES:
+        knots_at(E.gimbal_t, E.gimbal_abc, E.gimbal_n, E.tick * DT, out);
         return 3;
     case HD_CURRENT_FORCE:
         memcpy(out, E.force_cmd, 3 * sizeof(double));
@@ -567,13 +709,13 @@ static int get_values(HDenum what, double *out)
         out[0] = E.nominal_max_force;
         return 1;
     case HD_NOMINAL_MAX_CONTINUOUS_FORCE:
-        out[0] = 0.88;
+        out[0] = E.nominal_max_continuous;
         return 1;
     case HD_NOMINAL_MAX_STIFFNESS:
-        out[0] = 1.26;
+        out[0] = E.nominal_max_stiffness;
         return 1;
     case HD_NOMINAL_MAX_DAMPING:
-        out[0] = 0.003;
+        out[0] = E.nominal_max_damping;
         return 1;
     case HD_TABLETOP_OFFSET:
         out[0] = -110.0;
@@ -994,8 +1136,47 @@ EXPORT long emu_callbacks_called(void) { return E.callbacks_called; }
 EXPORT int emu_scheduler_running(void) { return E.running; }
 EXPORT int emu_initialized(void) { return E.initialized; }
 
+static void write_trace_locked(void)
+{
+    if (!E.trace_path[0])
+        return;
+    FILE *f = fopen(E.trace_path, "w");
+    if (!f)
+        return;
+    fprintf(f, "t_s,hand_x_mm,hand_y_mm,hand_z_mm,hand_vx_mm_s,hand_vy_mm_s,hand_vz_mm_s,x_mm,y_mm,z_mm,"
+               "vx_mm_s,vy_mm_s,vz_mm_s,motor_fx_n,motor_fy_n,motor_fz_n,hand_fx_n,hand_fy_n,hand_fz_n\n");
+    for (long i = 0; i < E.trace_n; i++) {
+        const double *r = E.trace + i * TRACE_FIELDS;
+        fprintf(f, "%.6f", r[0]);
+        for (int k = 1; k < TRACE_FIELDS; k++)
+            fprintf(f, ",%.17g", r[k]);
+        fprintf(f, "\n");
+    }
+    fclose(f);
+}
+
+/* physical mode: copies up to max ticks of TRACE_FIELDS doubles (see HD_EMU_TRACE); returns count */
+EXPORT long emu_get_trace(double *out, long max)
+{
+    pthread_mutex_lock(&mu);
+    long n = E.trace_n < max ? E.trace_n : max;
+    if (n > 0)
+        memcpy(out, E.trace, (size_t)n * TRACE_FIELDS * sizeof(double));
+    pthread_mutex_unlock(&mu);
+    return n;
+}
+
+EXPORT long emu_trace_count(void)
+{
+    pthread_mutex_lock(&mu);
+    long n = E.trace_n;
+    pthread_mutex_unlock(&mu);
+    return n;
+}
+
 static void write_log_locked(void)
 {
+    write_trace_locked();
     if (!E.log_path[0])
         return;
     FILE *f = fopen(E.log_path, "w");
@@ -1025,6 +1206,96 @@ static void die(const char *var, const char *why)
 {
     fprintf(stderr, "hd_emulator: bad %s: %s\n", var, why);
     exit(2);
+}
+
+static void parse_knots(const char *var, const char *s, double **kt, double **kx, int *kn)
+{
+    int cap = 16, n = 0;
+    double *t = malloc(cap * sizeof(double)), *x = malloc(3 * cap * sizeof(double));
+    const char *p = s;
+    while (*p) {
+        if (n == cap) {
+            cap *= 2;
+            t = realloc(t, cap * sizeof(double));
+            x = realloc(x, 3 * cap * sizeof(double));
+        }
+        for (int k = 0; k < 4; k++) {
+            char *end;
+            double v = strtod(p, &end);
+            if (end == p || !isfinite(v))
+                die(var, "expected t,a,b,c;t,a,b,c;...");
+            if (k == 0)
+                t[n] = v;
+            else
+                x[3 * n + k - 1] = v;
+            p = end;
+            if (k < 3) {
+                if (*p != ',')
+                    die(var, "expected t,a,b,c;t,a,b,c;...");
+                p++;
+            }
+        }
+        if (n > 0 && !(t[n] >= t[n - 1]))
+            die(var, "knot times must ascend");
+        n++;
+        if (*p == ';')
+            p++;
+        else if (*p)
+            die(var, "knots are separated by ';'");
+    }
+    if (n < 1)
+        die(var, "need at least one knot");
+    *kt = t;
+    *kx = x;
+    *kn = n;
+}
+
+static double env_number(const char *var, double lo, double hi, const char *what)
+{
+    const char *v = getenv(var);
+    char *end;
+    double x = strtod(v, &end);
+    if (end == v || *end || !isfinite(x) || x < lo || x > hi)
+        die(var, what);
+    return x;
+}
+
+static int env_set(const char *var)
+{
+    const char *v = getenv(var);
+    return v && *v;
+}
+
+static void parse_physical(void)
+{
+    E.physical = 1;
+    E.mass_kg = 1e-3 * env_number("HD_EMU_STYLUS_MASS_G", 1e-3, 1e4, "expected a positive mass in grams");
+    E.hand_k = 0.3e3;
+    E.hand_b = 2.0;
+    E.dev_b = 0.0;
+    E.enc_step_mm = 0.055;
+    E.vel_cutoff_hz = 50.0;
+    if (env_set("HD_EMU_HAND_STIFFNESS"))
+        E.hand_k = 1e3 * env_number("HD_EMU_HAND_STIFFNESS", 0.0, 1e3, "expected a stiffness >= 0 in N/mm");
+    if (env_set("HD_EMU_HAND_DAMPING"))
+        E.hand_b = env_number("HD_EMU_HAND_DAMPING", 0.0, 1e4, "expected a damping >= 0 in N*s/m");
+    if (env_set("HD_EMU_DEVICE_DAMPING"))
+        E.dev_b = env_number("HD_EMU_DEVICE_DAMPING", 0.0, 1e4, "expected a damping >= 0 in N*s/m");
+    if (env_set("HD_EMU_ENCODER_STEP_MM"))
+        E.enc_step_mm = env_number("HD_EMU_ENCODER_STEP_MM", 0.0, 10.0, "expected a step >= 0 in mm");
+    if (env_set("HD_EMU_VELOCITY_CUTOFF_HZ"))
+        E.vel_cutoff_hz = env_number("HD_EMU_VELOCITY_CUTOFF_HZ", 1e-3, 1e5, "expected a positive cutoff in Hz");
+    if (env_set("HD_EMU_HAND_TREMOR")) {
+        const char *v = getenv("HD_EMU_HAND_TREMOR");
+        char *end;
+        E.tremor_mm = strtod(v, &end);
+        if (end == v || *end != ',' || !isfinite(E.tremor_mm) || E.tremor_mm < 0.0)
+            die("HD_EMU_HAND_TREMOR", "expected amplitude_mm,frequency_hz");
+        const char *w = end + 1;
+        E.tremor_hz = strtod(w, &end);
+        if (end == w || *end || !isfinite(E.tremor_hz) || E.tremor_hz <= 0.0)
+            die("HD_EMU_HAND_TREMOR", "expected amplitude_mm,frequency_hz");
+    }
 }
 
 static void parse_path(const char *s)
@@ -1124,6 +1395,24 @@ __attribute__((constructor)) static void emu_init(void)
         snprintf(E.device_name, sizeof E.device_name, "%s", v);
     if ((v = getenv("HD_EMU_LOG")) && *v)
         snprintf(E.log_path, sizeof E.log_path, "%s", v);
+    E.nominal_max_stiffness = 1.26;
+    E.nominal_max_damping = 0.003;
+    E.nominal_max_continuous = 0.88;
+    if (env_set("HD_EMU_NOMINAL_MAX_STIFFNESS"))
+        E.nominal_max_stiffness = env_number("HD_EMU_NOMINAL_MAX_STIFFNESS", 1e-9, 1e6, "expected a positive stiffness in N/mm");
+    if (env_set("HD_EMU_NOMINAL_MAX_DAMPING"))
+        E.nominal_max_damping = env_number("HD_EMU_NOMINAL_MAX_DAMPING", 1e-12, 1e6, "expected a positive damping in N/(mm/s)");
+    if (env_set("HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE"))
+        E.nominal_max_continuous = env_number("HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE", 1e-9, 1e6, "expected a positive force in N");
+    if (env_set("HD_EMU_GIMBAL"))
+        parse_knots("HD_EMU_GIMBAL", getenv("HD_EMU_GIMBAL"), &E.gimbal_t, &E.gimbal_abc, &E.gimbal_n);
+    if (env_set("HD_EMU_STYLUS_MASS_G"))
+        parse_physical();
+    else if (env_set("HD_EMU_HAND_STIFFNESS") || env_set("HD_EMU_HAND_DAMPING") || env_set("HD_EMU_DEVICE_DAMPING") ||
+             env_set("HD_EMU_ENCODER_STEP_MM") || env_set("HD_EMU_VELOCITY_CUTOFF_HZ") || env_set("HD_EMU_HAND_TREMOR"))
+        die("physical stylus options", "they need HD_EMU_STYLUS_MASS_G (the physical stylus mode)");
+    if (env_set("HD_EMU_TRACE"))
+        snprintf(E.trace_path, sizeof E.trace_path, "%s", getenv("HD_EMU_TRACE"));
     if ((v = getenv("HD_EMU_SCHED_FIFO")) && *v) {
         char *end;
         long prio = strtol(v, &end, 10);
