@@ -37,15 +37,16 @@ def pullout_peak(proto, p=None):
     roll = T.protocol_roll(proto, DT)
     for r in roll:
         T.wind_step(ws, float(r), LENGTHS, DT, p)
-        mech.stick_slip(st, prm, s, 0.0, mech.shaft_thresholds(prm, ws.grasp * LENGTHS, 0.0))
+        mech.stick_slip(st, prm.k_stick, prm.decay, s, 0.0,
+                        mech.shaft_thresholds(prm.fs, prm.fc, ws.grasp * LENGTHS, 0.0))
     peak = 0.0
     for k in range(1, 501):
         s_k = s - PULL_MM_S * 1e-3 * DT * k
         lengths = LENGTHS.copy()
         lengths[2] = max(0.0, lengths[2] - (s - s_k))
         T.wind_step(ws, float(roll[-1]), lengths, DT, p)
-        f = mech.stick_slip(st, prm, s_k, -PULL_MM_S * 1e-3,
-                            mech.shaft_thresholds(prm, ws.grasp * lengths, 0.0))
+        f = mech.stick_slip(st, prm.k_stick, prm.decay, s_k, -PULL_MM_S * 1e-3,
+                            mech.shaft_thresholds(prm.fs, prm.fc, ws.grasp * lengths, 0.0))
         peak = max(peak, f)  # along +s: positive resists the withdrawal
     return peak
 
