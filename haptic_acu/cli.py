@@ -22,6 +22,7 @@ COMMANDS = {
     "score": "haptic_acu.score_cmd",
     "bench": "haptic_acu.bench_cmd",
     "compare": "haptic_acu.compare_cmd",
+    "cohort": "haptic_acu.cohort_cmd",
 }
 
 
