@@ -134,12 +134,12 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None]) -> None
     pending = iter(jobs)
     by_future = {}
 
-    def submit(job: Job):
-        fut = client.submit(replay_session, job, pure=False, key=f"cohort-replay-{job.session}-{time.time_ns()}")
+    def submit(fn, job: Job):
+        fut = client.submit(fn, job, pure=False, key=f"cohort-replay-{job.session}-{time.time_ns()}")
         by_future[fut] = job
         return fut
 
-    first = []
+    first = set()
     _fill(submit, pending, first, 2 * threads)
     ac = as_completed(first)
     try:
