@@ -125,12 +125,12 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
                 where = f"local, {min(workers, max(1, len(todo)))} process(es)"
             else:
                 client = connect(scheduler) if isinstance(scheduler, str) else scheduler
+                where = f"dask at {client.scheduler.address}, {sum(client.nthreads().values())} worker thread(s)"
                 try:
                     run_dask(todo, client, on_result)
                 finally:
                     if isinstance(scheduler, str):
                         client.close()
-                where = f"dask {client.scheduler.address if hasattr(client, 'scheduler') else scheduler}"
         finally:
             progress.close()
         run_s = time.perf_counter() - t_run

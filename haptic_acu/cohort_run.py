@@ -141,7 +141,7 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None]) -> None
 
     first = set()
     _fill(submit, pending, first, 2 * threads)
-    ac = as_completed(first)
+    ac = as_completed(first, loop=client.loop)
     try:
         for fut in ac:
             job = by_future.pop(fut)
