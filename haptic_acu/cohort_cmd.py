@@ -77,9 +77,11 @@ def run(args) -> int:
 
 
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
-               quiet: bool = False, stream=None) -> int:
+               quiet: bool = False, stream=None, stats: dict | None = None) -> int:
     """Run the cohort (see the module); returns the exit status: 0, or 2 when a session failed.
-    ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``."""
+    ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
+    (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
+    worker start-up included) and ``total_s``."""
     from . import cohort_report, cohort_tables
     from .cohort import CohortDir, Job, config_hash, file_sha256, up_to_date
     from .cohort_run import ProgressLine, connect, run_dask, run_local
@@ -143,6 +145,8 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
         report = cohort_report.write_report(out, ses_rows, extra)
         from .cohort import write_atomic
         write_atomic(out / "report.json", cohort_tables.dumps(report).encode())
+    if stats is not None:
+        stats.update(replayed=len(todo), skipped=skipped, replay_s=run_s, total_s=time.perf_counter() - t0)
     if not quiet:
         print(f"cohort: {len(ses_rows)} sessions ({len(todo)} replayed in {run_s:.1f} s on {where}, "
               f"{skipped} up to date), {extra['insertions']} insertions, {failed} failed; "

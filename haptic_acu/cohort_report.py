@@ -192,4 +192,7 @@ def write_report(out: Path, session_rows: list[dict], extra: dict) -> dict:
     if comp:
         plot_levels(comp, session_rows, out / "levels.png")
         figures["levels"] = "levels.png"
+    for name in ("learning_curves", "levels"):  # a figure an earlier run drew that this one cannot
+        if name not in figures:
+            (out / f"{name}.png").unlink(missing_ok=True)
     return dict(extra, learning_curves=curves, level_comparison=comp, figures=figures)
