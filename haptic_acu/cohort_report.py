@@ -15,7 +15,8 @@ first appearance): per level the count, median and quartiles; per pair of levels
 Mann-Whitney U test (:func:`scipy.stats.mannwhitneyu`, two-sided) and two effect sizes from U:
 the common-language effect size ``CL = U / (n1 n2)`` (the probability that a session of the first
 level has the larger value, ties counting half) and the rank-biserial correlation ``2 CL - 1``
-(Cliff's delta). Sessions of one trainee are not independent: with few trainees, read the
+(Cliff's delta); with more than two levels also the Kruskal-Wallis test
+(:func:`scipy.stats.kruskal`), and the figure annotates the first level against the last. Sessions of one trainee are not independent: with few trainees, read the
 p-values as descriptive.
 """
 from __future__ import annotations
@@ -45,6 +46,13 @@ def _r(x, nd=6):
         return None
     x = float(x)
     return None if not np.isfinite(x) else round(x, nd) + 0.0
+
+
+def _sig(x, digits=4):
+    """A p-value to ``digits`` significant figures (fixed places would round small ones to 0)."""
+    if x is None or not np.isfinite(x):
+        return None
+    return float(f"{float(x):.{digits}g}")
 
 
 def _usable(rows):
@@ -77,7 +85,7 @@ def learning_curves(rows: list[dict]) -> dict:
             if len(yv) >= 3 and np.ptp(yv) > 0:
                 m["theil_slope_per_session"] = _r(stats.theilslopes(yv, x).slope)
                 rho = stats.spearmanr(x, yv)
-                m["spearman_rho"], m["spearman_p"] = _r(rho.statistic), _r(rho.pvalue)
+                m["spearman_rho"], m["spearman_p"] = _r(rho.statistic), _sig(rho.pvalue)
             entry["metrics"][col] = m
         out[trainee] = entry
     return out
@@ -106,10 +114,15 @@ def level_comparison(rows: list[dict]) -> dict | None:
                 p["median_difference"] = _r(np.median(va) - np.median(vb))
                 res = stats.mannwhitneyu(va, vb, alternative="two-sided")
                 cl = float(res.statistic) / (va.size * vb.size)
-                p.update(mannwhitney_u=_r(res.statistic), p_value=_r(res.pvalue), common_language=_r(cl),
+                p.update(mannwhitney_u=_r(res.statistic), p_value=_sig(res.pvalue), common_language=_r(cl),
                          rank_biserial=_r(2 * cl - 1))
             pairs.append(p)
-        out["metrics"][col] = {"by_level": per, "pairs": pairs}
+        entry = {"by_level": per, "pairs": pairs, "kruskal_h": None, "kruskal_p": None}
+        present = [v for v in vals.values() if v.size]
+        if len(levels) > 2 and len(present) >= 2 and np.ptp(np.concatenate(present)) > 0:
+            kw = stats.kruskal(*present)
+            entry["kruskal_h"], entry["kruskal_p"] = _r(kw.statistic), _sig(kw.pvalue)
+        out["metrics"][col] = entry
     return out
 
 
@@ -168,7 +181,8 @@ def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> Non
         ax.boxplot([d if d.size else [np.nan] for d in data], tick_labels=levels, showfliers=False, widths=0.5)
         for i, d in enumerate(data):
             ax.plot(i + 1 + rng.uniform(-0.12, 0.12, d.size), d, "o", ms=3, alpha=0.6, color="C0")
-        pair = comp["metrics"][col]["pairs"][0]
+        first_last = (levels[0], levels[-1])  # the extremes, when there are more than two levels
+        pair = next(p for p in comp["metrics"][col]["pairs"] if (p["a"], p["b"]) == first_last)
         note = ""
         if pair["rank_biserial"] is not None:
             note = f"\n{pair['a']} vs {pair['b']}: r_rb = {pair['rank_biserial']:+.2f}, p = {pair['p_value']:.2g}"

@@ -272,3 +272,41 @@ def test_refuses_a_folder_it_did_not_make_and_a_second_writer(tmp_path, capsys):
     with CohortDir(out):
         assert main(["cohort", str(man), "--out", str(out)]) == 2
         assert f"(pid {os.getpid()})" in capsys.readouterr().err
+
+
+def test_report_statistics_on_constructed_sessions(tmp_path):
+    from haptic_acu.cohort_report import REPORT_METRICS, write_report
+
+    rows = []
+    # trainee a: listed out of date order; metric = 2 * (rank by date) + 1. b: no dates, manifest order.
+    for k, day in enumerate([3, 1, 2, 4]):
+        rows.append({"session": f"a{k}", "trainee": "a", "level": "novice", "date": f"2026-01-0{day}",
+                     "error": "", "insertions": 1, **{c: 2.0 * day + 1 for c, _ in REPORT_METRICS}})
+    for k in range(3):
+        rows.append({"session": f"b{k}", "trainee": "b", "level": "expert", "date": "", "error": "",
+                     "insertions": 1, **{c: 100.0 - k for c, _ in REPORT_METRICS}})
+    rows.append({"session": "c0", "trainee": "c", "level": "mid", "date": "", "error": "", "insertions": 1,
+                 **{c: 50.0 for c, _ in REPORT_METRICS}})
+    rows.append({"session": "bad", "trainee": "a", "level": "novice", "date": "", "error": "boom", "insertions": None})
+    rep = write_report(tmp_path, rows, {})
+    col = REPORT_METRICS[0][0]
+    a = rep["learning_curves"]["a"]
+    assert a["sessions"] == ["a1", "a2", "a0", "a3"]  # by date; the failed session left out
+    assert a["metrics"][col]["values"] == [3.0, 5.0, 7.0, 9.0]
+    assert a["metrics"][col]["theil_slope_per_session"] == pytest.approx(2.0)
+    assert a["metrics"][col]["spearman_rho"] == pytest.approx(1.0)
+    b = rep["learning_curves"]["b"]
+    assert b["sessions"] == ["b0", "b1", "b2"] and b["metrics"][col]["theil_slope_per_session"] == pytest.approx(-1.0)
+    comp = rep["level_comparison"]
+    assert comp["levels"] == ["novice", "expert", "mid"]
+    m = comp["metrics"][col]
+    assert m["by_level"]["novice"]["median"] == pytest.approx(6.0) and m["by_level"]["expert"]["median"] == 99.0
+    ne = next(p for p in m["pairs"] if (p["a"], p["b"]) == ("novice", "expert"))
+    # every expert session above every novice one: U = 0, CL = 0, rank-biserial -1
+    assert ne["mannwhitney_u"] == 0.0 and ne["common_language"] == 0.0 and ne["rank_biserial"] == -1.0
+    assert ne["median_difference"] == pytest.approx(6.0 - 99.0)
+    # Kruskal-Wallis by hand: ranks novice 1-4, mid 5, expert 6-8 (N = 8, no ties):
+    # H = 12 / (N (N + 1)) * (10^2/4 + 5^2/1 + 21^2/3) - 3 (N + 1) = 35/6; p = exp(-H/2) (chi-square, 2 dof)
+    assert m["kruskal_h"] == pytest.approx(35 / 6, abs=1e-6)
+    assert m["kruskal_p"] == pytest.approx(math.exp(-35 / 12), rel=1e-3)
+    assert set(rep["figures"]) == {"learning_curves", "levels"}
