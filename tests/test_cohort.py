@@ -310,3 +310,19 @@ def test_report_statistics_on_constructed_sessions(tmp_path):
     assert m["kruskal_h"] == pytest.approx(35 / 6, abs=1e-6)
     assert m["kruskal_p"] == pytest.approx(math.exp(-35 / 12), rel=1e-3)
     assert set(rep["figures"]) == {"learning_curves", "levels"}
+
+
+def test_progress_line_counts_and_eta():
+    import io
+
+    from haptic_acu.cohort_run import ProgressLine
+
+    buf = io.StringIO()  # not a terminal: whole lines, the first at once and the last at the end
+    p = ProgressLine(total=3, skipped=2, stream=buf, every_s=1e9)
+    for failed in (False, True, False):
+        p.update(failed=failed)
+    p.close()
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("cohort: 1/3 replayed (2 up to date, skipped)") and "ETA" in lines[0]
+    assert lines[1].startswith("cohort: 3/3 replayed (2 up to date, skipped), 1 failed") and "ETA 0m00s" in lines[1]
