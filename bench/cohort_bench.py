@@ -180,9 +180,12 @@ def measure(n_sessions: int = 8, duration_s: float = 10.0, workers: int = 0, das
         if dask:
             from distributed import Client, LocalCluster
 
+            import dask
+
             t = time.perf_counter()
-            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                              local_directory=str(tmp / "dask-scratch")) as lc, Client(lc) as client:
+            with dask.config.set({"temporary-directory": str(tmp / "dask-scratch")}), \
+                    LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as lc, \
+                    Client(lc) as client:
                 start_s = time.perf_counter() - t
                 st = {}
                 run_cohort(manifest, tmp / "dask", cfg, scheduler=client, quiet=not progress, stats=st)

@@ -188,8 +188,10 @@ def test_dask_cluster_gives_the_local_tables(cohort, tmp_path):
     distributed = pytest.importorskip("distributed")
     manifest = read_manifest(cohort["manifest"])
     before = set(multiprocessing.active_children())
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None,
-                                    local_directory=str(tmp_path / "dask-scratch")) as lc, \
+    import dask
+
+    with dask.config.set({"temporary-directory": str(tmp_path / "dask-scratch")}), \
+            distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as lc, \
             distributed.Client(lc) as client:
         rc = run_cohort(manifest, tmp_path / "dask", load_config(), scheduler=client, quiet=True)
     assert rc == 2
