@@ -45,13 +45,15 @@ def write_known_insertion(path):
 
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory):
-    """A small class (2 trainees x 2 sessions, ~5 s each), the known insertion, and a missing file,
-    replayed once with the local pool."""
+    """A small class (2 trainees x 2 sessions, ~5 s each), the known insertion, a malformed
+    trajectory and a missing file, replayed once with the local pool."""
     root = tmp_path_factory.mktemp("cohort")
     man = synthetic_cohort(root / "class", trainees=2, sessions=2, duration_s=5.0, seed=3)
     write_known_insertion(root / "class" / "known.csv")
+    (root / "class" / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
     with open(man, "a") as f:
         f.write("known,trainee09,known.csv,expert,2026-09-09,class-9\n")
+        f.write("garbled,trainee09,garbled.csv,expert,2026-09-11,class-9\n")
         f.write("ghost,trainee09,sessions/nope.csv,expert,2026-09-10,class-9\n")
     out = root / "out"
     rc = main(["cohort", str(man), "--out", str(out), "--jobs", "2", "--quiet"])
@@ -113,14 +115,16 @@ def test_failed_session_is_one_row_with_its_error_and_the_others_finish(cohort):
     assert cohort["rc"] == 2  # a session failed
     t = tables(cohort["out"])
     ses = t["sessions"].to_pylist()
-    assert [r["session"] for r in ses] == ["t00-s00", "t00-s01", "t01-s00", "t01-s01", "known", "ghost"]
+    assert [r["session"] for r in ses] == ["t00-s00", "t00-s01", "t01-s00", "t01-s01", "known", "garbled", "ghost"]
     bad = [r for r in ses if r["error"]]
-    assert [r["session"] for r in bad] == ["ghost"]
-    assert "line 7" in bad[0]["error"] and "nope.csv" in bad[0]["error"] and "not found" in bad[0]["error"]
+    assert [r["session"] for r in bad] == ["garbled", "ghost"]
+    assert "garbled.csv" in bad[0]["error"] and "line 3" in bad[0]["error"] and "y_mm" in bad[0]["error"]
+    assert "line 8" in bad[1]["error"] and "nope.csv" in bad[1]["error"] and "not found" in bad[1]["error"]
     assert all(r["insertions"] >= 1 for r in ses if not r["error"])
     ins = t["insertions"].to_pylist()
-    ghost = [r for r in ins if r["session"] == "ghost"]
-    assert len(ghost) == 1 and ghost[0]["insertion"] is None and ghost[0]["economy_of_motion"] is None
+    for s in ("garbled", "ghost"):
+        rows = [r for r in ins if r["session"] == s]
+        assert len(rows) == 1 and rows[0]["insertion"] is None and rows[0]["economy_of_motion"] is None
     assert {r["group"] for r in ins} == {"class-0", "class-1", "class-9"}  # extra column carried through
 
 
@@ -159,7 +163,7 @@ def test_known_angle_offset_and_straight_path_through_a_replay(cohort):
 def test_report_learning_curves_and_levels(cohort):
     rep = json.loads((cohort["out"] / "report.json").read_text())
     ses = tables(cohort["out"])["sessions"].to_pylist()
-    assert rep["sessions"] == 6 and rep["failed"] == 1
+    assert rep["sessions"] == 7 and rep["failed"] == 2
     assert set(rep["learning_curves"]) == {"trainee00", "trainee01", "trainee09"}
     lc = rep["learning_curves"]["trainee00"]
     assert lc["sessions"] == ["t00-s00", "t00-s01"]
@@ -232,7 +236,7 @@ def test_resume_after_an_interrupted_run(cohort, tmp_path, monkeypatch, capsys):
 
     # the re-run replays only what the interrupted run did not finish; the tables match a clean run
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "2"]) == 2
-    assert replayed_count(capsys.readouterr().err) == (3, 2)
+    assert replayed_count(capsys.readouterr().err) == (4, 2)  # the malformed file's record is kept too
     a, b = tables(cohort["out"]), tables(out)
     for n in a:  # the ghost's error names its absolute path: the copy's differs
         assert a[n].drop_columns(["error"]).equals(b[n].drop_columns(["error"])), n
@@ -240,11 +244,11 @@ def test_resume_after_an_interrupted_run(cohort, tmp_path, monkeypatch, capsys):
 
     # nothing changed: nothing replayed; a changed file: that session only
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 2
-    assert replayed_count(capsys.readouterr().err) == (0, 5)
+    assert replayed_count(capsys.readouterr().err) == (0, 6)
     with open(root / "sessions" / "t01-s00.csv", "a") as f:
         f.write("# edited\n")
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 2
-    assert replayed_count(capsys.readouterr().err) == (1, 4)
+    assert replayed_count(capsys.readouterr().err) == (1, 5)
 
 
 def test_config_hash_follows_values_not_file_names(tmp_path):
