@@ -18,7 +18,9 @@ its input file and of the effective configuration (:func:`config_hash`, which al
 that have no record yet; the tables are then rebuilt from the records of the manifest's sessions.
 
 A worker replays with the engine's sim clock (:class:`~haptic_acu.engine.Session` with only a
-:class:`~haptic_acu.report.SummarySink`): no ``samples.csv``, ``.rrd`` or figure per session.
+:class:`~haptic_acu.report.SummarySink`): no ``samples.csv``, ``.rrd`` or figure per session, unless
+asked (``--session-files``: ``DIR/sessions/<name>/`` gets the replay's ``samples.csv``,
+``summary.json`` and ``force_depth.png``).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ import json
 import math
 import os
 import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -320,6 +323,7 @@ class Job:
     cfg: object  # TissueConfig
     input_sha256: str
     config_sha256: str
+    session_dir: str | None = None  # also write the replay's samples.csv, summary.json, force_depth.png here
 
 
 _TISSUE: dict = {}  # config hash -> Tissue (a worker builds it once, not per session)
@@ -400,22 +404,49 @@ def _replay(job: Job) -> dict:
     device.open()
     tissue = _tissue(job)
     sink = SummarySink(cfg)
-    session = Session(cfg, device, [sink], clock="sim", model=NeedleModel(cfg, tissue))
-    session.warm_up()
-    result = session.run()
-    device.close()
-    if result.fault:
-        return {"error": f"{job.file}: replay stopped: {result.fault}"}
-    if result.duration_s < device.duration_s - 0.01:
-        raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
-    summary = sink.summary()
-    sm, insertions = insertion_table(sink.rows(), cfg, tissue)
+    sinks = [sink]
+    partial = None
+    if job.session_dir:
+        from .report import SamplesCsvSink
+
+        partial = Path(job.session_dir + ".partial")
+        shutil.rmtree(partial, ignore_errors=True)
+        partial.mkdir(parents=True)
+        sinks.append(SamplesCsvSink(partial / "samples.csv"))
+    try:
+        session = Session(cfg, device, sinks, clock="sim", model=NeedleModel(cfg, tissue))
+        session.warm_up()
+        result = session.run()
+        device.close()
+        if result.fault:
+            return {"error": f"{job.file}: replay stopped: {result.fault}"}
+        if result.duration_s < device.duration_s - 0.01:
+            raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
+        summary = sink.summary()
+        sm, insertions = insertion_table(sink.rows(), cfg, tissue)
+        if partial is not None:
+            _session_files(partial, Path(job.session_dir), summary, sm, sink.rows(), tissue, job)
+    finally:
+        if partial is not None:
+            shutil.rmtree(partial, ignore_errors=True)
     return {"summary": {
         "insertions": sm["insertions"], "skin_punctures": sm["skin_punctures"],
         "session_duration_s": summary["duration_s"], "time_in_tissue_s": sm["time_in_tissue_s"],
         "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_depth_mm"],
         "lateral_time_s": sm["lateral"]["time_over_s"]},
         "insertions": insertions}
+
+
+def _session_files(partial: Path, final: Path, summary: dict, sm: dict, rows, tissue, job: Job) -> None:
+    """The replay's own files for one session (``--session-files``), renamed into place when whole."""
+    from .report import plot_force_depth
+
+    summary = dict(summary, trajectory=Path(job.file).name, metrics=sm)
+    (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    plot_force_depth(rows, partial / "force_depth.png", tissue, title=job.session)
+    if final.exists():
+        shutil.rmtree(final)  # this session's files from an earlier run of this cohort
+    os.replace(partial, final)
 
 
 # ---- the output folder -----------------------------------------------------------------------

@@ -27,6 +27,9 @@ def register(sub) -> None:
                    help="run the replays on this Dask distributed scheduler (workers need haptic-acu and the files)")
     p.add_argument("--jobs", type=int, default=0, help="local worker processes (default: the usable cores)")
     p.add_argument("--force", action="store_true", help="replay every session, even those up to date")
+    p.add_argument("--session-files", action="store_true",
+                   help="also write each replayed session's samples.csv, summary.json and force_depth.png "
+                        "under DIR/sessions/")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 
@@ -73,17 +76,17 @@ def run(args) -> int:
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0, got {args.jobs}")
     return run_cohort(manifest, Path(args.out), cfg, jobs=args.jobs, scheduler=args.scheduler,
-                      force=args.force, quiet=args.quiet)
+                      force=args.force, quiet=args.quiet, session_files=args.session_files)
 
 
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
-               quiet: bool = False, stream=None, stats: dict | None = None) -> int:
+               quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False) -> int:
     """Run the cohort (see the module); returns the exit status: 0, or 2 when a session failed.
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
     worker start-up included) and ``total_s``."""
     from . import cohort_report, cohort_tables
-    from .cohort import CohortDir, Job, config_hash, file_sha256, up_to_date
+    from .cohort import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
     from .cohort_run import ProgressLine, connect, run_dask, run_local
 
     stream = stream if stream is not None else sys.stderr
@@ -105,7 +108,8 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
             if not force and up_to_date(rec, isha, csha):
                 records[e.session] = rec
             else:
-                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha))
+                sdir = str((out / "sessions" / record_name(e.session)[:-5]).resolve()) if session_files else None
+                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, sdir))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
         progress = ProgressLine(len(todo), skipped, stream=stream, quiet=quiet)
         for line in failed_lines:

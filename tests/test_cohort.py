@@ -332,3 +332,17 @@ def test_progress_line_counts_and_eta():
     assert len(lines) == 2
     assert lines[0].startswith("cohort: 1/3 replayed (2 up to date, skipped)") and "ETA" in lines[0]
     assert lines[1].startswith("cohort: 3/3 replayed (2 up to date, skipped), 1 failed") and "ETA 0m00s" in lines[1]
+
+
+def test_session_files_on_request(cohort, tmp_path):
+    man = tmp_path / "one.csv"
+    man.write_text(f"session,trainee,file\nknown one,ann,{cohort['root'] / 'class' / 'known.csv'}\n")
+    out = tmp_path / "out"
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--quiet", "--session-files"]) == 0
+    (folder,) = (out / "sessions").iterdir()
+    assert folder.name.startswith("known_one-")
+    assert sorted(p.name for p in folder.iterdir()) == ["force_depth.png", "samples.csv", "summary.json"]
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["metrics"]["insertions"] == 1 and summary["trajectory"] == "known.csv"
+    n_rows = len((folder / "samples.csv").read_text().splitlines()) - 1
+    assert n_rows == summary["ticks"]
