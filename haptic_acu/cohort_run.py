@@ -79,7 +79,6 @@ class ProgressLine:
 
 def _worker_init() -> None:
     os.setpgrp()  # a terminal's Ctrl-C goes to the parent only; it stops the pool
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) -> None:
