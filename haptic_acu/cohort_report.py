@@ -6,9 +6,10 @@ Both work on the sessions table (one value per session: the mean over its insert
 
 Learning curve (per trainee, per metric of :data:`REPORT_METRICS`): the trainee's sessions in
 order of ``date`` when every one of them has a date, else in manifest order; x is the session's
-rank (1, 2, ...). Reported: the values, the Theil-Sen slope per session
-(:func:`scipy.stats.theilslopes`, robust to an odd session) and Spearman's rho with its p-value
-(:func:`scipy.stats.spearmanr`), when the trainee has at least 3 sessions with a value.
+rank (1, 2, ...), and with dates also the days since the trainee's first session. Reported: the
+values, the Theil-Sen slope per session (:func:`scipy.stats.theilslopes`, robust to an odd
+session) and Spearman's rho with its p-value (:func:`scipy.stats.spearmanr`), when the trainee has
+at least 3 sessions with a value.
 
 Level comparison (when the manifest has a ``level`` column with at least two levels, in order of
 first appearance): per level the count, median and quartiles; per pair of levels the
@@ -16,8 +17,8 @@ Mann-Whitney U test (:func:`scipy.stats.mannwhitneyu`, two-sided) and two effect
 the common-language effect size ``CL = U / (n1 n2)`` (the probability that a session of the first
 level has the larger value, ties counting half) and the rank-biserial correlation ``2 CL - 1``
 (Cliff's delta); with more than two levels also the Kruskal-Wallis test
-(:func:`scipy.stats.kruskal`), and the figure annotates the first level against the last. Sessions of one trainee are not independent: with few trainees, read the
-p-values as descriptive.
+(:func:`scipy.stats.kruskal`), and the figure annotates the first level against the last.
+Sessions of one trainee are not independent: with few trainees, read the p-values as descriptive.
 """
 from __future__ import annotations
 
@@ -76,7 +77,11 @@ def learning_curves(rows: list[dict]) -> dict:
     out = {}
     for trainee, rs in by_trainee.items():
         rs = _ordered(rs)
-        entry = {"sessions": [r["session"] for r in rs], "dates": [r.get("date") or None for r in rs], "metrics": {}}
+        dates = [_parse_date(r.get("date") or "") for r in rs]
+        days = ([_r((d - dates[0]).total_seconds() / 86400.0, 4) for d in dates]
+                if all(d is not None for d in dates) else None)
+        entry = {"sessions": [r["session"] for r in rs], "dates": [r.get("date") or None for r in rs],
+                 "days_since_first": days, "metrics": {}}
         for col, _ in REPORT_METRICS:
             y = [r.get(col) for r in rs]
             x = [i + 1 for i, v in enumerate(y) if v is not None]

@@ -298,11 +298,12 @@ def test_report_statistics_on_constructed_sessions(tmp_path):
     col = REPORT_METRICS[0][0]
     a = rep["learning_curves"]["a"]
     assert a["sessions"] == ["a1", "a2", "a0", "a3"]  # by date; the failed session left out
+    assert a["days_since_first"] == [0.0, 1.0, 2.0, 3.0]
     assert a["metrics"][col]["values"] == [3.0, 5.0, 7.0, 9.0]
     assert a["metrics"][col]["theil_slope_per_session"] == pytest.approx(2.0)
     assert a["metrics"][col]["spearman_rho"] == pytest.approx(1.0)
     b = rep["learning_curves"]["b"]
-    assert b["sessions"] == ["b0", "b1", "b2"] and b["metrics"][col]["theil_slope_per_session"] == pytest.approx(-1.0)
+    assert b["sessions"] == ["b0", "b1", "b2"] and b["days_since_first"] is None and b["metrics"][col]["theil_slope_per_session"] == pytest.approx(-1.0)
     comp = rep["level_comparison"]
     assert comp["levels"] == ["novice", "expert", "mid"]
     m = comp["metrics"][col]
