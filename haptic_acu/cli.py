@@ -23,6 +23,7 @@ COMMANDS = {
     "bench": "haptic_acu.bench_cmd",
     "compare": "haptic_acu.compare_cmd",
     "calibrate": "haptic_acu.calibrate_cmd",
+    "cohort": "haptic_acu.cohort_cmd",
 }
 
 
