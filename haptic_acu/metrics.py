@@ -43,6 +43,12 @@ Per insertion:
   surface breaks, the model lifts its frame by that surface's dent, so ``depth_skin_m`` steps back
   by about 1 mm in one tick; those steps (the drop in depth beyond the tip's own axial motion on
   the puncture tick) are added back, or a puncture could pass for a lift.
+* ``max_tip_depth_mm``: the tip's deepest point below the *rest* skin surface over the run (the
+  depth of the summary's ``max_depth_mm`` and of force_depth.png's axis,
+  :func:`haptic_acu.report.tip_depth_m`; larger than ``max_depth_mm`` by the skin's dent).
+* ``punctures``: the session's punctures (the summary's, :class:`haptic_acu.report.SessionScan`:
+  layer, t_s, tip_depth_mm, peak_force_n = the largest |F| while that layer was pressed) from the
+  entry tick to the run's end: the same numbers as the summary's, not a second estimate.
 * ``lateral``: ticks of the run with ``f_lateral_n`` (the lateral-constraint force) above the comfort
   bound, their duration, and the run's largest lateral force.
 * ``time_in_tissue_s``: the run's duration (ticks times the tick period).
@@ -143,7 +149,7 @@ def _angle_deg(u: np.ndarray, n: np.ndarray) -> float:
 
 
 def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target_mm, tissue=None,
-                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, punctures=(), tip_depth=None) -> dict:
     """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured)."""
     state = rows[:, _SKIN]
     e = entry_tick(state, first)
@@ -191,7 +197,8 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
     lat = run[:, _LAT]
     over = int(np.count_nonzero(lat > lateral_comfort_n))
     skin_punctured = bool(run[0, _PUNCT] == 0)
-    return {
+    t_entry, t_exit = _r(rows[e, _T], 4), _r(t[-1], 4)
+    out = {
         "t_entry_s": _r(rows[e, _T], 4),
         "t_inside_s": _r(t[0], 4),
         "t_exit_s": _r(t[-1], 4),
@@ -209,21 +216,34 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         "lateral": {"ticks_over": over, "time_over_s": _r(over * dt, 4), "max_n": _r(lat.max(), 4)},
         "time_in_tissue_s": _r(len(run) * dt, 4),
     }
+    if tip_depth is not None:
+        out["max_tip_depth_mm"] = _r(max(float(tip_depth[e:last + 1].max()), 0.0) * 1e3, 3)
+    out["punctures"] = [p for p in punctures if t_entry <= p["t_s"] <= t_exit]
+    return out
 
 
-def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N,
+                    punctures=None) -> dict:
     """Metrics of one session's rows ((n, NCOL) array, oldest first): see the module docstring.
 
     ``cfg``: the :class:`~haptic_acu.config.TissueConfig` (its ``scene.target_depth_mm``).
     ``tissue``: the session's :class:`~haptic_acu.tissue.Tissue`, for the skin normal at each entry
     (default: -z, the normal at the acupoint). ``lateral_comfort_n``: the lateral-force comfort
-    bound (N)."""
+    bound (N). ``punctures``: the summary's puncture list (:meth:`haptic_acu.report.SummarySink.summary`)
+    if the caller has it; else found here with the same scan (needs ``tissue``). Without ``tissue``
+    there is no ``max_tip_depth_mm`` and no ``punctures`` per insertion."""
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (n, {NCOL}), got {rows.shape}")
+    tip_depth = None
+    if tissue is not None:
+        from .report import SessionScan, puncture_records, tip_depth_m
+        tip_depth = tip_depth_m(rows[:, _X:_X + 3], tissue)
+        if punctures is None:
+            punctures = puncture_records(SessionScan(tissue).feed(rows, depth=tip_depth))
     target = tuple(float(v) for v in cfg.scene.target_depth_mm)
     dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
-    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n)
+    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth)
                   for a, b in insertion_runs(rows[:, _SKIN])]
     ticks_over = sum(m["lateral"]["ticks_over"] for m in insertions)
     max_lat = max((m["lateral"]["max_n"] for m in insertions), default=0.0)
