@@ -508,7 +508,7 @@ def result_lines(summary: dict) -> list[str]:
                    f"target depth {lo:g}-{hi:g} mm (scene.target_depth_mm)")
         for n, i in enumerate(m["per_insertion"], 1):
             ang = "-" if i["angle_deg"] is None else f"{i['angle_deg']:.1f}"
-            spd = "-" if i["insertion_speed_mm_s"] is None else f"{i['insertion_speed_mm_s']:.1f}"
+            spd = "-" if i["insertion_speed_mm_s"] is None else f"{i['insertion_speed_mm_s']:.2f}"
             lt = i["lift_thrust"]
             cyc = f"{lt['cycles']} lift-thrust cycles"
             if lt["cycles"]:

@@ -126,7 +126,7 @@ def run(args) -> int:
     if not args.no_status:
         from .status import StatusLine
         sinks.append(StatusLine(stream=sys.stderr, target_mm=cfg.scene.target_depth_mm,
-                                force_limit_n=cfg.safety.force_limit_n))
+                                force_limit_n=cfg.safety.force_limit_n, device=device))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
