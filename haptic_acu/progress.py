@@ -9,7 +9,8 @@
 
 On a terminal the message is rewritten in place (``\\r``) and ends with the time; elsewhere (a pipe,
 a CI log, ``make demo > log``) plain lines are printed: ``haptic-acu: <what>...`` and
-``haptic-acu: <what>: done in 2.3 s``. :data:`quiet` (set by ``--quiet``) turns everything off.
+``haptic-acu: <what>: done in 2.3 s``. A step that fails prints no verdict (on a terminal its line is
+erased): the error message follows. :data:`quiet` (set by ``--quiet``) turns everything off.
 """
 from __future__ import annotations
 
@@ -88,8 +89,13 @@ class Step:
         global _open
         with self._lock, _open_lock:
             self._done = True
-            if self.shown:
-                verdict = f"done in {elapsed:.1f} s" if ok else f"stopped after {elapsed:.1f} s"
+            if self.shown and not ok:
+                # the error that follows is the message: end an open line (erased on a terminal)
+                if _open is self:
+                    self._write("\r" + " " * (len(self.what) + 15) + "\r")
+                    _open = None
+            elif self.shown:
+                verdict = f"done in {elapsed:.1f} s"
                 if _open is self:
                     self._write(f" {verdict}\n")
                     _open = None

@@ -93,10 +93,7 @@ def _rerun_sink(args, out: Path):
     # rerun logging runs in a child process (see haptic_acu.sinkproc): its calls would otherwise
     # hold the GIL for hundreds of microseconds beside the servo thread
     from .sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
-    from .viewer import check_spawn
-
     if args.spawn:
-        check_spawn()
         return rerun_spawn_sink()
     if args.connect:
         return rerun_connect_sink(args.connect)
@@ -111,6 +108,9 @@ def run(args) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
     cfg = config_from_args(args)
+    if args.spawn:
+        from .viewer import check_spawn
+        check_spawn()  # no display: one line now, not half a minute of viewer errors
     device = make_device(args, cfg)
     out = out_folder(args)
     rec = Path(args.record) if args.record else out / "recording.csv"
@@ -131,7 +131,7 @@ def run(args) -> int:
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
                       compiled_loop=not args.python_servo)
-    with step("compiling the simulator (first run: up to a minute; later runs use the cache)"):
+    with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
     try:
