@@ -29,10 +29,11 @@ Per insertion:
   between (so the depth frame's steps at deeper punctures, below, do not bias it).
 * ``time_to_target_s``: from the entry tick to the first tick whose depth reaches the target's lower
   bound; None if it never does.
-* ``peak_force_n``: the largest ``|f_skin_n|``, ``|f_fat_n|``, ``|f_muscle_n|`` (the force attributed
-  to each layer: its surface force while pressed, its damping once passed) from the entry tick to
-  the end of the run, so the skin's puncture peak is included; ``peak_total_force_n`` the largest
-  ``|F|``.
+* ``peak_layer_force_n``: the largest ``|f_skin_n|``, ``|f_fat_n|``, ``|f_muscle_n|`` (the force
+  attributed to each layer: its surface force while pressed, its damping once passed) from the entry
+  tick to the end of the run; ``peak_total_force_n`` the largest ``|F|``. Not the puncture peaks:
+  those are the total |F| while a layer was pressed (``punctures``, below), which includes the
+  other layers' damping.
 * ``lift_thrust``: cycles of lifting and thrusting back once the needle is at depth, i.e. from the
   first tick whose depth reaches the target's lower bound (or 90% of the max depth, if that is
   shallower). Each cycle is a trough of the depth signal found by ``scipy.signal.find_peaks`` (on
@@ -210,7 +211,7 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         "depth_verdict": depth_verdict(max_depth * 1e3, (lo, hi)),
         "insertion_speed_mm_s": _r(speed, 3),
         "time_to_target_s": _r(t_target, 4),
-        "peak_force_n": peaks,
+        "peak_layer_force_n": peaks,
         "peak_total_force_n": _r(f_total.max(), 4),
         "lift_thrust": cycles,
         "lateral": {"ticks_over": over, "time_over_s": _r(over * dt, 4), "max_n": _r(lat.max(), 4)},

@@ -308,7 +308,7 @@ def test_peak_force_per_layer_includes_the_pressing_phase(cfg):
     s.hold_outside(0.1)
     s.blocks[-1][:, COL["f_skin_n"]] = 2.5  # outside any insertion: not counted
     ins = session_metrics(s.rows(), cfg)["per_insertion"][0]
-    assert ins["peak_force_n"] == pytest.approx({"skin": 1.43, "fat": 0.61, "muscle": 0.37}, abs=1e-4)
+    assert ins["peak_layer_force_n"] == pytest.approx({"skin": 1.43, "fat": 0.61, "muscle": 0.37}, abs=1e-4)
     assert ins["peak_total_force_n"] == pytest.approx(math.hypot(1.9, 0.3), abs=1e-4)
 
 
