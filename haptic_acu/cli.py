@@ -18,10 +18,10 @@ from .errors import DeviceFault, UserError
 COMMANDS = {
     "replay": "haptic_acu.replay_cmd",
     "run": "haptic_acu.run_cmd",
+    "compare": "haptic_acu.compare_cmd",
     "fit": "haptic_acu.fit_cmd",
     "score": "haptic_acu.score_cmd",
     "bench": "haptic_acu.bench_cmd",
-    "compare": "haptic_acu.compare_cmd",
 }
 
 
