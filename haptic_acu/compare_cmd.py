@@ -44,7 +44,7 @@ def register(sub) -> None:
                                    "expert's, headless through the same tissue; print their metrics side by side "
                                    "(every insertion, or --insertion N) and write compare.json and compare.png "
                                    "(force against depth, as in force_depth.png, one colour per session).")
-    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY", help="trajectory CSVs (two or more)")
+    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY", help="trajectory CSVs, one per session (any number)")
     add_config_args(p)
     p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
                                                 "if it exists)")

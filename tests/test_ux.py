@@ -189,3 +189,23 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
 def test_loop_health_in_words():
     assert loop_health(0, 1000) == "loop ok"
     assert loop_health(3, 1000) == "host late 0.3%, missed 3"
+
+
+def test_rerun_is_found_beside_the_interpreter(monkeypatch, tmp_path):
+    """An environment used without activating it: rerun is beside sys.executable, not on PATH."""
+    import shutil
+
+    from haptic_acu import viewer
+
+    bindir = tmp_path / "venv-bin"
+    bindir.mkdir()
+    (bindir / "rerun").write_text("#!/bin/sh\n")
+    (bindir / "rerun").chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(bindir / "python"))
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    assert shutil.which("rerun") is None
+    viewer.rerun_beside_python()
+    assert shutil.which("rerun") == str(bindir / "rerun")
+    before = os.environ["PATH"]
+    viewer.rerun_beside_python()  # already found: PATH unchanged
+    assert os.environ["PATH"] == before
