@@ -100,11 +100,16 @@ def run(args) -> int:
     jobs = args.jobs or min(len(paths), max(1, len(__import__("os").sched_getaffinity(0))))
     work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
     results = {}
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+    from . import progress
+    with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \
+            ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
         futs = [ex.submit(_one, w) for w in work]
         for f in as_completed(futs):
             traj, summary, err = f.result()
             results[traj] = (summary, err)
+            if not progress.quiet:
+                print(f"haptic-acu: {len(results)}/{len(paths)} done: {Path(traj).name}"
+                      + (" (failed)" if err else ""), file=sys.stderr)
     failed = 0
     rows = []
     for p, w in zip(paths, work):

@@ -3,7 +3,7 @@
 A sink (see :mod:`haptic_acu.engine`): every visual frame it takes the newest sample row and,
 at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrolling)::
 
-    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm below skin (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | skin:punct fat:press muscle:- | last puncture skin 1.45 N | servo 1000 Hz visual 60 Hz | loop ok
+    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm below skin (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
 
 * the session time (s) of the newest servo tick;
 * the tip's position relative to the acupoint (x, y in mm, the scene frame's origin);
@@ -96,7 +96,7 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     fields.append((1, " ".join(f"{name}:{_STATE_SHORT[int(s)] if 0 <= int(s) < 3 else '?'}"
                                for name, s in zip(LAYER_NAMES, row[_C_STATE:_C_STATE + 3]))))
     if last_puncture is not None:
-        fields.append((3, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.2f} N"))
+        fields.append((3, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.3f} N"))
     if layer == _BONE:
         fields.append((0, "ON BONE: withdraw"))
     if row[_C_CLAMP]:

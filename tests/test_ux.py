@@ -177,7 +177,7 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
     bone = format_status(1.0, _row(layer=3, states=(2, 2, 2), clamped=1, force=(0, 0, 3.3)), RATES, 0,
                          target_mm=(15, 30), speed_set_mm_s=5.0,
                          last_puncture={"layer": "muscle", "peak_force_n": 1.913})
-    for want in ("bone ", "(target 15-30)", "ON BONE: withdraw", "FORCE LIMIT", "last puncture muscle 1.91 N",
+    for want in ("bone ", "(target 15-30)", "ON BONE: withdraw", "FORCE LIMIT", "last puncture muscle 1.913 N",
                  "v 0.0 mm/s (set 5)", "|F| 3.30 N"):
         assert want in bone, want
     # on a narrow terminal the warnings stay, the rates and position go
