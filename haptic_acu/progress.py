@@ -120,6 +120,24 @@ def step(what: str, after_s: float = AFTER_S, stream=None):
         s.stop(ok)
 
 
+def note(text: str, stream=None) -> None:
+    """One progress line (``haptic-acu: text``) on stderr, after ending an open step line."""
+    global _open
+    if quiet:
+        return
+    stream = sys.stderr if stream is None else stream
+    with _open_lock:
+        try:
+            if _open is not None:
+                stream.write("\n")
+                _open._broken = True
+                _open = None
+            stream.write(f"haptic-acu: {text}\n")
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+
+
 # ---- numba compiles ----------------------------------------------------------------------------
 class _CompileWatch:
     """A numba event listener: a step message for the outermost compile that lasts over a second."""

@@ -107,9 +107,7 @@ def run(args) -> int:
         for f in as_completed(futs):
             traj, summary, err = f.result()
             results[traj] = (summary, err)
-            if not progress.quiet:
-                print(f"haptic-acu: {len(results)}/{len(paths)} done: {Path(traj).name}"
-                      + (" (failed)" if err else ""), file=sys.stderr)
+            progress.note(f"{len(results)}/{len(paths)} done: {Path(traj).name}" + (" (failed)" if err else ""))
     failed = 0
     rows = []
     for p, w in zip(paths, work):

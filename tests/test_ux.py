@@ -127,6 +127,10 @@ def test_progress_on_a_terminal_ends_the_line_and_nests():
     text = out.getvalue()
     assert text.startswith("haptic-acu: outer...\nhaptic-acu: inner... done in ")
     assert "\nhaptic-acu: outer: done in " in text and text.endswith(" s\n")
+    noted = _Tty()
+    with progress.step("batch", after_s=0, stream=noted):
+        progress.note("1/2 done: a.csv", stream=noted)
+    assert noted.getvalue().startswith("haptic-acu: batch...\nhaptic-acu: 1/2 done: a.csv\nhaptic-acu: batch: done in ")
     failed = _Tty()
     with pytest.raises(RuntimeError):
         with progress.step("y", after_s=0, stream=failed):
