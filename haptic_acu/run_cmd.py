@@ -143,13 +143,14 @@ def run(args) -> int:
     print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
           f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
           f"{st['servo_loop']} servo loop", file=sys.stderr)
-    write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet)
-    if args.record:
-        print(f"  recording: {rec}")
-    if result.fault:
-        print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
-        return 3
-    return 0
+    try:
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet)
+        if args.record:
+            print(f"  recording: {rec}")
+    finally:  # the fault is reported even if the report could not be written
+        if result.fault:
+            print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
+    return 3 if result.fault else 0
 
 
 def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False) -> dict:
