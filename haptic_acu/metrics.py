@@ -37,7 +37,7 @@ Per insertion:
 * ``lift_thrust``: cycles of lifting and thrusting back once the needle is at depth, i.e. from the
   first tick whose depth reaches the target's lower bound (or 90% of the max depth, if that is
   shallower). Each cycle is a trough of the depth signal found by ``scipy.signal.find_peaks`` (on
-  minus the depth) with a prominence of at least 1 mm; its ``amplitude`` is that prominence, the
+  minus the depth, computed here by :func:`find_troughs`) with a prominence of at least 1 mm; its ``amplitude`` is that prominence, the
   depth given up on the lift (for a cosine stroke around a fixed depth: the stroke length).
   ``frequency_hz`` is (cycles - 1) over the time from the first trough to the last (None for fewer
   than two). Before peak finding the depth signal is made continuous: when the fat or muscle
@@ -128,16 +128,72 @@ def continuous_depth(depth: np.ndarray, axial: np.ndarray, puncture: np.ndarray)
     return depth + np.cumsum(step)
 
 
+def _local_maxima(x: np.ndarray) -> np.ndarray:
+    """Indices of the local maxima of ``x``: samples higher than the sample before them, followed by
+    a run of equal samples and then a lower one; a flat top is taken at its middle (rounded down).
+    The first and last samples are never maxima (scipy.signal.find_peaks' rule)."""
+    n = x.size
+    if n < 3:
+        return np.zeros(0, np.int64)
+    d = np.diff(x)
+    change = np.flatnonzero(d != 0)  # steps that are not flat
+    if change.size < 2:
+        return np.zeros(0, np.int64)
+    up = d[change] > 0
+    # a rise at change[k] followed (after equal samples) by a fall at change[k + 1]
+    k = np.flatnonzero(up[:-1] & ~up[1:])
+    left = change[k] + 1
+    right = change[k + 1]
+    return (left + right) // 2
+
+
+def _prominences(x: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+    """Each peak's topographic prominence: its height above the higher of the lowest points on either
+    side before a strictly higher sample (or the signal's end)."""
+    n = x.size
+    xs = x.tolist()
+    prev_higher = [-1] * n  # the previous strictly higher sample (monotonic stacks)
+    stack: list[int] = []
+    for i in range(n):
+        while stack and xs[stack[-1]] <= xs[i]:
+            stack.pop()
+        prev_higher[i] = stack[-1] if stack else -1
+        stack.append(i)
+    next_higher = [n] * n  # the next strictly higher sample
+    stack = []
+    for i in range(n):
+        while stack and xs[stack[-1]] < xs[i]:
+            next_higher[stack.pop()] = i
+        stack.append(i)
+    out = np.empty(peaks.size)
+    for j, p in enumerate(peaks.tolist()):
+        left = float(x[prev_higher[p] + 1:p + 1].min())
+        right = float(x[p:next_higher[p]].min())
+        out[j] = x[p] - max(left, right)
+    return out
+
+
+def find_troughs(depth: np.ndarray, prominence: float) -> tuple[np.ndarray, np.ndarray]:
+    """Troughs of ``depth`` with at least ``prominence``: (indices, prominences). The same result as
+    ``scipy.signal.find_peaks(-depth, prominence=prominence)`` (tests/test_metrics.py compares them),
+    without importing scipy.signal (about 2 s, the largest part of a short replay's start)."""
+    x = -np.asarray(depth, dtype=np.float64)
+    peaks = _local_maxima(x)
+    if peaks.size == 0:
+        return peaks, np.zeros(0)
+    prom = _prominences(x, peaks)
+    keep = prom >= prominence
+    return peaks[keep], prom[keep]
+
+
 def lift_thrust_cycles(t: np.ndarray, depth: np.ndarray, prominence_m: float = CYCLE_PROMINENCE_M) -> dict:
     """Lift-thrust cycles in a depth signal (m) sampled at times ``t`` (s): troughs of the depth with
-    at least ``prominence_m`` prominence (scipy.signal.find_peaks on -depth)."""
+    at least ``prominence_m`` prominence (:func:`find_troughs`)."""
     if depth.size < 3:
         return {"cycles": 0, "mean_amplitude_mm": None, "frequency_hz": None}
-    from scipy.signal import find_peaks  # imported here: scipy.signal costs ~1 s to import
-
-    troughs, props = find_peaks(-depth, prominence=prominence_m)
+    troughs, prominences = find_troughs(depth, prominence_m)
     n = int(troughs.size)
-    amp = float(np.mean(props["prominences"])) * 1e3 if n else None
+    amp = float(np.mean(prominences)) * 1e3 if n else None
     freq = None
     if n >= 2:
         span = float(t[troughs[-1]] - t[troughs[0]])
