@@ -213,3 +213,15 @@ def test_rerun_is_found_beside_the_interpreter(monkeypatch, tmp_path):
     before = os.environ["PATH"]
     viewer.rerun_beside_python()  # already found: PATH unchanged
     assert os.environ["PATH"] == before
+
+
+@pytest.mark.slow
+def test_precompile_fills_the_caches_and_leaves_nothing_behind(tmp_path):
+    """`python -m haptic_acu.precompile` (run by make after the install) runs to the end and removes
+    its temporary replay folder."""
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    r = subprocess.run([sys.executable, "-m", "haptic_acu.precompile"], capture_output=True, text=True,
+                       timeout=900, env=env, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "caches ready" in r.stderr.splitlines()[-1]
+    assert list(tmp_path.iterdir()) == []
