@@ -42,7 +42,6 @@ class Progress:
         self.duration_s = duration_s
         self._last = -1
         self._wall0 = time.perf_counter()
-        self._lines = False
 
     def on_frame(self, frame) -> None:
         if not self.enabled:
@@ -56,7 +55,6 @@ class Progress:
             self.stream.flush()
         elif pct // 25 > max(self._last, 0) // 25 and time.perf_counter() - self._wall0 > 1.0:
             self._last = pct
-            self._lines = True
             self.stream.write(f"haptic-acu: replaying {self.label}: {pct}%\n")
             self.stream.flush()
 
