@@ -35,9 +35,9 @@ def _is_tty(stream) -> bool:
 class Step:
     """One step's message (see the module doc). ``stream`` default: stderr at start time."""
 
-    def __init__(self, what: str, after_s: float = AFTER_S, stream=None):
+    def __init__(self, what: str, after_s: float | None = None, stream=None):
         self.what = what
-        self.after_s = after_s
+        self.after_s = AFTER_S if after_s is None else after_s
         self.stream = stream
         self.shown = False
         self._lock = threading.Lock()
@@ -109,7 +109,7 @@ class Step:
 
 
 @contextlib.contextmanager
-def step(what: str, after_s: float = AFTER_S, stream=None):
+def step(what: str, after_s: float | None = None, stream=None):
     """``with step("building the tissue"): ...`` -- see the module doc."""
     s = Step(what, after_s, stream).start()
     ok = False
@@ -153,13 +153,14 @@ class _CompileWatch:
         if self.depth == 1:
             disp = event.data.get("dispatcher")
             name = getattr(getattr(disp, "py_func", None), "__qualname__", "a kernel")
-            self.step = Step(f"compiling {name} (first run after an install; cached afterwards)").start()
+            why = "" if self.count else " (numba, on the first run after an install; cached afterwards)"
+            self.step = Step(f"compiling {name}{why}").start()
 
     def on_end(self, event) -> None:
         self.depth = max(self.depth - 1, 0)
         if self.depth == 0 and self.step is not None:
             self.total_s += self.step.stop()
-            self.count += 1
+            self.count += self.step.shown
             self.step = None
 
 

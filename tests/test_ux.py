@@ -225,3 +225,26 @@ def test_precompile_fills_the_caches_and_leaves_nothing_behind(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "caches ready" in r.stderr.splitlines()[-1]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_numba_compiles_are_reported(monkeypatch):
+    """A real numba compile, with the threshold at 0 s: one line when it starts, one when it ends."""
+    from numba import njit
+
+    monkeypatch.setattr(progress, "AFTER_S", 0.0)
+    err = _Pipe()
+    monkeypatch.setattr(sys, "stderr", err)
+    progress.watch_compiles()
+
+    @njit
+    def _twice(x):
+        return 2 * x
+
+    assert _twice(3) == 6
+    lines = err.getvalue().splitlines()
+    name = "test_numba_compiles_are_reported.<locals>._twice"
+    assert any(ln.startswith(f"haptic-acu: compiling {name}") and ln.endswith("...") for ln in lines), lines
+    assert any(ln.startswith(f"haptic-acu: compiling {name}") and ": done in " in ln for ln in lines), lines
+    err.truncate(0)
+    assert _twice(4) == 8  # compiled: nothing more
+    assert err.getvalue().strip("\x00") == ""
