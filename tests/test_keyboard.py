@@ -532,7 +532,7 @@ def test_ctrl_c_in_haptic_acu_run_on_a_controlling_terminal(tmp_path):
     before = termios.tcgetattr(slave)
     # a new session whose controlling terminal is the pty (the wrapper takes it, then execs the CLI)
     child = subprocess.Popen([PY, "-c", _CTTY, "-m", "haptic_acu", "run", "--device", "keyboard", "--duration", "120",
-                              "--config", str(cfg)], stdin=slave, stdout=slave, stderr=slave, cwd=ROOT,
+                              "--config", str(cfg), "--out", str(tmp_path / "session")], stdin=slave, stdout=slave, stderr=slave, cwd=ROOT,
                              start_new_session=True)
     out = bytearray()
     state = "start"
