@@ -9,9 +9,11 @@ STAMP  := $(VENV)/.installed
 .PHONY: demo test bench clean
 
 $(STAMP): pyproject.toml
+	@echo "installing haptic-acu and its dependencies into $(VENV) (a minute or two)..."
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m haptic_acu.precompile  # numba's kernels and the net tables, cached now, not on the first demo
 	touch $(STAMP)
 
 demo: $(STAMP)

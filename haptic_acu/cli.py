@@ -18,10 +18,10 @@ from .errors import DeviceFault, UserError
 COMMANDS = {
     "replay": "haptic_acu.replay_cmd",
     "run": "haptic_acu.run_cmd",
+    "compare": "haptic_acu.compare_cmd",
     "fit": "haptic_acu.fit_cmd",
     "score": "haptic_acu.score_cmd",
     "bench": "haptic_acu.bench_cmd",
-    "compare": "haptic_acu.compare_cmd",
     "calibrate": "haptic_acu.calibrate_cmd",
     "cohort": "haptic_acu.cohort_cmd",
 }
@@ -33,7 +33,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = _Parser(prog="haptic-acu", description="Haptic simulator of acupuncture needle insertion.")
+    parser = _Parser(prog="haptic-acu", description="Haptic simulator of acupuncture needle insertion: replay "
+                     "recorded needle paths headless, run live on an OMNI, the keyboard or a scripted path, "
+                     "compare sessions, fit tissue surfaces, score trainees.",
+                     epilog="Run `haptic-acu COMMAND --help` for a command's options. Every command that takes "
+                            "--config also takes --set section.key=value (repeatable). Bad input: one line on "
+                            "stderr, exit status 2; a fault during a session: exit status 3.")
     parser.add_argument("--version", action="version", version=f"haptic-acu {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
@@ -52,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    from . import progress
+    progress.quiet = bool(getattr(args, "quiet", False))
+    progress.watch_compiles()
     try:
         return int(args.func(args) or 0)
     except UserError as e:

@@ -1,15 +1,16 @@
-"""``haptic-acu compare A B``: two sessions side by side (say a trainee's and an expert's).
+"""``haptic-acu compare A B [C ...]``: sessions side by side (say trainees' and an expert's).
 
-Both trajectories are replayed headless on simulated time (the same engine and kernels as
+The trajectories are replayed headless on simulated time (the same engine and kernels as
 ``haptic-acu replay``, no rerun recording) through one tissue built from the config. Their
-:mod:`haptic_acu.metrics` are printed as a table (the first insertion of each, and the session
-totals) and written, into the output folder, as
+:mod:`haptic_acu.metrics` are printed as a table, one column per session: the session totals, then
+each insertion (``--insertion N``: only the N-th) with its punctures (the report's numbers:
+:func:`haptic_acu.report.puncture_records`). Written into the output folder:
 
-* ``compare.json``  both sessions' metrics, and B minus A for the first insertion's numbers,
-* ``compare.png``   both sessions' force magnitude ``|F|`` (N) against ``depth_skin`` (mm, the depth
-  below the skin entry along the needle in the compressed tissue's frame; 0 until the skin
-  breaks, so the skin's pressing phase is the rise at 0), over bands of the layers at rest under
-  the acupoint.
+* ``compare.json``  every session's metrics; ``differences``: each later session minus the first, per
+  insertion (``first_insertion_b_minus_a`` too when there are two sessions);
+* ``compare.png``   the force along the outward normal ``F . u`` (N) against the tip's depth below
+  the rest skin (mm): the axes and force component of force_depth.png, over the same layer bands,
+  one colour per session, one panel per insertion, punctures marked.
 
 Identical input gives byte-identical files. The folder is built as ``<out>.partial`` and renamed when
 complete. Bad input is a one-line error naming the file (and line), exit status 2.
@@ -26,28 +27,31 @@ from pathlib import Path
 import numpy as np
 
 from .errors import UserError
-from .metrics import insertion_runs
+from .overrides import add_config_args, config_from_args
+from .progress import step
 from .replay_cmd import fresh_path
 from .samples import COL, NCOL
 
-COLOURS = ("#1f5fa8", "#d9661f")  # A, B
-_BAND_COLOURS = {"skin": "#e8b89a", "fat": "#f3dc8c", "muscle": "#d98a8a", "bone": "#d8d4c8"}
-# first-insertion numbers whose B - A difference goes into compare.json
-DIFF_KEYS = ("entry_offset_mm", "angle_deg", "max_depth_mm", "insertion_speed_mm_s", "time_to_target_s",
-             "peak_total_force_n", "time_in_tissue_s")
+COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
+# per-insertion numbers whose difference from the first session goes into compare.json
+DIFF_KEYS = ("entry_offset_mm", "angle_deg", "max_depth_mm", "max_tip_depth_mm", "insertion_speed_mm_s",
+             "time_to_target_s", "peak_total_force_n", "time_in_tissue_s")
 
 
 def register(sub) -> None:
-    p = sub.add_parser("compare", help="replay two trajectories and compare their session metrics",
-                       description="Replay two needle trajectories (CSV t_s,x_mm,y_mm,z_mm), say a trainee's and "
-                                   "an expert's, headless through the same tissue; print their metrics side by "
-                                   "side and write compare.json and compare.png (force against depth, overlaid).")
-    p.add_argument("a", metavar="A", help="first trajectory CSV")
-    p.add_argument("b", metavar="B", help="second trajectory CSV")
-    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/)")
-    p.add_argument("--labels", nargs=2, metavar=("NAME_A", "NAME_B"),
-                   help="names for the two sessions (default: the file names)")
+    p = sub.add_parser("compare", help="replay trajectories and compare their metrics and force-depth curves",
+                       description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm), say trainees' and an "
+                                   "expert's, headless through the same tissue; print their metrics side by side "
+                                   "(every insertion, or --insertion N) and write compare.json and compare.png "
+                                   "(force against depth, as in force_depth.png, one colour per session).")
+    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY", help="trajectory CSVs, one per session (any number)")
+    add_config_args(p)
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
+                                                "if it exists)")
+    p.add_argument("--labels", nargs="+", metavar="NAME",
+                   help="a name for each session, in order (default: the file names)")
+    p.add_argument("--insertion", type=int, metavar="N",
+                   help="compare only each session's N-th insertion (1 = the first; default: all)")
     p.set_defaults(func=run)
 
 
@@ -96,140 +100,225 @@ def _fmt(x, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
 
-def table_lines(labels, metrics) -> list[str]:
-    """The side-by-side table: session totals, then the first insertion of each session."""
-    def first(m):
-        return m["per_insertion"][0] if m["per_insertion"] else None
+def _puncture_peak(layer: str):
+    def cell(i) -> str:
+        peaks = [f"{p['peak_force_n']:.3f}" for p in i.get("punctures", ()) if p["layer"] == layer]
+        return "/".join(peaks) or "-"
+    return cell
 
-    def ins(m, fn):
-        i = first(m)
-        return "-" if i is None else fn(i)
 
+INSERTION_ROWS = (
+    ("entry offset from acupoint (mm)", lambda i: f"{i['entry_offset_mm']:.2f}"),
+    ("angle to skin normal (deg)", lambda i: _fmt(i["angle_deg"], ".1f")),
+    ("needle depth in tissue (mm)", lambda i: f"{i['max_depth_mm']:.2f} {i['depth_verdict']}"),
+    ("tip below the rest skin (mm)", lambda i: _fmt(i.get("max_tip_depth_mm"), ".2f")),
+    ("insertion speed (mm/s)", lambda i: _fmt(i["insertion_speed_mm_s"], ".2f")),
+    ("time to target depth (s)", lambda i: _fmt(i["time_to_target_s"], ".3f")),
+    ("skin puncture: peak |F| (N)", _puncture_peak("skin")),
+    ("fat puncture: peak |F| (N)", _puncture_peak("fat")),
+    ("muscle puncture: peak |F| (N)", _puncture_peak("muscle")),
+    ("lift-thrust cycles", lambda i: str(i["lift_thrust"]["cycles"])),
+    ("mean lift amplitude (mm)", lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f")),
+    ("lift-thrust frequency (Hz)", lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f")),
+    ("max lateral force (N)", lambda i: f"{i['lateral']['max_n']:.3f}"),
+)
+
+
+def insertion_numbers(metrics, insertion: int | None) -> list[int]:
+    """The insertion indices (0-based) to show: ``insertion`` (1-based) or all of the longest session's."""
+    n = max((m["insertions"] for m in metrics), default=0)
+    if insertion is not None:
+        return [insertion - 1]
+    return list(range(n))
+
+
+def table_lines(labels, metrics, insertion: int | None = None) -> list[str]:
+    """The side-by-side table, one column per session: totals, then each insertion shown."""
     bound = metrics[0]["lateral_comfort_n"]
     lo, hi = metrics[0]["target_depth_mm"]
     rows = [
-        ("insertions", lambda m: str(m["insertions"])),
-        ("skin punctures", lambda m: str(m["skin_punctures"])),
-        ("time in tissue (s)", lambda m: f"{m['time_in_tissue_s']:.3f}"),
-        (f"lateral force > {bound:g} N (s)", lambda m: f"{m['lateral']['time_over_s']:.3f}"),
-        ("first insertion:", None),
-        ("  entry offset from acupoint (mm)", lambda m: ins(m, lambda i: f"{i['entry_offset_mm']:.2f}")),
-        ("  angle to skin normal (deg)", lambda m: ins(m, lambda i: _fmt(i["angle_deg"], ".1f"))),
-        (f"  max depth (mm; target {lo:g}-{hi:g})",
-         lambda m: ins(m, lambda i: f"{i['max_depth_mm']:.2f} {i['depth_verdict']}")),
-        ("  insertion speed (mm/s)", lambda m: ins(m, lambda i: _fmt(i["insertion_speed_mm_s"], ".2f"))),
-        ("  time to target depth (s)", lambda m: ins(m, lambda i: _fmt(i["time_to_target_s"], ".3f"))),
-        ("  peak |F| skin/fat/muscle (N)",
-         lambda m: ins(m, lambda i: "/".join(f"{v:.2f}" for v in i["peak_force_n"].values()))),
-        ("  lift-thrust cycles", lambda m: ins(m, lambda i: str(i["lift_thrust"]["cycles"]))),
-        ("  mean lift amplitude (mm)", lambda m: ins(m, lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f"))),
-        ("  lift-thrust frequency (Hz)", lambda m: ins(m, lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f"))),
-        ("  max lateral force (N)", lambda m: ins(m, lambda i: f"{i['lateral']['max_n']:.3f}")),
+        ("insertions", [str(m["insertions"]) for m in metrics]),
+        ("skin punctures", [str(m["skin_punctures"]) for m in metrics]),
+        ("time in tissue (s)", [f"{m['time_in_tissue_s']:.3f}" for m in metrics]),
+        (f"lateral force > {bound:g} N (s)", [f"{m['lateral']['time_over_s']:.3f}" for m in metrics]),
     ]
-    cells = [(name, *(("",) * 2 if fn is None else (fn(metrics[0]), fn(metrics[1])))) for name, fn in rows]
-    w0 = max(len(c[0]) for c in cells)
-    w1 = max(len(labels[0]), *(len(c[1]) for c in cells))
-    w2 = max(len(labels[1]), *(len(c[2]) for c in cells))
-    out = [f"{'':<{w0}}  {labels[0]:>{w1}}  {labels[1]:>{w2}}"]
-    out += [f"{a:<{w0}}  {b:>{w1}}  {c:>{w2}}".rstrip() for a, b, c in cells]
+    for k in insertion_numbers(metrics, insertion):
+        rows.append((f"insertion {k + 1} (target depth {lo:g}-{hi:g} mm):", None))
+        for name, fn in INSERTION_ROWS:
+            rows.append((f"  {name}", [fn(m["per_insertion"][k]) if k < len(m["per_insertion"]) else "-"
+                                       for m in metrics]))
+    w0 = max(len(name) for name, _ in rows)
+    widths = [max([len(lab)] + [len(cells[j]) for _, cells in rows if cells]) for j, lab in enumerate(labels)]
+    out = ["  ".join([f"{'':<{w0}}"] + [f"{lab:>{w}}" for lab, w in zip(labels, widths)])]
+    for name, cells in rows:
+        if cells is None:
+            out.append(name)
+        else:
+            out.append("  ".join([f"{name:<{w0}}"] + [f"{c:>{w}}" for c, w in zip(cells, widths)]).rstrip())
+    return out
+
+
+def differences(metrics) -> list[dict]:
+    """Each later session minus the first, per insertion index both have (None where either is None)."""
+    base = metrics[0]["per_insertion"]
+    out = []
+    for m in metrics[1:]:
+        per = []
+        for a, b in zip(base, m["per_insertion"]):
+            per.append({k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0
+                        for k in DIFF_KEYS})
+        out.append({"insertions": m["insertions"] - metrics[0]["insertions"], "per_insertion": per})
     return out
 
 
 def first_insertion_diff(metrics) -> dict:
     """B minus A for the first insertion's numbers (None where either is missing)."""
-    a, b = (m["per_insertion"][0] if m["per_insertion"] else {} for m in metrics)
-    out = {}
-    for k in DIFF_KEYS:
-        va, vb = a.get(k), b.get(k)
-        out[k] = None if va is None or vb is None else round(vb - va, 4) + 0.0
-    return out
+    a, b = (m["per_insertion"][0] if m["per_insertion"] else {} for m in metrics[:2])
+    return {k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0 for k in DIFF_KEYS}
 
 
 # ---- the figure -------------------------------------------------------------------------------
-def plot_compare(rows_pair, labels, path, bounds_mm, dpi: int = 110) -> None:
-    """``|F|`` (N) against ``depth_skin`` (mm) for both sessions, over layer bands (``bounds_mm``:
-    depths of the skin surface and the skin/fat, fat/muscle and muscle/bone boundaries, mm). PNG
-    without a date or software stamp: identical input gives identical bytes."""
+def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion: int | None = None,
+                 dpi: int = 110) -> None:
+    """``F . u`` (N) against the tip's depth below the rest skin (mm) for every session, as in
+    force_depth.png (:func:`haptic_acu.report.tip_depth_m`, :func:`~haptic_acu.report.radial_force_n`,
+    the same layer bands), one colour per session, one panel per insertion (``insertion``, 1-based:
+    that one only; each session's approach is drawn with its first insertion), punctures marked
+    (``punctures_list``: each session's :func:`~haptic_acu.report.puncture_records`; else found here).
+    ``tissue``: a Tissue or a TissueConfig. PNG without a date or software stamp: identical input
+    gives identical bytes."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
-    fig = Figure(figsize=(8.0, 5.0))
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
+    from .report import (_BAND_COLOURS, MAX_PANELS, SessionScan, insertion_index, puncture_records, radial_force_n,
+                         tip_depth_m, tissue_of)
+
+    tissue = tissue_of(tissue)
     curves = []
-    for rows in rows_pair:
+    for j, rows in enumerate(rows_list):
         rows = np.asarray(rows, dtype=np.float64).reshape(-1, NCOL)
-        f = rows[:, COL["fx_n"]:COL["fx_n"] + 3]
-        d = rows[:, COL["depth_skin_m"]] * 1e3
-        after = np.zeros(len(rows), dtype=bool)  # past each insertion's deepest point
-        for a, b in insertion_runs(rows[:, COL["state_skin"]]):
-            after[a + int(np.argmax(d[a:b + 1])) + 1:b + 1] = True
-        curves.append((d, np.sqrt(np.einsum("ij,ij->i", f, f)), after))
-    d_max = max([float(d.max()) for d, _, _ in curves if d.size] + [float(bounds_mm[2])])
-    x0, x1 = -0.02 * d_max, 1.04 * d_max
-    edges = [*bounds_mm, max(x1, float(bounds_mm[3]))]
+        depth = tip_depth_m(rows[:, COL["x_m"]:COL["x_m"] + 3], tissue)
+        idx = np.maximum(insertion_index(rows), 0) if len(rows) else np.zeros(0, np.int64)
+        ev = punctures_list[j] if punctures_list is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
+        t = rows[:, COL["t_s"]]
+        ev_idx = [int(idx[min(int(np.searchsorted(t, e["t_s"] - 5e-5)), len(idx) - 1)]) for e in ev]
+        curves.append((depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx))
+    n_ins = max([int(c[2].max()) + 1 for c in curves if c[2].size] + [1])
+    shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
+    fig = Figure(figsize=(max(8.5, 3.4 * len(shown) + 2.8), 5.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, len(shown), 1)]
+    axes += [fig.add_subplot(1, len(shown), j + 1, sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
+    bounds = tissue.depths_at_acupoint() * 1e3
+    all_d = [d for d, *_ in curves if d.size]
+    lo = min([float(d.min()) for d in all_d] + [0.0])
+    hi = max([float(d.max()) for d in all_d] + [float(bounds[2])])
+    pad = 0.02 * (hi - lo)
+    x0, x1 = lo - pad, hi + pad
+    edges = [*bounds, max(x1, float(bounds[3]))]
+    handles = []
     for name, a, b in zip(("skin", "fat", "muscle", "bone"), edges[:-1], edges[1:]):
         if b <= x0 or a >= x1:
             continue
-        ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.4, lw=0, label=f"{name} (at rest)")
-    for (d, f, after), label, colour in zip(curves, labels, COLOURS):
-        ax.plot(np.where(after, np.nan, d), f, color=colour, lw=1.2, label=label)
-        ax.plot(np.where(after, d, np.nan), f, color=colour, lw=0.8, ls="--")
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(bottom=0.0)
-    ax.set_xlabel("depth below the skin entry along the needle (mm; 0 until the skin breaks)")
-    ax.set_ylabel("force on the needle |F| (N)")
-    ax.set_title(f"Force against depth: {labels[0]} vs {labels[1]}")
-    ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
-    ax.text(0.99, 0.02, "solid: going in; dashed: after the deepest point (manipulation, withdrawal)",
-            transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3")
+        for ax in axes:
+            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.4, lw=0)
+        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.4, label=f"{name} (at rest)"))
+    f_all = [f for _, f, *_ in curves if f.size]
+    for p, (ax, k) in enumerate(zip(axes, shown)):
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        last = insertion is None and p == len(shown) - 1 and n_ins > len(shown)
+        for (d, f, idx, ev, ev_idx), colour in zip(curves, COLOURS * (1 + len(curves) // len(COLOURS))):
+            sel = idx >= k if last else idx == k
+            ax.plot(np.where(sel, d, np.nan), np.where(sel, f, np.nan), color=colour, lw=1.1)
+            for e, ki in zip(ev, ev_idx):
+                if ki == k or (last and ki >= k):
+                    ax.plot([e["tip_depth_mm"]], [e["peak_force_n"]], marker="v", ms=7, color=colour,
+                            mec="k", mew=0.5, ls="none")
+        ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9)
+        ax.set_xlabel("tip depth below the rest skin (mm)")
+        if p:
+            ax.tick_params(labelleft=False)
+    axes[0].set_xlim(x0, x1)
+    if f_all:
+        axes[0].set_ylim(min(-0.05, 1.1 * min(float(f.min()) for f in f_all)),
+                         max(0.1, 1.15 * max(float(f.max()) for f in f_all)))
+    axes[0].set_ylabel("force along the outward normal F . u (N)")
+    for label, colour in zip(labels, COLOURS * (1 + len(labels) // len(COLOURS))):
+        handles.append(Line2D([], [], color=colour, label=label))
+    handles.append(Line2D([], [], marker="v", ls="none", color="0.4", mec="k", mew=0.5,
+                          label="puncture (peak |F| while pressed)"))
+    fig.suptitle("Force against depth: " + " vs ".join(labels))
+    axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
 
 
 # ---- the command ------------------------------------------------------------------------------
+def _labels(args, paths) -> list[str]:
+    if args.labels:
+        if len(args.labels) != len(paths):
+            raise UserError(f"--labels: give one name per session ({len(paths)}), got {len(args.labels)}")
+        return list(args.labels)
+    stems = [p.stem for p in paths]
+    if len(set(stems)) == len(stems):
+        return stems
+    return [f"{s} ({chr(65 + i) if i < 26 else i + 1})" for i, s in enumerate(stems)]
+
+
 def run(args) -> int:
-    from .config import load_config
     from .metrics import session_metrics
+    from .report import SessionScan, puncture_records, tip_depth_m
     from .tissue import Tissue
 
-    cfg = load_config(args.config)
-    paths = [Path(args.a), Path(args.b)]
-    devices = [open_trajectory(p, cfg) for p in paths]  # both validated before anything runs
-    if args.labels:
-        labels = list(args.labels)
-    elif paths[0].stem != paths[1].stem:
-        labels = [paths[0].stem, paths[1].stem]
-    else:
-        labels = [f"{paths[0].stem} (A)", f"{paths[1].stem} (B)"]
+    cfg = config_from_args(args)
+    paths = [Path(p) for p in args.sessions]
+    if args.insertion is not None and args.insertion < 1:
+        raise UserError(f"--insertion: 1 is the first insertion, got {args.insertion}")
+    labels = _labels(args, paths)
+    devices = [open_trajectory(p, cfg) for p in paths]  # all validated before anything runs
     if args.out:
         out = Path(args.out)
     else:
-        out = fresh_path(Path("runs") / f"compare-{paths[0].stem}-vs-{paths[1].stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+        name = "-vs-".join(p.stem for p in paths[:3]) + ("-etc" if len(paths) > 3 else "")
+        out = fresh_path(Path("runs") / f"compare-{name}-{time.strftime('%Y%m%d-%H%M%S')}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UserError(f"{out}: output folder exists and is not empty")
 
-    tissue = Tissue.from_config(cfg)
-    rows = [replay_rows(dev, p, cfg, tissue) for dev, p in zip(devices, paths)]
-    metrics = [session_metrics(r, cfg, tissue) for r in rows]
+    with step("building the tissue"):
+        tissue = Tissue.from_config(cfg)
+    rows, punctures, metrics = [], [], []
+    for dev, p in zip(devices, paths):
+        with step(f"replaying {p.name}"):
+            r = replay_rows(dev, p, cfg, tissue)
+        ev = puncture_records(SessionScan(tissue).feed(r, tip_depth_m(r[:, COL["x_m"]:COL["x_m"] + 3], tissue)))
+        rows.append(r)
+        punctures.append(ev)
+        metrics.append(session_metrics(r, cfg, tissue, punctures=ev))
+    if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
+        raise UserError(f"--insertion {args.insertion}: no session has that many insertions "
+                        f"(they have {', '.join(str(m['insertions']) for m in metrics)})")
     doc = {
         "labels": labels,
         "sessions": [{"label": lab, "trajectory": p.name, "metrics": m} for lab, p, m in zip(labels, paths, metrics)],
-        "first_insertion_b_minus_a": first_insertion_diff(metrics),
+        "differences": differences(metrics),
     }
+    if len(metrics) == 2:
+        doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
         shutil.rmtree(partial)
     partial.mkdir(parents=True)
     try:
         (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
-        plot_compare(rows, labels, partial / "compare.png", tissue.depths_at_acupoint() * 1e3)
+        plot_compare(rows, labels, partial / "compare.png", tissue, punctures, args.insertion)
         if out.exists():
             out.rmdir()
         os.replace(partial, out)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
-    for line in table_lines(labels, metrics):
+    for line in table_lines(labels, metrics, args.insertion):
         print(line)
     print(f"files: {out}/", file=sys.stdout)
     return 0

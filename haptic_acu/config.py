@@ -229,8 +229,9 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
         _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")
 
 
-def load_config(path: str | Path | None = None) -> TissueConfig:
-    """Load and validate a tissue config (default ``config/tissue.toml``)."""
+def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
+    """Load and validate a tissue config (default ``config/tissue.toml``); ``overrides``: the
+    command line's ``--set section.key=value`` items (:mod:`haptic_acu.overrides`)."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
     try:
         raw = path.read_bytes()
@@ -244,6 +245,9 @@ def load_config(path: str | Path | None = None) -> TissueConfig:
         raise UserError(f"{path}: not a UTF-8 text file") from None
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: invalid TOML: {e}") from None
+    if overrides:
+        from .overrides import apply_overrides
+        data = apply_overrides(data, overrides)
     for key in data:
         if key not in _SECTIONS:
             _fail(path, key, f"unknown section (known: {', '.join(_SECTIONS)})")

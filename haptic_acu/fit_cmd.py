@@ -6,12 +6,14 @@
 * ``haptic-acu fit MESH.obj [--lmax N] [--out FILE.npz]`` reads the mesh's vertices (mm), fits their
   distance from the vertex centroid as a radial surface r(theta, phi) to degree N (default: the
   config's ``body.lmax``) and reports the radial fit error. ``--out`` writes the coefficients for a
-  config's ``body.skin_coefficients``. The fit assumes the surface is star-shaped about the centroid
+  config's ``body.skin_coefficients``: a ``.npz`` file, or a folder (as ``--out`` is for the other
+  commands), which gets ``<mesh name>_sh.npz``. The fit assumes the surface is star-shaped about the centroid
   (every ray from it crosses the surface once); a mesh that is not cannot be represented and shows as
   a large fit error.
 """
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -29,9 +31,11 @@ def register(sub) -> None:
                                    "and report the radial fit error; --out writes the coefficients for "
                                    "body.skin_coefficients.")
     p.add_argument("mesh", nargs="?", metavar="MESH.obj", help="OBJ mesh of a body surface, in mm")
-    p.add_argument("--lmax", type=int, help="SH degree of the mesh fit (default: the config's body.lmax)")
-    p.add_argument("--out", metavar="FILE.npz", help="write the mesh fit's coefficients here")
-    p.add_argument("--config", metavar="FILE", help="tissue config (default: config/tissue.toml)")
+    p.add_argument("--lmax", type=int, metavar="N", help="SH degree of the mesh fit (default: the config's body.lmax)")
+    p.add_argument("--out", metavar="FILE.npz|DIR",
+                   help="write the mesh fit's coefficients to FILE.npz, or into the folder DIR as <mesh>_sh.npz")
+    from .overrides import add_config_args
+    add_config_args(p)
     p.set_defaults(func=run)
 
 
@@ -40,18 +44,18 @@ def run(args) -> int:
         if args.lmax is not None or args.out is not None:
             raise UserError("--lmax and --out apply to a mesh fit: give MESH.obj (the tissue's degree is "
                             "the config's body.lmax)")
-        return _summarise_tissue(args.config)
-    return _fit_mesh(args.mesh, args.lmax, args.out, args.config)
+        return _summarise_tissue(args)
+    return _fit_mesh(args.mesh, args.lmax, args.out, args)
 
 
-def _summarise_tissue(config_path) -> int:
-    from .config import load_config
+def _summarise_tissue(args) -> int:
+    from .overrides import config_from_args
 
-    cfg = load_config(config_path)  # before importing the numba kernels: a bad config fails fast
+    cfg = config_from_args(args)  # before importing the numba kernels: a bad config fails fast
     from .tissue import BOUNDARIES, Tissue
 
     t0 = time.perf_counter()
-    tissue = Tissue.from_config(cfg)
+    tissue = Tissue.from_config(cfg)  # numba's first compile is reported (haptic_acu.progress)
     elapsed = time.perf_counter() - t0
     body = cfg.body
     source = body.skin_coefficients or (f"built-in limb, semi-axes {' x '.join(f'{a:g}' for a in body.semi_axes_mm)}"
@@ -70,18 +74,24 @@ def _summarise_tissue(config_path) -> int:
     return 0
 
 
-def _fit_mesh(mesh, lmax, out, config_path) -> int:
+def _fit_mesh(mesh, lmax, out, args) -> int:
     from .objmesh import read_vertices
 
     if lmax is None:
-        from .config import load_config
+        from .overrides import config_from_args
 
-        lmax = load_config(config_path).body.lmax
+        lmax = config_from_args(args).body.lmax
     if not 0 <= lmax <= MAX_LMAX:
         raise UserError(f"--lmax must be between 0 and {MAX_LMAX}, got {lmax}")
     out_path = Path(out) if out is not None else None
+    if out_path is not None and (out_path.is_dir() or out.endswith(("/", os.sep))):
+        if not out_path.is_dir():
+            raise UserError(f"{out}: cannot write: folder {out_path} does not exist")
+        out_path = out_path / f"{Path(mesh).stem}_sh.npz"
+        if out_path.exists():
+            raise UserError(f"{out_path}: exists; not overwritten (give --out FILE.npz to choose another name)")
     if out_path is not None and out_path.suffix != ".npz":
-        raise UserError(f"{out}: --out must name a .npz file")
+        raise UserError(f"{out}: --out must name a .npz file or an existing folder")
     if out_path is not None and not out_path.parent.is_dir():
         raise UserError(f"{out}: cannot write: directory {out_path.parent} does not exist")
     t0 = time.perf_counter()

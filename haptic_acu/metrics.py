@@ -29,20 +29,27 @@ Per insertion:
   between (so the depth frame's steps at deeper punctures, below, do not bias it).
 * ``time_to_target_s``: from the entry tick to the first tick whose depth reaches the target's lower
   bound; None if it never does.
-* ``peak_force_n``: the largest ``|f_skin_n|``, ``|f_fat_n|``, ``|f_muscle_n|`` (the force attributed
-  to each layer: its surface force while pressed, its damping once passed) from the entry tick to
-  the end of the run, so the skin's puncture peak is included; ``peak_total_force_n`` the largest
-  ``|F|``.
+* ``peak_layer_force_n``: the largest ``|f_skin_n|``, ``|f_fat_n|``, ``|f_muscle_n|`` (the force
+  attributed to each layer: its surface force while pressed, its damping once passed) from the entry
+  tick to the end of the run; ``peak_total_force_n`` the largest ``|F|``. Not the puncture peaks:
+  those are the total |F| while a layer was pressed (``punctures``, below), which includes the
+  other layers' damping.
 * ``lift_thrust``: cycles of lifting and thrusting back once the needle is at depth, i.e. from the
   first tick whose depth reaches the target's lower bound (or 90% of the max depth, if that is
   shallower). Each cycle is a trough of the depth signal found by ``scipy.signal.find_peaks`` (on
-  minus the depth) with a prominence of at least 1 mm; its ``amplitude`` is that prominence, the
+  minus the depth, computed here by :func:`find_troughs`) with a prominence of at least 1 mm; its ``amplitude`` is that prominence, the
   depth given up on the lift (for a cosine stroke around a fixed depth: the stroke length).
   ``frequency_hz`` is (cycles - 1) over the time from the first trough to the last (None for fewer
   than two). Before peak finding the depth signal is made continuous: when the fat or muscle
   surface breaks, the model lifts its frame by that surface's dent, so ``depth_skin_m`` steps back
   by about 1 mm in one tick; those steps (the drop in depth beyond the tip's own axial motion on
   the puncture tick) are added back, or a puncture could pass for a lift.
+* ``max_tip_depth_mm``: the tip's deepest point below the *rest* skin surface over the run (the
+  depth of the summary's ``max_depth_mm`` and of force_depth.png's axis,
+  :func:`haptic_acu.report.tip_depth_m`; larger than ``max_depth_mm`` by the skin's dent).
+* ``punctures``: the session's punctures (the summary's, :class:`haptic_acu.report.SessionScan`:
+  layer, t_s, tip_depth_mm, peak_force_n = the largest |F| while that layer was pressed) from the
+  entry tick to the run's end: the same numbers as the summary's, not a second estimate.
 * ``lateral``: ticks of the run with ``f_lateral_n`` (the lateral-constraint force) above the comfort
   bound, their duration, and the run's largest lateral force.
 * ``time_in_tissue_s``: the run's duration (ticks times the tick period).
@@ -121,16 +128,72 @@ def continuous_depth(depth: np.ndarray, axial: np.ndarray, puncture: np.ndarray)
     return depth + np.cumsum(step)
 
 
+def _local_maxima(x: np.ndarray) -> np.ndarray:
+    """Indices of the local maxima of ``x``: samples higher than the sample before them, followed by
+    a run of equal samples and then a lower one; a flat top is taken at its middle (rounded down).
+    The first and last samples are never maxima (scipy.signal.find_peaks' rule)."""
+    n = x.size
+    if n < 3:
+        return np.zeros(0, np.int64)
+    d = np.diff(x)
+    change = np.flatnonzero(d != 0)  # steps that are not flat
+    if change.size < 2:
+        return np.zeros(0, np.int64)
+    up = d[change] > 0
+    # a rise at change[k] followed (after equal samples) by a fall at change[k + 1]
+    k = np.flatnonzero(up[:-1] & ~up[1:])
+    left = change[k] + 1
+    right = change[k + 1]
+    return (left + right) // 2
+
+
+def _prominences(x: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+    """Each peak's topographic prominence: its height above the higher of the lowest points on either
+    side before a strictly higher sample (or the signal's end)."""
+    n = x.size
+    xs = x.tolist()
+    prev_higher = [-1] * n  # the previous strictly higher sample (monotonic stacks)
+    stack: list[int] = []
+    for i in range(n):
+        while stack and xs[stack[-1]] <= xs[i]:
+            stack.pop()
+        prev_higher[i] = stack[-1] if stack else -1
+        stack.append(i)
+    next_higher = [n] * n  # the next strictly higher sample
+    stack = []
+    for i in range(n):
+        while stack and xs[stack[-1]] < xs[i]:
+            next_higher[stack.pop()] = i
+        stack.append(i)
+    out = np.empty(peaks.size)
+    for j, p in enumerate(peaks.tolist()):
+        left = float(x[prev_higher[p] + 1:p + 1].min())
+        right = float(x[p:next_higher[p]].min())
+        out[j] = x[p] - max(left, right)
+    return out
+
+
+def find_troughs(depth: np.ndarray, prominence: float) -> tuple[np.ndarray, np.ndarray]:
+    """Troughs of ``depth`` with at least ``prominence``: (indices, prominences). The same result as
+    ``scipy.signal.find_peaks(-depth, prominence=prominence)`` (tests/test_metrics.py compares them),
+    without importing scipy.signal (about 2 s, the largest part of a short replay's start)."""
+    x = -np.asarray(depth, dtype=np.float64)
+    peaks = _local_maxima(x)
+    if peaks.size == 0:
+        return peaks, np.zeros(0)
+    prom = _prominences(x, peaks)
+    keep = prom >= prominence
+    return peaks[keep], prom[keep]
+
+
 def lift_thrust_cycles(t: np.ndarray, depth: np.ndarray, prominence_m: float = CYCLE_PROMINENCE_M) -> dict:
     """Lift-thrust cycles in a depth signal (m) sampled at times ``t`` (s): troughs of the depth with
-    at least ``prominence_m`` prominence (scipy.signal.find_peaks on -depth)."""
+    at least ``prominence_m`` prominence (:func:`find_troughs`)."""
     if depth.size < 3:
         return {"cycles": 0, "mean_amplitude_mm": None, "frequency_hz": None}
-    from scipy.signal import find_peaks  # imported here: scipy.signal costs ~1 s to import
-
-    troughs, props = find_peaks(-depth, prominence=prominence_m)
+    troughs, prominences = find_troughs(depth, prominence_m)
     n = int(troughs.size)
-    amp = float(np.mean(props["prominences"])) * 1e3 if n else None
+    amp = float(np.mean(prominences)) * 1e3 if n else None
     freq = None
     if n >= 2:
         span = float(t[troughs[-1]] - t[troughs[0]])
@@ -143,7 +206,7 @@ def _angle_deg(u: np.ndarray, n: np.ndarray) -> float:
 
 
 def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target_mm, tissue=None,
-                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, punctures=(), tip_depth=None) -> dict:
     """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured)."""
     state = rows[:, _SKIN]
     e = entry_tick(state, first)
@@ -191,7 +254,8 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
     lat = run[:, _LAT]
     over = int(np.count_nonzero(lat > lateral_comfort_n))
     skin_punctured = bool(run[0, _PUNCT] == 0)
-    return {
+    t_entry, t_exit = _r(rows[e, _T], 4), _r(t[-1], 4)
+    out = {
         "t_entry_s": _r(rows[e, _T], 4),
         "t_inside_s": _r(t[0], 4),
         "t_exit_s": _r(t[-1], 4),
@@ -203,27 +267,40 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         "depth_verdict": depth_verdict(max_depth * 1e3, (lo, hi)),
         "insertion_speed_mm_s": _r(speed, 3),
         "time_to_target_s": _r(t_target, 4),
-        "peak_force_n": peaks,
+        "peak_layer_force_n": peaks,
         "peak_total_force_n": _r(f_total.max(), 4),
         "lift_thrust": cycles,
         "lateral": {"ticks_over": over, "time_over_s": _r(over * dt, 4), "max_n": _r(lat.max(), 4)},
         "time_in_tissue_s": _r(len(run) * dt, 4),
     }
+    if tip_depth is not None:
+        out["max_tip_depth_mm"] = _r(max(float(tip_depth[e:last + 1].max()), 0.0) * 1e3, 3)
+    out["punctures"] = [p for p in punctures if t_entry <= p["t_s"] <= t_exit]
+    return out
 
 
-def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N) -> dict:
+def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N,
+                    punctures=None) -> dict:
     """Metrics of one session's rows ((n, NCOL) array, oldest first): see the module docstring.
 
     ``cfg``: the :class:`~haptic_acu.config.TissueConfig` (its ``scene.target_depth_mm``).
     ``tissue``: the session's :class:`~haptic_acu.tissue.Tissue`, for the skin normal at each entry
     (default: -z, the normal at the acupoint). ``lateral_comfort_n``: the lateral-force comfort
-    bound (N)."""
+    bound (N). ``punctures``: the summary's puncture list (:meth:`haptic_acu.report.SummarySink.summary`)
+    if the caller has it; else found here with the same scan (needs ``tissue``). Without ``tissue``
+    there is no ``max_tip_depth_mm`` and no ``punctures`` per insertion."""
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (n, {NCOL}), got {rows.shape}")
+    tip_depth = None
+    if tissue is not None:
+        from .report import SessionScan, puncture_records, tip_depth_m
+        tip_depth = tip_depth_m(rows[:, _X:_X + 3], tissue)
+        if punctures is None:
+            punctures = puncture_records(SessionScan(tissue).feed(rows, depth=tip_depth))
     target = tuple(float(v) for v in cfg.scene.target_depth_mm)
     dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
-    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n)
+    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth)
                   for a, b in insertion_runs(rows[:, _SKIN])]
     ticks_over = sum(m["lateral"]["ticks_over"] for m in insertions)
     max_lat = max((m["lateral"]["max_n"] for m in insertions), default=0.0)

@@ -30,26 +30,36 @@ DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
 
 
 class Progress:
-    """A percentage on stderr, only when stderr is a terminal (a sink: called per visual frame)."""
+    """A percentage on stderr (a sink: called per visual frame): rewritten in place on a terminal;
+    elsewhere (a pipe, a log) a plain line every 25 %, once the replay has taken over a second."""
 
     def __init__(self, label: str, duration_s: float, stream=None):
+        from . import progress
         self.stream = stream if stream is not None else sys.stderr
-        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)()) and duration_s > 0
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.enabled = duration_s > 0 and not progress.quiet
         self.label = label
         self.duration_s = duration_s
         self._last = -1
+        self._wall0 = time.perf_counter()
 
     def on_frame(self, frame) -> None:
         if not self.enabled:
             return
         pct = int(100 * min(1.0, frame.t_s / self.duration_s))
-        if pct != self._last:
+        if pct == self._last:
+            return
+        if self.tty:
             self._last = pct
             self.stream.write(f"\r{self.label}: {pct:3d}%")
             self.stream.flush()
+        elif pct // 25 > max(self._last, 0) // 25 and time.perf_counter() - self._wall0 > 1.0:
+            self._last = pct
+            self.stream.write(f"haptic-acu: replaying {self.label}: {pct}%\n")
+            self.stream.flush()
 
     def close(self, result) -> None:
-        if self.enabled:
+        if self.enabled and self.tty:
             self.stream.write("\r" + " " * (len(self.label) + 6) + "\r")
             self.stream.flush()
 
@@ -102,11 +112,12 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         summary["trajectory"] = trajectory.name
         try:
             from .metrics import session_metrics
-            summary["metrics"] = session_metrics(summary_sink.rows(), cfg)
+            summary["metrics"] = session_metrics(summary_sink.rows(), cfg, summary_sink.tissue,
+                                                 punctures=summary["punctures"])
         except ImportError:
             pass
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-        plot_force_depth(summary_sink.rows(), partial / "force_depth.png", cfg)
+        plot_force_depth(summary_sink.rows(), partial / "force_depth.png", summary_sink.tissue, summary=summary)
         if out_dir.exists():
             out_dir.rmdir()
         os.replace(partial, out_dir)

@@ -17,14 +17,16 @@ def register(sub) -> None:
                                    "on simulated time and write samples.csv, summary.json, force_depth.png and "
                                    "recording.rrd. Without TRAJECTORY: the bundled default insertion.")
     p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY", help="CSV files or folders of them")
-    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
-    p.add_argument("--out", help="output folder (default: a new folder under runs/)")
+    from .overrides import add_config_args
+    add_config_args(p)
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
+                                                "if it exists); for a batch, one sub-folder per trajectory")
     p.add_argument("--realtime", action="store_true", help="pace the replay on the wall clock")
     p.add_argument("--no-rrd", action="store_true", help="do not write recording.rrd")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file")
+    g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
-    p.add_argument("--jobs", type=int, default=0, help="parallel replays for a batch (default: the cores)")
+    p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
     p.set_defaults(func=run)
 
@@ -44,37 +46,16 @@ def fresh_path(path: Path) -> Path:
 
 
 def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
-    if not quiet:
-        print(f"{summary['trajectory']}: {summary['duration_s']:.3f} s, {summary['ticks']} ticks", file=file)
-        if not summary["punctures"]:
-            print("  no puncture", file=file)
-        for p in summary["punctures"]:
-            print(f"  {p['layer']:<6} punctured at t={p['t_s']:.3f} s, tip {p['tip_depth_mm']:.2f} mm deep, "
-                  f"peak {p['peak_force_n']:.2f} N", file=file)
-        print(f"  max force {summary['max_force_n']:.2f} N, tip at most {summary['max_depth_mm']:.2f} mm below the rest skin, "
-              f"layers reached: {', '.join(summary['layers_reached']) or 'none'}", file=file)
-        m = summary.get("metrics")
-        if m:
-            print(f"  {m['insertions']} insertion(s), {m['time_in_tissue_s']:.2f} s in tissue", file=file)
-            for i in m["per_insertion"]:
-                ang = "-" if i["angle_deg"] is None else f"{i['angle_deg']:.1f}"
-                spd = "-" if i["insertion_speed_mm_s"] is None else f"{i['insertion_speed_mm_s']:.1f}"
-                lt = i["lift_thrust"]
-                cyc = f"{lt['cycles']} lift-thrust cycles"
-                if lt["cycles"]:
-                    cyc += f" ({lt['mean_amplitude_mm']:.1f} mm, {lt['frequency_hz']:.2f} Hz)"
-                print(f"  entry {i['entry_offset_mm']:.1f} mm off the acupoint at {ang} deg to the normal, "
-                      f"{i['max_depth_mm']:.1f} mm into the (compressed) tissue, {i['depth_verdict']}, {spd} mm/s, {cyc}", file=file)
-        if summary.get("_wall_s"):
-            print(f"  replayed {summary['duration_s'] / summary['_wall_s']:.0f}x real time", file=file)
-    print(f"  files: {out_dir}/", file=file)
+    from .report import print_results
+    print_results(summary, out_dir, file=file, quiet=quiet)
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd = args_tuple
+    traj, out_dir, config, rrd, overrides = args_tuple
+    from .config import load_config
     from .replay import replay_one
     try:
-        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False)
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides))
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -91,10 +72,13 @@ def _flat(summary: dict) -> dict:
 
 
 def run(args) -> int:
-    from .config import load_config
+    from .overrides import config_from_args
     from .replay import replay_one, trajectories_from
 
-    cfg = load_config(args.config)  # a bad config fails before anything runs
+    cfg = config_from_args(args)  # a bad config fails before anything runs
+    if args.spawn:
+        from .viewer import check_spawn
+        check_spawn()
     paths = trajectories_from(args.trajectories)
     for p in paths:
         if not p.is_file():
@@ -114,13 +98,16 @@ def run(args) -> int:
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
     jobs = args.jobs or min(len(paths), max(1, len(__import__("os").sched_getaffinity(0))))
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd) for p in paths]
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
     results = {}
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+    from . import progress
+    with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \
+            ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
         futs = [ex.submit(_one, w) for w in work]
         for f in as_completed(futs):
             traj, summary, err = f.result()
             results[traj] = (summary, err)
+            progress.note(f"{len(results)}/{len(paths)} done: {Path(traj).name}" + (" (failed)" if err else ""))
     failed = 0
     rows = []
     for p, w in zip(paths, work):

@@ -69,6 +69,13 @@ def _r(x: float, nd: int) -> float:
     return round(float(x), nd) + 0.0
 
 
+def puncture_records(events) -> list[dict]:
+    """:class:`SessionScan` punctures as reported everywhere (summary.json, metrics, text, figures):
+    layer, t_s (0.1 ms), tip_depth_mm (1 um), peak_force_n (0.1 mN). Computed and rounded once."""
+    return [{"layer": p["layer"], "t_s": _r(p["t_s"], 4), "tip_depth_mm": _r(p["tip_depth_m"] * 1e3, 3),
+             "peak_force_n": _r(p["peak_force_n"], 4)} for p in events]
+
+
 class SessionScan:
     """Streaming scan of sample rows: punctures with their pressing-phase peak force, and per-place
     time and peak force. Feed row blocks in order with :meth:`feed`; it keeps O(1) state.
@@ -232,8 +239,7 @@ class SummarySink:
             "max_force_n": _r(s.max_force, 4),
             "max_depth_mm": _r(max_depth_mm, 3),
             "layers_reached": [name for i, name in enumerate(PLACES) if i > 0 and s.ticks_in[i] > 0],
-            "punctures": [{"layer": p["layer"], "t_s": _r(p["t_s"], 4), "tip_depth_mm": _r(p["tip_depth_m"] * 1e3, 3),
-                           "peak_force_n": _r(p["peak_force_n"], 4)} for p in s.punctures],
+            "punctures": puncture_records(s.punctures),
             "layers": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
                        for i, name in enumerate(PLACES)},
             "clamped_ticks": s.clamped_ticks,
@@ -268,7 +274,7 @@ class SummarySink:
             print(f"  FAULT: {s['fault']}", file=file)
 
     def write_figure(self, path) -> None:
-        plot_force_depth(self.rows(), path, self.tissue)
+        plot_force_depth(self.rows(), path, self.tissue, summary=self.summary())
 
 
 # ---- the figure -------------------------------------------------------------------------------
@@ -307,33 +313,106 @@ def tissue_of(tissue_or_config=None):
     return hit
 
 
-def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110) -> None:
+# insertion colours: one per insertion (tab10 without the band-like browns), approach in grey
+INSERTION_COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
+APPROACH_COLOUR = "0.55"
+LATERAL_SHOWN_N = 0.1  # the lateral-force panel is drawn when |F_lateral| exceeds this (N)
+LATERAL_TRAVEL_MM = 1.0  # ... or when the tip moves sideways more than this while touching (mm)
+MAX_PANELS = 4  # force-depth panels side by side (one per insertion; the rest share the last)
+
+
+def insertion_index(rows: np.ndarray) -> np.ndarray:
+    """Per row: the index of the insertion it belongs to (from that insertion's entry tick, the skin
+    first touched, up to the next insertion's entry tick: withdrawal and air included), -1 before
+    the first insertion (:func:`haptic_acu.metrics.insertion_runs`, :func:`~haptic_acu.metrics.entry_tick`)."""
+    from .metrics import entry_tick, insertion_runs
+
+    state = rows[:, _C_STATE]
+    entries = [entry_tick(state, a) for a, _ in insertion_runs(state)]
+    return np.searchsorted(np.asarray(entries, dtype=np.int64), np.arange(len(rows)), side="right") - 1
+
+
+def lateral_force_n(rows: np.ndarray, tissue) -> np.ndarray:
+    """|F - (F . u) u| per row (N): the force across the outward radial direction at the tip."""
+    d = rows[:, _C_X:_C_X + 3] - tissue.centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    u = d / np.where(rho > 0.0, rho, 1.0)[:, None]
+    f = rows[:, _C_F:_C_F + 3]
+    across = f - np.einsum("ij,ij->i", f, u)[:, None] * u
+    return np.sqrt(np.einsum("ij,ij->i", across, across))
+
+
+def _lateral_travel_mm(idx: np.ndarray, offset_mm: np.ndarray, rows: np.ndarray) -> float:
+    """The largest sideways travel (mm) of the tip while it touches the tissue, within one insertion."""
+    touching = np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1) > 1e-3
+    travel = 0.0
+    for k in np.unique(idx):
+        sel = touching & (idx == k)
+        if sel.any():
+            travel = max(travel, float(offset_mm[sel].max() - offset_mm[sel].min()))
+    return travel
+
+
+def _segments(idx: np.ndarray):
+    """(label index, slice) runs of equal ``idx``, each extended by one row so the curve is continuous."""
+    if idx.size == 0:
+        return
+    cuts = np.flatnonzero(np.diff(idx)) + 1
+    starts = np.concatenate([[0], cuts])
+    ends = np.concatenate([cuts, [idx.size]])
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        yield int(idx[a]), slice(a, min(b + 1, idx.size))
+
+
+def _colour(k: int) -> str:
+    return APPROACH_COLOUR if k < 0 else INSERTION_COLOURS[k % len(INSERTION_COLOURS)]
+
+
+def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
 
     Top: the force along the outward radial direction at the tip, ``F . u`` (N, positive resists
     insertion; the axial force for a perpendicular insertion), against the tip's depth below the rest
     skin surface (mm, :func:`tip_depth_m`), over bands of the layers at rest under the acupoint (the
-    config thicknesses, :meth:`Tissue.depths_at_acupoint`); each puncture is marked at its
-    pressing-phase peak. Bottom: ``F . u`` and ``|F|`` against time, punctures as vertical lines.
-    ``tissue``: a Tissue or a TissueConfig (a session sink's tissue is reused); default: the default
-    config's.
+    config thicknesses, :meth:`Tissue.depths_at_acupoint`); one colour per insertion
+    (:func:`insertion_index`; the approach before the first in grey); each puncture marked with
+    the summary's numbers (its depth at the puncture tick, its pressing-phase peak |F|). Middle
+    (only when the lateral force exceeds :data:`LATERAL_SHOWN_N`): the force across the radial
+    direction (:func:`lateral_force_n`) against time. Bottom: ``F . u`` against time, punctures as
+    dashed lines. Legends sit outside the axes. ``tissue``: a Tissue or a TissueConfig (a session
+    sink's tissue is reused); default: the default config's. ``summary``: the session's summary
+    (its punctures are drawn; else they are found with :class:`SessionScan`).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
     tissue = tissue_of(tissue)
-    depth_mm = tip_depth_m(rows[:, _C_X:_C_X + 3], tissue) * 1e3
+    depth = tip_depth_m(rows[:, _C_X:_C_X + 3], tissue)
+    depth_mm = depth * 1e3
     f_ax = radial_force_n(rows, tissue)
-    f_mag = np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)
+    f_lat = lateral_force_n(rows, tissue)
     t = rows[:, _C_T]
-    events = SessionScan(tissue).feed(rows)
+    events = summary["punctures"] if summary is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
+    idx = insertion_index(rows) if rows.size else np.zeros(0, np.int64)
+    n_ins = int(idx.max()) + 1 if idx.size else 0
+    offset_mm = np.linalg.norm(rows[:, _C_X:_C_X + 2], axis=1) * 1e3  # tip's distance from the acupoint's axis
+    show_lat = bool(rows.size) and (float(f_lat.max()) > LATERAL_SHOWN_N
+                                    or _lateral_travel_mm(idx, offset_mm, rows) > LATERAL_TRAVEL_MM)
 
-    fig = Figure(figsize=(8.0, 7.5), layout="constrained")
+    n_pan = min(max(n_ins, 1), MAX_PANELS)
+    fig = Figure(figsize=(max(9.5, 3.2 * n_pan + 2.5), 9.0 if show_lat else 7.5), layout="constrained")
     FigureCanvasAgg(fig)
-    ax1, ax2 = fig.subplots(2, 1, gridspec_kw={"height_ratios": [3, 2]})
+    ratios = [3, 1.5, 1.5] if show_lat else [3, 2]
+    gs = fig.add_gridspec(len(ratios), n_pan, height_ratios=ratios)
+    panels = [fig.add_subplot(gs[0, 0])]
+    panels += [fig.add_subplot(gs[0, j], sharey=panels[0], sharex=panels[0]) for j in range(1, n_pan)]
+    ax_t = fig.add_subplot(gs[-1, :])
+    ax_lat = fig.add_subplot(gs[1, :], sharex=ax_t) if show_lat else None
 
     bounds = tissue.depths_at_acupoint() * 1e3  # [0, skin/fat, fat/muscle, muscle/bone]
     lo = min(float(depth_mm.min()), 0.0) if rows.size else -1.0
@@ -341,38 +420,117 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     pad = 0.02 * (hi - lo)
     x0, x1 = lo - pad, hi + pad
     edges = [*bounds, max(x1, bounds[3])]
+    handles = []
     for name, a, b in zip(("skin", "fat", "muscle", "bone"), edges[:-1], edges[1:]):
         if b <= x0 or a >= x1:
             continue
-        ax1.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.45, lw=0, label=name)
-    ax1.axhline(0.0, color="0.6", lw=0.6)
-    ax1.plot(depth_mm, f_ax, color="k", lw=1.0, label="F . u (resisting)")
+        for ax in panels:
+            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.45, lw=0)
+        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.45, label=f"{name} (at rest)"))
+    for ax in panels:
+        ax.axhline(0.0, color="0.6", lw=0.6)
+    for k, sl in _segments(idx):
+        ax = panels[min(max(k, 0), n_pan - 1)]
+        ax.plot(depth_mm[sl], f_ax[sl], color=_colour(k), lw=1.0)
+        ax_t.plot(t[sl], f_ax[sl], color=_colour(k), lw=1.0)
+        if ax_lat is not None:
+            ax_lat.plot(t[sl], f_lat[sl], color=_colour(k), lw=1.0)
+    if (idx < 0).any():
+        handles.append(Line2D([], [], color=APPROACH_COLOUR, label="approach"))
+    for k in range(n_ins):
+        handles.append(Line2D([], [], color=_colour(k), label=f"insertion {k + 1}" if n_ins > 1 else "insertion"))
     for ev in events:
         c = _EVENT_COLOURS[ev["layer"]]
-        x, y = ev["peak_depth_m"] * 1e3, ev["peak_force_n"]
-        ax1.plot([x], [y], marker="v", ms=8, color=c, ls="none")
-        ax1.annotate(f"{ev['layer']} punctured\n{y:.2f} N at {x:.2f} mm", (x, y), xytext=(6, 4),
-                     textcoords="offset points", fontsize=8, color=c)
-    ax1.set_xlim(x0, x1)
+        x, y = ev["tip_depth_mm"], ev["peak_force_n"]
+        k = int(idx[min(int(np.searchsorted(t, ev["t_s"] - 5e-5)), len(idx) - 1)]) if idx.size else 0
+        ax = panels[min(max(k, 0), n_pan - 1)]
+        ax.plot([x], [y], marker="v", ms=8, color=c, ls="none", mec="k", mew=0.5)
+        ax.annotate(f"{ev['layer']}\n{y:.3f} N, {x:.2f} mm", (x, y), xytext=(5, 3),
+                    textcoords="offset points", fontsize=7, color=c)
+        ax_t.axvline(ev["t_s"], color=c, lw=0.8, ls="--")
+    if events:
+        handles.append(Line2D([], [], marker="v", ls="none", color="0.3", mec="k", mew=0.5,
+                              label="puncture (peak |F| while pressed)"))
+    panels[0].set_xlim(x0, x1)
     if rows.size:
-        ax1.set_ylim(min(-0.05, 1.1 * float(f_ax.min())), max(0.1, 1.25 * float(f_ax.max())))
-    ax1.set_xlabel("tip depth below the rest skin surface (mm)")
-    ax1.set_ylabel("force along the outward normal F . u (N)")
-    ax1.set_title(title or "Needle insertion: force against depth")
-    ax1.legend(loc="upper right", fontsize=8, framealpha=0.9, title="bands: layers at rest",
-               title_fontsize=8)
+        panels[0].set_ylim(min(-0.05, 1.1 * float(f_ax.min())), max(0.1, 1.3 * float(f_ax.max())))
+    for j, ax in enumerate(panels):
+        ax.set_xlabel("tip depth below the rest skin (mm)")
+        if n_pan > 1:
+            last = j == n_pan - 1 and n_ins > n_pan
+            ax.set_title(f"insertion {j + 1}{'+' if last else ''}", fontsize=9, color=_colour(j))
+        if j:
+            ax.tick_params(labelleft=False)
+    panels[0].set_ylabel("force along the outward normal F . u (N)")
+    fig.suptitle(title or "Needle insertion: force against depth")
+    panels[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
 
-    ax2.axhline(0.0, color="0.6", lw=0.6)
-    ax2.plot(t, f_mag, color="0.55", lw=0.8, label="|F|")
-    ax2.plot(t, f_ax, color="k", lw=1.0, label="F . u")
-    for ev in events:
-        ax2.axvline(ev["t_s"], color=_EVENT_COLOURS[ev["layer"]], lw=0.8, ls="--")
-    ax2.set_xlabel("time (s)")
-    ax2.set_ylabel("force (N)")
-    if rows.size:
-        ax2.set_xlim(float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3)
-    ax2.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    tspan = (float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3) if rows.size else (0.0, 1.0)
+    if ax_lat is not None:
+        ax_lat.set_ylabel("lateral |F| (N)")
+        ax_lat.set_xlim(*tspan)
+        ax_lat.set_ylim(bottom=0.0)
+        ax_lat.set_title("force across the needle (lateral)", fontsize=9)
+        ax_lat.tick_params(labelbottom=False)
+        tw = ax_lat.twinx()
+        tw.plot(t, offset_mm, color="0.35", lw=0.9, ls=":")
+        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8)
+        tw.set_ylim(bottom=0.0)
+    ax_t.axhline(0.0, color="0.6", lw=0.6)
+    ax_t.set_xlabel("time (s)")
+    ax_t.set_ylabel("F . u (N)")
+    ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9)
+    ax_t.set_xlim(*tspan)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+
+
+RESULT_FORCE = "{:.3f}"  # N: every text output shows forces, depths and times with these decimals
+RESULT_DEPTH = "{:.2f}"  # mm
+RESULT_TIME = "{:.3f}"   # s
+
+
+def result_lines(summary: dict) -> list[str]:
+    """The session's results as text lines (replay and run): punctures, the depth reached against the
+    target, per-insertion metrics. The numbers are the summary's, shown at fixed decimals."""
+    F, D, T = RESULT_FORCE.format, RESULT_DEPTH.format, RESULT_TIME.format
+    out = [f"{summary['trajectory']}: {T(summary['duration_s'])} s, {summary['ticks']} ticks"]
+    if not summary["punctures"]:
+        out.append("  no puncture")
+    for p in summary["punctures"]:
+        out.append(f"  {p['layer']:<6} punctured at t={T(p['t_s'])} s, tip {D(p['tip_depth_mm'])} mm below the rest "
+                   f"skin, peak |F| {F(p['peak_force_n'])} N")
+    out.append(f"  max |F| {F(summary['max_force_n'])} N; tip at most {D(summary['max_depth_mm'])} mm below the rest "
+               f"skin; layers reached: {', '.join(summary['layers_reached']) or 'none'}")
+    m = summary.get("metrics")
+    if m:
+        lo, hi = m["target_depth_mm"]
+        out.append(f"  {m['insertions']} insertion(s), {T(m['time_in_tissue_s'])} s in tissue; "
+                   f"target depth {lo:g}-{hi:g} mm (scene.target_depth_mm)")
+        for n, i in enumerate(m["per_insertion"], 1):
+            ang = "-" if i["angle_deg"] is None else f"{i['angle_deg']:.1f}"
+            spd = "-" if i["insertion_speed_mm_s"] is None else f"{i['insertion_speed_mm_s']:.2f}"
+            lt = i["lift_thrust"]
+            cyc = f"{lt['cycles']} lift-thrust cycles"
+            if lt["cycles"]:
+                amp = "-" if lt["mean_amplitude_mm"] is None else D(lt["mean_amplitude_mm"])
+                frq = "-" if lt["frequency_hz"] is None else f"{lt['frequency_hz']:.2f}"
+                cyc += f" ({amp} mm, {frq} Hz)"
+            tip = f" (tip {D(i['max_tip_depth_mm'])} mm below the rest skin)" if "max_tip_depth_mm" in i else ""
+            out.append(f"  insertion {n}: needle {D(i['max_depth_mm'])} mm into the tissue{tip}: {i['depth_verdict']}; "
+                       f"entry {D(i['entry_offset_mm'])} mm off the acupoint at {ang} deg to the normal; "
+                       f"{spd} mm/s; {cyc}")
+    return out
+
+
+def print_results(summary: dict, out_dir, file=None, quiet: bool = False) -> None:
+    """:func:`result_lines` (unless ``quiet``) and where the files are."""
+    file = sys.stdout if file is None else file
+    if not quiet:
+        for line in result_lines(summary):
+            print(line, file=file)
+        if summary.get("_wall_s"):
+            print(f"  replayed {summary['duration_s'] / summary['_wall_s']:.0f}x real time", file=file)
+    print(f"  files: {out_dir}/", file=file)
 
 
 # ---- samples.csv ------------------------------------------------------------------------------

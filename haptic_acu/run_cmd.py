@@ -1,26 +1,57 @@
-"""``haptic-acu run``: a live session on a device (OMNI, keyboard, or a trajectory in real time)."""
+"""``haptic-acu run``: a live session on a device (OMNI, keyboard, or a trajectory in real time).
+
+A session ends like ``haptic-acu replay``: the punctures, the depth reached against the config's
+``scene.target_depth_mm`` and the per-insertion metrics are printed, and the session's report folder
+(``--out``, default a new folder under ``runs/``) holds
+
+* ``recording.csv``   the tip path (replay it with ``haptic-acu replay``; ``--record FILE`` puts it
+  elsewhere),
+* ``samples.csv``     one row per servo tick,
+* ``summary.json``    punctures, depths, peaks, metrics and the loop statistics,
+* ``force_depth.png`` force against depth and time,
+* ``recording.rrd``   the rerun recording, with ``--rrd`` (or ``--rrd FILE`` elsewhere).
+
+The report sinks are ordinary frame sinks: they run on the visual loop, never on the servo tick, and
+the recording and samples are flushed as the session runs, so a fault or Ctrl-C keeps every row up to
+it (the figure and summary are written after the session, also after a fault).
+"""
 from __future__ import annotations
 
+import json
 import sys
+import time
 from pathlib import Path
 
 from .errors import UserError
+from .overrides import add_config_args, config_from_args
+from .progress import step
 
 
 def register(sub) -> None:
-    p = sub.add_parser("run", help="a live session on a haptic device",
+    p = sub.add_parser("run", help="a live session on a haptic device (results and a report folder at the end)",
                        description="Run the simulator live: a 1 kHz servo loop on the device and a 60 Hz visual "
-                                   "loop (springback, rerun logging, status line).")
-    p.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True)
-    p.add_argument("--trajectory", help="trajectory CSV for --device scripted (played in real time)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("--record", metavar="FILE", help="record the session as a replayable trajectory CSV")
-    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
+                                   "loop (springback, status line, optional rerun logging). At the end: the "
+                                   "punctures, the depth reached against scene.target_depth_mm and the "
+                                   "per-insertion metrics, and a report folder (--out) with recording.csv, "
+                                   "samples.csv, summary.json and force_depth.png, like `haptic-acu replay`.")
+    p.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True,
+                   help="omni: a Geomagic Touch / Phantom Omni through OpenHaptics (pyOpenHaptics, libHD.so); "
+                        "keyboard: move the needle with the keys (help on screen); scripted: play --trajectory "
+                        "in real time")
+    p.add_argument("--trajectory", metavar="FILE", help="trajectory CSV (t_s,x_mm,y_mm,z_mm) for --device scripted")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
+    p.add_argument("--out", metavar="DIR", help="report folder (default: a new folder runs/<device>-<time>/; "
+                                                "must be empty if it exists)")
+    p.add_argument("--record", metavar="FILE", help="write the replayable recording to FILE instead of "
+                                                    "<out>/recording.csv")
+    add_config_args(p)
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--rrd", metavar="FILE", help="log to a rerun .rrd file")
-    g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer")
-    g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer")
+    g.add_argument("--rrd", metavar="FILE", nargs="?", const="",
+                   help="log to a rerun .rrd file (without FILE: <out>/recording.rrd)")
+    g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer (needs a display)")
+    g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer at ADDR (host:port)")
     p.add_argument("--no-status", action="store_true", help="no live status line")
+    p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
     p.set_defaults(func=run)
@@ -46,35 +77,62 @@ def make_device(args, cfg):
     return OmniDevice(ws, force_limit_n=limit)
 
 
+def out_folder(args) -> Path:
+    """The report folder: ``--out`` (empty or new), else a fresh ``runs/<device>-<time>``."""
+    from .replay_cmd import fresh_path
+
+    if args.out:
+        out = Path(args.out)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise UserError(f"{out}: output folder exists and is not empty")
+        return out
+    return fresh_path(Path("runs") / f"{args.device}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def _rerun_sink(args, out: Path):
+    # rerun logging runs in a child process (see haptic_acu.sinkproc): its calls would otherwise
+    # hold the GIL for hundreds of microseconds beside the servo thread
+    from .sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
+    if args.spawn:
+        return rerun_spawn_sink()
+    if args.connect:
+        return rerun_connect_sink(args.connect)
+    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve())
+
+
 def run(args) -> int:
-    from .config import load_config
     from .engine import Session
+    from .recorder import RecorderSink
+    from .report import SamplesCsvSink, SummarySink
 
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
-    cfg = load_config(args.config)
+    cfg = config_from_args(args)
+    if args.spawn:
+        from .viewer import check_spawn
+        check_spawn()  # no display: one line now, not half a minute of viewer errors
     device = make_device(args, cfg)
-    sinks = []
-    if args.record:
-        rec = Path(args.record)
-        if not rec.parent.exists():
-            raise UserError(f"{rec}: folder {rec.parent} does not exist")
-        from .recorder import RecorderSink
-        sinks.append(RecorderSink(rec))
-    if args.rrd or args.spawn or args.connect:
-        # rerun logging runs in a child process (see haptic_acu.sinkproc): its calls would otherwise
-        # hold the GIL for hundreds of microseconds beside the servo thread
-        from .sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
-        sinks.append(rerun_file_sink(Path(args.rrd).resolve()) if args.rrd else rerun_spawn_sink() if args.spawn
-                     else rerun_connect_sink(args.connect))
+    out = out_folder(args)
+    rec = Path(args.record) if args.record else out / "recording.csv"
+    if not rec.parent.exists() and rec.parent != out:
+        raise UserError(f"{rec}: folder {rec.parent} does not exist")
+    if args.rrd and not Path(args.rrd).resolve().parent.exists():
+        raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
+    out.mkdir(parents=True, exist_ok=True)
+    summary_sink = SummarySink(cfg)
+    sinks = [RecorderSink(rec), SamplesCsvSink(out / "samples.csv"), summary_sink]
+    if args.rrd is not None or args.spawn or args.connect:
+        sinks.append(_rerun_sink(args, out))
     if not args.no_status:
         from .status import StatusLine
-        sinks.append(StatusLine(stream=sys.stderr))
+        sinks.append(StatusLine(stream=sys.stderr, target_mm=cfg.scene.target_depth_mm,
+                                force_limit_n=cfg.safety.force_limit_n, device=device))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
                       compiled_loop=not args.python_servo)
-    session.warm_up()
+    with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
+        session.warm_up()
     device.open()
     try:
         result = session.run()
@@ -85,9 +143,27 @@ def run(args) -> int:
     print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
           f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
           f"{st['servo_loop']} servo loop", file=sys.stderr)
-    if args.record:
-        print(f"recording: {args.record}", file=sys.stderr)
-    if result.fault:
-        print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
-        return 3
-    return 0
+    try:
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet)
+        if args.record:
+            print(f"  recording: {rec}")
+    finally:  # the fault is reported even if the report could not be written
+        if result.fault:
+            print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
+    return 3 if result.fault else 0
+
+
+def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False) -> dict:
+    """summary.json and force_depth.png of a finished session into ``out``; print the results."""
+    from .metrics import session_metrics
+    from .report import plot_force_depth, print_results
+
+    summary = summary_sink.summary()
+    summary["trajectory"] = name
+    rows = summary_sink.rows()
+    summary["metrics"] = session_metrics(rows, cfg, summary_sink.tissue, punctures=summary["punctures"])
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    with step("drawing force_depth.png"):
+        plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary)
+    print_results(summary, out, quiet=quiet)
+    return summary

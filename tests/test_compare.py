@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from haptic_acu.compare_cmd import plot_compare
+from haptic_acu.config import load_config
 from haptic_acu.samples import COL, NCOL
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -90,13 +91,46 @@ def test_missing_file_and_bad_arguments(tmp_path):
     assert_one_line_error(r, str(full), "not empty")
     assert sorted(p.name for p in full.iterdir()) == ["keep.txt"]
     r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--labels", "only-one")
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert_one_line_error(r, "--labels", "one name per session")
+    r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--insertion", "0")
+    assert_one_line_error(r, "--insertion")
+    r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--set", "scene.no_such_key=1")
+    assert_one_line_error(r, "--set scene.no_such_key", "unknown key")
+
+
+@pytest.mark.slow
+def test_three_sessions_second_insertion(tmp_path):
+    """Any number of sessions; --insertion picks one insertion of each (a session without it shows "-")."""
+    out = tmp_path / "cmp3"
+    sessions = [TRAJ / "new_site.csv", TRAJ / "second_insertion_same_site.csv", TRAJ / "fast_insertion.csv"]
+    r = cli(*sessions, "--insertion", "2", "--out", out)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["labels"] == [p.stem for p in sessions]
+    ms = [s["metrics"] for s in doc["sessions"]]
+    assert [m["insertions"] for m in ms] == [2, 2, 1]
+    # new_site's second insertion is 5 mm along +x (trajectories/README.md); the same-site one is not
+    assert ms[0]["per_insertion"][1]["entry_offset_mm"] == pytest.approx(5.0, abs=0.05)
+    assert ms[1]["per_insertion"][1]["entry_offset_mm"] < 0.5
+    diff = doc["differences"][0]["per_insertion"][1]["entry_offset_mm"]
+    assert diff == pytest.approx(ms[1]["per_insertion"][1]["entry_offset_mm"] - 5.0, abs=0.06)
+    lines = r.stdout.splitlines()
+    assert lines[0].split() == [p.stem for p in sessions]
+    assert any(ln.startswith("insertion 2 ") for ln in lines) and not any(ln.startswith("insertion 1 ") for ln in lines)
+    offset = next(ln for ln in lines if "entry offset" in ln).split()
+    assert offset[-1] == "-" and float(offset[-3]) == pytest.approx(5.0, abs=0.05)
+    # the table's puncture peaks are the JSON's, digit for digit at the table's 3 decimals
+    skin = next(ln for ln in lines if "skin puncture:" in ln).split()
+    want = [p["peak_force_n"] for p in ms[0]["per_insertion"][1]["punctures"] if p["layer"] == "skin"]
+    assert skin[-3] == f"{want[0]:.3f}"
+    assert (out / "compare.png").read_bytes().startswith(PNG_SIGNATURE)
 
 
 def _rows(depth_mm, force_n):
     r = np.zeros((len(depth_mm), NCOL))
     r[:, COL["t_s"]] = np.arange(len(depth_mm)) * 1e-3
     r[:, COL["depth_skin_m"]] = np.asarray(depth_mm) * 1e-3
+    r[:, COL["z_m"]] = -np.asarray(depth_mm) * 1e-3  # straight down at the acupoint
     r[:, COL["fz_n"]] = force_n
     r[:, COL["state_skin"]] = np.where(np.asarray(depth_mm) > 0, 2, 1)
     return r
@@ -106,7 +140,7 @@ def test_figure_bytes_are_deterministic(tmp_path):
     d = np.concatenate([np.zeros(50), np.linspace(0, 20, 400), np.linspace(20, 0, 400)])
     a = _rows(d, 0.05 * d + 0.2 * np.sin(d))
     b = _rows(0.8 * d, 0.08 * d)
-    bounds = np.array([0.0, 0.8, 9.2, 48.2])
+    bounds = load_config()  # the tissue is built from it (and reused)
     paths = [tmp_path / "one.png", tmp_path / "two.png"]
     for p in paths:
         plot_compare([a, b], ["trainee", "expert"], p, bounds)

@@ -381,9 +381,9 @@ def test_status_line_content_missed_ticks_and_fault():
     s.close(SessionResult(ticks=50, duration_s=0.049, fault="device fault: cable pulled", stats={}))
     text = buf.getvalue()
     line, fault = text.split("\n")[:2]
-    assert line.startswith("\rt 0.05 s | fat 1.25 mm | 2.50 mm below skin | |F| 0.50 N | v 5.0 mm/s | ")
+    assert line.startswith("\rt 0.05 s | x +0.0 y +0.0 mm | fat 1.25 mm | 2.50 mm below skin | |F| 0.50 N | v 5.0 mm/s | ")
     assert "skin:punct fat:press muscle:-" in line
-    assert "servo 998 Hz visual 59 Hz" in line and line.endswith("missed 3")
+    assert "servo 998 Hz visual 59 Hz" in line and line.endswith("host late 6.0%, missed 3")  # 3 of 50 ticks
     assert fault == "fault: device fault: cable pulled" and text.endswith("\n")
     # nothing drawn, nothing printed, when the stream is not a terminal
     quiet = io.StringIO()
@@ -494,9 +494,11 @@ def test_live_session_on_a_pty_with_status_line():
     assert "i/k" in text  # the help line
     lines = _status_lines(text)
     assert len(lines) >= 3
-    pat = re.compile(r"^t (\d+\.\d+) s \| (\S+)[^|]*(?:\| [\d.]+ mm below skin )?\| \|F\| (\d+\.\d+) N \| "
-                     r"v (\d+\.\d) mm/s \| skin:(\S+) fat:(\S+) muscle:(\S+) \| servo (\d+) Hz visual (\d+) Hz \| "
-                     r"missed (\d+)$")
+    pat = re.compile(r"^t (\d+\.\d+) s \| x [-+]\d+\.\d y [-+]\d+\.\d mm \| (\S+)[^|]*"
+                     r"(?:\| [\d.]+ mm below skin[^|]*)?\| \|F\| (\d+\.\d+) N \| "
+                     r"v (\d+\.\d) mm/s(?: \(set [\d.]+\))? \| skin:(\S+) fat:(\S+) muscle:(\S+) \| "
+                     r"(?:last puncture \w+ [\d.]+ N \| )?servo (\d+) Hz visual (\d+) Hz \| "
+                     r"(?:loop ok|host late [\d.]+%, missed \d+)$")
     parsed = [pat.match(ln) for ln in lines]
     assert all(parsed), [ln for ln, m in zip(lines, parsed) if not m]
     times = [float(m.group(1)) for m in parsed]
@@ -530,7 +532,7 @@ def test_ctrl_c_in_haptic_acu_run_on_a_controlling_terminal(tmp_path):
     before = termios.tcgetattr(slave)
     # a new session whose controlling terminal is the pty (the wrapper takes it, then execs the CLI)
     child = subprocess.Popen([PY, "-c", _CTTY, "-m", "haptic_acu", "run", "--device", "keyboard", "--duration", "120",
-                              "--config", str(cfg)], stdin=slave, stdout=slave, stderr=slave, cwd=ROOT,
+                              "--config", str(cfg), "--out", str(tmp_path / "session")], stdin=slave, stdout=slave, stderr=slave, cwd=ROOT,
                              start_new_session=True)
     out = bytearray()
     state = "start"

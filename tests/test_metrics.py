@@ -308,7 +308,7 @@ def test_peak_force_per_layer_includes_the_pressing_phase(cfg):
     s.hold_outside(0.1)
     s.blocks[-1][:, COL["f_skin_n"]] = 2.5  # outside any insertion: not counted
     ins = session_metrics(s.rows(), cfg)["per_insertion"][0]
-    assert ins["peak_force_n"] == pytest.approx({"skin": 1.43, "fat": 0.61, "muscle": 0.37}, abs=1e-4)
+    assert ins["peak_layer_force_n"] == pytest.approx({"skin": 1.43, "fat": 0.61, "muscle": 0.37}, abs=1e-4)
     assert ins["peak_total_force_n"] == pytest.approx(math.hypot(1.9, 0.3), abs=1e-4)
 
 
@@ -410,3 +410,24 @@ def test_bundled_oblique_entry(bundled):
 def test_bundled_lateral_sweep(bundled):
     m = bundled("lateral_sweep")
     assert m["insertions"] == 0 and m["time_in_tissue_s"] == 0.0
+
+
+def test_find_troughs_matches_scipy_find_peaks():
+    """metrics.find_troughs is scipy.signal.find_peaks(-x, prominence=p), without importing scipy.signal:
+    random walks (ties from quantisation included), noisy strokes, plateaus, edges."""
+    from scipy.signal import find_peaks
+
+    from haptic_acu.metrics import find_troughs
+
+    rng = np.random.default_rng(7)
+    signals = [np.round(np.cumsum(rng.normal(size=2000)), 1),
+               np.round(np.cumsum(rng.integers(-1, 2, size=3000)) * 0.055, 3),
+               20 + 2 * np.cos(np.linspace(0, 30, 5000)) + rng.normal(scale=0.05, size=5000),
+               np.array([0, 1, 1, 1, 0, 2, 2, 0, 0, 3, 3, 3, 3, 1, 1, 5, 5]),
+               np.array([5, 4, 4, 4]), np.array([1.0, 2.0]), np.zeros(10)]
+    for x in signals:
+        for prom in (0.0, 0.5, 1.0, 3.0):
+            want, props = find_peaks(-x, prominence=prom)
+            got, got_prom = find_troughs(x, prom)
+            assert np.array_equal(got, want), (x[:20], prom)
+            np.testing.assert_allclose(got_prom, props["prominences"], rtol=0, atol=1e-12)

@@ -161,7 +161,7 @@ def test_figure_is_a_valid_png_and_byte_identical_across_runs(session):
     chunks = list(_png_chunks(data))
     assert chunks[0][0] == b"IHDR" and chunks[-1][0] == b"IEND"
     width, height = struct.unpack(">II", chunks[0][1][:8])
-    assert (width, height) == (880, 825)  # 8 x 7.5 in at 110 dpi
+    assert (width, height) == (1045, 825)  # 9.5 x 7.5 in at 110 dpi (one insertion, no lateral panel)
     pixels = zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"))
     assert len(pixels) == height * (1 + width * 4)  # RGBA rows, one filter byte each
     assert not any(kind in (b"tEXt", b"iTXt") and b"Software" in body for kind, body in chunks)

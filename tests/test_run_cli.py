@@ -11,6 +11,7 @@ faster single-threaded on a loaded 2-core machine, and nothing checked here depe
 from __future__ import annotations
 
 import csv
+import json
 import os
 import re
 import signal
@@ -56,7 +57,8 @@ def data_rows(path: Path) -> int:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_stops_the_session_cleanly(tmp_path, sig):
     rec = tmp_path / "rec.csv"
-    proc = subprocess.Popen(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--record", rec),
+    proc = subprocess.Popen(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--record", rec,
+                                       "--out", tmp_path / "session"),
                             cwd=REPO, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         # ~1 s into the session (rows reach the file once per visual frame), then the signal.
@@ -126,7 +128,7 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
     """
     rec = tmp_path / "rec.csv"
     live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
-                                     "--record", rec, "--no-status"),
+                                     "--record", rec, "--no-status", "--out", tmp_path / "session"),
                           cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert live.returncode == 0, live.stderr
     tr = trajectory.load(rec, extra_columns=EXTRA)
@@ -165,3 +167,35 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
         tol = 0.02 + 0.05 * np.abs(f_live)
         assert np.all(err <= tol), (axis, float(err.max()), float(t[keep][np.argmax(err - tol)]))
     assert tr.extra["fz_n"].max() > 1.0  # the comparison covered real forces (the skin's ~1.5 N peak)
+
+
+def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
+    """`run` ends like `replay`: the punctures and the depth against the target on stdout, and
+    recording.csv, samples.csv, summary.json and force_depth.png in --out; every number printed is
+    the summary's, and the summary's punctures are the metrics' (one computation)."""
+    out = tmp_path / "session"
+    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
+                                     "--no-status", "--out", out, "--set", "scene.target_depth_mm=[5,20]"),
+                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert live.returncode == 0, live.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["force_depth.png", "recording.csv", "samples.csv", "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session"]  # nothing under runs/ with --out
+    s = json.loads((out / "summary.json").read_text())
+    assert [p["layer"] for p in s["punctures"]] == list(LAYERS)
+    m = s["metrics"]
+    assert m["target_depth_mm"] == [5.0, 20.0]  # the --set override reached the session
+    (ins,) = m["per_insertion"]
+    assert ins["punctures"] == s["punctures"]
+    assert ins["max_tip_depth_mm"] == s["max_depth_mm"]
+    assert ins["depth_verdict"] == ("too deep" if ins["max_depth_mm"] > 20 else "in range")
+    text = live.stdout
+    for p in s["punctures"]:
+        assert f"{p['layer']:<6} punctured at t={p['t_s']:.3f} s, tip {p['tip_depth_mm']:.2f} mm below the rest skin, " \
+               f"peak |F| {p['peak_force_n']:.3f} N" in text
+    assert f"needle {ins['max_depth_mm']:.2f} mm into the tissue" in text and ins["depth_verdict"] in text
+    assert "target depth 5-20 mm" in text
+    assert f"files: {out}/" in text
+    # samples.csv: one row per tick the session counted; the recording replays (header on line 1)
+    with open(out / "samples.csv", newline="") as f:
+        assert sum(1 for _ in csv.DictReader(f)) == session_ticks(live.stderr) == s["ticks"]
+    assert (out / "force_depth.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,97 @@
+"""The built wheel, installed into a fresh virtual environment, works from any folder.
+
+The wheel is built from this checkout (``pip wheel``; its build backend comes from pip's configured
+indexes), installed with ``--no-deps`` into a new venv whose dependencies come from the test's own
+environment through a ``.pth`` line (fast, offline), and its console script runs ``replay``, ``fit``
+and ``score`` in an empty folder. Independently of what those commands read, every file the
+repository keeps under ``config/`` and ``trajectories/`` must be in the wheel as package data, and no
+top-level ``devices`` or ``bench`` package may be installed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TIMEOUT_S = 900
+
+
+def _git_files(*folders) -> list[str]:
+    r = subprocess.run(["git", "ls-files", *folders], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    if r.returncode != 0:
+        pytest.skip("not a git checkout: the repository's file list is unknown")
+    return [ln for ln in r.stdout.splitlines() if ln]
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    base = tmp_path_factory.mktemp("wheel")
+    dist = base / "dist"
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(ROOT)],
+                       capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (wheel,) = dist.glob("haptic_acu-*.whl")
+    venv = base / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    py = venv / "bin" / "python"
+    r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps", "--no-index",
+                        str(wheel)], capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert r.returncode == 0, r.stderr[-3000:]
+    site = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               capture_output=True, text=True, check=True, timeout=60).stdout.strip())
+    # the dependencies: this environment's site-packages, after the venv's own (a plain path line: the
+    # editable install's own .pth files there are not processed, so the checkout is not importable)
+    (site / "zz_test_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    work = base / "elsewhere"
+    work.mkdir()
+    return {"wheel": wheel, "venv": venv, "site": site, "work": work}
+
+
+def _run(installed, *args, cwd=None):
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PATH"] = str(installed["venv"] / "bin") + os.pathsep + env.get("PATH", "")
+    return subprocess.run([str(installed["venv"] / "bin" / "haptic-acu"), *map(str, args)], cwd=cwd or installed["work"],
+                          env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
+
+
+@pytest.mark.slow
+def test_wheel_carries_the_bundled_data_inside_the_package(installed):
+    names = set(zipfile.ZipFile(installed["wheel"]).namelist())
+    for f in _git_files("config", "trajectories"):
+        assert f"haptic_acu/_bundled/{f}" in names, f"{f} is not package data in the wheel"
+    tops = {n.split("/")[0] for n in names}
+    assert tops == {"haptic_acu", f"haptic_acu-{installed['wheel'].name.split('-')[1]}.dist-info"}, tops
+    for f in _git_files("devices", "bench"):
+        if f.endswith(".py"):
+            assert f"haptic_acu/{f}" in names
+    assert not (installed["site"] / "devices").exists() and not (installed["site"] / "bench").exists()
+
+
+@pytest.mark.slow
+def test_installed_commands_run_from_another_folder(installed):
+    r = subprocess.run([str(installed["venv"] / "bin" / "python"), "-c", "import haptic_acu; print(haptic_acu.__file__)"],
+                       cwd=installed["work"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and Path(r.stdout.strip()).is_relative_to(installed["site"]), r.stdout + r.stderr
+
+    r = _run(installed, "fit")
+    assert r.returncode == 0, r.stderr
+    r = _run(installed, "replay", "--no-rrd", "--out", "demo")
+    assert r.returncode == 0, r.stderr
+    out = installed["work"] / "demo"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["trajectory"] == "default.csv"
+    assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
+    assert {p.name for p in out.iterdir()} == {"summary.json", "samples.csv", "force_depth.png"}
+    scoring = installed["site"] / "haptic_acu" / "_bundled" / "config" / "scoring"
+    r = _run(installed, "score", scoring / "example_ratings.csv", "--delphi", scoring / "example_delphi.csv",
+             "--out", "score")
+    assert r.returncode == 0, r.stderr
+    assert any((installed["work"] / "score").iterdir())
+    assert sorted(p.name for p in installed["work"].iterdir()) == ["demo", "score"]  # nothing else written here
