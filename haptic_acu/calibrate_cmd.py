@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import UserError
+from .overrides import add_config_args, config_from_args
 
 MIN_POINTS = 20
 FIT_ROWS_PER_SPACING = 40  # the fit's dimensionless columns (the report uses the servo table's 400)
@@ -51,7 +52,7 @@ def register(sub) -> None:
     p.add_argument("curve", metavar="CURVE.csv")
     p.add_argument("--speed-mm-s", type=float, required=True, metavar="V", help="the insertion speed of the curve")
     p.add_argument("--out", required=True, metavar="FITTED.toml", help="the config to write (never overwritten)")
-    p.add_argument("--config", metavar="BASE.toml", help="the config to start from (default: config/tissue.toml)")
+    add_config_args(p)
     p.add_argument("--needle-diameter-mm", type=float, metavar="D",
                    help="diameter of the needle the curve was measured with (default: the config's)")
     p.set_defaults(func=run)
@@ -319,15 +320,13 @@ def _write_checked(out: Path, text: str) -> None:
 
 
 def run(args) -> int:
-    from .config import load_config
-
     t0 = time.perf_counter()
     out = Path(args.out)
     if out.exists():
         raise UserError(f"{out}: exists; calibrate never overwrites a file (choose another --out)")
     if not (math.isfinite(args.speed_mm_s) and args.speed_mm_s > 0):
         raise UserError(f"--speed-mm-s must be a positive number, got {args.speed_mm_s}")
-    cfg = load_config(args.config)
+    cfg = config_from_args(args)
     if args.needle_diameter_mm is not None:
         if not (math.isfinite(args.needle_diameter_mm) and args.needle_diameter_mm > 0):
             raise UserError(f"--needle-diameter-mm must be a positive number, got {args.needle_diameter_mm}")

@@ -1,15 +1,13 @@
 """``haptic-acu cohort``: a class's recorded sessions replayed into one table (see :mod:`haptic_acu.cohort`)."""
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 import time
-import tomllib
-import typing
 from pathlib import Path
 
 from .errors import UserError
+from .overrides import add_config_args, config_from_args
 
 
 def register(sub) -> None:
@@ -20,9 +18,7 @@ def register(sub) -> None:
                                    "sessions whose file or configuration changed.")
     p.add_argument("manifest", metavar="MANIFEST.csv")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created; a re-run updates it)")
-    p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="override one config value (TOML syntax), e.g. --set skin.thickness_mm=1.2; repeatable")
+    add_config_args(p)
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the replays on this Dask distributed scheduler (workers need haptic-acu and the files)")
     p.add_argument("--jobs", type=int, default=0, help="local worker processes (default: the usable cores)")
@@ -34,45 +30,15 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def apply_sets(cfg, sets: list[str]):
-    """``cfg`` with each ``section.key=value`` applied (value in TOML syntax; a bare word is a
-    string) and validated like the file itself."""
-    from . import config as C
-
-    for item in sets:
-        key, eq, value = item.partition("=")
-        section, dot, name = key.strip().partition(".")
-        if not eq or not dot or not name:
-            raise UserError(f"--set {item}: expected SECTION.KEY=VALUE")
-        cls = C._SECTIONS.get(section)
-        if cls is None:
-            raise UserError(f"--set {item}: unknown section '{section}' (known: {', '.join(C._SECTIONS)})")
-        try:
-            v = tomllib.loads(f"v = {value.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            v = value.strip()
-        table = {k: (list(x) if isinstance(x, tuple) else x)
-                 for k, x in dataclasses.asdict(getattr(cfg, section)).items() if k != "name"}
-        if name not in table:
-            raise UserError(f"--set {item}: unknown key '{section}.{name}' (known: {', '.join(sorted(table))})")
-        table[name] = v
-        sec = C._section(Path("--set"), section, cls, table)
-        cfg = dataclasses.replace(cfg, **{section: sec})
-        C._check_relations(Path("--set"), cfg)
-    return cfg
-
-
 def run(args) -> int:
     from .cohort import read_manifest
-    from .config import load_config
-
     try:
         manifest = read_manifest(args.manifest)
     except UserError as e:
         for line in getattr(e, "lines", [])[:-1]:
             print(f"haptic-acu cohort: error: {line}", file=sys.stderr)
         raise
-    cfg = apply_sets(load_config(args.config), args.set)
+    cfg = config_from_args(args)
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0, got {args.jobs}")
     return run_cohort(manifest, Path(args.out), cfg, jobs=args.jobs, scheduler=args.scheduler,

@@ -14,7 +14,7 @@ import pytest
 from haptic_acu.bench.cohort_bench import synthetic_cohort
 from haptic_acu.cli import main
 from haptic_acu.cohort import CohortDir, config_hash, read_manifest
-from haptic_acu.cohort_cmd import apply_sets, run_cohort
+from haptic_acu.cohort_cmd import run_cohort
 from haptic_acu.cohort_tables import insertion_columns, session_columns
 from haptic_acu.config import load_config
 from haptic_acu.errors import UserError
@@ -254,15 +254,16 @@ def test_resume_after_an_interrupted_run(cohort, tmp_path, monkeypatch, capsys):
 def test_config_hash_follows_values_not_file_names(tmp_path):
     cfg = load_config()
     h = config_hash(cfg)
-    assert config_hash(apply_sets(cfg, ["skin.thickness_mm=0.8"])) == h  # the value it already has
-    assert config_hash(apply_sets(cfg, ["skin.thickness_mm=1.0"])) != h
+    t = cfg.skin.thickness_mm
+    assert config_hash(load_config(overrides=[f"skin.thickness_mm={t}"])) == h  # the value it already has
+    assert config_hash(load_config(overrides=[f"skin.thickness_mm={t + 0.2}"])) != h
     copy = tmp_path / "same.toml"
     copy.write_text(open(cfg.path).read())
     assert config_hash(load_config(copy)) == h
-    with pytest.raises(UserError, match="unknown key 'skin.thick'"):
-        apply_sets(cfg, ["skin.thick=1"])
+    with pytest.raises(UserError, match="--set skin.thick: unknown key"):
+        load_config(overrides=["skin.thick=1"])
     with pytest.raises(UserError, match="must be > 0"):
-        apply_sets(cfg, ["skin.thickness_mm=-1"])
+        load_config(overrides=["skin.thickness_mm=-1"])
 
 
 def test_refuses_a_folder_it_did_not_make_and_a_second_writer(tmp_path, capsys):
