@@ -774,6 +774,7 @@ class Session:
         old = {}
 
         def handler(signum, frame):
+            self.signal_received = signum  # replay reports an interrupted run (data issue)
             self.stop()
 
         for sig in (signal.SIGINT, signal.SIGTERM):

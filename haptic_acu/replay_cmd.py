@@ -78,6 +78,8 @@ def _one(args_tuple):
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
+    except OSError as e:  # a full disk, a folder made read-only meanwhile
+        return str(traj), None, f"{e.filename or out_dir}: {e.strerror or e}"
 
 
 def _flat(summary: dict) -> dict:
@@ -94,6 +96,8 @@ def run(args) -> int:
     from .config import load_config
     from .replay import replay_one, trajectories_from
 
+    if args.jobs < 0:
+        raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = load_config(args.config)  # a bad config fails before anything runs
     paths = trajectories_from(args.trajectories)
     for p in paths:
@@ -109,7 +113,12 @@ def run(args) -> int:
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
     base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
-    base.mkdir(parents=True, exist_ok=True)
+    if base.exists() and not base.is_dir():
+        raise UserError(f"{base}: exists and is not a folder; choose another --out")
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
@@ -135,9 +144,12 @@ def run(args) -> int:
         cols = []
         for r in rows:
             cols += [c for c in r if c not in cols]
-        with open(base / "summaries.csv", "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=cols)
-            wr.writeheader()
-            wr.writerows(rows)
+        try:
+            with open(base / "summaries.csv", "w", newline="") as f:
+                wr = csv.DictWriter(f, fieldnames=cols)
+                wr.writeheader()
+                wr.writerows(rows)
+        except OSError as e:
+            raise UserError(f"{base / 'summaries.csv'}: cannot write: {e.strerror or e}") from None
         print(f"batch: {len(rows)} replayed, {failed} failed; combined summary {base / 'summaries.csv'}")
     return 2 if failed else 0
