@@ -14,7 +14,9 @@ def register(sub) -> None:
     p.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True)
     p.add_argument("--trajectory", help="trajectory CSV for --device scripted (played in real time)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("--record", metavar="FILE", help="record the session as a replayable trajectory CSV")
+    p.add_argument("--record", metavar="FILE", help="record the session as a replayable trajectory CSV "
+                   "(an existing file is refused unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="let --record replace an existing file")
     p.add_argument("--config", help="tissue config TOML (default config/tissue.toml)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rrd", metavar="FILE", help="log to a rerun .rrd file")
@@ -53,14 +55,15 @@ def run(args) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
     cfg = load_config(args.config)
+    recorder = None
+    if args.record:  # checked now, created only once the session can start (after device.open)
+        from .recorder import RecorderSink, check_target
+        rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])
     device = make_device(args, cfg)
     sinks = []
     if args.record:
-        rec = Path(args.record)
-        if not rec.parent.exists():
-            raise UserError(f"{rec}: folder {rec.parent} does not exist")
-        from .recorder import RecorderSink
-        sinks.append(RecorderSink(rec))
+        recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
+        sinks.append(recorder)
     if args.rrd or args.spawn or args.connect:
         # rerun logging runs in a child process (see haptic_acu.sinkproc): its calls would otherwise
         # hold the GIL for hundreds of microseconds beside the servo thread
@@ -77,6 +80,8 @@ def run(args) -> int:
     session.warm_up()
     device.open()
     try:
+        if recorder is not None:
+            recorder.open()
         result = session.run()
     finally:
         device.close()
