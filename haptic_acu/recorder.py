@@ -134,9 +134,9 @@ class RecorderSink:
                 self._w.append_rows(out)
             except OSError as e:
                 self.failed = e.strerror or str(e)
-                raise RecordingError(f"{self.path}: recording stopped at t = {self._last_t:.3f} s "
-                                              f"({self.rows} rows, the file ends on a whole row): "
-                                              f"{e.strerror or e}") from None
+                at = f"t = {self._last_t:.3f} s" if self.rows else "its start"
+                raise RecordingError(f"{self.path}: recording stopped at {at} ({self.rows} rows, the "
+                                     f"file ends on a whole row): {e.strerror or e}") from None
             self._last_t = out[-1, 0]
             self.rows += out.shape[0]
 
