@@ -17,8 +17,6 @@ complete. Bad input is a one-line error naming the file (and line), exit status 
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -205,7 +203,9 @@ def run(args) -> int:
         out = Path(args.out)
     else:
         out = fresh_path(Path("runs") / f"compare-{paths[0].stem}-vs-{paths[1].stem}-{time.strftime('%Y%m%d-%H%M%S')}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder; choose another --out")
+    if out.exists() and any(out.iterdir()):
         raise UserError(f"{out}: output folder exists and is not empty")
 
     tissue = Tissue.from_config(cfg)
@@ -216,19 +216,22 @@ def run(args) -> int:
         "sessions": [{"label": lab, "trajectory": p.name, "metrics": m} for lab, p, m in zip(labels, paths, metrics)],
         "first_insertion_b_minus_a": first_insertion_diff(metrics),
     }
-    partial = out.with_name(out.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)
-    partial.mkdir(parents=True)
+    from .replay import OutputFolder  # exclusive and atomic; a user's DIR.partial is never deleted
+
+    folder = OutputFolder(out)
+    partial = folder.claim()
     try:
         (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
         plot_compare(rows, labels, partial / "compare.png", tissue.depths_at_acupoint() * 1e3)
-        if out.exists():
-            out.rmdir()
-        os.replace(partial, out)
+        folder.publish()
+    except OSError as e:
+        folder.discard()
+        raise UserError(f"{out}: cannot write the comparison's files: {e.strerror or e}") from None
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        folder.discard()
         raise
+    finally:
+        folder.release()
     for line in table_lines(labels, metrics):
         print(line)
     print(f"files: {out}/", file=sys.stdout)

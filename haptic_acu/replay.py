@@ -33,7 +33,8 @@ BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
 MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it): the summary keeps every row
 MARKER = ".haptic-acu-replay"  # in every DIR.partial a replay makes: the folder is ours
-OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd"}
+OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd", "compare.json",
+             "compare.png"}
 
 
 class OutputFolder:

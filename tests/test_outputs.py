@@ -166,3 +166,32 @@ def test_absurd_duration_refused_at_once(tmp_path):
     r = cli("replay", "--no-rrd", "--out", tmp_path / "out", f, timeout=120)
     one_line(r, 2, "span.csv", "split")
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
+
+
+# ------------------------------------------------------- I/O errors in score, fit and compare
+RATINGS = ROOT / "config" / "scoring" / "example_ratings.csv"
+MESH = ROOT / "config" / "meshes" / "forearm.obj"
+TRAJ = ROOT / "trajectories"
+
+
+@pytest.mark.parametrize("argv,name", [
+    (["score", RATINGS, "--out", "/proc/haptic-acu-x"], "/proc/haptic-acu-x"),
+    (["score", RATINGS, "--out", "/sys/haptic-acu-x"], "/sys/haptic-acu-x"),
+    (["fit", MESH, "--out", "/proc/haptic-acu-x.npz"], "/proc/haptic-acu-x.npz"),
+    (["compare", TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", "/proc/haptic-acu-x"],
+     "/proc/haptic-acu-x"),
+    (["compare", TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", "/dev/full"],
+     "/dev/full"),
+])
+def test_unwritable_outputs_one_line(argv, name):
+    one_line(cli(*argv), 2, name)
+
+
+def test_compare_never_deletes_a_users_partial(tmp_path):
+    out = tmp_path / "cmp"
+    partial = tmp_path / "cmp.partial"
+    partial.mkdir()
+    (partial / "mine.txt").write_text("mine")
+    r = cli("compare", TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", out)
+    one_line(r, 2, "cmp.partial")
+    assert (partial / "mine.txt").read_text() == "mine"
