@@ -6,19 +6,36 @@ device (:mod:`devices.scripted`) and the headless engine play it back at the 1 k
 
 File format (CSV, UTF-8, comma separated, no quoted newlines)::
 
-    # optional comment lines, also before the header and between rows; blank lines are skipped
     t_s,x_mm,y_mm,z_mm[,extra columns...]
     0.000000,0.0000,0.0000,5.0000
 
-The four columns ``t_s`` (s) and ``x_mm``, ``y_mm``, ``z_mm`` (mm) are required, named exactly,
-in any order; other columns (a recording's ``fx_n,fy_n,fz_n,layer,...``) are ignored unless asked
-for by name. Everything this module *returns* is SI: seconds, metres, m/s.
+The header is on line 1 in what this module writes (so ``pandas.read_csv`` needs no options);
+the reader still skips ``#`` comment lines and blank lines anywhere. The four columns ``t_s`` (s)
+and ``x_mm``, ``y_mm``, ``z_mm`` (mm) are required, named exactly, in any order; other columns (a
+recording's ``fx_n,fy_n,fz_n,layer,...``) are ignored unless asked for by name (``layer`` and
+``state_*`` are written as names and read back as their codes). Everything this module *returns*
+is SI: seconds, metres, m/s.
+
+Optional columns, parsed and validated whenever present and exposed on :class:`Block`, by
+:meth:`TrajectoryCursor.pose_block` and by the scripted device:
+
+* ``axis_x,axis_y,axis_z``: the needle axis, a unit vector from the handle to the tip, scene
+  frame (all three or none; refused if its length is off 1 by more than 1%);
+* ``roll_deg``: cumulative roll of the needle, degrees, positive clockwise seen from the handle
+  (refused if faster than 10 turns per second);
+* ``event``: empty, or ``reset`` (the hand lifted and put back with fresh tissue: the keyboard's
+  ``r``). A reset sample is a step (the tip holds the sample before it until the reset's time),
+  the hand-speed and roll-rate checks start anew there, velocity does not difference across it,
+  and headless replay resets the model at the first tick at or after it. Unknown events are
+  refused.
 
 Validation (each problem is a one-line :class:`~haptic_acu.errors.UserError` naming the file and,
-for anything inside it, the line): missing or unreadable file, empty file, header only, missing
-columns (named), a row with the wrong number of fields, a non-numeric cell (column named), NaN or
-infinite values, time not strictly increasing, fewer than 2 samples, binary data / text that is
-not UTF-8. The first problem in file order is the one reported.
+for anything inside it, the line): missing or unreadable file, a pipe or device instead of a file,
+empty file, header only, missing columns (named), a row with the wrong number of fields, a
+non-numeric cell (column named), NaN or infinite values, a coordinate over 10 m from the acupoint,
+time not strictly increasing, fewer than 2 samples, binary data / text that is not UTF-8, a
+carriage return inside a line (old Mac line endings), a field csv cannot read (over 128 kB). The
+first problem in file order is the one reported.
 
 Hand speed: the straight-line speed between consecutive samples may not exceed
 ``max_hand_speed_m_per_s`` (default 2.0 m/s, config ``scene.max_hand_speed_m_per_s``). A faster
@@ -34,7 +51,8 @@ motion. :class:`Trajectory` does this on arrays held in memory; :class:`Trajecto
 on a streamed file in O(1) amortised time per query for increasing ``t`` (a backward jump
 re-reads the file), keeping only a small window of samples.
 
-Writing: :class:`TrajectoryWriter` writes the same format incrementally, flushing each block.
+Writing: :class:`TrajectoryWriter` writes the same format incrementally, unbuffered, whole rows
+only (a failed write is cut back to the last whole row).
 Numbers are written with fixed decimals, deterministically: ``%.6f`` for seconds (1 us),
 ``%.4f`` for mm (0.1 um), ``%.5f`` for newtons (10 uN), chosen by the column's unit suffix;
 other extra columns ``%.10g``.
