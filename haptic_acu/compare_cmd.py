@@ -58,6 +58,10 @@ def open_trajectory(path: Path, cfg):
     dev = ScriptedDevice(path, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
                          force_limit_n=cfg.safety.force_limit_n)
     dev.open()
+    from .replay import MAX_REPLAY_DURATION_S
+    if dev.duration_s > MAX_REPLAY_DURATION_S:
+        raise UserError(f"{path}: spans {dev.duration_s:.6g} s, more than a replay takes "
+                        f"({MAX_REPLAY_DURATION_S:g} s); split the file")
     return dev
 
 

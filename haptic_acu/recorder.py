@@ -96,10 +96,12 @@ class RecorderSink:
         codes = np.zeros(len(ticks))
         keep = []
         for tick, name in self._pending:
+            if name not in EVENT_CODES:  # an event this file format has no name for yet
+                continue
             i = int(np.searchsorted(ticks, tick, side="left"))
-            if i < len(ticks) and name in EVENT_CODES:
+            if i < len(ticks):
                 codes[i] = EVENT_CODES[name]
-            else:
+            else:  # a tick the engine has not drained yet: the next frame
                 keep.append((tick, name))
         self._pending = keep
         return codes

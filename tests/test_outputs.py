@@ -195,3 +195,10 @@ def test_compare_never_deletes_a_users_partial(tmp_path):
     r = cli("compare", TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", out)
     one_line(r, 2, "cmp.partial")
     assert (partial / "mine.txt").read_text() == "mine"
+
+
+def test_compare_refuses_an_absurd_duration(tmp_path):
+    f = tmp_path / "span.csv"
+    f.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n1000000,0,0,5\n")
+    r = cli("compare", f, TRAJ / "default.csv", "--out", tmp_path / "c", timeout=120)
+    one_line(r, 2, "span.csv", "split")
