@@ -291,3 +291,35 @@ def test_keyboard_session_with_reset_records_the_event_and_replays(tmp_path):
     stripped.write_text(rec.read_text().replace(",reset\n", ",\n"))
     r = cli("replay", stripped, "--no-rrd", "--out", tmp_path / "x")
     one_line(r, 2, "no_event.csv", f"line {i + 2}")
+
+
+def test_recorder_places_events_on_their_ticks(tmp_path):
+    """Events (tick, name) from the device land on the row of that tick, in whichever frame it is
+    drained; an event on a row dropped for a repeated timestamp moves to the next row."""
+    from types import SimpleNamespace
+
+    from haptic_acu.recorder import RecorderSink
+    from haptic_acu.samples import COL, NCOL
+
+    dev = SimpleNamespace(events=[])
+    rec = RecorderSink(tmp_path / "r.csv", device=dev)
+    rec.open()
+
+    def frame(ticks, times):
+        rows = np.zeros((len(ticks), NCOL))
+        rows[:, COL["tick"]] = ticks
+        rows[:, COL["t_s"]] = times
+        rows[:, COL["z_m"]] = 0.005
+        rows[:, COL["layer"]] = -1
+        return SimpleNamespace(samples=rows)
+
+    dev.events += [(2, "reset"), (7, "reset"), (4, "twirl")]  # tick 7 is in the next frame
+    rec.on_frame(frame([0, 1, 2, 3, 4], [0.000, 0.001, 0.002, 0.003, 0.004]))
+    dev.events += [(5, "reset")]  # tick 5 repeats tick 4's time: dropped, its event moves on
+    rec.on_frame(frame([5, 6, 7, 8], [0.004, 0.006, 0.007, 0.008]))
+    rec.close(None)
+    with open(tmp_path / "r.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    got = {r["t_s"]: r["event"] for r in rows if r["event"]}
+    assert got == {"0.002000": "reset", "0.006000": "reset", "0.007000": "reset"}
+    assert len(rows) == 8 and rows[0]["layer"] == "outside"
