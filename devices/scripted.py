@@ -77,6 +77,8 @@ class ScriptedDevice(Device):
         self._clock = self._clock_c = 0.0
         self._wall0 = None
         self._last_read_t = -math.inf
+        self._reads = 0  # read_at calls since open: one per servo tick in a real-time session
+        self.events: list[tuple[int, str]] = []
 
     def close(self) -> None:
         self._cursor = None
@@ -100,6 +102,8 @@ class ScriptedDevice(Device):
             extra["axis"] = -c.pose_block(np.array([float(t_s)]))[0][0]  # DeviceState: tip -> handle
         if c.reset_times and any(self._last_read_t < r <= t_s for r in c.reset_times[-4:]):
             extra["reset"] = True
+            self.events.append((self._reads, "reset"))  # for a recording: (servo tick, name)
+        self._reads += 1
         self._last_read_t = float(t_s)
         return DeviceState(t_s=float(t_s), position_m=pos, velocity_m_s=vel, done=done, **extra)
 
@@ -158,6 +162,12 @@ class ScriptedDevice(Device):
         if self.realtime:
             return 0.0 if self._wall0 is None else time.perf_counter() - self._wall0
         return self._clock
+
+    @property
+    def has_events(self) -> bool:
+        """The file has an ``event`` column (resets): a real-time session must honour them through
+        ``read_at`` (the Python servo loop); the compiled loop plays positions only."""
+        return self._reader.has_event
 
     @property
     def duration_s(self) -> float:

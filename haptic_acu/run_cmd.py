@@ -75,8 +75,8 @@ def run(args) -> int:
         sinks.append(StatusLine(stream=sys.stderr))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
-    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-                      compiled_loop=not args.python_servo)
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,  # resets need read_at:
+                      compiled_loop=not args.python_servo and not getattr(device, "has_events", False))
     session.warm_up()
     device.open()
     try:

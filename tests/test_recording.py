@@ -323,3 +323,20 @@ def test_recorder_places_events_on_their_ticks(tmp_path):
     got = {r["t_s"]: r["event"] for r in rows if r["event"]}
     assert got == {"0.002000": "reset", "0.006000": "reset", "0.007000": "reset"}
     assert len(rows) == 8 and rows[0]["layer"] == "outside"
+
+
+def test_live_scripted_session_honours_a_reset(tmp_path):
+    """Played on the wall clock, a file with a reset event gives fresh tissue too (the servo loop
+    that reads the device tick by tick honours DeviceState.reset): two skin punctures, as in the
+    headless replay of the same file."""
+    reset = with_reset(SAME_SITE, tmp_path / "reset.csv", 5.0)
+    rec = tmp_path / "live.csv"
+    r = cli("run", "--device", "scripted", "--trajectory", reset, "--record", rec, "--no-status")
+    assert r.returncode == 0, r.stderr
+    tr = T.load(rec, max_hand_speed_m_per_s=10.0, extra_columns=("state_skin", "event"))
+    s = tr.extra["state_skin"]
+    breaks = np.flatnonzero((s[1:] == 2) & (s[:-1] != 2)) + 1  # the skin becomes punctured
+    assert len(breaks) == 2 and tr.t_s[breaks[1]] > 5.0
+    assert tr.t_s[np.flatnonzero(s == 0)].max() > 5.0  # untouched again after the reset
+    ev = np.flatnonzero(tr.extra["event"] == 1)  # and the recording carries the reset
+    assert len(ev) == 1 and 5.0 <= tr.t_s[ev[0]] < 5.01
