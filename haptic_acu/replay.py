@@ -170,6 +170,34 @@ class Progress:
             self.stream.flush()
 
 
+class _IOErrors:
+    """Remembers the first OSError a file-writing sink raised (the engine reports it as a fault;
+    a replay reports it as what it is: the output could not be written)."""
+
+    def __init__(self):
+        self.error: str | None = None
+
+    def guard(self, sink):
+        errors = self
+
+        class Guarded:
+            def __getattr__(self, name):
+                attr = getattr(sink, name)
+                if name not in ("on_frame", "close", "start"):
+                    return attr
+
+                def call(*a, **kw):
+                    try:
+                        return attr(*a, **kw)
+                    except OSError as e:
+                        if errors.error is None:
+                            errors.error = f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}"
+                        raise
+                return call
+
+        return Guarded()
+
+
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
@@ -193,7 +221,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     partial = out.claim()
     try:
         summary_sink = SummarySink(cfg)
-        sinks = [SamplesCsvSink(partial / "samples.csv"), summary_sink]
+        io = _IOErrors()
+        sinks = [io.guard(SamplesCsvSink(partial / "samples.csv")), summary_sink]
         if rrd or spawn or connect:
             from .rerun_log import RerunSink
             if spawn:
@@ -203,7 +232,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             else:
                 sink = RerunSink.to_file(partial / "recording.rrd")
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
-                sinks.append(sink)
+                sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim")
@@ -212,6 +241,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         result = session.run()
         wall = time.perf_counter() - wall0
         device.close()
+        if io.error is not None:  # a full disk: bad ground to write on, not a fault of the session
+            raise UserError(f"{out_dir}: cannot write the replay's files: {io.error}")
         if result.fault:
             raise UserError(f"{trajectory}: replay stopped: {result.fault}", exit_status=3)
         signum = getattr(session, "signal_received", None)

@@ -202,3 +202,25 @@ def test_compare_refuses_an_absurd_duration(tmp_path):
     f.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n1000000,0,0,5\n")
     r = cli("compare", f, TRAJ / "default.csv", "--out", tmp_path / "c", timeout=120)
     one_line(r, 2, "span.csv", "split")
+
+
+def _small_files(limit):
+    import resource
+
+    def pre():  # writes past `limit` bytes fail (EFBIG), as on a full disk
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return pre
+
+
+@pytest.mark.parametrize("argv", [
+    ["replay", "--no-rrd", "--quiet", ROOT / "trajectories" / "default.csv", "--out"],
+    ["score", RATINGS, "--out"],
+    ["compare", TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out"],
+])
+def test_full_disk_one_line(tmp_path, argv):
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, argv), str(out)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600, preexec_fn=_small_files(20_000))
+    one_line(r, 2, "out")
+    assert not out.exists() or not any(out.iterdir()) or argv[0] == "score"
