@@ -277,6 +277,11 @@ class TrajectoryReader:
         events = None
         if self._event_col is None and not self._cat:
             return num, None
+        if not self._cat and self._event_col == len(self.columns) - 1:
+            # the usual recording: the event column last and nearly always empty
+            empty = blob.count(b",\n") + (1 if not blob.endswith(b"\n") and blob.endswith(b",") else 0)
+            if empty == n_lines:
+                return num, np.full(n_lines, "", dtype=object)
         cells = [ln.split(",") for ln in lines]
         if self._event_col is not None:
             j = self._event_col
