@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import csv
+import fcntl
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -119,10 +121,24 @@ def run(args) -> int:
         base.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
+    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(lock)
+        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
+                        "another --out") from None
+    try:
+        return _run_batch(args, paths, base)
+    finally:
+        os.close(lock)
+
+
+def _run_batch(args, paths, base: Path) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    jobs = args.jobs or min(len(paths), max(1, len(__import__("os").sched_getaffinity(0))))
+    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
     work = [(str(p), str(base / p.stem), args.config, not args.no_rrd) for p in paths]
     results = {}
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:

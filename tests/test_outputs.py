@@ -224,3 +224,21 @@ def test_full_disk_one_line(tmp_path, argv):
                        capture_output=True, text=True, timeout=600, preexec_fn=_small_files(20_000))
     one_line(r, 2, "out")
     assert not out.exists() or not any(out.iterdir()) or argv[0] == "score"
+
+
+def test_second_batch_to_the_same_folder_refused(tmp_path):
+    src = tmp_path / "trajs"
+    src.mkdir()
+    long_csv(src / "a_long.csv")
+    short_csv(src / "b_short.csv")
+    out = tmp_path / "batch"
+    a = start("replay", "--no-rrd", "--jobs", "1", "--out", out, src)
+    try:
+        assert wait_for(lambda: samples_rows(out / "a_long.partial" / "samples.csv") > 100
+                        or a.poll() is not None)
+        assert a.poll() is None
+        b = cli("replay", "--no-rrd", "--out", out, src)
+        one_line(b, 2, "batch", "another batch")
+    finally:
+        os.killpg(a.pid, signal.SIGINT)
+        a.communicate(timeout=120)
