@@ -180,6 +180,8 @@ class KeyboardDevice(Device):
         self._t = 0.0
         self._last_wall: float | None = None
         self._done = False
+        self._reads = 0  # reads since open: the engine reads once per servo tick
+        self.events: list[tuple[int, str]] = []  # (read index = servo tick, name): ("reset") for recordings
 
     # -- Device interface ----------------------------------------------------------------------
     def open(self) -> None:
@@ -247,6 +249,9 @@ class KeyboardDevice(Device):
             if cmd == "reset":
                 reset = True
             self._apply(cmd)
+        if reset:
+            self.events.append((self._reads, "reset"))
+        self._reads += 1
         return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=self._velocity(),
                            axis=np.array(AXIS), done=self._done, reset=reset)
 

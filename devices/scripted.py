@@ -19,6 +19,13 @@ Clocking (``drives_clock`` is False: the engine calls ``read`` / ``set_force`` e
 * real time (``realtime=True``): ``read()`` uses wall-clock time since the first ``read()``
   (``time.perf_counter``); ``advance`` is ignored.
 
+Optional columns (see :mod:`haptic_acu.trajectory`): a ``reset`` event gives ``DeviceState.reset``
+on the first read at or after it (``read_at``) and is listed by :meth:`ScriptedDevice.reset_ticks`
+for a block of ticks (the headless engine resets the model there); the needle axis
+(``axis_x,axis_y,axis_z``) fills ``DeviceState.axis``; :meth:`ScriptedDevice.pose_block` gives axis
+and roll for a block of ticks (``None`` when the file has no such columns). The servo step does not
+use axis or roll yet.
+
 ``seek(t_s)`` sets the clock (a backward seek re-reads the file from its start). ``set_force``
 commands nothing (there is no motor): it keeps the last force, the count of commands and the
 largest magnitude seen, for tests and summaries.
@@ -69,6 +76,9 @@ class ScriptedDevice(Device):
         self._cursor = self._reader.cursor(SERVO_TICK_S)
         self._clock = self._clock_c = 0.0
         self._wall0 = None
+        self._last_read_t = -math.inf
+        self._reads = 0  # read_at calls since open: one per servo tick in a real-time session
+        self.events: list[tuple[int, str]] = []
 
     def close(self) -> None:
         self._cursor = None
@@ -85,8 +95,17 @@ class ScriptedDevice(Device):
         """The tip at session time ``t_s`` (s): position (m), velocity (m/s), ``done``."""
         if self._cursor is None:
             raise RuntimeError("ScriptedDevice: call open() first")
-        pos, vel, done = self._cursor.sample(t_s)
-        return DeviceState(t_s=float(t_s), position_m=pos, velocity_m_s=vel, done=done)
+        c = self._cursor
+        pos, vel, done = c.sample(t_s)
+        extra = {}
+        if self._reader.has_axis:
+            extra["axis"] = -c.pose_block(np.array([float(t_s)]))[0][0]  # DeviceState: tip -> handle
+        if c.reset_times and any(self._last_read_t < r <= t_s for r in c.reset_times[-4:]):
+            extra["reset"] = True
+            self.events.append((self._reads, "reset"))  # for a recording: (servo tick, name)
+        self._reads += 1
+        self._last_read_t = float(t_s)
+        return DeviceState(t_s=float(t_s), position_m=pos, velocity_m_s=vel, done=done, **extra)
 
     def read_block(self, t_s: np.ndarray):
         """States at many increasing session times at once (headless replay): positions (n, 3) m,
@@ -94,6 +113,18 @@ class ScriptedDevice(Device):
         if self._cursor is None:
             raise RuntimeError("ScriptedDevice: call open() first")
         return self._cursor.sample_block(t_s)
+
+    def reset_ticks(self, t_s: np.ndarray) -> list[int]:
+        """Indices of the ticks ``t_s`` (just read by :meth:`read_block`) at which the file's
+        ``reset`` events take effect: fresh tissue before that tick."""
+        return self._cursor.resets_between(np.asarray(t_s, dtype=np.float64))
+
+    def pose_block(self, t_s: np.ndarray):
+        """Needle axis (n, 3), unit, handle -> tip, scene frame, and roll (n,) in degrees at the
+        times ``t_s``; each ``None`` if the file has no such columns."""
+        if self._cursor is None:
+            raise RuntimeError("ScriptedDevice: call open() first")
+        return self._cursor.pose_block(np.asarray(t_s, dtype=np.float64))
 
     def set_force(self, force_n) -> None:
         f = np.array(force_n, dtype=np.float64).reshape(3)
@@ -131,6 +162,12 @@ class ScriptedDevice(Device):
         if self.realtime:
             return 0.0 if self._wall0 is None else time.perf_counter() - self._wall0
         return self._clock
+
+    @property
+    def has_events(self) -> bool:
+        """The file has an ``event`` column (resets): a real-time session must honour them through
+        ``read_at`` (the Python servo loop); the compiled loop plays positions only."""
+        return self._reader.has_event
 
     @property
     def duration_s(self) -> float:

@@ -73,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as e:  # a full disk, a read-only or vanished folder while writing outputs
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"haptic-acu {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

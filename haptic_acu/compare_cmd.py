@@ -18,8 +18,6 @@ complete. Bad input is a one-line error naming the file (and line), exit status 
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -64,6 +62,10 @@ def open_trajectory(path: Path, cfg):
     dev = ScriptedDevice(path, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
                          force_limit_n=cfg.safety.force_limit_n)
     dev.open()
+    from .replay import MAX_REPLAY_DURATION_S
+    if dev.duration_s > MAX_REPLAY_DURATION_S:
+        raise UserError(f"{path}: spans {dev.duration_s:.6g} s, more than a replay takes "
+                        f"({MAX_REPLAY_DURATION_S:g} s); split the file")
     return dev
 
 
@@ -282,7 +284,9 @@ def run(args) -> int:
     else:
         name = "-vs-".join(p.stem for p in paths[:3]) + ("-etc" if len(paths) > 3 else "")
         out = fresh_path(Path("runs") / f"compare-{name}-{time.strftime('%Y%m%d-%H%M%S')}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder; choose another --out")
+    if out.exists() and any(out.iterdir()):
         raise UserError(f"{out}: output folder exists and is not empty")
 
     with step("building the tissue"):
@@ -305,19 +309,22 @@ def run(args) -> int:
     }
     if len(metrics) == 2:
         doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
-    partial = out.with_name(out.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)
-    partial.mkdir(parents=True)
+    from .replay import OutputFolder  # exclusive and atomic; a user's DIR.partial is never deleted
+
+    folder = OutputFolder(out)
+    partial = folder.claim()
     try:
         (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
         plot_compare(rows, labels, partial / "compare.png", tissue, punctures, args.insertion)
-        if out.exists():
-            out.rmdir()
-        os.replace(partial, out)
+        folder.publish()
+    except OSError as e:
+        folder.discard()
+        raise UserError(f"{out}: cannot write the comparison's files: {e.strerror or e}") from None
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        folder.discard()
         raise
+    finally:
+        folder.release()
     for line in table_lines(labels, metrics, args.insertion):
         print(line)
     print(f"files: {out}/", file=sys.stdout)

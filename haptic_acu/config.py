@@ -131,6 +131,26 @@ _NON_NEGATIVE = {"damping_n_s_per_m_per_mm", "bulge", "eta_rate_per_frame", "eta
                  "margin_rings", "lmax", "pretension",
                  "cutting_n_per_mm_diameter", "coulomb_n_per_mm2", "viscous_n_s_per_m_per_mm2",
                  "friction_relaxation_s"}
+# Bounds on what a tissue config can ask for (by field name, in any section): far outside any
+# tissue or device, and past them the solver hangs, exhausts memory or overflows (a stiffness of
+# 1e300 N/mm overflowed the force clamp to 0 N; fit_samples = 2e9 exhausted memory;
+# static_tolerance_um = 1e-300 or sweeps_per_tick = 1e6 never finished). (low, high), inclusive.
+_BOUNDS = {
+    "semi_axes_mm": (1.0, 10_000.0), "lmax": (0, 40), "fit_samples": (2, 200_000),
+    "thickness_mm": (1e-3, 1_000.0), "k_virtual_n_per_mm": (1e-6, 1_000.0),
+    "damping_n_s_per_m_per_mm": (0.0, 1_000.0), "spring_length_mm": (1e-3, 100.0),
+    "k_surface_n_per_mm": (1e-6, 1_000.0), "puncture_threshold_um": (1e-6, 1e6),
+    "hole_radius_mm": (1e-3, 100.0), "lateral_stiffness_n_per_mm": (1e-6, 1_000.0),
+    "bone_stiffness_n_per_mm": (1e-6, 1_000.0), "eta_rate_per_frame": (0.0, 1.0),
+    "margin_rings": (0, 40), "sweeps_per_tick": (1, 100), "static_tolerance_um": (1e-6, 1_000.0),
+    "force_limit_n": (1e-3, 100.0), "target_depth_mm": (0.0, 1_000.0),
+    "max_hand_speed_m_per_s": (1e-3, 100.0), "offset_mm": (-10_000.0, 10_000.0),
+    "scale": (1e-3, 1_000.0), "rotation_z_deg": (-3600.0, 3600.0),
+    "diameter_mm": (1e-3, 10.0), "length_mm": (1.0, 1_000.0), "stick_stiffness_n_per_mm": (1e-6, 1_000.0),
+    "stiction_ratio": (1.0, 100.0), "cutting_n_per_mm_diameter": (0.0, 1_000.0),
+    "coulomb_n_per_mm2": (0.0, 1_000.0), "viscous_n_s_per_m_per_mm2": (0.0, 1e6),
+    "friction_relaxation_s": (0.0, 1e4),
+}
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,
     "needle": NeedleParams, "springback": SpringbackParams, "solver": SolverParams,
@@ -191,6 +211,9 @@ def _section(path: Path, name: str, cls, table) -> object:
                     _fail(path, key, f"must be > 0, got {item!r}")
                 if f.name in _NON_NEGATIVE and not item >= 0:
                     _fail(path, key, f"must be >= 0, got {item!r}")
+                lo, hi = _BOUNDS.get(f.name, (-math.inf, math.inf))
+                if not lo <= item <= hi:
+                    _fail(path, key, f"must be between {lo:g} and {hi:g}, got {item!r}")
         values[f.name] = v
     if cls is LayerParams:
         values["name"] = name
@@ -240,7 +263,7 @@ def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
     except OSError as e:
         raise UserError(f"{path}: cannot read config: {e.strerror}") from None
     try:
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = tomllib.loads(raw.decode("utf-8-sig"))  # a UTF-8 BOM (Windows editors) is accepted
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a UTF-8 text file") from None
     except tomllib.TOMLDecodeError as e:

@@ -426,7 +426,8 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                n = run_ticks(P, V, T, k0, ring.buf, ring.head, *args, m._p, m._v)
+                cuts = dev.reset_ticks(T) if hasattr(dev, "reset_ticks") else ()
+                n = self._run_ticks_resetting(P, V, T, k0, cuts, args)
                 ring.head += n
                 self.tick += n
                 self._t_session = float(T[n - 1])
@@ -444,6 +445,23 @@ class Session:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": self.frame_index / wall}
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+
+    def _run_ticks_resetting(self, P, V, T, k0, cuts, args) -> int:
+        """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
+        ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
+        m, ring = self.model, self.ring
+        bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
+        n = 0
+        for j in range(len(bounds) - 1):
+            a, b = bounds[j], bounds[j + 1]
+            if j > 0:
+                m.reset(keep_holes=False)
+            if b > a:
+                r = run_ticks(P[a:b], V[a:b], T[a:b], k0 + a, ring.buf, ring.head + a, *args, m._p, m._v)
+                n += r
+                if r < b - a:  # a fault
+                    break
+        return n
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):
@@ -774,6 +792,7 @@ class Session:
         old = {}
 
         def handler(signum, frame):
+            self.signal_received = signum  # replay reports an interrupted run (data issue)
             self.stop()
 
         for sig in (signal.SIGINT, signal.SIGTERM):

@@ -14,10 +14,14 @@ replay never leaves a folder that looks complete. Identical input gives byte-ide
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import os
 import shutil
+import signal
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -27,6 +31,118 @@ from .errors import UserError
 
 BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
+MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it): the summary keeps every row
+MARKER = ".haptic-acu-replay"  # in every DIR.partial a replay makes: the folder is ours
+OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd", "compare.json",
+             "compare.png"}
+
+
+class OutputFolder:
+    """One replay's output folder, exclusive and atomic.
+
+    :meth:`claim` builds ``DIR.partial`` as a fresh hidden folder beside ``DIR``, takes an exclusive
+    ``flock`` on it, marks it as ours and renames it into place; a second replay to the same ``DIR``
+    finds it locked and is refused. A ``DIR.partial`` left by a replay that died (marked, unlocked,
+    holding only replay files) is replaced; any other existing ``DIR.partial`` (a user's files) is
+    never touched: refused. :meth:`publish` renames ``DIR.partial`` to ``DIR`` (which must not exist
+    or be an empty folder: a folder is never mixed). :meth:`discard` removes our ``DIR.partial``;
+    :meth:`abandon` leaves it (an interrupted replay); :meth:`release` drops the lock.
+    """
+
+    def __init__(self, out_dir: Path):
+        self.out = Path(out_dir)
+        self.partial = self.out.with_name(self.out.name + ".partial")
+        self._fd: int | None = None
+        self._claimed = False
+        self._keep = False
+
+    def _check_out(self) -> None:
+        if self.out.is_dir():
+            if any(self.out.iterdir()):
+                raise UserError(f"{self.out}: output folder exists and is not empty")
+        elif self.out.exists() or self.out.is_symlink():
+            raise UserError(f"{self.out}: exists and is not a folder; choose another --out")
+
+    def claim(self) -> Path:
+        self._check_out()
+        parent = self.out.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", suffix=".tmp", dir=parent))
+        except OSError as e:
+            raise UserError(f"{self.out}: cannot create the output folder: "
+                            f"{e.strerror or e}") from None
+        try:
+            self._fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY)
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            (tmp / MARKER).write_text(f"pid {os.getpid()}\n")
+            for _ in range(2):
+                try:
+                    os.rename(tmp, self.partial)  # fails if DIR.partial exists and is not empty
+                    break
+                except OSError as e:
+                    if e.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
+                        raise
+                    self._remove_stale()
+            else:
+                raise UserError(f"{self.partial}: another replay is writing to {self.out}")
+        except BaseException as e:
+            shutil.rmtree(tmp, ignore_errors=True)
+            self.release()
+            if isinstance(e, OSError):
+                raise UserError(f"{self.out}: cannot create the output folder: "
+                                f"{e.strerror or e}") from None
+            raise
+        self._claimed = True
+        return self.partial
+
+    def _remove_stale(self) -> None:
+        """Remove a DIR.partial left by a replay that died, or refuse (one line)."""
+        p = self.partial
+        if not p.is_dir() or p.is_symlink():
+            raise UserError(f"{p}: exists and is not a replay's folder; move it away or choose "
+                            "another --out")
+        fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise UserError(f"{p}: another replay is writing to {self.out} (its folder is "
+                                "locked); wait for it or choose another --out") from None
+            names = {q.name for q in p.iterdir()}
+            if MARKER not in names or not names <= OUR_FILES or any(
+                    not (p / n).is_file() or (p / n).is_symlink() for n in names):
+                raise UserError(f"{p}: exists and holds files a replay did not write; move them "
+                                "away or choose another --out")
+            shutil.rmtree(p)
+        finally:
+            os.close(fd)
+
+    def publish(self) -> None:
+        self._check_out()
+        try:
+            os.rename(self.partial, self.out)  # replaces an empty folder, never a full one
+        except OSError as e:
+            if e.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                self._keep = True
+                raise UserError(f"{self.out}: appeared while this replay ran; its files stay in "
+                                f"{self.partial}/") from None
+            raise
+        (self.out / MARKER).unlink(missing_ok=True)
+        self._claimed = False
+
+    def abandon(self) -> None:
+        self._keep = True
+
+    def discard(self) -> None:
+        if self._claimed and not self._keep:
+            shutil.rmtree(self.partial, ignore_errors=True)
+            self._claimed = False
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class Progress:
@@ -64,6 +180,34 @@ class Progress:
             self.stream.flush()
 
 
+class _IOErrors:
+    """Remembers the first OSError a file-writing sink raised (the engine reports it as a fault;
+    a replay reports it as what it is: the output could not be written)."""
+
+    def __init__(self):
+        self.error: str | None = None
+
+    def guard(self, sink):
+        errors = self
+
+        class Guarded:
+            def __getattr__(self, name):
+                attr = getattr(sink, name)
+                if name not in ("on_frame", "close", "start"):
+                    return attr
+
+                def call(*a, **kw):
+                    try:
+                        return attr(*a, **kw)
+                    except OSError as e:
+                        if errors.error is None:
+                            errors.error = f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}"
+                        raise
+                return call
+
+        return Guarded()
+
+
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
@@ -79,15 +223,16 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                             realtime=realtime, force_limit_n=cfg.safety.force_limit_n)
     device.open()  # validates the whole file before anything is written
     out_dir = Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()):
-        raise UserError(f"{out_dir}: output folder exists and is not empty")
-    partial = out_dir.with_name(out_dir.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)
-    partial.mkdir(parents=True)
+    limit = MAX_REPLAY_DURATION_S
+    if device.duration_s > limit:
+        raise UserError(f"{trajectory}: spans {device.duration_s:.6g} s, more than a replay takes "
+                        f"({limit:g} s); split the file")
+    out = OutputFolder(out_dir)
+    partial = out.claim()
     try:
         summary_sink = SummarySink(cfg)
-        sinks = [SamplesCsvSink(partial / "samples.csv"), summary_sink]
+        io = _IOErrors()
+        sinks = [io.guard(SamplesCsvSink(partial / "samples.csv")), summary_sink]
         if rrd or spawn or connect:
             from .rerun_log import RerunSink
             if spawn:
@@ -97,7 +242,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             else:
                 sink = RerunSink.to_file(partial / "recording.rrd")
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
-                sinks.append(sink)
+                sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim")
@@ -106,8 +251,20 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         result = session.run()
         wall = time.perf_counter() - wall0
         device.close()
+        if io.error is not None:  # a full disk: bad ground to write on, not a fault of the session
+            raise UserError(f"{out_dir}: cannot write the replay's files: {io.error}")
         if result.fault:
             raise UserError(f"{trajectory}: replay stopped: {result.fault}", exit_status=3)
+        signum = getattr(session, "signal_received", None)
+        if signum is not None or (not realtime and result.ticks * session.servo_dt + 0.5
+                                  < device.duration_s):
+            out.abandon()  # the files so far stay in DIR.partial; nothing is published
+            name = signal.Signals(signum).name if signum is not None else "a stop request"
+            raise UserError(
+                f"{trajectory}: replay interrupted by {name} at t = {result.duration_s:.3f} s "
+                f"(tick {result.ticks} of about {int(device.duration_s / session.servo_dt)}); "
+                f"the files so far are in {partial}/, not published",
+                exit_status=128 + (signum or signal.SIGINT))
         summary = summary_sink.summary()
         summary["trajectory"] = trajectory.name
         try:
@@ -118,12 +275,15 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             pass
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
         plot_force_depth(summary_sink.rows(), partial / "force_depth.png", summary_sink.tissue, summary=summary)
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(partial, out_dir)
+        out.publish()
+    except OSError as e:
+        out.discard()
+        raise UserError(f"{out_dir}: cannot write the replay's files: {e.strerror or e}") from None
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        out.discard()
         raise
+    finally:
+        out.release()
     summary["_wall_s"] = wall
     summary["_stats"] = result.stats
     return summary

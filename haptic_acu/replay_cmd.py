@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import csv
+import fcntl
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -59,6 +61,8 @@ def _one(args_tuple):
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
+    except OSError as e:  # a full disk, a folder made read-only meanwhile
+        return str(traj), None, f"{e.filename or out_dir}: {e.strerror or e}"
 
 
 def _flat(summary: dict) -> dict:
@@ -75,6 +79,8 @@ def run(args) -> int:
     from .overrides import config_from_args
     from .replay import replay_one, trajectories_from
 
+    if args.jobs < 0:
+        raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
     if args.spawn:
         from .viewer import check_spawn
@@ -93,11 +99,30 @@ def run(args) -> int:
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
     base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
-    base.mkdir(parents=True, exist_ok=True)
+    if base.exists() and not base.is_dir():
+        raise UserError(f"{base}: exists and is not a folder; choose another --out")
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
+    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(lock)
+        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
+                        "another --out") from None
+    try:
+        return _run_batch(args, paths, base)
+    finally:
+        os.close(lock)
+
+
+def _run_batch(args, paths, base: Path) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    jobs = args.jobs or min(len(paths), max(1, len(__import__("os").sched_getaffinity(0))))
+    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
     work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
     results = {}
     from . import progress
@@ -122,9 +147,12 @@ def run(args) -> int:
         cols = []
         for r in rows:
             cols += [c for c in r if c not in cols]
-        with open(base / "summaries.csv", "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=cols)
-            wr.writeheader()
-            wr.writerows(rows)
+        try:
+            with open(base / "summaries.csv", "w", newline="") as f:
+                wr = csv.DictWriter(f, fieldnames=cols)
+                wr.writeheader()
+                wr.writerows(rows)
+        except OSError as e:
+            raise UserError(f"{base / 'summaries.csv'}: cannot write: {e.strerror or e}") from None
         print(f"batch: {len(rows)} replayed, {failed} failed; combined summary {base / 'summaries.csv'}")
     return 2 if failed else 0

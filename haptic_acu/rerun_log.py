@@ -29,6 +29,7 @@ A blueprint (3D view beside force, depth and rate plots and the event log) goes 
 """
 from __future__ import annotations
 
+import collections
 import socket
 import sys
 import time
@@ -155,7 +156,7 @@ class RerunSink:
     time of every ``on_frame`` (rerun's own encoder and writer threads are not included)."""
 
     def __init__(self, mode: str = "file", target: str | None = None, *, recording_id: str | None = None,
-                 rest_n_theta: int = 40):
+                 rest_n_theta: int = 40, footer: bool = True):
         self.mode = mode
         self.target = target
         self.rest_n_theta = rest_n_theta
@@ -163,7 +164,11 @@ class RerunSink:
         bp = blueprint()
         try:
             if mode == "file":
-                self.rec.save(str(target), default_blueprint=bp)
+                # The .rrd footer (a manifest of every chunk, for random access) is held in memory
+                # until the file closes: ~25 MB per minute of a live session, whose servo series
+                # make 180 chunks a second. A live session's file goes without it (flat memory;
+                # the viewer reads the file in order); headless replays, short and batched, keep it.
+                self.rec.save(str(target), default_blueprint=bp, write_footer=footer)
             elif mode == "spawn":
                 self.rec.spawn(default_blueprint=bp)
             elif mode == "connect":
@@ -174,8 +179,9 @@ class RerunSink:
         except (OSError, RuntimeError) as e:
             hint = " (start a viewer with `rerun`, or log to a FILE.rrd)" if mode == "connect" else ""
             raise UserError(f"rerun {mode} {target or ''}: {e}{hint}".replace("  ", " ")) from None
-        self.frame_cost_s: list[float] = []
-        self.frame_cpu_s: list[float] = []
+        # the last 100,000 frames (28 min at 60 Hz): bounded in a session of any length
+        self.frame_cost_s: collections.deque = collections.deque(maxlen=100_000)
+        self.frame_cpu_s: collections.deque = collections.deque(maxlen=100_000)
         self._last_t = 0.0
         self._warm = False
         self._started = False
@@ -187,12 +193,25 @@ class RerunSink:
         self.batch_frames = 1
         self._pending: list[np.ndarray] = []
         self._frames_since_send = 0
+        # The SDK queues logged data for its encoder/writer thread without bound: when logging
+        # outpaces it (a loaded machine, a headless replay) the queue grew ~30 MB per minute of
+        # session. A flush every ``flush_frames`` frames waits for it, bounding the backlog to
+        # about one second of data; the wait is in this process (the logging child in a live
+        # session, whose pipe then holds the visual thread back; never the servo thread).
+        self.flush_frames = 60
+        self.flush_timeout_s = 5.0
+        self._frames_since_flush = 0
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
     def to_file(cls, path, **kw) -> "RerunSink":
         """Write a .rrd file (headless)."""
         return cls("file", str(path), **kw)
+
+    @classmethod
+    def to_file_live(cls, path, **kw) -> "RerunSink":
+        """Write a .rrd file from a live session of any length: no footer, so memory stays flat."""
+        return cls("file", str(path), footer=False, **kw)
 
     @classmethod
     def spawn(cls, **kw) -> "RerunSink":
@@ -342,6 +361,13 @@ class RerunSink:
                     rec.log(f"rates/{key}", rr.Scalars(float(rates[key])))
         self._patches(frame)
         self._nets(model)
+        self._frames_since_flush += 1
+        if self.flush_frames and self._frames_since_flush >= self.flush_frames:
+            self._frames_since_flush = 0
+            try:
+                rec.flush(timeout_sec=self.flush_timeout_s)
+            except RuntimeError:  # a viewer too slow to take it: the backlog waits for the next flush
+                pass
         self.frame_cost_s.append(time.perf_counter() - t_wall)
         self.frame_cpu_s.append(time.thread_time() - t_cpu)
 

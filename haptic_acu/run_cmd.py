@@ -43,7 +43,9 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="report folder (default: a new folder runs/<device>-<time>/; "
                                                 "must be empty if it exists)")
     p.add_argument("--record", metavar="FILE", help="write the replayable recording to FILE instead of "
-                                                    "<out>/recording.csv")
+                                                    "<out>/recording.csv (an existing file is refused unless "
+                                                    "--overwrite; never the session's own --trajectory)")
+    p.add_argument("--overwrite", action="store_true", help="let --record replace an existing file")
     add_config_args(p)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rrd", metavar="FILE", nargs="?", const="",
@@ -111,16 +113,19 @@ def run(args) -> int:
     if args.spawn:
         from .viewer import check_spawn
         check_spawn()  # no display: one line now, not half a minute of viewer errors
+    if args.record:  # checked now, created only once the session can start (after device.open)
+        from .recorder import check_target
+        rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])
     device = make_device(args, cfg)
     out = out_folder(args)
-    rec = Path(args.record) if args.record else out / "recording.csv"
-    if not rec.parent.exists() and rec.parent != out:
-        raise UserError(f"{rec}: folder {rec.parent} does not exist")
+    if not args.record:
+        rec = out / "recording.csv"
     if args.rrd and not Path(args.rrd).resolve().parent.exists():
         raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
     out.mkdir(parents=True, exist_ok=True)
     summary_sink = SummarySink(cfg)
-    sinks = [RecorderSink(rec), SamplesCsvSink(out / "samples.csv"), summary_sink]
+    recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
+    sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
     if args.rrd is not None or args.spawn or args.connect:
         sinks.append(_rerun_sink(args, out))
     if not args.no_status:
@@ -129,12 +134,13 @@ def run(args) -> int:
                                 force_limit_n=cfg.safety.force_limit_n, device=device))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
-    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-                      compiled_loop=not args.python_servo)
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,  # resets need read_at:
+                      compiled_loop=not args.python_servo and not getattr(device, "has_events", False))
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
     try:
+        recorder.open()
         result = session.run()
     finally:
         device.close()

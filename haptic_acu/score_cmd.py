@@ -283,10 +283,13 @@ def run(args) -> int:
         _print_delphi(delphi_result, args.delphi)
     print(f"subjective weights alpha from {source}")
     _print_table(results, alpha, mu)
-    _write_weights_csv(out / "weights.csv", results, alpha)
-    _write_scores_csv(out / "scores.csv", results)
-    _write_json(out / "score.json", args, source, alpha, mu, delphi_result, results)
-    _plot(out / "scores.png", results)
+    try:
+        _write_weights_csv(out / "weights.csv", results, alpha)
+        _write_scores_csv(out / "scores.csv", results)
+        _write_json(out / "score.json", args, source, alpha, mu, delphi_result, results)
+        _plot(out / "scores.png", results)
+    except OSError as e:  # a full disk, a folder gone read-only
+        raise UserError(f"{out}: cannot write the score's files: {e.strerror or e}") from None
     print(f"wrote {out}/weights.csv, scores.csv, score.json, scores.png")
     return 0
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import multiprocessing as mp
+import os
 import traceback
 from dataclasses import dataclass, field
 
@@ -75,9 +76,11 @@ class ResultSnapshot:
     stats: dict
 
 
-def _child(conn, module: str, cls: str, ctor: str, args: tuple) -> None:
+def _child(conn, module: str, cls: str, ctor: str, args: tuple, env: dict | None = None) -> None:
     sink = None
     state = ModelState()
+    for k, v in (env or {}).items():  # before the sink's module (and its libraries) load
+        os.environ[k] = v
     try:
         klass = getattr(importlib.import_module(module), cls)
         sink = getattr(klass, ctor)(*args) if ctor else klass(*args)
@@ -119,8 +122,9 @@ def _child(conn, module: str, cls: str, ctor: str, args: tuple) -> None:
 class ProcessSink:
     """A sink that runs ``module.cls.ctor(*args)`` (or ``cls(*args)``) in a child process."""
 
-    def __init__(self, module: str, cls: str, ctor: str | None, *args, close_timeout_s: float = 120.0):
-        self._spec = (module, cls, ctor or "", args)
+    def __init__(self, module: str, cls: str, ctor: str | None, *args, close_timeout_s: float = 120.0,
+                 env: dict | None = None):
+        self._spec = (module, cls, ctor or "", args, dict(env or {}))
         self._proc = None
         self._conn = None
         self._closed = False
@@ -186,7 +190,12 @@ class ProcessSink:
 
 
 def rerun_file_sink(path) -> ProcessSink:
-    return ProcessSink("haptic_acu.rerun_log", "RerunSink", "to_file", str(path))
+    # a live session's file has no footer (flat memory: see RerunSink); rerun warns about that
+    # once at WARN level, which is the intended trade, so that one message is silenced
+    quiet = "re_log_encoding::rrd::file_sink=error"
+    rust_log = os.environ.get("RUST_LOG")
+    return ProcessSink("haptic_acu.rerun_log", "RerunSink", "to_file_live", str(path),
+                       env={"RUST_LOG": f"{rust_log},{quiet}" if rust_log else f"warn,{quiet}"})
 
 
 def rerun_spawn_sink() -> ProcessSink:

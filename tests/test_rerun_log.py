@@ -7,6 +7,8 @@ z = +5 mm to -30 mm at 10 mm/s, 1 ms ticks), rows written with samples.write_sam
 """
 from __future__ import annotations
 
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -222,8 +224,10 @@ def test_connect_to_a_running_grpc_server(recording):
     if not exe.exists():
         pytest.skip("no rerun CLI beside the interpreter")
     port = _free_port()
+    # its own process group: `rerun` is a Python wrapper that starts the real viewer binary as a
+    # child, so terminating the wrapper alone left `rerun --serve-grpc` running after the tests
     server = subprocess.Popen([str(exe), "--serve-grpc", "--port", str(port)], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)
+                              stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 20.0
         while True:
@@ -239,8 +243,34 @@ def test_connect_to_a_running_grpc_server(recording):
         model = recording.model
         run_session(model, model.cfg, sink, z0=1e-3, z1=-2e-3)  # a short press through the skin
     finally:
-        server.terminate()
-        server.wait(timeout=10)
+        _stop_group(server)
+        assert not _group_alive(server.pid)  # nothing left behind
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM the whole process group (the wrapper and the viewer it started), SIGKILL after 10 s."""
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
+    deadline = time.monotonic() + 10.0
+    while _group_alive(proc.pid) and time.monotonic() < deadline:
+        proc.poll()  # reap the wrapper
+        time.sleep(0.05)
+    if _group_alive(proc.pid):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    end = time.monotonic() + 5.0
+    while _group_alive(proc.pid) and time.monotonic() < end:  # the viewer, reparented, is reaped by init
+        time.sleep(0.05)
 
 
 def test_connect_without_a_viewer_is_a_one_line_user_error():

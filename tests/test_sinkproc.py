@@ -15,8 +15,10 @@ from haptic_acu.sinkproc import ProcessSink, rerun_file_sink
 
 
 def force_series(path):
+    """The /force/total series of an .rrd, read in order (a live session's file has no footer, so
+    no random-access store: ``RrdReader.stream()`` reads any file)."""
     ticks, values = [], []
-    for chunk in RrdReader(path).store().stream().filter(content="/force/total").to_chunks():
+    for chunk in RrdReader(path).stream().filter(content="/force/total").to_chunks():
         if chunk.entity_path != "/force/total" or chunk.is_static:
             continue
         rb = chunk.to_record_batch()
@@ -48,6 +50,18 @@ def test_child_process_sink_writes_the_same_series(tmp_path):
     assert list(ta) == list(range(ra.ticks)) == list(tb)
     assert np.array_equal(va, vb)
     assert va[:, 0].max() > 0.3  # the skin pressed back
+
+
+def test_live_rrd_has_no_footer(tmp_path):
+    """A live session's .rrd goes without rerun's footer manifest, which rerun keeps in memory for
+    every chunk until the file closes (the logging child grew ~25 MB/min): the file from
+    rerun_file_sink has none, a headless replay's file keeps it."""
+    a, b = tmp_path / "live.rrd", tmp_path / "replay.rrd"
+    run_with(rerun_file_sink(a), tmp_path)
+    run_with(RerunSink.to_file(b), tmp_path)
+    with pytest.raises(RuntimeError, match="without footer"):
+        RrdReader(a).store()
+    RrdReader(b).store()
 
 
 def test_child_failure_is_reported_once_in_the_parent(tmp_path):
