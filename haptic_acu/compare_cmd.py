@@ -269,9 +269,6 @@ def _labels(args, paths) -> list[str]:
 
 
 def run(args) -> int:
-    from .metrics import session_metrics
-    from .report import SessionScan, puncture_records, tip_depth_m
-    from .tissue import Tissue
 
     cfg = config_from_args(args)
     paths = [Path(p) for p in args.sessions]
@@ -288,6 +285,33 @@ def run(args) -> int:
         raise UserError(f"{out}: exists and is not a folder; choose another --out")
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out}: output folder exists and is not empty")
+
+    from .replay import OutputFolder  # exclusive and atomic; a user's DIR.partial is never deleted
+
+    folder = OutputFolder(out)
+    partial = folder.claim()  # before the work: a folder it may not use is refused at once
+    try:
+        rows, labels, metrics = _compare_into(partial, args, cfg, devices, paths, labels)
+        folder.publish()
+    except OSError as e:
+        folder.discard()
+        raise UserError(f"{out}: cannot write the comparison's files: {e.strerror or e}") from None
+    except BaseException:
+        folder.discard()
+        raise
+    finally:
+        folder.release()
+    for line in table_lines(labels, metrics, args.insertion):
+        print(line)
+    print(f"files: {out}/", file=sys.stdout)
+    return 0
+
+
+def _compare_into(partial: Path, args, cfg, devices, paths, labels):
+    """Replay every session through one tissue, then write compare.json and compare.png into ``partial``."""
+    from .metrics import session_metrics
+    from .report import SessionScan, puncture_records, tip_depth_m
+    from .tissue import Tissue
 
     with step("building the tissue"):
         tissue = Tissue.from_config(cfg)
@@ -309,23 +333,6 @@ def run(args) -> int:
     }
     if len(metrics) == 2:
         doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
-    from .replay import OutputFolder  # exclusive and atomic; a user's DIR.partial is never deleted
-
-    folder = OutputFolder(out)
-    partial = folder.claim()
-    try:
-        (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
-        plot_compare(rows, labels, partial / "compare.png", tissue, punctures, args.insertion)
-        folder.publish()
-    except OSError as e:
-        folder.discard()
-        raise UserError(f"{out}: cannot write the comparison's files: {e.strerror or e}") from None
-    except BaseException:
-        folder.discard()
-        raise
-    finally:
-        folder.release()
-    for line in table_lines(labels, metrics, args.insertion):
-        print(line)
-    print(f"files: {out}/", file=sys.stdout)
-    return 0
+    (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
+    plot_compare(rows, labels, partial / "compare.png", tissue, punctures, args.insertion)
+    return rows, labels, metrics
