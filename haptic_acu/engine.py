@@ -50,12 +50,13 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import numba as nb
 import numpy as np
 
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
-from .needle import D_FAULT, NeedleModel, step_kernel
+from .needle import NeedleModel
+from .servostate import Ring, Timing, TIMING
+from .servotick import account, run_ticks  # noqa: F401  (the headless block driver, used here and by bench/)
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
@@ -136,26 +137,6 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     return total.reshape(np.shape(theta))
 
 
-@nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, T, tick0, buf, head, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-              plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf):
-    """Headless replay: the servo step for a block of ticks (positions ``P``, velocities ``V`` at
-    times ``T``), each sample row written at ``head + i`` of the ring ``buf``. The same
-    :func:`step_kernel` and :func:`write_sample` as a live tick, without a Python round trip per
-    tick. Stops after a faulting tick; returns the number of ticks run."""
-    cap = buf.shape[0]
-    for i in range(T.shape[0]):
-        for k in range(3):
-            pbuf[k] = P[i, k]
-            vbuf[k] = V[i, k]
-        step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-                    plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        write_sample(buf, (head + i) % cap, T[i], tick0 + i, pbuf, vbuf, diag, si, 0.0)
-        if diag[D_FAULT] != 0.0:
-            return i + 1
-    return T.shape[0]
-
-
 def percentiles_us(values_s: np.ndarray) -> dict:
     if values_s.size == 0:
         return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
@@ -203,9 +184,8 @@ class Session:
         self.fault: str | None = None
         self._stop = threading.Event()
         self._fault_lock = threading.Lock()
-        self._period_err = np.zeros(1 << 20)  # servo period errors (s), first 2^20 ticks kept
-        self._n_err = 0
-        self.missed = 0
+        # servo period errors (s, the first 2^20 ticks kept), their count and the missed ticks
+        self._timing = Timing(np.zeros(1 << 20), np.zeros(1, TIMING))
         self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
         self._zero = np.zeros(3)
         self._warm = False
@@ -221,12 +201,23 @@ class Session:
         self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
 
+    @property
+    def missed(self) -> int:
+        """Ticks later than a period (and ticks a stall skipped)."""
+        return int(self._timing.count[0]["missed"])
+
+    @property
+    def _n_err(self) -> int:
+        return int(self._timing.count[0]["n_err"])
+
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
         """Compile every kernel both loops call, warm the sinks, before any loop starts."""
         self.model.warm_up()
         buf = np.zeros((1, NCOL))
-        write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
+        m = self.model
+        write_sample(buf, 0, 0.0, 0, m.inp, m.state, m.out.diag, 0.0)
+        account(Timing(np.zeros(1), np.zeros(1, TIMING)), 0.0, 1.0, 1.0)  # the Python loops' accounting
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
         self._omni_callback = None
@@ -238,8 +229,7 @@ class Session:
                 self._omni_callback = omniloop.build_callback(lib)
         if self.clock == "sim":
             z = np.zeros((1, 3))
-            run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, buf, 0, *self.model.kernel_args(),
-                      self.model._p, self.model._v)
+            run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, m.servo, Ring(buf, np.zeros(1, np.int64)))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -256,11 +246,10 @@ class Session:
 
         rtloop.warm_up()
         m = self.model
-        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-        ctl[rtloop.CT_STOP] = 1
-        rtloop.servo_loop(ctl, np.zeros(rtloop.FL_SIZE), 0, 1000000, 0, np.zeros((1, 3)), np.zeros((1, 3)),
-                          np.zeros((1, NCOL)), np.zeros(1, np.int64), np.zeros(1), np.zeros(2, np.int64),
-                          *m.kernel_args(), m._p, m._v)
+        loop = rtloop.Loop(np.zeros(rtloop.CT_SIZE, np.int64), np.zeros(rtloop.FL_SIZE), np.zeros(2, np.int64))
+        loop.ctl[rtloop.CT_STOP] = 1
+        rtloop.servo_loop(loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
+                          Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64)), self._timing, m.servo)
 
     def stop(self) -> None:
         self._stop.set()
@@ -285,10 +274,10 @@ class Session:
         if state.reset:
             m.reset(keep_holes=False)
         force = m.step(state.position_m, state.velocity_m_s)
-        if m.diag[D_FAULT] != 0.0:
+        if m.diag["fault"] != 0.0:
             self.device.set_force(self._zero)
             ring = self.ring
-            write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+            write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
             ring.commit()
             self.tick += 1
             self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
@@ -296,7 +285,7 @@ class Session:
         if command:
             self.device.set_force(force)
         ring = self.ring
-        write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+        write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
         ring.commit()
         self.tick += 1
         return force
@@ -327,7 +316,7 @@ class Session:
                 self._set_fault(f"visual loop: {type(e).__name__}: {e}")
 
     def _stats(self, wall_s: float) -> dict:
-        errs = self._period_err[: min(self._n_err, self._period_err.size)]
+        errs = self._timing.errs[: min(self._n_err, self._timing.errs.size)]
         return {"clock": self.clock, "ticks": self.tick, "missed_ticks": self.missed,
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
@@ -408,8 +397,8 @@ class Session:
         dev = self.device
         dt = self.servo_dt
         m = self.model
-        args = m.kernel_args()
         ring = self.ring
+        rows = Ring(ring.buf, ring.ctr)
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
         next_frame = self.frame_dt
@@ -426,15 +415,14 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                n = run_ticks(P, V, T, k0, ring.buf, ring.head, *args, m._p, m._v)
-                ring.head += n
+                n = run_ticks(P, V, T, k0, m.servo, rows)
                 self.tick += n
                 self._t_session = float(T[n - 1])
-                if m.diag[D_FAULT] != 0.0:
+                if m.diag["fault"] != 0.0:
                     self.device.set_force(self._zero)
                     self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); force set to zero")
                     break
-                self.device.set_force(m.diag[0:3])
+                self.device.set_force(m.diag["force"])
             if T.size < k1 + 1 - k0:  # the trajectory ended
                 break
             t = self._t_session
@@ -537,7 +525,6 @@ class Session:
         if self.duration_s is not None:
             k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
         period_ns = int(round(dt * 1e9))
-        args = m.kernel_args()
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
@@ -552,8 +539,8 @@ class Session:
             self.sched_fifo = prev is not None
             try:
                 outcome["status"] = rtloop.servo_loop(
-                    ctl, fl, t0_ns, period_ns, k_limit, feed.p, feed.v, self.ring.buf, self.ring.ctr,
-                    self._period_err, np.zeros(2, np.int64), *args, m._p, m._v)
+                    rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
+                    rtloop.FeedRows(feed.p, feed.v), Ring(self.ring.buf, self.ring.ctr), self._timing, m.servo)
             except BaseException as e:
                 outcome["error"] = e
             finally:
@@ -582,8 +569,6 @@ class Session:
             self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
             self.tick = int(ctl[rtloop.CT_RAN])  # ticks run (a stall's skipped ticks are not rows)
             last_index = int(ctl[rtloop.CT_TICK]) - 1
-            self.missed = int(ctl[rtloop.CT_MISSED])
-            self._n_err = int(ctl[rtloop.CT_NERR])
             if last_index >= 0:
                 self._t_session = last_index * dt
             if hasattr(self.device, "record_forces"):
@@ -630,12 +615,10 @@ class Session:
         limit = self.duration_s if self.duration_s is not None else math.inf
         perf = time.perf_counter
         sleep = time.sleep
-        errs = self._period_err
-        cap = errs.size
         k = 0
         count_start = perf()
         count_ticks = 0
-        force = self.model.diag  # [0:3]: the force the previous tick commanded
+        force = self.model.diag["force"]  # the force the previous tick commanded (a view)
         dev_t, dev_t_since = math.nan, 0.0
         anchor = t0  # tick k's deadline is anchor + k * dt
         while not self._stop.is_set():
@@ -648,11 +631,7 @@ class Session:
                 pass
             start = perf()
             err = start - deadline
-            if err > dt:
-                self.missed += 1
-            if self._n_err < cap:
-                errs[self._n_err] = err
-            self._n_err += 1
+            account(self._timing, err, dt, 1.0)
             t = start - t0
             if t > limit:
                 break
@@ -691,7 +670,6 @@ class Session:
         wsa = np.concatenate([[ws.scale], R.ravel(), np.asarray(ws.offset_mm, float)])
         prm = np.zeros(ol.P_SIZE)
         prm[ol.P_HANDLE] = dev._handle
-        prm[ol.P_LMAX] = m.lmax
         prm[ol.P_STALL] = dev._stall_ticks
         prm[ol.P_RAMP] = dev._ramp_ticks
         prm[ol.P_LIMIT_N] = dev.info.force_limit_n
@@ -700,10 +678,10 @@ class Session:
         prm[ol.P_LIMIT_T] = self.duration_s if self.duration_s is not None else math.inf
         prm[ol.P_RATE] = dev.info.rate_hz
         ictl[ol.I_VEL_DEV] = 1
-        arrays = dict(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                      hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, **m.model_arrays(), pbuf=m._p, vbuf=m._v,
-                      rbuf=self.ring.buf, rctr=self.ring.ctr, errs=self._period_err)
-        table = ol.address_table(arrays)
+        omni = ol.OmniArrays(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
+                             hdb=np.zeros(1, np.int32), ws=wsa, prm=prm)
+        arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
+        table = ol.address_table(omni, m.servo, arrays[1], self._timing)
         old = self._rt_setup()
         t0 = time.perf_counter()
         t0_ns = time.perf_counter_ns()
@@ -721,8 +699,6 @@ class Session:
             self._rt_teardown(old)
             self._tick_word = None
             self.tick = int(ictl[ol.I_ETICK])
-            self.missed = int(ictl[ol.I_MISSED])
-            self._n_err = int(ictl[ol.I_NERR])
             self._t_session = float(fctl[ol.F_TSESSION])
             arrays.clear()  # (the table's addresses are dead from here)
         if ictl[ol.I_DONE] == 2 and self.fault is None:
@@ -743,11 +719,7 @@ class Session:
             now = time.perf_counter()
             err = (now - last[0]) - self.servo_dt
             last[0] = now
-            if self._n_err < self._period_err.size:
-                self._period_err[self._n_err] = err
-            self._n_err += 1
-            if err > self.servo_dt:
-                self.missed += 1
+            account(self._timing, err, self.servo_dt, 1.0)
             t = now - t0
             last[1] += 1
             if now - last[2] >= 0.5:

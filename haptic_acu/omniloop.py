@@ -26,6 +26,7 @@ import math
 import platform
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -34,14 +35,11 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from . import cptr
+from . import servostate as ss
 from .cptr import address_of as data_address
-from .cptr import f64p as _f64p
-from .cptr import i32p as _i32p
 from .cptr import i64p as _i64p
-from .needle import D_FAULT, MODEL_ARRAYS, model_views, step_kernel
-from .rtloop import _fence, now_ns
-from .samples import write_sample
+from .rtloop import now_ns
+from .servotick import account, servo_tick
 
 # HD API values (as in devices/omni.py)
 HD_SUCCESS = 0x0000
@@ -55,8 +53,8 @@ HD_CALLBACK_CONTINUE = 1
 
 # ictl (int64) words
 (I_STOP, I_ABORT, I_TICKS, I_IN_TICK, I_VALID, I_FROZEN, I_FORCE_ON, I_VEL_DEV, I_HAS_LAST, I_STATUS,
- I_CODE, I_WHERE, I_INTERNAL, I_ETICK, I_NERR, I_MISSED, I_LAST_NS, I_T0_NS, I_DONE, I_TS) = range(20)
-I_SIZE = 22  # I_TS: 2 words, the clock's timespec
+ I_CODE, I_WHERE, I_INTERNAL, I_ETICK, I_LAST_NS, I_T0_NS, I_DONE, I_TS) = range(18)
+I_SIZE = 20  # I_TS: 2 words, the clock's timespec
 # fctl (float64) words
 F_LAST = 0  # 3: last position (mm, device frame)
 F_VFILT = 3  # 3: filtered velocity (mm/s)
@@ -64,8 +62,8 @@ F_DETAIL = 6  # 3: values for a fault's message
 F_TSESSION = 9
 F_SIZE = 10
 # prm (float64): scalars
-P_HANDLE, P_LMAX, P_STALL, P_RAMP, P_LIMIT_N, P_ALPHA, P_PERIOD_NS, P_LIMIT_T, P_RATE = range(9)
-P_SIZE = 9
+P_HANDLE, P_STALL, P_RAMP, P_LIMIT_N, P_ALPHA, P_PERIOD_NS, P_LIMIT_T, P_RATE = range(8)
+P_SIZE = 8
 # ws (float64): scale, R (3x3 row-major), offset (mm)
 W_SCALE, W_R, W_OFF = 0, 1, 10
 W_SIZE = 13
@@ -83,19 +81,30 @@ def supported() -> bool:
     return sys.platform.startswith("linux") and platform.machine() in ("x86_64", "AMD64", "aarch64", "arm64")
 
 
-# The arrays the callback reaches, in table order: (name, dtype, ndim).
-ARRAYS = ((("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
-           ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1))
-          + MODEL_ARRAYS
-          + (("pbuf", np.float64, 1), ("vbuf", np.float64, 1), ("rbuf", np.float64, 2), ("rctr", np.int64, 1),
-             ("errs", np.float64, 1)))
-_M0 = 8  # the table entry of the first model array
-_E0 = _M0 + len(MODEL_ARRAYS)  # the entry after the last
+class OmniArrays(NamedTuple):
+    """The device side of the callback's arrays."""
+    ictl: np.ndarray  # I_SIZE int64 words
+    fctl: np.ndarray  # F_SIZE float64 words
+    hdt: np.ndarray  # (16,) the stylus transform
+    hdv: np.ndarray  # (3,) its velocity
+    hdf: np.ndarray  # (3,) the force set
+    hdb: np.ndarray  # (1,) int32 buttons
+    ws: np.ndarray  # W_SIZE: the workspace mapping
+    prm: np.ndarray  # P_SIZE: scalars
 
 
-def address_table(arrays: dict) -> np.ndarray:
-    """(address, rows, columns) per array of :data:`ARRAYS`."""
-    return cptr.address_table(arrays, ARRAYS)
+ss.SPEC[OmniArrays] = dict(ictl=("i8", 1), fctl=("f8", 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
+                           hdb=("i4", 1), ws=("f8", 1), prm=("f8", 1))
+# The callback's table: OmniArrays, the Servo, the sample Ring, the Timing, in that order.
+_AT_SERVO = ss.table_size(OmniArrays)
+_AT_RING = _AT_SERVO + ss.SERVO_TABLE
+_AT_TIMING = _AT_RING + ss.table_size(ss.Ring)
+TABLE = _AT_TIMING + ss.table_size(ss.Timing)
+
+
+def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
+    """The callback's user data: (address, rows, columns) of every array, in :data:`TABLE` order."""
+    return ss.address_table(omni, servo, ring, timing)
 
 
 def _external(name, ret, args):
@@ -181,10 +190,13 @@ def abort(ictl, h, hdf, status):
     return HD_CALLBACK_DONE
 
 @nb.njit(nogil=True, cache=True)
-def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos, rest_all, axes, nbr_all,
-         ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf, rbuf, rctr,
-         errs):
-    ts = ictl[I_TS:I_TS + 2]
+def read_stylus(o, inp):
+    """The device part before the step: HD frame, stylus reads and their error checks, non-finite and
+    frozen-position faults, filtered velocity when the device gives none, workspace mapping into
+    ``inp``. Returns -1 to go on, else the callback's return code (the frame is closed)."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm = o
+    pbuf = inp.p
+    vbuf = inp.v
     h = int(prm[P_HANDLE])
     ictl[I_TICKS] += 1
     hd_begin_frame(h)
@@ -266,18 +278,20 @@ def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos,
         pbuf[r] = (ws[W_SCALE] * (ws[W_R + 3 * r] * px + ws[W_R + 3 * r + 1] * py + ws[W_R + 3 * r + 2] * pz)
                    + ws[W_OFF + r]) * 1e-3
         vbuf[r] = sc * (ws[W_R + 3 * r] * vx + ws[W_R + 3 * r + 1] * vy + ws[W_R + 3 * r + 2] * vz)
+    return -1
 
-    # ---- the engine's tick (Session._run_device_clock's step + _servo_tick) ----------------
+
+@nb.njit(nogil=True, cache=True)
+def engine_tick(o, sv, ring, timing):
+    """The engine's tick on the device's clock: period error, :func:`servo_tick`. Returns the force
+    to command (zero past the session's length or on a non-finite state)."""
+    ictl, fctl, prm = o.ictl, o.fctl, o.prm
+    ts = ictl[I_TS:I_TS + 2]
     now = now_ns(ts)
     period = prm[P_PERIOD_NS]
     err = (now - ictl[I_LAST_NS]) - period
     ictl[I_LAST_NS] = now
-    n = ictl[I_NERR]
-    if n < errs.shape[0]:
-        errs[n] = err * 1e-9
-    ictl[I_NERR] = n + 1
-    if err > period:
-        ictl[I_MISSED] += 1
+    account(timing, err, period, 1e-9)
     t = (now - ictl[I_T0_NS]) * 1e-9
     fx = 0.0
     fy = 0.0
@@ -287,22 +301,26 @@ def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos,
         ictl[I_DONE] = 1
     else:
         fctl[F_TSESSION] = t
-        step_kernel(pbuf, vbuf, coeffs, int(prm[P_LMAX]), centre, lp, npar, pos, rest_all, axes, nbr_all,
-                    ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        head = rctr[0]
-        write_sample(rbuf, head % rbuf.shape[0], t, ictl[I_ETICK], pbuf, vbuf, diag, si, err * 1e-9)
-        _fence()
-        rctr[0] = head + 1
+        ok = servo_tick(sv, ring, t, ictl[I_ETICK], err * 1e-9)
         ictl[I_ETICK] += 1
-        if diag[D_FAULT] != 0.0:
+        if not ok:
             ictl[I_STOP] = 1  # the engine reports the non-finite state; zero force from here
             ictl[I_DONE] = 2
         else:
-            fx = diag[0]
-            fy = diag[1]
-            fz = diag[2]
+            f = sv.out.diag[0].force
+            fx = f[0]
+            fy = f[1]
+            fz = f[2]
+    return fx, fy, fz
 
-    # ---- the device's safety: ramp-in, clamp in both frames, finite check ------------------
+
+
+@nb.njit(nogil=True, cache=True)
+def command_force(o, fx, fy, fz):
+    """The device's safety on the way out: ramp-in, clamp in both frames, finite check; then the
+    force is set and the frame closed. Returns the callback's return code."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm = o
+    h = int(prm[P_HANDLE])
     ramp = ictl[I_VALID] / prm[P_RAMP]
     if ramp > 1.0:
         ramp = 1.0
@@ -345,6 +363,16 @@ def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos,
     return HD_CALLBACK_CONTINUE
 
 
+@nb.njit(nogil=True, cache=True)
+def tick(o, sv, ring, timing):
+    """One HD scheduler tick: :func:`read_stylus`, :func:`engine_tick`, :func:`command_force`."""
+    rc = read_stylus(o, sv.inp)
+    if rc >= 0:
+        return rc
+    fx, fy, fz = engine_tick(o, sv, ring, timing)
+    return command_force(o, fx, fy, fz)
+
+
 def build_callback(lib):
     """The servo callback for the HD library ``lib`` (a ctypes CDLL): a numba cfunc whose
     ``.address`` goes to hdScheduleAsynchronous with the address table as user data. The tick
@@ -357,24 +385,12 @@ def build_callback(lib):
 
     @nb.cfunc(types.uint32(types.voidptr), nopython=True, cache=True)
     def callback(data):
-        t = nb.carray(_i64p(data_address(data)), 3 * len(ARRAYS))
-        ictl = nb.carray(_i64p(t[0]), t[1])
-        ictl[I_IN_TICK] = 1
-        fctl = nb.carray(_f64p(t[3]), t[4])
-        hdt = nb.carray(_f64p(t[6]), t[7])
-        hdv = nb.carray(_f64p(t[9]), t[10])
-        hdf = nb.carray(_f64p(t[12]), t[13])
-        hdb = nb.carray(_i32p(t[15]), t[16])
-        ws = nb.carray(_f64p(t[18]), t[19])
-        prm = nb.carray(_f64p(t[21]), t[22])
-        m = model_views(t, _M0)
-        e = 3 * _E0
-        rc = tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8],
-                  m[9], m[10], m[11], m[12], m[13], m[14], m[15], m[16], m[17], m[18],
-                  nb.carray(_f64p(t[e]), t[e + 1]), nb.carray(_f64p(t[e + 3]), t[e + 4]),
-                  nb.carray(_f64p(t[e + 6]), (t[e + 7], t[e + 8])), nb.carray(_i64p(t[e + 9]), t[e + 10]),
-                  nb.carray(_f64p(t[e + 12]), t[e + 13]))
-        ictl[I_IN_TICK] = 0
+        t = nb.carray(_i64p(data_address(data)), TABLE)
+        o = ss.unpack(t, 0, OmniArrays)
+        o.ictl[I_IN_TICK] = 1
+        rc = tick(o, ss.unpack_servo(t, _AT_SERVO), ss.unpack(t, _AT_RING, ss.Ring),
+                  ss.unpack(t, _AT_TIMING, ss.Timing))
+        o.ictl[I_IN_TICK] = 0
         return rc
 
     return callback

@@ -25,6 +25,7 @@ does (what a comparison against the headless replay needs).
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -33,15 +34,14 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .needle import D_FAULT, step_kernel
-from .samples import write_sample
+from .servotick import account, servo_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
 # control words (int64 array shared between the compiled loop and Python)
-CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0, CT_RAN, CT_SKIP_AFTER = range(11)
-CT_SIZE = 11  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
+CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_FORCES, CT_T0, CT_RAN, CT_SKIP_AFTER = range(9)
+CT_SIZE = 9  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
 # CT_SKIP_AFTER: a tick later than this many periods skips ahead to the present (0 reads as 10)
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
@@ -83,18 +83,6 @@ def _clock_nanosleep_abs(typingctx, clk, addr):
     return sig, codegen
 
 
-@intrinsic
-def _fence(typingctx):
-    """A full memory fence: the sample row is written before its index is published."""
-    sig = types.void()
-
-    def codegen(context, builder, signature, args):
-        builder.fence("seq_cst")
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
 @nb.njit(cache=True, nogil=True)
 def now_ns(ts):
     """CLOCK_MONOTONIC in ns (the clock ``time.perf_counter`` reads on Linux); ``ts``: int64[2]."""
@@ -109,19 +97,80 @@ def sleep_until_ns(ts, t_ns):
     return _clock_nanosleep_abs(CLOCK_MONOTONIC, ts.ctypes.data)
 
 
+class Loop(NamedTuple):
+    ctl: np.ndarray  # CT_SIZE int64 control words, shared with Python
+    fl: np.ndarray  # FL_SIZE float outputs
+    ts: np.ndarray  # int64[2]: the clock's timespec
+
+
+class FeedRows(NamedTuple):
+    p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
+    v: np.ndarray  # (capacity, 3) velocities
+
+
 @nb.njit(cache=True, nogil=True)
-def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, errs, ts,
-               coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all, offs, tab, tmeta,
-               si, sf, holes, radii, scratch, diag, pbuf, vbuf):
+def wait_until(ts, deadline):
+    """Sleep to 300 us before ``deadline`` (ns), then spin on the clock; returns the time (ns)."""
+    now = now_ns(ts)
+    if deadline - now > 400000:
+        sleep_until_ns(ts, deadline - 300000)
+    now = now_ns(ts)
+    while now < deadline:
+        now = now_ns(ts)
+    return now
+
+
+@nb.njit(cache=True, nogil=True)
+def skip_ahead(ctl, timing, k, k_limit, late, period_ns, skip_after):
+    """After a stall of ``late`` ns: the number of ticks to skip (counted missed), or 0."""
+    if skip_after >= NO_END or late <= skip_after * period_ns:
+        return 0
+    skip = late // period_ns
+    last = min(k_limit, ctl[CT_END])  # skipped ticks past the session's end are not missed
+    if k + skip > last:
+        skip = max(last - k, 0)
+    timing.count[0].missed += skip
+    return skip
+
+
+@nb.njit(cache=True, nogil=True)
+def stop_reason(ctl, k, k_limit):
+    """The status that ends the loop before tick ``k``, or RUNNING."""
+    if k >= k_limit:
+        return LIMIT
+    if k >= ctl[CT_END]:
+        return ENDED
+    if k >= ctl[CT_FED]:
+        return STARVED
+    return RUNNING
+
+
+@nb.njit(cache=True, nogil=True)
+def record_force(fl, ctl, diag):
+    """The force this tick commanded (zero on a fault) and the largest so far."""
+    d = diag[0]
+    fault = d.fault != 0.0
+    mag = 0.0
+    for c in range(3):
+        f = 0.0 if fault else d.force[c]
+        fl[FL_F + c] = f
+        mag += f * f
+    if mag > fl[FL_MAXF] * fl[FL_MAXF]:
+        fl[FL_MAXF] = np.sqrt(mag)
+    ctl[CT_FORCES] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def servo_loop(lp, t0_ns, period_ns, k_limit, feed, ring, timing, sv):
     """Run servo ticks from ``ctl[CT_TICK]`` until stopped (``ctl[CT_STOP]``), the feed ends
     (``ctl[CT_END]``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
-    velocities of tick k are ``feed_p/feed_v[k % len]``, valid for k < ``ctl[CT_FED]``. Sample rows
-    go to ``rbuf[rctr[0] % len]``, then ``rctr[0]`` is advanced. Returns the status (also in
-    ``ctl[CT_STATUS]``). A loop entered after tick ``ctl[CT_TICK]``'s deadline moves ``t0_ns`` to
-    now (written to ``ctl[CT_T0]``)."""
-    fcap = feed_p.shape[0]
-    rcap = rbuf.shape[0]
-    ecap = errs.shape[0]
+    velocities of tick k are ``feed.p/feed.v[k % len]``, valid for k < ``ctl[CT_FED]``. Each tick is
+    :func:`~haptic_acu.servotick.servo_tick` (sample row into ``ring``, lateness into ``timing``).
+    Returns the status (also in ``ctl[CT_STATUS]``). A loop entered after tick ``ctl[CT_TICK]``'s
+    deadline moves ``t0_ns`` to now (written to ``ctl[CT_T0]``)."""
+    ctl = lp.ctl
+    ts = lp.ts
+    fcap = feed.p.shape[0]
     dt = period_ns * 1e-9
     k = ctl[CT_TICK]
     status = RUNNING
@@ -135,60 +184,25 @@ def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, e
             status = STOPPED
             break
         deadline = t0_ns + k * period_ns
-        now = now_ns(ts)
-        if deadline - now > 400000:
-            sleep_until_ns(ts, deadline - 300000)
-        now = now_ns(ts)
-        while now < deadline:
-            now = now_ns(ts)
+        now = wait_until(ts, deadline)
+        skip = skip_ahead(ctl, timing, k, k_limit, now - deadline, period_ns, skip_after)
+        k += skip
+        deadline += skip * period_ns
         late = now - deadline
-        if skip_after < NO_END and late > skip_after * period_ns:
-            skip = late // period_ns
-            last = min(k_limit, ctl[CT_END])  # skipped ticks past the session's end are not missed
-            if k + skip > last:
-                skip = max(last - k, 0)
-            ctl[CT_MISSED] += skip
-            k += skip
-            deadline += skip * period_ns
-            late = now - deadline
-        if k >= k_limit:
-            status = LIMIT
+        status = stop_reason(ctl, k, k_limit)
+        if status != RUNNING:
             break
-        if k >= ctl[CT_END]:
-            status = ENDED
-            break
-        if k >= ctl[CT_FED]:
-            status = STARVED
-            break
-        if late > period_ns:
-            ctl[CT_MISSED] += 1
-        n = ctl[CT_NERR]
-        if n < ecap:
-            errs[n] = late * 1e-9
-        ctl[CT_NERR] = n + 1
+        account(timing, late, period_ns, 1e-9)
         j = k % fcap
         for c in range(3):
-            pbuf[c] = feed_p[j, c]
-            vbuf[c] = feed_v[j, c]
-        step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
-                    offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        fault = diag[D_FAULT] != 0.0
-        mag = 0.0
-        for c in range(3):
-            f = 0.0 if fault else diag[c]
-            fl[FL_F + c] = f
-            mag += f * f
-        if mag > fl[FL_MAXF] * fl[FL_MAXF]:
-            fl[FL_MAXF] = np.sqrt(mag)
-        ctl[CT_FORCES] += 1
-        head = rctr[0]
-        write_sample(rbuf, head % rcap, k * dt, k, pbuf, vbuf, diag, si, late * 1e-9)
-        _fence()
-        rctr[0] = head + 1
+            sv.inp.p[c] = feed.p[j, c]
+            sv.inp.v[c] = feed.v[j, c]
+        ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
+        record_force(lp.fl, ctl, sv.out.diag)
         k += 1
         ctl[CT_TICK] = k
         ctl[CT_RAN] += 1
-        if fault:
+        if not ok:
             status = FAULTED
             break
     ctl[CT_STATUS] = status
