@@ -1,9 +1,20 @@
 """The real-time engine: a 1 kHz servo loop and a 60 Hz visual loop around one NeedleModel.
 
-Servo tick (:meth:`Session._servo_tick`): read the device, run the compiled step (collision, force
-net, damping, safety: :func:`haptic_acu.needle.step_kernel`), command the force, write the tick's
-sample row into the lock-free :class:`~haptic_acu.samples.SampleRing`. No logging, no allocation
-beyond a few Python floats, no lock, no JIT (everything is compiled in :meth:`Session.warm_up`).
+Servo tick: :func:`haptic_acu.servotick.servo_tick` (the compiled step of
+:mod:`haptic_acu.needle` on the model's :class:`~haptic_acu.servostate.Servo`, the tick's sample row
+into the lock-free :class:`~haptic_acu.samples.SampleRing`, published), with the period error kept by
+:func:`haptic_acu.servotick.account`. The drivers that differ only in who keeps the clock:
+
+* simulated clock: :meth:`Session._run_sim_blocks` (:func:`~haptic_acu.servotick.run_ticks`, a
+  visual frame's ticks per call) or, for a device without ``read_block``, :meth:`Session._run_sim`;
+* our timer: :func:`haptic_acu.rtloop.servo_loop` (compiled, no GIL) or the Python loop
+  (:meth:`Session._servo_loop_body`, devices that cannot be read ahead);
+* the device's clock (the OMNI): its compiled callback (:mod:`haptic_acu.omniloop`) or the Python
+  callback (:meth:`Session._run_device_clock`).
+
+The Python paths step through :meth:`Session._servo_tick` (the step's C entry point, then the same
+``write_sample``). No logging, no allocation beyond a few Python floats, no lock, no JIT in a tick
+(everything is compiled in :meth:`Session.warm_up`).
 
 Visual frame (:meth:`Session._visual_frame`): drain the ring, run springback on handed-over nets,
 evaluate each layer's dent on the patch grid around the acupoint, and hand a :class:`Frame` to
@@ -225,7 +236,7 @@ class Session:
             from . import omniloop
 
             lib = self.device.servo_library()
-            if lib is not None:  # compiled here, before any loop: about a second
+            if lib is not None:  # compiled (or loaded from the cache) here, before any loop
                 self._omni_callback = omniloop.build_callback(lib)
         if self.clock == "sim":
             z = np.zeros((1, 3))

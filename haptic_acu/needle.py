@@ -653,11 +653,6 @@ def step_servo(sv):
     step_kernel(sv.inp, sv.model, sv.state, sv.out.diag)
 
 
-@nb.njit(cache=True, nogil=True)
-def _step_from_table(t):
-    step_servo(ss.unpack_servo(t, 0))
-
-
 def step_entry():
     """:func:`step_kernel` as a C function ``void step(int64_t *table)`` (a cached numba cfunc):
     called through ctypes with one pointer it costs about half of a numba dispatch that checks and
@@ -668,9 +663,14 @@ def step_entry():
 
         from .cptr import address_of, i64p
 
+        key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
+        words = ss.HEADER + ss.SERVO_TABLE
+
         @nb.cfunc(types.void(types.voidptr), nopython=True, cache=True)
         def step_c(data):
-            _step_from_table(nb.carray(i64p(address_of(data)), ss.SERVO_TABLE))
+            t = nb.carray(i64p(address_of(data)), words)
+            if ss.accept(t, key):
+                step_servo(ss.unpack_servo(t, ss.HEADER))
 
         import ctypes
 
@@ -809,7 +809,8 @@ class NeedleModel:
         self.inp.v[:] = v
         if self._step_c is None:
             self._bind_step()
-        self._step_c(self._step_arg)
+        else:
+            self._step_c(self._step_arg)
         return self.diag["force"]
 
     def _bind_step(self) -> None:
@@ -817,7 +818,12 @@ class NeedleModel:
 
         self._step_table = ss.address_table(self.servo)  # the arrays are never reallocated
         self._step_arg = c_void_p(self._step_table.ctypes.data)
-        self._step_c = step_entry()
+        step_c = step_entry()
+        step_c(self._step_arg)  # a tick at the current input; then the check that it ran
+        if self._step_table[1] != 1:
+            raise RuntimeError("haptic_acu.needle: the compiled servo step was built for another state layout "
+                               "(stale numba cache): remove haptic_acu/__pycache__/*.nbi and *.nbc")
+        self._step_c = step_c
 
     def warm_up(self) -> None:
         """Compile (or load from cache) every kernel the servo step calls, and the visual loop's

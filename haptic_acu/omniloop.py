@@ -5,10 +5,13 @@ thread has to take the GIL, so the visual thread's C calls (NumPy, file writes) 
 trainee's force by milliseconds (see :mod:`haptic_acu.rtloop` for the measurement on the scripted
 device). Here the whole tick, the device part of ``OmniDevice._tick_body`` (HD frame, stylus
 reads and their error checks, non-finite and frozen-position faults, filtered velocity when the
-device gives none, workspace mapping, force ramp-in, clamp in both frames) and the engine part
-(period error, ``step_kernel``, the sample row into the ring), is a numba ``cfunc`` handed to
-``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer: a table
-of (address, rows, columns) that the cfunc views with ``carray``. It reports how it ended through
+device gives none, workspace mapping: :func:`read_stylus`; force ramp-in, clamp in both frames:
+:func:`command_force`) and the engine part (:func:`engine_tick`: period error and
+:func:`~haptic_acu.servotick.servo_tick`, the same tick every driver runs), is a numba ``cfunc``
+handed to ``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer:
+an address table (:func:`address_table`: :class:`OmniArrays`, the servo's
+:class:`~haptic_acu.servostate.Servo`, the sample ring, the timing) that the cfunc unpacks with
+:func:`haptic_acu.servostate.unpack`. It reports how it ended through
 an int64 control array; :meth:`devices.omni.OmniDevice.run_servo_compiled` turns that into the same
 one-line faults as the Python callback.
 
@@ -25,6 +28,7 @@ from __future__ import annotations
 import math
 import platform
 import sys
+import zlib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -95,16 +99,19 @@ class OmniArrays(NamedTuple):
 
 ss.SPEC[OmniArrays] = dict(ictl=("i8", 1), fctl=("f8", 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
                            hdb=("i4", 1), ws=("f8", 1), prm=("f8", 1))
-# The callback's table: OmniArrays, the Servo, the sample Ring, the Timing, in that order.
-_AT_SERVO = ss.table_size(OmniArrays)
+# The callback's table: the header, OmniArrays, the Servo, the sample Ring, the Timing, in that order.
+_AT_SERVO = ss.HEADER + ss.table_size(OmniArrays)
 _AT_RING = _AT_SERVO + ss.SERVO_TABLE
 _AT_TIMING = _AT_RING + ss.table_size(ss.Ring)
 TABLE = _AT_TIMING + ss.table_size(ss.Timing)
+LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
 
 
 def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
     """The callback's user data: (address, rows, columns) of every array, in :data:`TABLE` order."""
-    return ss.address_table(omni, servo, ring, timing)
+    t = ss.address_table(omni, servo, ring, timing)
+    t[0] = LAYOUT_KEY
+    return t
 
 
 def _external(name, ret, args):
@@ -380,13 +387,18 @@ def build_callback(lib):
     load_library(lib)
     index = Path(__file__).with_name("__pycache__")
     if sys.stderr.isatty() and not any(index.glob("omniloop.tick-*.nbi")):
-        print("haptic-acu: compiling the OMNI servo callback (first run on this machine, about 10 s)",
+        print("haptic-acu: compiling the OMNI servo callback (first run on this machine; cached after)",
               file=sys.stderr)
+
+    key = LAYOUT_KEY  # in the closure: a new layout is a new cache entry
+    words = TABLE
 
     @nb.cfunc(types.uint32(types.voidptr), nopython=True, cache=True)
     def callback(data):
-        t = nb.carray(_i64p(data_address(data)), TABLE)
-        o = ss.unpack(t, 0, OmniArrays)
+        t = nb.carray(_i64p(data_address(data)), words)
+        if t[0] != key:
+            return HD_CALLBACK_DONE  # a table for another layout: touch nothing (see address_table)
+        o = ss.unpack(t, ss.HEADER, OmniArrays)
         o.ictl[I_IN_TICK] = 1
         rc = tick(o, ss.unpack_servo(t, _AT_SERVO), ss.unpack(t, _AT_RING, ss.Ring),
                   ss.unpack(t, _AT_TIMING, ss.Timing))

@@ -1,14 +1,13 @@
 """The real-time servo loop as one compiled, GIL-free function (devices whose input can be fed ahead).
 
 Why. A 1 kHz loop written in Python needs the GIL between ticks, and the 60 Hz visual thread holds it
-for milliseconds at a time inside C calls (NumPy, rerun, file writes): measured on the default
-trajectory with the visual loop running, the Python servo loop's period error was p99 785 us, p99.9
-3.3 ms, 60 missed ticks in 8,000; with the visual frames emptied, p99 11 us and 1 missed. No switch
-interval fixes a C call that does not return. So for a device whose positions can be computed ahead
-(the scripted device: a trajectory file), the whole loop runs in :func:`servo_loop`, compiled with
-``nogil``: it waits for each absolute deadline (``clock_nanosleep`` to 300 us before it, then spins
-on ``clock_gettime``), runs :func:`~haptic_acu.needle.step_kernel`, writes the sample row into the
-ring and publishes it, and never returns to Python until the session ends. A Python feeder thread
+for milliseconds at a time inside C calls (NumPy, rerun, file writes), so the Python loop's period
+error has a long tail (the benchmark's loop rows measure it); no switch interval fixes a C call that
+does not return. So for a device whose positions can be computed ahead (the scripted device: a
+trajectory file), the whole loop runs in :func:`servo_loop`, compiled with ``nogil``: it waits for
+each absolute deadline (:func:`wait_until`: ``clock_nanosleep`` to 300 us before it, then a spin on
+``clock_gettime``), runs :func:`~haptic_acu.servotick.servo_tick` (the step, the sample row into the
+ring, published), and never returns to Python until the session ends. A Python feeder thread
 keeps the trajectory's positions for the next second of ticks in a ring (:class:`Feed`); the visual
 thread drains the sample ring as before.
 

@@ -22,13 +22,13 @@ compiled unpacking (:func:`unpack`) follow from these definitions.
 """
 from __future__ import annotations
 
+import zlib
 from typing import NamedTuple
 
-import numba as nb
 import numpy as np
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic
+from numba.extending import intrinsic, register_jitable
 from numba.np import numpy_support
 from numba.np.arrayobj import make_array, populate_array
 
@@ -167,6 +167,12 @@ SPEC = {  # (dtype, ndim) of every field
     Timing: dict(errs=("f8", 1), count=(TIMING, 1)),
 }
 SERVO_TABLE = sum(3 * len(cls._fields) for cls in (TickIn, Model, State, Out))  # words of a Servo's table
+HEADER = 2  # words before a table's arrays: LAYOUT_KEY, then 1 once compiled code has accepted the table
+# Every definition above in one number: a C entry point keeps it in its closure (so numba's cache
+# key changes with the layout) and checks a table's header against it.
+LAYOUT_KEY = zlib.crc32(repr([(cls.__name__, [(n, dt.descr if dt.fields else dt.str, nd) for n, dt, nd in
+                                             ((n, np.dtype(SPEC[cls][n][0]), SPEC[cls][n][1]) for n in cls._fields)])
+                              for cls in SPEC]).encode())
 
 
 def spec(cls) -> tuple:
@@ -180,14 +186,15 @@ def table_size(*classes) -> int:
     return sum(SERVO_TABLE if cls is Servo else 3 * len(cls._fields) for cls in classes)
 
 
-def address_table(*tuples, out: np.ndarray | None = None, at: int = 0) -> np.ndarray:
-    """(address, rows, columns) of every array of these NamedTuples, in order, written into ``out``
-    from word ``at`` (a new table if None). Checks dtype, dimensions and C contiguity. The caller
-    keeps the arrays alive and never reallocates them while the table is in use."""
+def address_table(*tuples) -> np.ndarray:
+    """The :data:`HEADER` (:data:`LAYOUT_KEY`, 0), then (address, rows, columns) of every array of
+    these NamedTuples, in order (a :class:`Servo` counts as its four). Checks dtype, dimensions and C
+    contiguity. The caller keeps the arrays alive and never reallocates them while the table is in
+    use."""
     tuples = [x for t in tuples for x in (t if isinstance(t, Servo) else (t,))]
-    if out is None:
-        out = np.zeros(at + table_size(*(type(t) for t in tuples)), np.int64)
-    i = at
+    out = np.zeros(HEADER + table_size(*(type(t) for t in tuples)), np.int64)
+    out[0] = LAYOUT_KEY
+    i = HEADER
     for tup in tuples:
         for (name, dtype, ndim), a in zip(spec(type(tup)), tup):
             if a.dtype != dtype or a.ndim != ndim or not a.flags.c_contiguous:
@@ -265,7 +272,17 @@ _AT_STATE = _AT_MODEL + 3 * len(Model._fields)
 _AT_OUT = _AT_STATE + 3 * len(State._fields)
 
 
-@nb.njit(cache=True, nogil=True)
+@register_jitable
+def accept(table, key):
+    """In compiled code: True (and the header's second word set to 1) if ``table`` was made for the
+    layout ``key`` (the caller's :data:`LAYOUT_KEY`)."""
+    if table[0] != key:
+        return False
+    table[1] = 1
+    return True
+
+
+@register_jitable
 def unpack_servo(table, at):
     """In compiled code: the :class:`Servo` whose table (see :func:`address_table`) starts at ``at``."""
     return Servo(unpack(table, at, TickIn), unpack(table, at + _AT_MODEL, Model),
