@@ -343,6 +343,11 @@ class OmniDevice(Device):
 
         return load_hd_library() if omniloop.supported() else None
 
+    def servo_guard(self) -> dict:
+        """The guard's parameters for the compiled callback (the same the Python callback uses)."""
+        return {"handle": self._handle, "stall_ticks": self._stall_ticks, "ramp_ticks": self._ramp_ticks,
+                "velocity_alpha": self._alpha}
+
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
         ``callback`` (haptic_acu.omniloop.build_callback) with ``table`` (its arrays' addresses)

@@ -82,6 +82,8 @@ class ScriptedDevice(Device):
             return self.read_at(now - self._wall0)
         return self.read_at(self._clock)
 
+    reads_ahead = True
+
     def read_at(self, t_s: float) -> DeviceState:
         """The tip at session time ``t_s`` (s): position (m), velocity (m/s), ``done``."""
         if self._cursor is None:

@@ -204,9 +204,9 @@ class Session:
         self.sched_fifo = False
         # Real time on a device that can be read ahead (read_block: the scripted device): the whole
         # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
-        self.compiled_loop = bool(compiled_loop) and hasattr(device, "read_block")
+        self.compiled_loop = bool(compiled_loop) and device.reads_ahead
         # A device driving the clock whose servo callback can be compiled (the OMNI: omniloop.py).
-        self.compiled_servo_callback = bool(compiled_loop) and hasattr(device, "run_servo_compiled")
+        self.compiled_servo_callback = bool(compiled_loop) and device.info.drives_clock
         self._omni_callback = None
         self._ctl = None  # the compiled loop's control words while it runs
         self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
@@ -381,7 +381,7 @@ class Session:
         return result
 
     def _run_sim(self) -> None:
-        if hasattr(self.device, "read_block"):
+        if self.device.reads_ahead:
             return self._run_sim_blocks()
         dev = self.device
         dt = self.servo_dt
@@ -392,7 +392,7 @@ class Session:
             t = self.tick * dt
             if t > limit + 1e-12:
                 break
-            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            state = dev.read_at(t)
             if state.done:
                 break
             self._servo_tick(t, state)
@@ -582,8 +582,7 @@ class Session:
             last_index = int(ctl[rtloop.CT_TICK]) - 1
             if last_index >= 0:
                 self._t_session = last_index * dt
-            if hasattr(self.device, "record_forces"):
-                self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
+            self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
         if "error" in outcome:
             raise outcome["error"]
         status = outcome.get("status")
@@ -646,7 +645,7 @@ class Session:
             t = start - t0
             if t > limit:
                 break
-            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            state = dev.read_at(t)
             if state.done or self._stop.is_set():  # stopped (or faulted) while the read ran
                 break
             if state.t_s != dev_t:
@@ -677,14 +676,14 @@ class Session:
         ictl = np.zeros(ol.I_SIZE, np.int64)
         fctl = np.zeros(ol.F_SIZE)
         ws = dev.workspace
-        R = ws._rot()
-        wsa = np.concatenate([[ws.scale], R.ravel(), np.asarray(ws.offset_mm, float)])
+        wsa = np.concatenate([[ws.scale], ws.rotation().ravel(), np.asarray(ws.offset_mm, float)])
+        guard = dev.servo_guard()
         prm = np.zeros(ol.P_SIZE)
-        prm[ol.P_HANDLE] = dev._handle
-        prm[ol.P_STALL] = dev._stall_ticks
-        prm[ol.P_RAMP] = dev._ramp_ticks
+        prm[ol.P_HANDLE] = guard["handle"]
+        prm[ol.P_STALL] = guard["stall_ticks"]
+        prm[ol.P_RAMP] = guard["ramp_ticks"]
         prm[ol.P_LIMIT_N] = dev.info.force_limit_n
-        prm[ol.P_ALPHA] = dev._alpha
+        prm[ol.P_ALPHA] = guard["velocity_alpha"]
         prm[ol.P_PERIOD_NS] = self.servo_dt * 1e9
         prm[ol.P_LIMIT_T] = self.duration_s if self.duration_s is not None else math.inf
         prm[ol.P_RATE] = dev.info.rate_hz

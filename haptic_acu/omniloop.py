@@ -15,6 +15,11 @@ an address table (:func:`address_table`: :class:`OmniArrays`, the servo's
 an int64 control array; :meth:`devices.omni.OmniDevice.run_servo_compiled` turns that into the same
 one-line faults as the Python callback.
 
+Imports run one way: this module knows nothing of ``haptic_acu.devices``; the OMNI device
+(``devices/omni.py``) imports it lazily to read the control words (``I_*``) of a callback it runs, and
+the engine asks the device only through ``devices.base.Device`` (``servo_library``, ``servo_guard``,
+``run_servo_compiled``).
+
 The HD calls are LLVM declarations of the HD API's C functions, resolved against the library
 pyOpenHaptics loaded (made visible to the JIT by :func:`load_library`), so the tick is cached like
 every other kernel and only the small cfunc wrapper is compiled per session. ``hdGetError`` returns
