@@ -122,8 +122,8 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
     Returns percentile objects in microseconds.
     """
     from haptic_acu.needle import step_kernel
-    from haptic_acu.servostate import Ring
-    from haptic_acu.servotick import run_ticks
+    from haptic_acu.servostate import TIMING, Ring, Timing
+    from haptic_acu.servotick import call_driver, run_ticks, tick_table
     from haptic_acu.samples import NCOL
 
     P = np.ascontiguousarray(sc.P[:n])
@@ -146,8 +146,10 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
     if "compiled" in models:
         c = models["compiled"]
         rows = Ring(buf, np.zeros(1, np.int64))
+        timing = Timing(np.zeros(1), np.zeros(1, TIMING))
+        table = tick_table(c.servo, rows, timing)  # rows and timing outlive it
         snap = _snapshot(c)
-        run_ticks(P[:1], V[:1], T[:1], 0, c.servo, rows)  # load the compiled loop
+        call_driver(run_ticks, P[:1], V[:1], T[:1], 0, table)  # load the compiled loop
         _restore(c, snap)
     if "kernel" in models:
         k = models["kernel"]
@@ -176,7 +178,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
                 t0 = clock()
-                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, c.servo, rows)
+                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, table)
                 times["compiled"].append((clock() - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path

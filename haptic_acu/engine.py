@@ -67,7 +67,7 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import Ring, Timing, TIMING
-from .servotick import account, run_ticks  # noqa: F401  (the headless block driver, used here and by bench/)
+from .servotick import account, call_driver, run_ticks, tick_table
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
@@ -240,7 +240,8 @@ class Session:
                 self._omni_callback = omniloop.build_callback(lib)
         if self.clock == "sim":
             z = np.zeros((1, 3))
-            run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, m.servo, Ring(buf, np.zeros(1, np.int64)))
+            rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -259,8 +260,9 @@ class Session:
         m = self.model
         loop = rtloop.Loop(np.zeros(rtloop.CT_SIZE, np.int64), np.zeros(rtloop.FL_SIZE), np.zeros(2, np.int64))
         loop.ctl[rtloop.CT_STOP] = 1
-        rtloop.servo_loop(loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
-                          Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64)), self._timing, m.servo)
+        rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
+                    tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
         self._stop.set()
@@ -410,6 +412,7 @@ class Session:
         m = self.model
         ring = self.ring
         rows = Ring(ring.buf, ring.ctr)
+        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
         next_frame = self.frame_dt
@@ -426,7 +429,7 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                n = run_ticks(P, V, T, k0, m.servo, rows)
+                n = call_driver(run_ticks, P, V, T, k0, table)
                 self.tick += n
                 self._t_session = float(T[n - 1])
                 if m.diag["fault"] != 0.0:
@@ -536,6 +539,8 @@ class Session:
         if self.duration_s is not None:
             k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
         period_ns = int(round(dt * 1e9))
+        rows = Ring(self.ring.buf, self.ring.ctr)
+        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
@@ -549,9 +554,9 @@ class Session:
             prev = self._try_fifo()
             self.sched_fifo = prev is not None
             try:
-                outcome["status"] = rtloop.servo_loop(
-                    rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
-                    rtloop.FeedRows(feed.p, feed.v), Ring(self.ring.buf, self.ring.ctr), self._timing, m.servo)
+                outcome["status"] = call_driver(
+                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
+                    rtloop.FeedRows(feed.p, feed.v), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:

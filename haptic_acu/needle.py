@@ -124,7 +124,7 @@ def surface_normal(coeffs_k, lmax, centre, p, out):
 
 # ---- views ------------------------------------------------------------------------------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def net_views(m, s, idx):
     """Slot ``idx`` (= 2*layer + slot)'s net: (xf, X0f, X0, x, rest, axis) views into the state."""
     lay = m.layout[0]
@@ -135,7 +135,7 @@ def net_views(m, s, idx):
             s.rest[lay.rest[idx]:lay.rest[idx] + n], s.axes[idx])
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def lattice_views(m, k):
     """Layer ``k``'s lattice: (nbr, ring, plane) rows of the force net and its margin."""
     lay = m.layout[0]
@@ -144,7 +144,7 @@ def lattice_views(m, k):
     return m.nbr[t0:t1], m.ring[t0:t1], m.plane[t0:t1]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def n_particles_of(m, k):
     w = m.layer[k].w
     return 1 + 3 * w * (w - 1)
@@ -152,7 +152,7 @@ def n_particles_of(m, k):
 
 # ---- the phases -------------------------------------------------------------------------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def check_input(inp, s, d):
     """A non-finite tip position or velocity latches the fault; False while it is latched (zero force)."""
     sv = s.servo[0]
@@ -165,7 +165,7 @@ def check_input(inp, s, d):
     return True
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def lift_tip(inp, s):
     """The tip in the compressed tissue's frame: ``q = p - offset * axis``."""
     sv = s.servo[0]
@@ -175,7 +175,7 @@ def lift_tip(inp, s):
         wk.q[c] = inp.p[c] - o * sv.axis[c]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def track_entry(inp, s):
     """Depth along the insertion since the entry point (``work.s_p``); back above the entry point the
     needle has left the tissue (the holes stay); on withdrawal the offset never exceeds that depth
@@ -200,7 +200,7 @@ def track_entry(inp, s):
     lift_tip(inp, s)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def tip_radii(m, s):
     """Every boundary's radius toward the lifted tip (``s.radii``) and the tip's own (``work.rho``).
     The centre itself has no direction (the contact point and the bone wall's push would divide by
@@ -215,7 +215,7 @@ def tip_radii(m, s):
     wk.rho = rho
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def front_layer(s):
     """The first layer not punctured (N_LAYERS: all), into ``work.front``."""
     sv = s.servo[0]
@@ -227,7 +227,7 @@ def front_layer(s):
     s.work[0].front = front
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def contact_point(m, s, k):
     """Layer ``k``'s surface point radially toward the tip, into ``work.cpt``."""
     wk = s.work[0]
@@ -304,7 +304,7 @@ def touch(m, s, k):
     return PRESSING
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def tip_on_net(s, X0f, ax):
     """The tip relative to N1's rest position (``work.r``) and N1's deflection along the axis
     (``work.dz1``); returns the squared lateral distance."""
@@ -349,7 +349,7 @@ def recentre(m, s, k, idx, use_table):
                 xf[i, c] = X0f[i, c] - dz * ax[c]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def table_response(m, s, k, idx):
     """The tabulated net's static response at the tip: (surface force, ring-w deflection). Its shape
     is laid onto the particles only when someone looks (the visual loop, from the tip kept in
@@ -427,7 +427,7 @@ def puncture(inp, m, s, d, k, idx, use_table):
     wk.front = k + 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def surface_force(m, s, d, k, idx, use_table, fn_table):
     """The pressed net's reaction along its axis (a surface only pushes), added to ``work.f``."""
     wk = s.work[0]
@@ -448,7 +448,7 @@ def surface_force(m, s, d, k, idx, use_table, fn_table):
     d.f_layer[k] = fn
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def press(inp, m, s, d, k):
     """Layer ``k`` is being pressed: N1 follows the tip (lifted off: the net goes, nothing broke);
     re-centre the net if the tip slid away; the net's response (table or sweeps); puncture past the
@@ -482,7 +482,7 @@ def press(inp, m, s, d, k):
         surface_force(m, s, d, k, idx, use_table, fn_table)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def front_contact(inp, m, s, d):
     """The front layer: first touch (hole or new net), then pressing."""
     k = s.work[0].front
@@ -493,7 +493,7 @@ def front_contact(inp, m, s, d):
         press(inp, m, s, d, k)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def passed_layer_damping(inp, m, s, d):
     """Table 1: ``-(sum_j d_j h_j) v_axial a`` over the punctured layers, h_j the needle's length in
     layer j; each layer's share into ``d.f_layer``."""
@@ -521,7 +521,7 @@ def passed_layer_damping(inp, m, s, d):
     d.f_damp = fd
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def lateral_guidance(inp, m, s, d):
     """A spring pulling the tip back to the insertion line through the entry point."""
     sv = s.servo[0]
@@ -542,7 +542,7 @@ def lateral_guidance(inp, m, s, d):
     d.f_lateral = kl * math.sqrt(lx * lx + ly * ly + lz * lz)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def post_puncture(inp, m, s, d):
     """Forces of a needle inside the tissue: damping of the layers passed, lateral guidance, and
     the depth below the skin."""
@@ -555,7 +555,7 @@ def post_puncture(inp, m, s, d):
     d.depth_skin = dep if dep > 0.0 else 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def bone_wall(m, s, d):
     """A penalty wall at the muscle/bone boundary, once every layer is punctured."""
     wk = s.work[0]
@@ -568,7 +568,7 @@ def bone_wall(m, s, d):
         d.f_bone = kb * pen
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def locate(s, d):
     """Where the tip is: ``d.layer`` (-1 outside, 3 bone; pressing a surface is not being inside
     that layer), ``d.depth`` into it, ``d.front``."""
@@ -595,7 +595,7 @@ def locate(s, d):
     d.front = front
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def clamp(m, s, d):
     """The safety clamp (no fastmath here: isfinite must work): a non-finite force latches the
     fault and stays zero; a force above the limit is scaled to it. Writes ``d.force``."""
@@ -647,7 +647,7 @@ def step_kernel(inp, m, s, out):
 _STEP_C = None
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def step_servo(sv):
     """:func:`step_kernel` on a :class:`~haptic_acu.servostate.Servo`."""
     step_kernel(sv.inp, sv.model, sv.state, sv.out.diag)

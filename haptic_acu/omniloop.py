@@ -9,8 +9,8 @@ device gives none, workspace mapping: :func:`read_stylus`; force ramp-in, clamp 
 :func:`command_force`) and the engine part (:func:`engine_tick`: period error and
 :func:`~haptic_acu.servotick.servo_tick`, the same tick every driver runs), is a numba ``cfunc``
 handed to ``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer:
-an address table (:func:`address_table`: :class:`OmniArrays`, the servo's
-:class:`~haptic_acu.servostate.Servo`, the sample ring, the timing) that the cfunc unpacks with
+an address table (:func:`address_table`: the servo's :class:`~haptic_acu.servostate.Servo`, the
+sample ring, the timing, then :class:`OmniArrays`) that the cfunc unpacks with
 :func:`haptic_acu.servostate.unpack`. It reports how it ended through
 an int64 control array; :meth:`devices.omni.OmniDevice.run_servo_compiled` turns that into the same
 one-line faults as the Python callback.
@@ -48,7 +48,7 @@ from . import servostate as ss
 from .cptr import address_of as data_address
 from .cptr import i64p as _i64p
 from .rtloop import now_ns
-from .servotick import account, servo_tick
+from .servotick import TICK_TABLE, account, servo_tick, tick_table, unpack_tick
 
 # HD API values (as in devices/omni.py)
 HD_SUCCESS = 0x0000
@@ -104,17 +104,15 @@ class OmniArrays(NamedTuple):
 
 ss.SPEC[OmniArrays] = dict(ictl=("i8", 1), fctl=("f8", 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
                            hdb=("i4", 1), ws=("f8", 1), prm=("f8", 1))
-# The callback's table: the header, OmniArrays, the Servo, the sample Ring, the Timing, in that order.
-_AT_SERVO = ss.HEADER + ss.table_size(OmniArrays)
-_AT_RING = _AT_SERVO + ss.SERVO_TABLE
-_AT_TIMING = _AT_RING + ss.table_size(ss.Ring)
-TABLE = _AT_TIMING + ss.table_size(ss.Timing)
+# The callback's table: a tick table (servotick.tick_table: header, Servo, Ring, Timing), then OmniArrays.
+_AT_OMNI = TICK_TABLE
+TABLE = _AT_OMNI + ss.table_size(OmniArrays)
 LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
 
 
 def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
     """The callback's user data: (address, rows, columns) of every array, in :data:`TABLE` order."""
-    t = ss.address_table(omni, servo, ring, timing)
+    t = tick_table(servo, ring, timing, omni)
     t[0] = LAYOUT_KEY
     return t
 
@@ -403,10 +401,10 @@ def build_callback(lib):
         t = nb.carray(_i64p(data_address(data)), words)
         if t[0] != key:
             return HD_CALLBACK_DONE  # a table for another layout: touch nothing (see address_table)
-        o = ss.unpack(t, ss.HEADER, OmniArrays)
+        o = ss.unpack(t, _AT_OMNI, OmniArrays)
         o.ictl[I_IN_TICK] = 1
-        rc = tick(o, ss.unpack_servo(t, _AT_SERVO), ss.unpack(t, _AT_RING, ss.Ring),
-                  ss.unpack(t, _AT_TIMING, ss.Timing))
+        sv, ring, timing = unpack_tick(t)
+        rc = tick(o, sv, ring, timing)
         o.ictl[I_IN_TICK] = 0
         return rc
 

@@ -33,7 +33,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .servotick import account, servo_tick
+from . import servostate as ss
+from .servotick import STALE, account, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -160,13 +161,18 @@ def record_force(fl, ctl, diag):
 
 
 @nb.njit(cache=True, nogil=True)
-def servo_loop(lp, t0_ns, period_ns, k_limit, feed, ring, timing, sv):
+def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
     """Run servo ticks from ``ctl[CT_TICK]`` until stopped (``ctl[CT_STOP]``), the feed ends
     (``ctl[CT_END]``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
     velocities of tick k are ``feed.p/feed.v[k % len]``, valid for k < ``ctl[CT_FED]``. Each tick is
-    :func:`~haptic_acu.servotick.servo_tick` (sample row into ``ring``, lateness into ``timing``).
-    Returns the status (also in ``ctl[CT_STATUS]``). A loop entered after tick ``ctl[CT_TICK]``'s
+    :func:`~haptic_acu.servotick.servo_tick` on the servo of ``table``
+    (:func:`~haptic_acu.servotick.tick_table`: sample rows into its ring, lateness into its timing).
+    Returns the status (also in ``ctl[CT_STATUS]``; STALE: see
+    :func:`~haptic_acu.servotick.call_driver`). A loop entered after tick ``ctl[CT_TICK]``'s
     deadline moves ``t0_ns`` to now (written to ``ctl[CT_T0]``)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE
+    sv, ring, timing = unpack_tick(table)
     ctl = lp.ctl
     ts = lp.ts
     fcap = feed.p.shape[0]

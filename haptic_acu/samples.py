@@ -42,7 +42,7 @@ _RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["p
 _PERIOD_ERR = COL["period_err_s"]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def write_sample(buf, row, t, tick, inp, s, diag, period_err):
     """Fill ``buf[row]`` from one tick: its time and index, the input ``inp`` (TickIn), the servo
     state ``s`` (State) and output ``diag`` (the one-row DIAG record array). Allocation-free."""

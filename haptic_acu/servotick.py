@@ -5,16 +5,52 @@ simulated time), the compiled real-time loop (:func:`haptic_acu.rtloop.servo_loo
 and the OMNI's compiled callback (:mod:`haptic_acu.omniloop`, on the device's clock). A tick's
 lateness goes through :func:`account` in each driver's own units. The arguments are the NamedTuples
 of :mod:`haptic_acu.servostate`: ``sv`` (Servo: input, model, state, output), ``ring`` (Ring: the
-sample rows and their published count), ``timing`` (Timing: period errors, their count, missed).
+sample rows and their published count), ``timing`` (Timing: period errors, their count, missed);
+a compiled driver gets all three in one address table (:func:`tick_table`).
 """
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 from numba import types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, register_jitable
 
+from . import servostate as ss
 from .needle import step_servo
 from .samples import write_sample
+
+STALE = -1  # what a compiled driver returns for a table of another layout (see call_driver)
+# A driver's table: the header, the Servo, the sample Ring, the Timing (a device may append its own).
+AT_RING = ss.HEADER + ss.SERVO_TABLE
+AT_TIMING = AT_RING + ss.table_size(ss.Ring)
+TICK_TABLE = AT_TIMING + ss.table_size(ss.Timing)
+
+
+def tick_table(servo, ring, timing, *more) -> np.ndarray:
+    """The address table a compiled driver unpacks (:func:`unpack_tick`): the servo, its sample ring,
+    its timing, then ``more``. The caller keeps every array alive while the table is in use.
+
+    Why a table rather than the NamedTuples themselves: arrays viewed from addresses carry no
+    reference count, so the phases of the step pass them around for free."""
+    return ss.address_table(servo, ring, timing, *more)
+
+
+def call_driver(driver, *args):
+    """Call a compiled driver whose last argument is a :func:`tick_table`. A driver loaded from a numba
+    cache written for another state layout refuses the table (returns :data:`STALE`) before touching
+    it: it is then recompiled (its stale cache entry flushed) and called again."""
+    r = driver(*args)
+    if r == STALE:
+        driver.recompile()
+        r = driver(*args)
+    return r
+
+
+@register_jitable
+def unpack_tick(table):
+    """In compiled code: (Servo, Ring, Timing) from a :func:`tick_table`."""
+    return (ss.unpack_servo(table, ss.HEADER), ss.unpack(table, AT_RING, ss.Ring),
+            ss.unpack(table, AT_TIMING, ss.Timing))
 
 
 @intrinsic
@@ -29,7 +65,7 @@ def fence(typingctx):
     return sig, codegen
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def account(timing, err, period, to_s):
     """A tick's period error ``err`` (in the driver's units; ``period`` in the same): kept in
     seconds (``err * to_s``) while there is room, counted, and a tick later than a period missed."""
@@ -42,7 +78,7 @@ def account(timing, err, period, to_s):
         c.missed += 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def servo_tick(sv, ring, t, tick, err_s):
     """One tick on ``sv.inp`` (the caller has written the position and velocity): the step, its
     sample row (time ``t``, index ``tick``, period error ``err_s``) written and published. Returns
@@ -56,10 +92,14 @@ def servo_tick(sv, ring, t, tick, err_s):
 
 
 @nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, T, tick0, sv, ring):
+def run_ticks(P, V, T, tick0, table):
     """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V`` at
-    times ``T``), without a Python round trip per tick. Stops after a faulting tick; returns the
-    number of ticks run."""
+    times ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip
+    per tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
+    :func:`call_driver`)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE
+    sv, ring, _ = unpack_tick(table)
     for i in range(T.shape[0]):
         for c in range(3):
             sv.inp.p[c] = P[i, c]

@@ -22,6 +22,7 @@ from haptic_acu.config import load_config
 from haptic_acu.engine import Session
 from haptic_acu.needle import NeedleModel
 from haptic_acu.servostate import TIMING, Ring, Timing
+from haptic_acu.servotick import call_driver, tick_table
 from haptic_acu.samples import COL
 from haptic_acu.tissue import Tissue
 from haptic_acu.trajectory import TrajectoryWriter
@@ -121,8 +122,9 @@ def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):
     timing = Timing(np.zeros(fcap), np.zeros(1, TIMING))
     errs = timing.errs
     ts = np.zeros(2, np.int64)
-    status = rtloop.servo_loop(rtloop.Loop(ctl, np.zeros(rtloop.FL_SIZE), ts), rtloop.now_ns(ts), period_ns, k_limit,
-                               rtloop.FeedRows(feed_p, feed_v), Ring(ring, rctr), timing, m.servo)
+    rows = Ring(ring, rctr)
+    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(rtloop.FL_SIZE), ts), rtloop.now_ns(ts),
+                         period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v), tick_table(m.servo, rows, timing))
     assert status == rtloop.LIMIT
     rows = ring[:rctr[0]]
     ticks = rows[:, COL["tick"]].astype(int)
