@@ -271,7 +271,7 @@ class OmniDevice(Device):
         if running:  # close() while run_servo runs (another thread, or the atexit hook)
             servo.abort_requested = True  # its next tick commands zero force and finishes
             if self._compiled_ctl is not None:
-                self._compiled_ctl[1] = 1  # omniloop.I_ABORT
+                self._compiled_ctl["abort"] = 1  # omniloop.CTL
             servo.finished.wait(self._watchdog_s)
         elif self._scheduler_on and self._fault is None:
             self._zero_force_frame()
@@ -351,7 +351,7 @@ class OmniDevice(Device):
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
         ``callback`` (haptic_acu.omniloop.build_callback) with ``table`` (its arrays' addresses)
-        as user data, without the GIL. ``ictl``/``fctl`` are its control words: this thread
+        as user data, without the GIL. ``ictl``/``fctl`` are its control records (omniloop.CTL, FST): this thread
         watches them (stop, watchdog) and turns how the callback ended into the same one-line
         faults as the Python path."""
         from haptic_acu import omniloop as ol
@@ -369,14 +369,16 @@ class OmniDevice(Device):
             self._compiled_ctl = None
             raise
 
+        ctl = ictl[0]  # the callback's control record (omniloop.CTL), a view
+
         def request_stop():
-            ictl[ol.I_STOP] = 1
+            ctl["stop"] = 1
 
         def request_abort():
-            ictl[ol.I_ABORT] = 1
+            ctl["abort"] = 1
 
-        self._watch(servo, lambda: ictl[ol.I_STATUS] == ol.S_RUNNING,
-                    lambda: (int(ictl[ol.I_TICKS]), bool(ictl[ol.I_IN_TICK])), request_stop, request_abort)
+        self._watch(servo, lambda: ctl["status"] == ol.S_RUNNING,
+                    lambda: (int(ctl["ticks"]), bool(ctl["in_tick"])), request_stop, request_abort)
         if servo.fault is None and servo.exc is None:  # how the callback itself ended
             servo.finish(fault=ol.fault_message(ictl, fctl, hd_error_name))
         self._compiled_ctl = None

@@ -678,32 +678,29 @@ class Session:
 
         dev = self.device
         m = self.model
-        ictl = np.zeros(ol.I_SIZE, np.int64)
-        fctl = np.zeros(ol.F_SIZE)
+        ictl = np.zeros(1, ol.CTL)
+        fctl = np.zeros(1, ol.FST)
         ws = dev.workspace
-        wsa = np.concatenate([[ws.scale], ws.rotation().ravel(), np.asarray(ws.offset_mm, float)])
+        wsa = np.zeros(1, ol.WS)
+        wsa[0] = (ws.scale, ws.rotation(), ws.offset_mm)
         guard = dev.servo_guard()
-        prm = np.zeros(ol.P_SIZE)
-        prm[ol.P_HANDLE] = guard["handle"]
-        prm[ol.P_STALL] = guard["stall_ticks"]
-        prm[ol.P_RAMP] = guard["ramp_ticks"]
-        prm[ol.P_LIMIT_N] = dev.info.force_limit_n
-        prm[ol.P_ALPHA] = guard["velocity_alpha"]
-        prm[ol.P_PERIOD_NS] = self.servo_dt * 1e9
-        prm[ol.P_LIMIT_T] = self.duration_s if self.duration_s is not None else math.inf
-        prm[ol.P_RATE] = dev.info.rate_hz
-        ictl[ol.I_VEL_DEV] = 1
+        prm = np.zeros(1, ol.PRM)
+        prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], dev.info.force_limit_n,
+                  guard["velocity_alpha"], self.servo_dt * 1e9,
+                  self.duration_s if self.duration_s is not None else math.inf, dev.info.rate_hz)
+        c = ictl[0]  # the control record (a view)
+        c["vel_dev"] = 1
         omni = ol.OmniArrays(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                             hdb=np.zeros(1, np.int32), ws=wsa, prm=prm)
+                             hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, ts=np.zeros(2, np.int64))
         arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
         table = ol.address_table(omni, m.servo, arrays[1], self._timing)
         old = self._rt_setup()
         t0 = time.perf_counter()
         t0_ns = time.perf_counter_ns()
-        ictl[ol.I_T0_NS] = t0_ns
-        ictl[ol.I_LAST_NS] = t0_ns
+        c["t0_ns"] = t0_ns
+        c["last_ns"] = t0_ns
         self.t0_perf = t0
-        self._tick_word = (ictl, ol.I_ETICK)
+        self._tick_word = (c, "etick")
         vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
         vis.start()
         try:
@@ -713,10 +710,10 @@ class Session:
             vis.join(timeout=2.0)
             self._rt_teardown(old)
             self._tick_word = None
-            self.tick = int(ictl[ol.I_ETICK])
-            self._t_session = float(fctl[ol.F_TSESSION])
+            self.tick = int(c["etick"])
+            self._t_session = float(fctl[0]["t_session"])
             arrays.clear()  # (the table's addresses are dead from here)
-        if ictl[ol.I_DONE] == 2 and self.fault is None:
+        if c["done"] == 2 and self.fault is None:
             self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
                             "force set to zero")
 
