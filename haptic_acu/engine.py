@@ -258,8 +258,8 @@ class Session:
 
         rtloop.warm_up()
         m = self.model
-        loop = rtloop.Loop(np.zeros(rtloop.CT_SIZE, np.int64), np.zeros(rtloop.FL_SIZE), np.zeros(2, np.int64))
-        loop.ctl[rtloop.CT_STOP] = 1
+        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
+        loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
         call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
                     tick_table(m.servo, rows, self._timing))
@@ -267,7 +267,7 @@ class Session:
     def stop(self) -> None:
         self._stop.set()
         if self._ctl is not None:
-            self._ctl[0] = 1  # rtloop.CT_STOP: the compiled loop sees it at its next tick
+            self._ctl["stop"] = 1  # the compiled loop sees it at its next tick
 
     def _set_fault(self, reason: str) -> None:
         with self._fault_lock:
@@ -529,10 +529,10 @@ class Session:
 
         m = self.model
         dt = self.servo_dt
-        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-        ctl[rtloop.CT_END] = rtloop.NO_END
-        ctl[rtloop.CT_SKIP_AFTER] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
-        fl = np.zeros(rtloop.FL_SIZE)
+        ctl = np.zeros(1, rtloop.CTL)
+        ctl["end"] = rtloop.NO_END
+        ctl["skip_after"] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
+        fl = np.zeros(1, rtloop.FL)
         feed = rtloop.Feed(self.device, ctl, dt)
         feed.fill()  # the first second before the clock starts
         k_limit = rtloop.NO_END
@@ -544,9 +544,9 @@ class Session:
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
-        self._tick_word = (ctl, rtloop.CT_RAN)
+        self._tick_word = (ctl[0], "ran")
         if self._stop.is_set():
-            ctl[rtloop.CT_STOP] = 1
+            ctl["stop"] = 1
         t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
         t0 = t0_ns * 1e-9
 
@@ -572,9 +572,9 @@ class Session:
             while th.is_alive():
                 th.join(0.05)
                 if self._stop.is_set():
-                    ctl[rtloop.CT_STOP] = 1
+                    ctl["stop"] = 1
         finally:
-            ctl[rtloop.CT_STOP] = 1
+            ctl["stop"] = 1
             th.join()
             self._stop.set()
             vis.join(timeout=2.0)
@@ -582,12 +582,13 @@ class Session:
             self._rt_teardown(old)
             self._ctl = None
             self._tick_word = None
-            self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
-            self.tick = int(ctl[rtloop.CT_RAN])  # ticks run (a stall's skipped ticks are not rows)
-            last_index = int(ctl[rtloop.CT_TICK]) - 1
+            c = ctl[0]
+            self.t0_perf = (int(c["t0"]) or t0_ns) * 1e-9
+            self.tick = int(c["ran"])  # ticks run (a stall's skipped ticks are not rows)
+            last_index = int(c["tick"]) - 1
             if last_index >= 0:
                 self._t_session = last_index * dt
-            self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
+            self.device.record_forces(c["forces"], fl[0]["maxf"], fl[0]["f"])
         if "error" in outcome:
             raise outcome["error"]
         status = outcome.get("status")

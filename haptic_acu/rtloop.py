@@ -16,7 +16,7 @@ pointers), so the functions stay cacheable like every other kernel.
 
 Ticks happen at ``t0 + k * period``; tick k reads the position at session time ``k * period`` and
 its sample row carries that time and its lateness (``period_err_s``). A stall longer than
-``ctl[CT_SKIP_AFTER]`` periods (the session's default: 10) skips ahead to the present (the skipped
+``ctl[0].skip_after`` periods (the session's default: 10) skips ahead to the present (the skipped
 ticks count as missed) instead of bursting through them; with :data:`NO_END` there the loop never
 skips and runs late ticks back to back, so every tick of the trajectory is a row whatever the host
 does (what a comparison against the headless replay needs).
@@ -39,15 +39,23 @@ from .servotick import STALE, account, servo_tick, unpack_tick
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
-# control words (int64 array shared between the compiled loop and Python)
-CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_FORCES, CT_T0, CT_RAN, CT_SKIP_AFTER = range(9)
-CT_SIZE = 9  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
-# CT_SKIP_AFTER: a tick later than this many periods skips ahead to the present (0 reads as 10)
+# The loop's control record, shared between the compiled loop and Python (ctl[0])
+CTL = np.dtype([
+    ("stop", "i8"),  # set by Python: stop before the next tick
+    ("tick", "i8"),  # the next tick's index
+    ("fed", "i8"),  # ticks whose positions the feed holds
+    ("end", "i8"),  # the feed's end (NO_END: not known yet)
+    ("status", "i8"),  # how the loop ended (RUNNING...)
+    ("forces", "i8"),  # forces commanded
+    ("t0", "i8"),  # tick 0's deadline (ns)
+    ("ran", "i8"),  # ticks run (fewer than tick if a stall skipped some)
+    ("skip_after", "i8"),  # a tick later than this many periods skips ahead to the present (0 reads as 10)
+])
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
-# float outputs
-FL_MAXF, FL_F = 0, 1  # largest |F| commanded; last force (3)
-FL_SIZE = 4
+# the loop's float outputs (fl[0])
+FL = np.dtype([("maxf", "f8"),  # largest |F| commanded
+               ("f", "f8", 3)])  # last force
 
 NO_END = np.iinfo(np.int64).max // 4
 
@@ -98,8 +106,8 @@ def sleep_until_ns(ts, t_ns):
 
 
 class Loop(NamedTuple):
-    ctl: np.ndarray  # CT_SIZE int64 control words, shared with Python
-    fl: np.ndarray  # FL_SIZE float outputs
+    ctl: np.ndarray  # (1,) CTL, shared with Python
+    fl: np.ndarray  # (1,) FL
     ts: np.ndarray  # int64[2]: the clock's timespec
 
 
@@ -126,7 +134,7 @@ def skip_ahead(ctl, timing, k, k_limit, late, period_ns, skip_after):
     if skip_after >= NO_END or late <= skip_after * period_ns:
         return 0
     skip = late // period_ns
-    last = min(k_limit, ctl[CT_END])  # skipped ticks past the session's end are not missed
+    last = min(k_limit, ctl[0].end)  # skipped ticks past the session's end are not missed
     if k + skip > last:
         skip = max(last - k, 0)
     timing.count[0].missed += skip
@@ -138,9 +146,9 @@ def stop_reason(ctl, k, k_limit):
     """The status that ends the loop before tick ``k``, or RUNNING."""
     if k >= k_limit:
         return LIMIT
-    if k >= ctl[CT_END]:
+    if k >= ctl[0].end:
         return ENDED
-    if k >= ctl[CT_FED]:
+    if k >= ctl[0].fed:
         return STARVED
     return RUNNING
 
@@ -153,23 +161,23 @@ def record_force(fl, ctl, diag):
     mag = 0.0
     for c in range(3):
         f = 0.0 if fault else d.force[c]
-        fl[FL_F + c] = f
+        fl[0].f[c] = f
         mag += f * f
-    if mag > fl[FL_MAXF] * fl[FL_MAXF]:
-        fl[FL_MAXF] = np.sqrt(mag)
-    ctl[CT_FORCES] += 1
+    if mag > fl[0].maxf * fl[0].maxf:
+        fl[0].maxf = np.sqrt(mag)
+    ctl[0].forces += 1
 
 
 @nb.njit(cache=True, nogil=True)
 def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
-    """Run servo ticks from ``ctl[CT_TICK]`` until stopped (``ctl[CT_STOP]``), the feed ends
-    (``ctl[CT_END]``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
-    velocities of tick k are ``feed.p/feed.v[k % len]``, valid for k < ``ctl[CT_FED]``. Each tick is
+    """Run servo ticks from ``ctl[0].tick`` until stopped (``ctl[0].stop``), the feed ends
+    (``ctl[0].end``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
+    velocities of tick k are ``feed.p/feed.v[k % len]``, valid for k < ``ctl[0].fed``. Each tick is
     :func:`~haptic_acu.servotick.servo_tick` on the servo of ``table``
     (:func:`~haptic_acu.servotick.tick_table`: sample rows into its ring, lateness into its timing).
-    Returns the status (also in ``ctl[CT_STATUS]``; STALE: see
-    :func:`~haptic_acu.servotick.call_driver`). A loop entered after tick ``ctl[CT_TICK]``'s
-    deadline moves ``t0_ns`` to now (written to ``ctl[CT_T0]``)."""
+    Returns the status (also in ``ctl[0].status``; STALE: see
+    :func:`~haptic_acu.servotick.call_driver`). A loop entered after tick ``ctl[0].tick``'s
+    deadline moves ``t0_ns`` to now (written to ``ctl[0].t0``)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE
     sv, ring, timing = unpack_tick(table)
@@ -177,15 +185,15 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
     ts = lp.ts
     fcap = feed.p.shape[0]
     dt = period_ns * 1e-9
-    k = ctl[CT_TICK]
+    k = ctl[0].tick
     status = RUNNING
-    skip_after = ctl[CT_SKIP_AFTER] if ctl[CT_SKIP_AFTER] > 0 else 10
+    skip_after = ctl[0].skip_after if ctl[0].skip_after > 0 else 10
     start = now_ns(ts)
     if start > t0_ns + k * period_ns:
         t0_ns = start - k * period_ns  # entered late (thread start-up): the clock starts now
-    ctl[CT_T0] = t0_ns
+    ctl[0].t0 = t0_ns
     while True:
-        if ctl[CT_STOP] != 0:
+        if ctl[0].stop != 0:
             status = STOPPED
             break
         deadline = t0_ns + k * period_ns
@@ -205,12 +213,12 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1
-        ctl[CT_TICK] = k
-        ctl[CT_RAN] += 1
+        ctl[0].tick = k
+        ctl[0].ran += 1
         if not ok:
             status = FAULTED
             break
-    ctl[CT_STATUS] = status
+    ctl[0].status = status
     return status
 
 
@@ -234,21 +242,21 @@ class Feed:
     def fill(self) -> bool:
         """Read ahead up to ``lead`` ticks past the loop; False once the device has ended."""
         ctl = self.ctl
-        while ctl[CT_FED] < ctl[CT_END] and ctl[CT_FED] - ctl[CT_TICK] < self.lead:
-            k0 = int(ctl[CT_FED])
-            n = min(self.chunk, self.capacity - (k0 - int(ctl[CT_TICK])) - 1)
+        while ctl[0]["fed"] < ctl[0]["end"] and ctl[0]["fed"] - ctl[0]["tick"] < self.lead:
+            k0 = int(ctl[0]["fed"])
+            n = min(self.chunk, self.capacity - (k0 - int(ctl[0]["tick"])) - 1)
             if n <= 0:
                 break
             T = np.arange(k0, k0 + n) * self.dt
             P, V, done = self.device.read_block(T)
             if done.any():
                 n = int(np.argmax(done))
-                ctl[CT_END] = k0 + n
+                ctl[0]["end"] = k0 + n
             idx = np.arange(k0, k0 + n) % self.capacity
             self.p[idx] = P[:n]
             self.v[idx] = V[:n]
-            ctl[CT_FED] = k0 + n  # published after the rows (CPython runs these in order)
-        return ctl[CT_FED] < ctl[CT_END]
+            ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
+        return ctl[0]["fed"] < ctl[0]["end"]
 
     def start(self, stop: threading.Event) -> None:
         def run():

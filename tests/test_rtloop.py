@@ -113,24 +113,24 @@ def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):
     feed_p[:, 0] = np.arange(fcap) * 1e-7  # tick k's row is recognisable by its x
     feed_p[:, 2] = 5e-3
     feed_v = np.zeros((fcap, 3))
-    ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-    ctl[rtloop.CT_FED] = fcap
-    ctl[rtloop.CT_END] = rtloop.NO_END
-    ctl[rtloop.CT_SKIP_AFTER] = skip_after
+    ctl = np.zeros(1, rtloop.CTL)
+    ctl["fed"] = fcap
+    ctl["end"] = rtloop.NO_END
+    ctl["skip_after"] = skip_after
     ring = np.zeros((fcap, len(COL)))
     rctr = np.zeros(1, np.int64)
     timing = Timing(np.zeros(fcap), np.zeros(1, TIMING))
     errs = timing.errs
     ts = np.zeros(2, np.int64)
     rows = Ring(ring, rctr)
-    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(rtloop.FL_SIZE), ts), rtloop.now_ns(ts),
+    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(1, rtloop.FL), ts), rtloop.now_ns(ts),
                          period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v), tick_table(m.servo, rows, timing))
     assert status == rtloop.LIMIT
     rows = ring[:rctr[0]]
     ticks = rows[:, COL["tick"]].astype(int)
     np.testing.assert_array_equal(rows[:, COL["x_m"]], feed_p[ticks, 0])  # each row is its own tick's
     np.testing.assert_allclose(rows[:, COL["t_s"]], ticks * period_ns * 1e-9, rtol=0, atol=1e-15)
-    assert ctl[rtloop.CT_RAN] == rctr[0] == timing.count[0]["n_err"]
+    assert ctl[0]["ran"] == rctr[0] == timing.count[0]["n_err"]
     return timing.count[0]["missed"], ticks, errs[:rctr[0]] * 1e9 / period_ns
 
 
