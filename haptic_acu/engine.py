@@ -66,7 +66,7 @@ import numpy as np
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
-from .servostate import Ring, Timing, TIMING
+from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
 from .servotick import account, call_driver, run_ticks, tick_table
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
@@ -92,7 +92,7 @@ class Dents(Mapping):
         self._model = model
         self._cache = {}
         self._keys = [k for k in range(3) if any(
-            model.owner(2 * k + s) == 1 or (model.owner(2 * k + s) == 2 and not (skip_settled is not None and skip_settled[2 * k + s]))
+            model.owner(2 * k + s) == SERVO_OWNS or (model.owner(2 * k + s) == VISUAL_OWNS and not (skip_settled is not None and skip_settled[2 * k + s]))
             for s in range(2))]
 
     def __getitem__(self, k):
@@ -140,7 +140,7 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     support = 1.5 * model.params[k].spacing_m
     for s in range(2):
         idx = 2 * k + s
-        if model.owner(idx) == 0:
+        if model.owner(idx) == FREE:
             continue
         pos = model.net_positions(idx)
         dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], support, tmp)

@@ -35,7 +35,7 @@ from numba.np.arrayobj import make_array, populate_array
 from .config import LAYER_NAMES, MAX_RINGS
 
 # ---- the model's vocabulary ---------------------------------------------------------------------------
-PLACE_NAMES = ("air", "skin", "fat", "muscle", "bone")  # where the tip is: DIAG.layer + 1
+PLACE_NAMES = ("outside", "skin", "fat", "muscle", "bone")  # where the tip is: PLACE_NAMES[DIAG.layer + 1]
 N_LAYERS = len(LAYER_NAMES)
 UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2  # a layer's state at the insertion site
 STATE_NAMES = ("untouched", "pressing", "punctured")
