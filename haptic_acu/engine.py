@@ -679,20 +679,10 @@ class Session:
 
         dev = self.device
         m = self.model
-        ictl = np.zeros(1, ol.CTL)
-        fctl = np.zeros(1, ol.FST)
-        ws = dev.workspace
-        wsa = np.zeros(1, ol.WS)
-        wsa[0] = (ws.scale, ws.rotation(), ws.offset_mm)
-        guard = dev.servo_guard()
-        prm = np.zeros(1, ol.PRM)
-        prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], dev.info.force_limit_n,
-                  guard["velocity_alpha"], self.servo_dt * 1e9,
-                  self.duration_s if self.duration_s is not None else math.inf, dev.info.rate_hz)
+        omni = ol.make_arrays(dev.workspace, dev.servo_guard(), dev.info.force_limit_n, dev.info.rate_hz,
+                              self.servo_dt, self.duration_s if self.duration_s is not None else math.inf)
+        ictl, fctl = omni.ictl, omni.fctl
         c = ictl[0]  # the control record (a view)
-        c["vel_dev"] = 1
-        omni = ol.OmniArrays(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                             hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, ts=np.zeros(2, np.int64))
         arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
         table = ol.address_table(omni, m.servo, arrays[1], self._timing)
         old = self._rt_setup()

@@ -1,5 +1,11 @@
 """The OMNI's servo tick as one compiled C callback: the HD scheduler runs it without the GIL.
 
+The device's guard is written once, here: :func:`guard_in` (non-finite and frozen positions,
+non-finite velocity, the velocity filter, the workspace mapping) and :func:`guard_out` (ramp-in,
+clamps in both frames, finite check). The compiled callback calls them between its HD calls; the
+OMNI's Python callback (``devices/omni.py``, ``OmniDevice._tick_body``) calls the same compiled
+functions on its own :class:`OmniArrays` (:func:`make_arrays`), so a safety change is made once.
+
 With a Python callback (``OmniDevice.run_servo(step, stop)``) every 1 kHz tick of the HD scheduler
 thread has to take the GIL, so the visual thread's C calls (NumPy, file writes) delay the
 trainee's force by milliseconds (see :mod:`haptic_acu.rtloop` for the measurement on the scripted
@@ -108,6 +114,31 @@ ss.SPEC[OmniArrays] = dict(ictl=(CTL, 1), fctl=(FST, 1), hdt=("f8", 1), hdv=("f8
 _AT_OMNI = TICK_TABLE
 TABLE = _AT_OMNI + ss.table_size(OmniArrays)
 LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
+
+
+def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, period_s: float = 1e-3,
+                limit_t: float = math.inf) -> OmniArrays:
+    """The device side's arrays for one run: the workspace mapping, the guard's parameters
+    (``Device.servo_guard()``), the force limit, the rate, the servo period and the session length."""
+    ws = np.zeros(1, WS)
+    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm)
+    prm = np.zeros(1, PRM)
+    prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
+              period_s * 1e9, limit_t, rate_hz)
+    ictl = np.zeros(1, CTL)
+    ictl["vel_dev"] = 1
+    return OmniArrays(ictl=ictl, fctl=np.zeros(1, FST), hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
+                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64))
+
+
+def warm_guard() -> None:
+    """Compile (or load) :func:`guard_in` and :func:`guard_out` for the Python callback."""
+    from types import SimpleNamespace
+
+    identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
+    o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0}, 1.0, 1000.0)
+    guard_in(o, ss.TickIn(np.zeros(3), np.zeros(3)))
+    guard_out(o, 0.0, 0.0, 0.0)
 
 
 def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
@@ -230,9 +261,6 @@ def read_stylus(o, inp):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_TRANSFORM, e)
-    px = hdt[12]
-    py = hdt[13]
-    pz = hdt[14]
     if ictl[0].vel_dev != 0:
         hd_get_doublev(HD_CURRENT_VELOCITY, hdv.ctypes.data)
         e = hd_error() & 0xFFFFFFFF
@@ -244,50 +272,9 @@ def read_stylus(o, inp):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_BUTTONS, e)
-    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
-        fctl[0].detail[0] = px
-        fctl[0].detail[1] = py
-        fctl[0].detail[2] = pz
-        return abort(ictl, h, hdf, S_POS_NAN)
-    same = (ictl[0].has_last != 0 and px == fctl[0].last[0] and py == fctl[0].last[1] and pz == fctl[0].last[2])
-    if same and ictl[0].force_on != 0:
-        ictl[0].frozen += 1
-        if ictl[0].frozen >= prm[0].stall:
-            fctl[0].detail[0] = px
-            fctl[0].detail[1] = py
-            fctl[0].detail[2] = pz
-            return abort(ictl, h, hdf, S_STALL)
-    else:
-        ictl[0].frozen = 0
-    if ictl[0].vel_dev != 0:
-        vx = hdv[0]
-        vy = hdv[1]
-        vz = hdv[2]
-        if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
-            fctl[0].detail[0] = vx
-            fctl[0].detail[1] = vy
-            fctl[0].detail[2] = vz
-            return abort(ictl, h, hdf, S_VEL_NAN)
-    else:  # first-order low-pass of backward differences
-        if ictl[0].has_last != 0:
-            a = prm[0].alpha
-            rate = prm[0].rate
-            fctl[0].vfilt[0] += a * ((px - fctl[0].last[0]) * rate - fctl[0].vfilt[0])
-            fctl[0].vfilt[1] += a * ((py - fctl[0].last[1]) * rate - fctl[0].vfilt[1])
-            fctl[0].vfilt[2] += a * ((pz - fctl[0].last[2]) * rate - fctl[0].vfilt[2])
-        vx = fctl[0].vfilt[0]
-        vy = fctl[0].vfilt[1]
-        vz = fctl[0].vfilt[2]
-    fctl[0].last[0] = px
-    fctl[0].last[1] = py
-    fctl[0].last[2] = pz
-    ictl[0].has_last = 1
-    # device (mm) -> scene (m)
-    sc = ws[0].scale * 1e-3
-    for r in range(3):
-        pbuf[r] = (ws[0].scale * (ws[0].R[r, 0] * px + ws[0].R[r, 1] * py + ws[0].R[r, 2] * pz)
-                   + ws[0].offset[r]) * 1e-3
-        vbuf[r] = sc * (ws[0].R[r, 0] * vx + ws[0].R[r, 1] * vy + ws[0].R[r, 2] * vz)
+    st = guard_in(o, inp)
+    if st != S_RUNNING:
+        return abort(ictl, h, hdf, st)
     return -1
 
 
@@ -326,11 +313,71 @@ def engine_tick(o, sv, ring, timing):
 
 
 @nb.njit(nogil=True, cache=True)
-def command_force(o, fx, fy, fz):
-    """The device's safety on the way out: ramp-in, clamp in both frames, finite check; then the
-    force is set and the frame closed. Returns the callback's return code."""
+def guard_in(o, inp):
+    """The device's guard on a stylus sample (``o.hdt``; ``o.hdv`` if ``ictl.vel_dev``): a non-finite
+    position, a position frozen while a force is on (stall), a non-finite velocity are faults (their
+    status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
+    low-pass of backward differences) and the position mapped into the scene, into ``inp``; returns
+    S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
+    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o
+    pbuf = inp.p
+    vbuf = inp.v
+    px = hdt[12]
+    py = hdt[13]
+    pz = hdt[14]
+    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        fctl[0].detail[0] = px
+        fctl[0].detail[1] = py
+        fctl[0].detail[2] = pz
+        return S_POS_NAN
+    same = (ictl[0].has_last != 0 and px == fctl[0].last[0] and py == fctl[0].last[1] and pz == fctl[0].last[2])
+    if same and ictl[0].force_on != 0:
+        ictl[0].frozen += 1
+        if ictl[0].frozen >= prm[0].stall:
+            fctl[0].detail[0] = px
+            fctl[0].detail[1] = py
+            fctl[0].detail[2] = pz
+            return S_STALL
+    else:
+        ictl[0].frozen = 0
+    if ictl[0].vel_dev != 0:
+        vx = hdv[0]
+        vy = hdv[1]
+        vz = hdv[2]
+        if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
+            fctl[0].detail[0] = vx
+            fctl[0].detail[1] = vy
+            fctl[0].detail[2] = vz
+            return S_VEL_NAN
+    else:  # first-order low-pass of backward differences
+        if ictl[0].has_last != 0:
+            a = prm[0].alpha
+            rate = prm[0].rate
+            fctl[0].vfilt[0] += a * ((px - fctl[0].last[0]) * rate - fctl[0].vfilt[0])
+            fctl[0].vfilt[1] += a * ((py - fctl[0].last[1]) * rate - fctl[0].vfilt[1])
+            fctl[0].vfilt[2] += a * ((pz - fctl[0].last[2]) * rate - fctl[0].vfilt[2])
+        vx = fctl[0].vfilt[0]
+        vy = fctl[0].vfilt[1]
+        vz = fctl[0].vfilt[2]
+    fctl[0].last[0] = px
+    fctl[0].last[1] = py
+    fctl[0].last[2] = pz
+    ictl[0].has_last = 1
+    # device (mm) -> scene (m)
+    sc = ws[0].scale * 1e-3
+    for r in range(3):
+        pbuf[r] = (ws[0].scale * (ws[0].R[r, 0] * px + ws[0].R[r, 1] * py + ws[0].R[r, 2] * pz)
+                   + ws[0].offset[r]) * 1e-3
+        vbuf[r] = sc * (ws[0].R[r, 0] * vx + ws[0].R[r, 1] * vy + ws[0].R[r, 2] * vz)
+    return S_RUNNING
+
+
+@nb.njit(nogil=True, cache=True)
+def guard_out(o, fx, fy, fz):
+    """The device's guard on the way out: force ramp-in, clamp in the scene and the device frame,
+    finite check; the device force into ``o.hdf`` and S_RUNNING, or S_FORCE_NAN (values in
+    ``fctl.detail``)."""
     ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
-    h = int(prm[0].handle)
     ramp = ictl[0].valid / prm[0].ramp
     if ramp > 1.0:
         ramp = 1.0
@@ -357,10 +404,25 @@ def command_force(o, fx, fy, fz):
         fctl[0].detail[0] = dx
         fctl[0].detail[1] = dy
         fctl[0].detail[2] = dz
-        return abort(ictl, h, hdf, S_FORCE_NAN)
+        return S_FORCE_NAN
     hdf[0] = dx
     hdf[1] = dy
     hdf[2] = dz
+    return S_RUNNING
+
+
+@nb.njit(nogil=True, cache=True)
+def command_force(o, fx, fy, fz):
+    """The force out: :func:`guard_out`, then the force is set and the frame closed. Returns the
+    callback's return code."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    h = int(prm[0].handle)
+    st = guard_out(o, fx, fy, fz)
+    if st != S_RUNNING:
+        return abort(ictl, h, hdf, st)
+    dx = hdf[0]
+    dy = hdf[1]
+    dz = hdf[2]
     hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
