@@ -718,6 +718,7 @@ class NeedleModel:
         self.servo = ss.Servo(self.inp, self.model, self.state, self.out)  # what a tick reads and writes
         self.rec = self.state.servo[0]  # the servo record (a view: reads see the servo's writes)
         self.diag = self.out.diag[0]  # the last tick's DIAG record (a view)
+        self._force = self.out.diag["force"][0]  # its force (a view, made once: step() returns it)
         self._p, self._v = self.inp.p, self.inp.v
         self._slot_views()
         self._step_c = None  # step()'s C entry point, bound on first use
@@ -811,7 +812,7 @@ class NeedleModel:
             self._bind_step()
         else:
             self._step_c(self._step_arg)
-        return self.diag["force"]
+        return self._force
 
     def _bind_step(self) -> None:
         from ctypes import c_void_p
