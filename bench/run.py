@@ -7,7 +7,7 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
 * :func:`servo`: the servo step on the :mod:`bench.scenarios` paths, three ways: ``model.step``
   (a tick called from Python: through the step's C entry point, one pointer), ``step_kernel(*args)``
   alone (numba's dispatch of the same step with its 22 arrays), and ticks run inside one compiled
-  loop (:func:`haptic_acu.engine.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
+  loop (:func:`haptic_acu.servotick.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
   Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
   design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
@@ -91,23 +91,16 @@ def _log(progress, msg):
 
 # ---- servo step ----------------------------------------------------------------------------------
 
-def _state_arrays(model):
-    return [model.pos, model.rest_all, model.axes_all, model.si, model.sf, model.holes, model.radii,
-            model.scratch, model.diag]
-
-
 def _snapshot(model):
-    return [a.copy() for a in _state_arrays(model)]
+    return model.copy_state()
 
 
 def _restore(model, snap):
-    for a, s in zip(_state_arrays(model), snap):
-        a[...] = s
+    model.restore_state(snap)
 
 
 @nb.njit(cache=True, nogil=True)
-def empty_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all, offs,
-                 tab, tmeta, si, sf, holes, radii, scratch, diag):
+def empty_kernel(inp, m, s, diag):
     """Takes what :func:`haptic_acu.needle.step_kernel` takes and does nothing: calling it from
     Python costs exactly the dispatch and argument unboxing of a servo call."""
     return
@@ -119,17 +112,18 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
 
     * ``step``: ``NeedleModel.step(p, v)``, a tick called from Python (the keyboard's loop, the
       ``--python-servo`` paths): p, v copied in, the step's C entry point called through ctypes;
-    * ``kernel``: ``step_kernel(p, v, *args)`` with preassembled arguments (p, v written before),
+    * ``kernel``: ``step_kernel(*args)`` with preassembled arguments (p, v written before),
       through numba's dispatcher;
     * ``dispatch``: :func:`empty_kernel` with the same arguments: the dispatcher's own cost;
     * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
-      (:func:`haptic_acu.engine.run_ticks`, as the headless replay runs them); per-tick means.
+      (:func:`haptic_acu.servotick.run_ticks`, as the headless replay runs them); per-tick means.
 
     Optionally the NumPy reference on the same path (``numpy_ticks`` ticks, after the ones above).
     Returns percentile objects in microseconds.
     """
-    from haptic_acu.engine import run_ticks
     from haptic_acu.needle import step_kernel
+    from haptic_acu.servostate import TIMING, Ring, Timing
+    from haptic_acu.servotick import call_driver, run_ticks, tick_table
     from haptic_acu.samples import NCOL
 
     P = np.ascontiguousarray(sc.P[:n])
@@ -151,15 +145,17 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
     buf = np.zeros((BLOCK, NCOL))
     if "compiled" in models:
         c = models["compiled"]
-        c_args = c.kernel_args()
+        rows = Ring(buf, np.zeros(1, np.int64))
+        timing = Timing(np.zeros(1), np.zeros(1, TIMING))
+        table = tick_table(c.servo, rows, timing)  # rows and timing outlive it
         snap = _snapshot(c)
-        run_ticks(P[:1], V[:1], T[:1], 0, buf, 0, *c_args, c._p, c._v)  # load the compiled loop
+        call_driver(run_ticks, P[:1], V[:1], T[:1], 0, table)  # load the compiled loop
         _restore(c, snap)
     if "kernel" in models:
         k = models["kernel"]
         k_args = k.kernel_args()
-        kp, kv = k._p, k._v
-        empty_kernel(kp, kv, *k_args)
+        kp, kv = k.inp.p, k.inp.v
+        empty_kernel(*k_args)
     times = {w: [] for w in ("step", "kernel", "dispatch", "compiled")}
     clock = time.perf_counter_ns
     with measure.gc_paused():
@@ -173,16 +169,16 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
                 kp[:] = P[i]
                 kv[:] = V[i]
                 t0 = clock()
-                step_kernel(kp, kv, *k_args)
+                step_kernel(*k_args)
                 t1 = clock()
-                empty_kernel(kp, kv, *k_args)
+                empty_kernel(*k_args)
                 t2 = clock()
                 times["kernel"].append(t1 - t0)
                 times["dispatch"].append(t2 - t1)
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
                 t0 = clock()
-                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, buf, 0, *c_args, c._p, c._v)
+                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, table)
                 times["compiled"].append((clock() - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path
@@ -190,7 +186,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
         if t:
             out[way] = percentiles(np.array(t), 1e-3)
     if len(models) > 1:
-        f = [m.diag[:3].copy() for m in models.values()]
+        f = [m.diag["force"].copy() for m in models.values()]
         out["ways_agree"] = all(np.array_equal(f[0], g) for g in f[1:])
 
     if numpy_ticks:
@@ -329,8 +325,9 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
     fifo = bool(result.stats.get("sched_fifo"))
     dev.close()
     st = dict(result.stats)
-    n = min(session._n_err, session._period_err.size)
-    st["steal"] = measure.split_by_steal(session._period_err[:n], session.t0_perf or 0.0, session.servo_dt, steal)
+    errs = session._timing.errs
+    n = min(session._n_err, errs.size)
+    st["steal"] = measure.split_by_steal(errs[:n], session.t0_perf or 0.0, session.servo_dt, steal)
     st.update(rerun_rrd=bool(rerun), rerun_mode=rerun or "none", rrd_bytes=rrd.stat().st_size if rrd.exists() else 0, sched_fifo=bool(fifo),
               fault=result.fault, note=note)
     return st

@@ -52,21 +52,22 @@ class Workspace:
     def from_config(cls, ws) -> "Workspace":
         return cls(tuple(ws.offset_mm), float(ws.scale), float(ws.rotation_z_deg))
 
-    def _rot(self) -> np.ndarray:
+    def rotation(self) -> np.ndarray:
+        """The device-to-scene rotation (3 x 3)."""
         a = math.radians(self.rotation_z_deg)
         c, s = math.cos(a), math.sin(a)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
     def position_to_scene(self, p_dev_mm) -> np.ndarray:
-        return (self.scale * (self._rot() @ np.asarray(p_dev_mm, float)) + np.asarray(self.offset_mm)) * 1e-3
+        return (self.scale * (self.rotation() @ np.asarray(p_dev_mm, float)) + np.asarray(self.offset_mm)) * 1e-3
 
     def vector_to_scene(self, v_dev_mm) -> np.ndarray:
         """A velocity or displacement (mm or mm/s) into the scene frame (m or m/s)."""
-        return self.scale * (self._rot() @ np.asarray(v_dev_mm, float)) * 1e-3
+        return self.scale * (self.rotation() @ np.asarray(v_dev_mm, float)) * 1e-3
 
     def force_to_device(self, f_scene_n) -> np.ndarray:
         """A scene-frame force into the device frame (rotation only: forces are not scaled)."""
-        return self._rot().T @ np.asarray(f_scene_n, float)
+        return self.rotation().T @ np.asarray(f_scene_n, float)
 
 
 class Device(abc.ABC):
@@ -94,6 +95,49 @@ class Device(abc.ABC):
         """For ``drives_clock`` devices: call ``step(state) -> force`` from the device's scheduler
         at its rate until ``stop`` (a threading.Event) is set or the device faults."""
         raise NotImplementedError(f"{self.info.name} does not drive the clock")
+
+    # -- what the engine also uses; each has a default, a device overrides what it can do ---------
+    def read_at(self, t_s: float) -> DeviceState:
+        """The state at session time ``t_s`` on the engine's clock (default: :meth:`read`)."""
+        return self.read()
+
+    #: True if :meth:`read_block` can give positions ahead of time (a trajectory): the engine then
+    #: runs the real-time servo loop compiled, fed ahead (haptic_acu.rtloop).
+    reads_ahead: bool = False
+
+    def read_block(self, t_s: np.ndarray):
+        """(positions (n, 3) m, velocities (n, 3) m/s, done flags (n,)) at increasing times ``t_s``;
+        only for a device with :attr:`reads_ahead`."""
+        raise NotImplementedError(f"{self.info.name} cannot be read ahead")
+
+    def reset_ticks(self, t_s: np.ndarray) -> list[int]:
+        """Indices of the ticks ``t_s`` (just read by :meth:`read_block`) before which the tissue is
+        reset (a recording's ``reset`` events). Default: none."""
+        return []
+
+    @property
+    def has_events(self) -> bool:
+        """The device plays events (resets) that only the Python servo loop honours. Default: no."""
+        return False
+
+    def record_forces(self, count: int, max_magnitude_n: float, last_n) -> None:
+        """What a compiled servo loop commanded without calling :meth:`set_force` tick by tick
+        (``count`` commands, the largest magnitude, the last force). Default: nothing to keep."""
+
+    def servo_library(self):
+        """For ``drives_clock`` devices whose servo tick can run compiled: the C library the
+        compiled callback calls into (a ctypes CDLL), else None (the default: Python callback)."""
+        return None
+
+    def servo_guard(self) -> dict:
+        """For a compiled callback: the device's safety parameters (``handle``, ``stall_ticks``,
+        ``ramp_ticks``, ``velocity_alpha``) as the callback's guard needs them."""
+        raise NotImplementedError(f"{self.info.name} has no compiled servo callback")
+
+    def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
+        """Run the compiled ``callback`` with user data ``table`` from the device's scheduler until
+        ``stop`` is set or the callback ends; report its faults (see haptic_acu.omniloop)."""
+        raise NotImplementedError(f"{self.info.name} has no compiled servo callback")
 
     def __enter__(self):
         self.open()

@@ -163,7 +163,6 @@ class _Servo:
         self.ramp_ticks = ramp_ticks
         self.ticks = 0  # callbacks so far (read by the watchdog)
         self.in_tick = False  # a callback is running (a slow step, not a silent scheduler)
-        self.valid = 0  # ticks with a valid state (the ramp counts these)
         self.stop_requested = False  # stop was set: zero the force and finish
         self.abort_requested = False  # run_servo gave up (watchdog): zero the force and finish
         self.finished = threading.Event()
@@ -174,10 +173,8 @@ class _Servo:
         self.buttons = ctypes.c_int(0)
         self.force = (ctypes.c_double * 3)()
         self.velocity_from_device = True
-        self.last_pos: tuple | None = None
-        self.frozen = 0
-        self.force_on = False
-        self.v_filtered = np.zeros(3)
+        self.guard = None  # omniloop.OmniArrays: the guard's state, shared with the compiled callback's code
+        self.inp = None  # servostate.TickIn: the guarded sample in the scene frame
         self.latest: DeviceState | None = None
 
     def finish(self, fault: str | None = None, exc: BaseException | None = None) -> int:
@@ -225,6 +222,9 @@ class OmniDevice(Device):
     def open(self) -> None:
         if self._handle is not None:
             return
+        from haptic_acu import omniloop
+
+        omniloop.warm_guard()  # the guard the Python callback runs, compiled before the device runs
         hd = _HD(load_hd_library())
         handle = hd.init_device(self.device_name.encode())
         err = hd.error_code()
@@ -271,7 +271,7 @@ class OmniDevice(Device):
         if running:  # close() while run_servo runs (another thread, or the atexit hook)
             servo.abort_requested = True  # its next tick commands zero force and finishes
             if self._compiled_ctl is not None:
-                self._compiled_ctl[1] = 1  # omniloop.I_ABORT
+                self._compiled_ctl["abort"] = 1  # omniloop.CTL
             servo.finished.wait(self._watchdog_s)
         elif self._scheduler_on and self._fault is None:
             self._zero_force_frame()
@@ -322,7 +322,12 @@ class OmniDevice(Device):
             raise RuntimeError("OmniDevice.run_servo before open()")
         if self._fault is not None:
             raise DeviceFault(f"OMNI already faulted ({self._fault}); close and reopen it")
+        from haptic_acu import omniloop as ol
+        from haptic_acu.servostate import TickIn
+
         servo = _Servo(step, stop, self._stall_ticks, self._ramp_ticks)
+        servo.guard = ol.make_arrays(self.workspace, self.servo_guard(), self.info.force_limit_n, RATE_HZ)
+        servo.inp = TickIn(np.zeros(3), np.zeros(3))
         self._servo = servo
         handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)
 
@@ -343,10 +348,15 @@ class OmniDevice(Device):
 
         return load_hd_library() if omniloop.supported() else None
 
+    def servo_guard(self) -> dict:
+        """The guard's parameters for the compiled callback (the same the Python callback uses)."""
+        return {"handle": self._handle, "stall_ticks": self._stall_ticks, "ramp_ticks": self._ramp_ticks,
+                "velocity_alpha": self._alpha}
+
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
         ``callback`` (haptic_acu.omniloop.build_callback) with ``table`` (its arrays' addresses)
-        as user data, without the GIL. ``ictl``/``fctl`` are its control words: this thread
+        as user data, without the GIL. ``ictl``/``fctl`` are its control records (omniloop.CTL, FST): this thread
         watches them (stop, watchdog) and turns how the callback ended into the same one-line
         faults as the Python path."""
         from haptic_acu import omniloop as ol
@@ -364,14 +374,16 @@ class OmniDevice(Device):
             self._compiled_ctl = None
             raise
 
+        ctl = ictl[0]  # the callback's control record (omniloop.CTL), a view
+
         def request_stop():
-            ictl[ol.I_STOP] = 1
+            ctl["stop"] = 1
 
         def request_abort():
-            ictl[ol.I_ABORT] = 1
+            ctl["abort"] = 1
 
-        self._watch(servo, lambda: ictl[ol.I_STATUS] == ol.S_RUNNING,
-                    lambda: (int(ictl[ol.I_TICKS]), bool(ictl[ol.I_IN_TICK])), request_stop, request_abort)
+        self._watch(servo, lambda: ctl["status"] == ol.S_RUNNING,
+                    lambda: (int(ctl["ticks"]), bool(ctl["in_tick"])), request_stop, request_abort)
         if servo.fault is None and servo.exc is None:  # how the callback itself ended
             servo.finish(fault=ol.fault_message(ictl, fctl, hd_error_name))
         self._compiled_ctl = None
@@ -484,7 +496,7 @@ class OmniDevice(Device):
         return s.finish(fault=reason)
 
     def _tick_body(self, s: _Servo) -> int:
-        hd, h, ws = self._hd, self._handle, self.workspace
+        hd, h = self._hd, self._handle
         s.ticks += 1
         hd.begin_frame(h)
         msg = hd.error("hdBeginFrame")
@@ -516,32 +528,22 @@ class OmniDevice(Device):
         if msg:
             return self._abort(s, msg)
 
-        if not all(map(math.isfinite, pos)):
-            return self._abort(s, f"device reported a non-finite position {pos} mm")
-        if pos == s.last_pos and s.force_on:
-            s.frozen += 1
-            if s.frozen >= s.stall_ticks:
-                where = ", ".join(f"{c:.3f}" for c in pos)
-                return self._abort(s, f"position frozen at ({where}) mm for {s.frozen} ms of servo ticks "
-                                      "while a force was applied: device stalled")
-        else:
-            s.frozen = 0
-        p_dev = np.array(pos)
-        if s.velocity_from_device:
-            v = s.velocity[:3]
-            if not all(map(math.isfinite, v)):
-                return self._abort(s, f"device reported a non-finite velocity {tuple(v)} mm/s")
-            v_dev = np.array(v)
-        else:  # first-order low-pass of backward differences
-            if s.last_pos is not None:
-                s.v_filtered += self._alpha * ((p_dev - np.array(s.last_pos)) * RATE_HZ - s.v_filtered)
-            v_dev = s.v_filtered
-        s.last_pos = pos
+        # the guard the compiled callback runs too (omniloop.guard_in / guard_out)
+        from haptic_acu import omniloop as ol
 
+        g = s.guard
+        c = g.ictl[0]
+        g.hdt[12:15] = pos
+        g.hdv[:] = s.velocity[:3]
+        c["vel_dev"] = 1 if s.velocity_from_device else 0
+        st = ol.guard_in(g, s.inp)
+        if st != ol.S_RUNNING:
+            c["status"] = st
+            return self._abort(s, ol.fault_message(g.ictl, g.fctl, hd_error_name))
         state = DeviceState(
             t_s=s.ticks / RATE_HZ,
-            position_m=ws.position_to_scene(p_dev),
-            velocity_m_s=ws.vector_to_scene(v_dev),
+            position_m=s.inp.p.copy(),
+            velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),
         )
         s.latest = state
@@ -553,14 +555,11 @@ class OmniDevice(Device):
         if not all(map(math.isfinite, f.tolist())):
             return self._abort(s, f"servo step returned a non-finite force {tuple(f.tolist())} N")
 
-        ramp = min(1.0, s.valid / s.ramp_ticks)
-        s.valid += 1
-        limit = self.info.force_limit_n
-        f = _clamp(f * ramp, limit)
-        f_dev = _clamp(ws.force_to_device(f), limit)
-        fx, fy, fz = f_dev.tolist()
-        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-            return self._abort(s, f"force mapped to a non-finite device force {(fx, fy, fz)} N")
+        st = ol.guard_out(g, float(f[0]), float(f[1]), float(f[2]))
+        if st != ol.S_RUNNING:
+            c["status"] = st
+            return self._abort(s, ol.fault_message(g.ictl, g.fctl, hd_error_name))
+        fx, fy, fz = g.hdf.tolist()
         s.force[0], s.force[1], s.force[2] = fx, fy, fz
         hd.set_doublev(HD_CURRENT_FORCE, s.force)
         msg = hd.error("hdSetDoublev(HD_CURRENT_FORCE)")
@@ -570,7 +569,7 @@ class OmniDevice(Device):
         msg = hd.error("hdEndFrame")
         if msg:  # the frame is closed: run_servo disables force output
             return s.finish(fault=msg)
-        s.force_on = fx != 0.0 or fy != 0.0 or fz != 0.0
+        c["force_on"] = 1 if (fx != 0.0 or fy != 0.0 or fz != 0.0) else 0
         return HD_CALLBACK_CONTINUE
 
     # ---- Device interface outside the servo loop ----------------------------------------------
@@ -609,11 +608,6 @@ class OmniDevice(Device):
         if self._handle is not None and self._scheduler_on and self._fault is None:
             if self._servo is None or self._servo.finished.is_set():
                 self._zero_force_frame()
-
-
-def _clamp(f: np.ndarray, limit: float) -> np.ndarray:
-    n = math.sqrt(float(f @ f))
-    return f * (limit / n) if n > limit else f
 
 
 # Open devices, strongly held (the HD scheduler holds their callbacks) until closed; any still open

@@ -7,15 +7,16 @@ last position after it, with ``DeviceState.done`` set from the moment ``t`` reac
 sample's time (``duration_s``). Velocity is the interpolant's backward difference over one
 1 ms servo tick (see :mod:`haptic_acu.trajectory`).
 
-Clocking (``drives_clock`` is False: the engine calls ``read`` / ``set_force`` each tick):
+Clocking (``drives_clock`` is False: the engine keeps the clock):
 
-* ``read_at(t_s)``: the state at a session time the caller supplies. The simplest contract, and
-  the one to use when the engine keeps its own clock.
+* ``read_at(t_s)``: the state at a session time the caller supplies. The simplest contract; the
+  engine's Python servo loop uses it.
 * ``read_block(t_s_array)``: positions, velocities and done flags for many increasing times at
-  once (the headless engine asks for one visual frame of ticks per call).
-* headless (``realtime=False``): the device keeps a simulated clock; the engine calls
-  ``advance(dt)`` once per tick (dt = 1 ms, summed without drift) and ``read()`` returns the state
-  at that clock. The first ``read()`` before any ``advance`` is at t = 0.
+  once (the headless engine asks for one visual frame of ticks per call; the compiled real-time
+  loop's feeder reads a second ahead with it).
+* without the engine (``realtime=False``): the device keeps a simulated clock that the caller moves
+  with ``advance(dt)`` (summed without drift), and ``read()`` returns the state at that clock. The
+  first ``read()`` before any ``advance`` is at t = 0. (The engine never calls ``advance``.)
 * real time (``realtime=True``): ``read()`` uses wall-clock time since the first ``read()``
   (``time.perf_counter``); ``advance`` is ignored.
 
@@ -90,6 +91,8 @@ class ScriptedDevice(Device):
                 self._wall0 = now
             return self.read_at(now - self._wall0)
         return self.read_at(self._clock)
+
+    reads_ahead = True
 
     def read_at(self, t_s: float) -> DeviceState:
         """The tip at session time ``t_s`` (s): position (m), velocity (m/s), ``done``."""

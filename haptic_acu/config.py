@@ -20,6 +20,7 @@ from .errors import UserError
 CONFIG_DIR = bundled_dir("config")
 DEFAULT_CONFIG = CONFIG_DIR / "tissue.toml"
 LAYER_NAMES = ("skin", "fat", "muscle")
+MAX_RINGS = 40  # rings of a force net at most (the servo's scratch record is sized by it)
 
 
 @dataclass(frozen=True)
@@ -224,8 +225,8 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
     for layer in cfg.layers:
         if layer.rings < 2:
             _fail(path, f"{layer.name}.rings", f"w must be >= 2, got {layer.rings}")
-        if layer.rings > 40:
-            _fail(path, f"{layer.name}.rings", f"w must be <= 40, got {layer.rings}")
+        if layer.rings > MAX_RINGS:
+            _fail(path, f"{layer.name}.rings", f"w must be <= {MAX_RINGS}, got {layer.rings}")
         if not layer.pretension < 0.5:
             _fail(path, f"{layer.name}.pretension", f"must be < 0.5, got {layer.pretension}")
     for layer in cfg.layers:  # post-puncture mechanics

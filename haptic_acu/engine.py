@@ -1,9 +1,20 @@
 """The real-time engine: a 1 kHz servo loop and a 60 Hz visual loop around one NeedleModel.
 
-Servo tick (:meth:`Session._servo_tick`): read the device, run the compiled step (collision, force
-net, damping, safety: :func:`haptic_acu.needle.step_kernel`), command the force, write the tick's
-sample row into the lock-free :class:`~haptic_acu.samples.SampleRing`. No logging, no allocation
-beyond a few Python floats, no lock, no JIT (everything is compiled in :meth:`Session.warm_up`).
+Servo tick: :func:`haptic_acu.servotick.servo_tick` (the compiled step of
+:mod:`haptic_acu.needle` on the model's :class:`~haptic_acu.servostate.Servo`, the tick's sample row
+into the lock-free :class:`~haptic_acu.samples.SampleRing`, published), with the period error kept by
+:func:`haptic_acu.servotick.account`. The drivers that differ only in who keeps the clock:
+
+* simulated clock: :meth:`Session._run_sim_blocks` (:func:`~haptic_acu.servotick.run_ticks`, a
+  visual frame's ticks per call) or, for a device without ``read_block``, :meth:`Session._run_sim`;
+* our timer: :func:`haptic_acu.rtloop.servo_loop` (compiled, no GIL) or the Python loop
+  (:meth:`Session._servo_loop_body`, devices that cannot be read ahead);
+* the device's clock (the OMNI): its compiled callback (:mod:`haptic_acu.omniloop`) or the Python
+  callback (:meth:`Session._run_device_clock`).
+
+The Python paths step through :meth:`Session._servo_tick` (the step's C entry point, then the same
+``write_sample``). No logging, no allocation beyond a few Python floats, no lock, no JIT in a tick
+(everything is compiled in :meth:`Session.warm_up`).
 
 Visual frame (:meth:`Session._visual_frame`): drain the ring, run springback on handed-over nets,
 evaluate each layer's dent on the patch grid around the acupoint, and hand a :class:`Frame` to
@@ -50,12 +61,13 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import numba as nb
 import numpy as np
 
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
-from .needle import D_FAULT, NeedleModel, step_kernel
+from .needle import NeedleModel
+from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
+from .servotick import account, call_driver, run_ticks, tick_table
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
@@ -80,7 +92,7 @@ class Dents(Mapping):
         self._model = model
         self._cache = {}
         self._keys = [k for k in range(3) if any(
-            model.owner(2 * k + s) == 1 or (model.owner(2 * k + s) == 2 and not (skip_settled is not None and skip_settled[2 * k + s]))
+            model.owner(2 * k + s) == SERVO_OWNS or (model.owner(2 * k + s) == VISUAL_OWNS and not (skip_settled is not None and skip_settled[2 * k + s]))
             for s in range(2))]
 
     def __getitem__(self, k):
@@ -128,32 +140,12 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     support = 1.5 * model.params[k].spacing_m
     for s in range(2):
         idx = 2 * k + s
-        if model.owner(idx) == 0:
+        if model.owner(idx) == FREE:
             continue
         pos = model.net_positions(idx)
         dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], support, tmp)
         total += tmp
     return total.reshape(np.shape(theta))
-
-
-@nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, T, tick0, buf, head, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-              plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf):
-    """Headless replay: the servo step for a block of ticks (positions ``P``, velocities ``V`` at
-    times ``T``), each sample row written at ``head + i`` of the ring ``buf``. The same
-    :func:`step_kernel` and :func:`write_sample` as a live tick, without a Python round trip per
-    tick. Stops after a faulting tick; returns the number of ticks run."""
-    cap = buf.shape[0]
-    for i in range(T.shape[0]):
-        for k in range(3):
-            pbuf[k] = P[i, k]
-            vbuf[k] = V[i, k]
-        step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all,
-                    plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        write_sample(buf, (head + i) % cap, T[i], tick0 + i, pbuf, vbuf, diag, si, 0.0)
-        if diag[D_FAULT] != 0.0:
-            return i + 1
-    return T.shape[0]
 
 
 def percentiles_us(values_s: np.ndarray) -> dict:
@@ -203,9 +195,8 @@ class Session:
         self.fault: str | None = None
         self._stop = threading.Event()
         self._fault_lock = threading.Lock()
-        self._period_err = np.zeros(1 << 20)  # servo period errors (s), first 2^20 ticks kept
-        self._n_err = 0
-        self.missed = 0
+        # servo period errors (s, the first 2^20 ticks kept), their count and the missed ticks
+        self._timing = Timing(np.zeros(1 << 20), np.zeros(1, TIMING))
         self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
         self._zero = np.zeros(3)
         self._warm = False
@@ -213,20 +204,31 @@ class Session:
         self.sched_fifo = False
         # Real time on a device that can be read ahead (read_block: the scripted device): the whole
         # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
-        self.compiled_loop = bool(compiled_loop) and hasattr(device, "read_block")
+        self.compiled_loop = bool(compiled_loop) and device.reads_ahead
         # A device driving the clock whose servo callback can be compiled (the OMNI: omniloop.py).
-        self.compiled_servo_callback = bool(compiled_loop) and hasattr(device, "run_servo_compiled")
+        self.compiled_servo_callback = bool(compiled_loop) and device.info.drives_clock
         self._omni_callback = None
         self._ctl = None  # the compiled loop's control words while it runs
         self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
+
+    @property
+    def missed(self) -> int:
+        """Ticks later than a period (and ticks a stall skipped)."""
+        return int(self._timing.count[0]["missed"])
+
+    @property
+    def _n_err(self) -> int:
+        return int(self._timing.count[0]["n_err"])
 
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
         """Compile every kernel both loops call, warm the sinks, before any loop starts."""
         self.model.warm_up()
         buf = np.zeros((1, NCOL))
-        write_sample(buf, 0, 0.0, 0, self.model._p, self.model._v, self.model.diag, self.model.si, 0.0)
+        m = self.model
+        write_sample(buf, 0, 0.0, 0, m.inp, m.state, m.out.diag, 0.0)
+        account(Timing(np.zeros(1), np.zeros(1, TIMING)), 0.0, 1.0, 1.0)  # the Python loops' accounting
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
         self._omni_callback = None
@@ -234,12 +236,12 @@ class Session:
             from . import omniloop
 
             lib = self.device.servo_library()
-            if lib is not None:  # compiled here, before any loop: about a second
+            if lib is not None:  # compiled (or loaded from the cache) here, before any loop
                 self._omni_callback = omniloop.build_callback(lib)
         if self.clock == "sim":
             z = np.zeros((1, 3))
-            run_ticks(z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, buf, 0, *self.model.kernel_args(),
-                      self.model._p, self.model._v)
+            rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -256,16 +258,16 @@ class Session:
 
         rtloop.warm_up()
         m = self.model
-        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-        ctl[rtloop.CT_STOP] = 1
-        rtloop.servo_loop(ctl, np.zeros(rtloop.FL_SIZE), 0, 1000000, 0, np.zeros((1, 3)), np.zeros((1, 3)),
-                          np.zeros((1, NCOL)), np.zeros(1, np.int64), np.zeros(1), np.zeros(2, np.int64),
-                          *m.kernel_args(), m._p, m._v)
+        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
+        loop.ctl["stop"] = 1
+        rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
+                    tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
         self._stop.set()
         if self._ctl is not None:
-            self._ctl[0] = 1  # rtloop.CT_STOP: the compiled loop sees it at its next tick
+            self._ctl["stop"] = 1  # the compiled loop sees it at its next tick
 
     def _set_fault(self, reason: str) -> None:
         with self._fault_lock:
@@ -285,10 +287,10 @@ class Session:
         if state.reset:
             m.reset(keep_holes=False)
         force = m.step(state.position_m, state.velocity_m_s)
-        if m.diag[D_FAULT] != 0.0:
+        if m.diag["fault"] != 0.0:
             self.device.set_force(self._zero)
             ring = self.ring
-            write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+            write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
             ring.commit()
             self.tick += 1
             self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
@@ -296,7 +298,7 @@ class Session:
         if command:
             self.device.set_force(force)
         ring = self.ring
-        write_sample(ring.buf, ring.next_row(), t, self.tick, m._p, m._v, m.diag, m.si, period_err)
+        write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
         ring.commit()
         self.tick += 1
         return force
@@ -327,7 +329,7 @@ class Session:
                 self._set_fault(f"visual loop: {type(e).__name__}: {e}")
 
     def _stats(self, wall_s: float) -> dict:
-        errs = self._period_err[: min(self._n_err, self._period_err.size)]
+        errs = self._timing.errs[: min(self._n_err, self._timing.errs.size)]
         return {"clock": self.clock, "ticks": self.tick, "missed_ticks": self.missed,
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
@@ -381,7 +383,7 @@ class Session:
         return result
 
     def _run_sim(self) -> None:
-        if hasattr(self.device, "read_block"):
+        if self.device.reads_ahead:
             return self._run_sim_blocks()
         dev = self.device
         dt = self.servo_dt
@@ -392,7 +394,7 @@ class Session:
             t = self.tick * dt
             if t > limit + 1e-12:
                 break
-            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            state = dev.read_at(t)
             if state.done:
                 break
             self._servo_tick(t, state)
@@ -408,8 +410,9 @@ class Session:
         dev = self.device
         dt = self.servo_dt
         m = self.model
-        args = m.kernel_args()
         ring = self.ring
+        rows = Ring(ring.buf, ring.ctr)
+        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
         next_frame = self.frame_dt
@@ -426,16 +429,14 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                cuts = dev.reset_ticks(T) if hasattr(dev, "reset_ticks") else ()
-                n = self._run_ticks_resetting(P, V, T, k0, cuts, args)
-                ring.head += n
+                n = self._run_ticks_resetting(P, V, T, k0, dev.reset_ticks(T), table)
                 self.tick += n
                 self._t_session = float(T[n - 1])
-                if m.diag[D_FAULT] != 0.0:
+                if m.diag["fault"] != 0.0:
                     self.device.set_force(self._zero)
                     self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); force set to zero")
                     break
-                self.device.set_force(m.diag[0:3])
+                self.device.set_force(m.diag["force"])
             if T.size < k1 + 1 - k0:  # the trajectory ended
                 break
             t = self._t_session
@@ -446,18 +447,17 @@ class Session:
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 
-    def _run_ticks_resetting(self, P, V, T, k0, cuts, args) -> int:
+    def _run_ticks_resetting(self, P, V, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
         ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
-        m, ring = self.model, self.ring
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
         n = 0
         for j in range(len(bounds) - 1):
             a, b = bounds[j], bounds[j + 1]
             if j > 0:
-                m.reset(keep_holes=False)
+                self.model.reset(keep_holes=False)
             if b > a:
-                r = run_ticks(P[a:b], V[a:b], T[a:b], k0 + a, ring.buf, ring.head + a, *args, m._p, m._v)
+                r = call_driver(run_ticks, P[a:b], V[a:b], T[a:b], k0 + a, table)
                 n += r
                 if r < b - a:  # a fault
                     break
@@ -545,23 +545,24 @@ class Session:
 
         m = self.model
         dt = self.servo_dt
-        ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-        ctl[rtloop.CT_END] = rtloop.NO_END
-        ctl[rtloop.CT_SKIP_AFTER] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
-        fl = np.zeros(rtloop.FL_SIZE)
+        ctl = np.zeros(1, rtloop.CTL)
+        ctl["end"] = rtloop.NO_END
+        ctl["skip_after"] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
+        fl = np.zeros(1, rtloop.FL)
         feed = rtloop.Feed(self.device, ctl, dt)
         feed.fill()  # the first second before the clock starts
         k_limit = rtloop.NO_END
         if self.duration_s is not None:
             k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
         period_ns = int(round(dt * 1e9))
-        args = m.kernel_args()
+        rows = Ring(self.ring.buf, self.ring.ctr)
+        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
-        self._tick_word = (ctl, rtloop.CT_RAN)
+        self._tick_word = (ctl[0], "ran")
         if self._stop.is_set():
-            ctl[rtloop.CT_STOP] = 1
+            ctl["stop"] = 1
         t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
         t0 = t0_ns * 1e-9
 
@@ -569,9 +570,9 @@ class Session:
             prev = self._try_fifo()
             self.sched_fifo = prev is not None
             try:
-                outcome["status"] = rtloop.servo_loop(
-                    ctl, fl, t0_ns, period_ns, k_limit, feed.p, feed.v, self.ring.buf, self.ring.ctr,
-                    self._period_err, np.zeros(2, np.int64), *args, m._p, m._v)
+                outcome["status"] = call_driver(
+                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
+                    rtloop.FeedRows(feed.p, feed.v), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:
@@ -587,9 +588,9 @@ class Session:
             while th.is_alive():
                 th.join(0.05)
                 if self._stop.is_set():
-                    ctl[rtloop.CT_STOP] = 1
+                    ctl["stop"] = 1
         finally:
-            ctl[rtloop.CT_STOP] = 1
+            ctl["stop"] = 1
             th.join()
             self._stop.set()
             vis.join(timeout=2.0)
@@ -597,15 +598,13 @@ class Session:
             self._rt_teardown(old)
             self._ctl = None
             self._tick_word = None
-            self.t0_perf = (int(ctl[rtloop.CT_T0]) or t0_ns) * 1e-9
-            self.tick = int(ctl[rtloop.CT_RAN])  # ticks run (a stall's skipped ticks are not rows)
-            last_index = int(ctl[rtloop.CT_TICK]) - 1
-            self.missed = int(ctl[rtloop.CT_MISSED])
-            self._n_err = int(ctl[rtloop.CT_NERR])
+            c = ctl[0]
+            self.t0_perf = (int(c["t0"]) or t0_ns) * 1e-9
+            self.tick = int(c["ran"])  # ticks run (a stall's skipped ticks are not rows)
+            last_index = int(c["tick"]) - 1
             if last_index >= 0:
                 self._t_session = last_index * dt
-            if hasattr(self.device, "record_forces"):
-                self.device.record_forces(ctl[rtloop.CT_FORCES], fl[rtloop.FL_MAXF], fl[rtloop.FL_F:rtloop.FL_F + 3])
+            self.device.record_forces(c["forces"], fl[0]["maxf"], fl[0]["f"])
         if "error" in outcome:
             raise outcome["error"]
         status = outcome.get("status")
@@ -648,12 +647,10 @@ class Session:
         limit = self.duration_s if self.duration_s is not None else math.inf
         perf = time.perf_counter
         sleep = time.sleep
-        errs = self._period_err
-        cap = errs.size
         k = 0
         count_start = perf()
         count_ticks = 0
-        force = self.model.diag  # [0:3]: the force the previous tick commanded
+        force = self.model.diag["force"]  # the force the previous tick commanded (a view)
         dev_t, dev_t_since = math.nan, 0.0
         anchor = t0  # tick k's deadline is anchor + k * dt
         while not self._stop.is_set():
@@ -666,15 +663,11 @@ class Session:
                 pass
             start = perf()
             err = start - deadline
-            if err > dt:
-                self.missed += 1
-            if self._n_err < cap:
-                errs[self._n_err] = err
-            self._n_err += 1
+            account(self._timing, err, dt, 1.0)
             t = start - t0
             if t > limit:
                 break
-            state = dev.read_at(t) if hasattr(dev, "read_at") else dev.read()
+            state = dev.read_at(t)
             if state.done or self._stop.is_set():  # stopped (or faulted) while the read ran
                 break
             if state.t_s != dev_t:
@@ -702,33 +695,19 @@ class Session:
 
         dev = self.device
         m = self.model
-        ictl = np.zeros(ol.I_SIZE, np.int64)
-        fctl = np.zeros(ol.F_SIZE)
-        ws = dev.workspace
-        R = ws._rot()
-        wsa = np.concatenate([[ws.scale], R.ravel(), np.asarray(ws.offset_mm, float)])
-        prm = np.zeros(ol.P_SIZE)
-        prm[ol.P_HANDLE] = dev._handle
-        prm[ol.P_LMAX] = m.lmax
-        prm[ol.P_STALL] = dev._stall_ticks
-        prm[ol.P_RAMP] = dev._ramp_ticks
-        prm[ol.P_LIMIT_N] = dev.info.force_limit_n
-        prm[ol.P_ALPHA] = dev._alpha
-        prm[ol.P_PERIOD_NS] = self.servo_dt * 1e9
-        prm[ol.P_LIMIT_T] = self.duration_s if self.duration_s is not None else math.inf
-        prm[ol.P_RATE] = dev.info.rate_hz
-        ictl[ol.I_VEL_DEV] = 1
-        arrays = dict(ictl=ictl, fctl=fctl, hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                      hdb=np.zeros(1, np.int32), ws=wsa, prm=prm, **m.model_arrays(), pbuf=m._p, vbuf=m._v,
-                      rbuf=self.ring.buf, rctr=self.ring.ctr, errs=self._period_err)
-        table = ol.address_table(arrays)
+        omni = ol.make_arrays(dev.workspace, dev.servo_guard(), dev.info.force_limit_n, dev.info.rate_hz,
+                              self.servo_dt, self.duration_s if self.duration_s is not None else math.inf)
+        ictl, fctl = omni.ictl, omni.fctl
+        c = ictl[0]  # the control record (a view)
+        arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
+        table = ol.address_table(omni, m.servo, arrays[1], self._timing)
         old = self._rt_setup()
         t0 = time.perf_counter()
         t0_ns = time.perf_counter_ns()
-        ictl[ol.I_T0_NS] = t0_ns
-        ictl[ol.I_LAST_NS] = t0_ns
+        c["t0_ns"] = t0_ns
+        c["last_ns"] = t0_ns
         self.t0_perf = t0
-        self._tick_word = (ictl, ol.I_ETICK)
+        self._tick_word = (c, "etick")
         vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
         vis.start()
         try:
@@ -738,12 +717,10 @@ class Session:
             vis.join(timeout=2.0)
             self._rt_teardown(old)
             self._tick_word = None
-            self.tick = int(ictl[ol.I_ETICK])
-            self.missed = int(ictl[ol.I_MISSED])
-            self._n_err = int(ictl[ol.I_NERR])
-            self._t_session = float(fctl[ol.F_TSESSION])
+            self.tick = int(c["etick"])
+            self._t_session = float(fctl[0]["t_session"])
             arrays.clear()  # (the table's addresses are dead from here)
-        if ictl[ol.I_DONE] == 2 and self.fault is None:
+        if c["done"] == 2 and self.fault is None:
             self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
                             "force set to zero")
 
@@ -761,11 +738,7 @@ class Session:
             now = time.perf_counter()
             err = (now - last[0]) - self.servo_dt
             last[0] = now
-            if self._n_err < self._period_err.size:
-                self._period_err[self._n_err] = err
-            self._n_err += 1
-            if err > self.servo_dt:
-                self.missed += 1
+            account(self._timing, err, self.servo_dt, 1.0)
             t = now - t0
             last[1] += 1
             if now - last[2] >= 0.5:

@@ -1,8 +1,15 @@
 """The needle in layered tissue: per-layer state machine, Table 1 forces, holes, safety.
 
-One servo tick is one call of :func:`step_kernel` (numba, ``nogil``, allocation-free): SH collision
-of the tip against all four boundaries, the pressed layer's force net, puncture, the damping of the
-layers passed, the lateral constraint, the bone wall, and the safety clamp. :class:`NeedleModel` is the
+One servo tick is one call of :func:`step_kernel` (numba, ``nogil``, allocation-free), a short
+sequence of named phases, each a small kernel of its own:
+
+    check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
+    sweep_net] -> puncture or surface_force -> passed_layer_damping -> lateral_guidance ->
+    bone_wall -> locate -> clamp
+
+Every phase takes the NamedTuples of :mod:`haptic_acu.servostate` (``inp``: TickIn, ``m``: Model,
+``s``: State, ``d``: the DIAG record) plus at most a layer or slot index; values one phase hands the
+next live in the ``work`` record (``q``, ``rho``, ``front``, ``f``...). :class:`NeedleModel` is the
 thin Python object that owns the arrays.
 
 States per layer and insertion site: UNTOUCHED -> PRESSING (a force net is active) -> PUNCTURED.
@@ -13,7 +20,7 @@ Force on the needle (and so on the hand), Table 1:
     inside layer k:    -(sum_{j<k} d_j h_j + d_k h) v_axial a        (a: insertion axis, into tissue)
 
 with h_j the thickness of a passed layer and h the depth into the current one, d read per mm of
-needle in the layer (MODEL.md section 3). Damping needs v along the axis and opposes it (it pulls
+needle in the layer (docs/model.md). Damping needs v along the axis and opposes it (it pulls
 back on withdrawal).
 
 Compression. When layer k breaks the tip is its dent depth below that layer's rest surface, and the
@@ -34,7 +41,7 @@ Safety. A non-finite tip position or velocity gives zero force and latches a fau
 always finite and its magnitude never exceeds ``force_limit``.
 
 Threading (see :mod:`haptic_acu.engine`): each layer has two net buffers ("slots"). ``owner`` per slot
-is 0 free, 1 servo (pressing), 2 visual (springback after puncture). The servo builds into a slot it
+is FREE, SERVO_OWNS (pressing) or VISUAL_OWNS (springback after puncture). The servo builds into a slot it
 owns or a free one, hands a slot over by setting owner 2 after copying the displaced positions onto the
 curved surface, and never touches an owner-2 slot again unless both slots are owner 2, when it takes
 the older one back (its generation counter changes, which tells the visual loop to drop it).
@@ -46,59 +53,19 @@ import math
 import numba as nb
 import numpy as np
 
+from . import servostate as ss
 from . import shf
-from .cptr import address_of, address_table, f64p, i64p
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
 from .netresponse import TM_NR, lay_field, lookup
 from .netresponse import pack as pack_tables
 from .netresponse import table_for
+from .servostate import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
+                         STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
 from .tissue import Tissue, boundary_radii
 
-UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
-STATE_NAMES = ("untouched", "pressing", "punctured")
-N_LAYERS = 3
-N_SLOTS = 2
-MAX_HOLES = 64
-
-# layer parameter columns (lp[k, :])
-LP_K, LP_KS, LP_L, LP_PRE, LP_THRESH, LP_W, LP_D, LP_THICK = range(8)
-# needle parameter entries (npar[:])
-NP_HOLE_R, NP_LAT_ON, NP_K_LAT, NP_K_BONE, NP_LIMIT, NP_SWEEPS = range(6)
-# integer state (si[:])
-SI_STATE = 0  # 3 entries: layer states
-SI_SLOT = 3  # 3 entries: slot in use per layer
-SI_OWNER = 6  # 6 entries: owner per (layer, slot)
-SI_GEN = 12  # 6 entries: generation per (layer, slot)
-SI_INSERTED = 18
-SI_FAULT = 19
-SI_NHOLES = 20
-SI_SWEEP = 21  # 3 entries: sweep counters per layer (alternate sweep direction)
-SI_TICK = 24
-SI_SIZE = 25
-# float state (sf[:])
-SF_OFFSET = 0
-SF_AXIS = 1  # 3
-SF_ENTRY = 4  # 3
-SF_SLOT_Q = 7  # 3 per slot: the (lifted) tip holding N1 of a tabulated pressing net (its shape is laid from it)
-SF_SIZE = 7 + 3 * 6
-# diagnostics out (diag[:])
-D_FX, D_FY, D_FZ = 0, 1, 2
-D_F_SURFACE = 3  # magnitude of the pressed layer's surface force (N)
-D_F_DAMP = 4  # axial damping force (N, signed along -a)
-D_F_LATERAL = 5
-D_F_BONE = 6
-D_LAYER = 7  # layer the tip is in: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone
-D_DEPTH = 8  # depth into that layer (m)
-D_FRONT = 9  # first layer not punctured (3: all)
-D_RINGW = 10  # ring-w mean deflection of the pressed net (m)
-D_DZ1 = 11  # N1 deflection of the pressed net (m)
-D_PUNCTURE = 12  # layer punctured this tick, or -1
-D_FAULT = 13
-D_DEPTH_SKIN = 14  # tip depth below the skin along the insertion (effective, m)
-D_CLAMPED = 15  # 1 if the safety clamp scaled the force this tick
-D_F_LAYER = 16  # 3 entries: force attributed to each layer (surface or damping), N
-D_SIZE = 19
+__all__ = ["NeedleModel", "step_kernel", "step_entry", "surface_normal", "UNTOUCHED", "PRESSING", "PUNCTURED",
+           "STATE_NAMES", "N_LAYERS", "N_SLOTS", "MAX_HOLES"]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -155,416 +122,569 @@ def surface_normal(coeffs_k, lmax, centre, p, out):
     out[2] = sgn * nz / nm
 
 
-@nb.njit(cache=True, nogil=True)
-def _radii_at_tip(coeffs, lmax, centre, q, radii):
-    """``boundary_radii`` for the (lifted) tip ``q``. The centre itself has no direction (the contact
-    point and the bone wall's push would divide by rho = 0): a tip exactly there is moved 1e-12 m onto
-    the +z pole, the direction ``shf.direction_of`` gives the centre."""
-    rho = boundary_radii(coeffs, lmax, centre, q, radii)
+# ---- views ------------------------------------------------------------------------------------------
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def net_views(m, s, idx):
+    """Slot ``idx`` (= 2*layer + slot)'s net: (xf, X0f, X0, x, rest, axis) views into the state."""
+    lay = m.layout[0]
+    n = n_particles_of(m, idx // 2)
+    n_all = lay.n_all[idx // 2]
+    return (s.pos[lay.xf[idx]:lay.xf[idx] + n], s.pos[lay.X0f[idx]:lay.X0f[idx] + n],
+            s.pos[lay.X0[idx]:lay.X0[idx] + n_all], s.pos[lay.x[idx]:lay.x[idx] + n_all],
+            s.rest[lay.rest[idx]:lay.rest[idx] + n], s.axes[idx])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def lattice_views(m, k):
+    """Layer ``k``'s lattice: (nbr, ring, plane) rows of the force net and its margin."""
+    lay = m.layout[0]
+    t0 = lay.topo[k]
+    t1 = t0 + lay.n_all[k]
+    return m.nbr[t0:t1], m.ring[t0:t1], m.plane[t0:t1]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def n_particles_of(m, k):
+    w = m.layer[k].w
+    return 1 + 3 * w * (w - 1)
+
+
+# ---- the phases -------------------------------------------------------------------------------------
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def check_input(inp, s, d):
+    """A non-finite tip position or velocity latches the fault; False while it is latched (zero force)."""
+    sv = s.servo[0]
+    for c in range(3):
+        if not (math.isfinite(inp.p[c]) and math.isfinite(inp.v[c])):
+            sv.fault = 1
+    if sv.fault != 0:
+        d.fault = 1.0
+        return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def lift_tip(inp, s):
+    """The tip in the compressed tissue's frame: ``q = p - offset * axis``."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    o = sv.offset
+    for c in range(3):
+        wk.q[c] = inp.p[c] - o * sv.axis[c]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def track_entry(inp, s):
+    """Depth along the insertion since the entry point (``work.s_p``); back above the entry point the
+    needle has left the tissue (the holes stay); on withdrawal the offset never exceeds that depth
+    (the skin tents up with the needle). Lifts the tip."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    p = inp.p
+    a = sv.axis
+    e = sv.entry
+    o = sv.offset
+    if sv.inserted != 0:
+        s_p = ((p[0] - e[0]) * a[0] + (p[1] - e[1]) * a[1] + (p[2] - e[2]) * a[2])
+        wk.s_p = s_p
+        if s_p < -1e-6:
+            sv.inserted = 0
+            o = 0.0
+            for k in range(N_LAYERS):
+                sv.state[k] = UNTOUCHED
+        elif o > s_p:
+            o = max(s_p, 0.0)
+    sv.offset = o
+    lift_tip(inp, s)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def tip_radii(m, s):
+    """Every boundary's radius toward the lifted tip (``s.radii``) and the tip's own (``work.rho``).
+    The centre itself has no direction (the contact point and the bone wall's push would divide by
+    rho = 0): a tip exactly there is moved 1e-12 m onto the +z pole, the direction
+    ``shf.direction_of`` gives the centre."""
+    wk = s.work[0]
+    lmax = m.params[0].lmax
+    rho = boundary_radii(m.coeffs, lmax, m.centre, wk.q, s.radii)
     if rho == 0.0:
-        q[2] = centre[2] + 1e-12
-        rho = boundary_radii(coeffs, lmax, centre, q, radii)
-    return rho
+        wk.q[2] = m.centre[2] + 1e-12
+        rho = boundary_radii(m.coeffs, lmax, m.centre, wk.q, s.radii)
+    wk.rho = rho
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def front_layer(s):
+    """The first layer not punctured (N_LAYERS: all), into ``work.front``."""
+    sv = s.servo[0]
+    front = N_LAYERS
+    for k in range(N_LAYERS):
+        if sv.state[k] != PUNCTURED:
+            front = k
+            break
+    s.work[0].front = front
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def contact_point(m, s, k):
+    """Layer ``k``'s surface point radially toward the tip, into ``work.cpt``."""
+    wk = s.work[0]
+    for c in range(3):
+        wk.cpt[c] = m.centre[c] + (wk.q[c] - m.centre[c]) / wk.rho * s.radii[k]
 
 
 @nb.njit(cache=True, nogil=True)
-def _take_slot(si, k):
-    """Pick the slot to build layer k's new net in: the one in use if the servo owns it, else a free
+def find_hole(m, s, k):
+    """The first hole of layer ``k`` within the hole radius of the contact point, or -1."""
+    wk = s.work[0]
+    hr = m.params[0].hole_radius
+    hr2 = hr * hr
+    for h in range(min(s.servo[0].nholes, MAX_HOLES)):
+        hole = s.holes[h]
+        if int(hole.layer) == k:
+            pt = hole.point
+            d2 = (pt[0] - wk.cpt[0]) ** 2 + (pt[1] - wk.cpt[1]) ** 2 + (pt[2] - wk.cpt[2]) ** 2
+            if d2 <= hr2:
+                return h
+    return -1
+
+
+@nb.njit(cache=True, nogil=True)
+def take_slot(s, k):
+    """The slot to build layer k's new net in: the one in use if the servo owns it, else a free
     one, else (both in springback) the older one."""
-    cur = si[SI_SLOT + k]
-    if si[SI_OWNER + 2 * k + cur] == 1:
+    sv = s.servo[0]
+    cur = sv.slot[k]
+    if sv.owner[k, cur] == SERVO_OWNS:
         return cur
-    for s in range(N_SLOTS):
-        if si[SI_OWNER + 2 * k + s] == 0:
-            return s
-    if si[SI_GEN + 2 * k] <= si[SI_GEN + 2 * k + 1]:
+    for sl in range(N_SLOTS):
+        if sv.owner[k, sl] == FREE:
+            return sl
+    if sv.gen[k, 0] <= sv.gen[k, 1]:
         return 0
     return 1
 
 
 @nb.njit(cache=True, nogil=True)
-def step_kernel(p, v, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
-                offs, tab, tmeta, si, sf, holes, radii, scratch, diag):
-    """One servo tick. ``p``/``v``: tip position (m) and velocity (m/s), scene frame. Writes the force
-    on the needle into ``diag[0:3]`` and diagnostics into the rest of ``diag`` (see D_* indices).
+def build_slot(m, s, k, idx):
+    """Build slot ``idx``'s net of layer ``k`` at the contact point ``work.cpt`` (normal computed here)."""
+    wk = s.work[0]
+    lmax = m.params[0].lmax
+    lay = m.layer[k]
+    nbrk, ringk, planek = lattice_views(m, k)
+    xf, X0f, X0, x, rl, ax = net_views(m, s, idx)
+    surface_normal(m.coeffs[k], lmax, m.centre, wk.cpt, wk.nrm)
+    build_net(m.coeffs[k], lmax, m.centre, wk.cpt, wk.nrm, lay.spacing, planek, nbrk, n_particles_of(m, k),
+              lay.pretension, X0, x, X0f, xf, rl, ax)
 
-    Every net lives in a few packed arrays (one call unboxes few arguments): ``pos`` holds, for each
-    slot ``idx = 2*layer + slot``, the blocks xf, X0f (n rows) and X0, x (n_all rows) starting at
-    ``offs[4*idx + 0..3]``; ``rest_all`` its rest lengths from ``offs[24 + idx]``; ``axes[idx]`` its
-    axis; the lattice of layer k (``nbr_all``, ``ring_all``, ``plane_all``) starts at ``offs[30 + k]``
-    and has ``offs[33 + k]`` rows. See :class:`NeedleModel` for the layout. ``tab``/``tmeta``: the
-    layers' tabulated static responses (:mod:`haptic_acu.netresponse`); a layer whose
-    ``tmeta[k, TM_NR]`` is 0 has none, and its net is relaxed by ``NP_SWEEPS`` sweeps per tick.
-    """
-    for i in range(D_SIZE):
-        diag[i] = 0.0
-    diag[D_PUNCTURE] = -1.0
-    diag[D_LAYER] = -1.0
-    si[SI_TICK] += 1
-    # ---- safety: non-finite input latches a fault and zero force -------------------------------
-    ok = True
-    for k in range(3):
-        if not (math.isfinite(p[k]) and math.isfinite(v[k])):
-            ok = False
-    if not ok:
-        si[SI_FAULT] = 1
-    if si[SI_FAULT] != 0:
-        diag[D_FAULT] = 1.0
-        return
 
-    o = sf[SF_OFFSET]
-    a0 = sf[SF_AXIS]
-    a1 = sf[SF_AXIS + 1]
-    a2 = sf[SF_AXIS + 2]
-    inserted = si[SI_INSERTED] != 0
-    s_p = 0.0
-    if inserted:
-        s_p = ((p[0] - sf[SF_ENTRY]) * a0 + (p[1] - sf[SF_ENTRY + 1]) * a1 + (p[2] - sf[SF_ENTRY + 2]) * a2)
-        if s_p < -1e-6:
-            # Back above the entry point: the needle has left the tissue. Holes stay.
-            inserted = False
-            si[SI_INSERTED] = 0
-            o = 0.0
-            for k in range(N_LAYERS):
-                si[SI_STATE + k] = UNTOUCHED
-        elif o > s_p:
-            o = max(s_p, 0.0)  # withdrawal: the skin tents up with the needle
-    sf[SF_OFFSET] = o
-    q = scratch[0:3]
-    q[0] = p[0] - o * a0
-    q[1] = p[1] - o * a1
-    q[2] = p[2] - o * a2
-
-    rho = _radii_at_tip(coeffs, lmax, centre, q, radii)
-    front = N_LAYERS
-    for k in range(N_LAYERS):
-        if si[SI_STATE + k] != PUNCTURED:
-            front = k
-            break
-    fx = 0.0
-    fy = 0.0
-    fz = 0.0
-    nrm = scratch[3:6]
-    # ---- the front layer: contact, net, puncture --------------------------------------------------
-    if front < N_LAYERS:
-        k = front
-        w = int(lp[k, LP_W])
-        n = 1 + 3 * w * (w - 1)
-        t0 = offs[30 + k]
-        n_all = offs[33 + k]
-        nbrk = nbr_all[t0:t0 + n_all]
-        ringk = ring_all[t0:t0 + n_all]
-        planek = plane_all[t0:t0 + n_all]
-        st = si[SI_STATE + k]
-        if st == UNTOUCHED and radii[k] - rho >= 0.0:
-            # First touch of layer k: contact point on its surface radially toward the tip.
-            cpt = scratch[6:9]
+@nb.njit(cache=True, nogil=True)
+def touch(m, s, k):
+    """First touch of layer ``k``: through one of its holes (straight in, PUNCTURED; a skin hole sets
+    the entry point and axis) or onto a new net (PRESSING). Returns the layer's new state."""
+    sv = s.servo[0]
+    contact_point(m, s, k)
+    h = find_hole(m, s, k)
+    if h >= 0:
+        sv.state[k] = PUNCTURED
+        if k == 0:
+            sv.inserted = 1
             for c in range(3):
-                cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
-            hole = -1
-            hr2 = npar[NP_HOLE_R] * npar[NP_HOLE_R]
-            for h in range(min(si[SI_NHOLES], MAX_HOLES)):
-                if int(holes[h, 3]) == k:
-                    d2 = (holes[h, 0] - cpt[0]) ** 2 + (holes[h, 1] - cpt[1]) ** 2 + (holes[h, 2] - cpt[2]) ** 2
-                    if d2 <= hr2:
-                        hole = h
-                        break
-            if hole >= 0:
-                si[SI_STATE + k] = PUNCTURED
-                st = PUNCTURED
-                if k == 0:
-                    inserted = True
-                    si[SI_INSERTED] = 1
-                    for c in range(3):
-                        sf[SF_ENTRY + c] = holes[hole, c]
-                        sf[SF_AXIS + c] = holes[hole, 4 + c]
-                    a0 = sf[SF_AXIS]
-                    a1 = sf[SF_AXIS + 1]
-                    a2 = sf[SF_AXIS + 2]
-            else:
-                s = _take_slot(si, k)
-                si[SI_SLOT + k] = s
-                si[SI_OWNER + 2 * k + s] = 1
-                si[SI_GEN + 2 * k + s] += 1
-                idx = 2 * k + s
-                surface_normal(coeffs[k], lmax, centre, cpt, nrm)
-                build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], planek, nbrk, n, lp[k, LP_PRE],
-                          pos[offs[4 * idx + 2]:offs[4 * idx + 2] + n_all],
-                          pos[offs[4 * idx + 3]:offs[4 * idx + 3] + n_all],
-                          pos[offs[4 * idx + 1]:offs[4 * idx + 1] + n], pos[offs[4 * idx]:offs[4 * idx] + n],
-                          rest_all[offs[24 + idx]:offs[24 + idx] + n], axes[idx])
-                si[SI_STATE + k] = PRESSING
-                st = PRESSING
-        if st == PRESSING:
-            s = si[SI_SLOT + k]
-            idx = 2 * k + s
-            ax = axes[idx]
-            xfk = pos[offs[4 * idx]:offs[4 * idx] + n]
-            X0fk = pos[offs[4 * idx + 1]:offs[4 * idx + 1] + n]
-            X0k = pos[offs[4 * idx + 2]:offs[4 * idx + 2] + n_all]
-            xk = pos[offs[4 * idx + 3]:offs[4 * idx + 3] + n_all]
-            rlk = rest_all[offs[24 + idx]:offs[24 + idx] + n]
-            # N1 follows the tip.
-            rx = q[0] - X0fk[0, 0]
-            ry = q[1] - X0fk[0, 1]
-            rz = q[2] - X0fk[0, 2]
-            dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
-            if dz1 <= 0.0:
-                si[SI_STATE + k] = UNTOUCHED  # lifted off: the net goes, nothing broke
-                si[SI_OWNER + idx] = 0
-            else:
-                lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
-                sweeps = int(npar[NP_SWEEPS])
-                use_table = tmeta[k, TM_NR] > 0.0
-                if lat2 > (0.5 * lp[k, LP_L]) ** 2:
-                    # Slid half a spacing sideways: re-centre the net under the tip, keeping its
-                    # ring-mean deflection profile as the warm start.
-                    # (A tabulated net needs no warm start: it is read at its new offset at once.)
-                    wr = scratch[16:16 + w]
-                    cnt = scratch[16 + 40:16 + 40 + w]
-                    if not use_table:
-                        for j in range(w):
-                            wr[j] = 0.0
-                            cnt[j] = 0.0
-                        for i in range(n):
-                            r_i = ringk[i] - 1
-                            wr[r_i] += -((xfk[i, 0] - X0fk[i, 0]) * ax[0] + (xfk[i, 1] - X0fk[i, 1]) * ax[1]
-                                         + (xfk[i, 2] - X0fk[i, 2]) * ax[2])
-                            cnt[r_i] += 1.0
-                    cpt = scratch[6:9]
-                    for c in range(3):
-                        cpt[c] = centre[c] + (q[c] - centre[c]) / rho * radii[k]
-                    surface_normal(coeffs[k], lmax, centre, cpt, nrm)
-                    build_net(coeffs[k], lmax, centre, cpt, nrm, lp[k, LP_L], planek, nbrk, n, lp[k, LP_PRE],
-                              X0k, xk, X0fk, xfk, rlk, ax)
-                    si[SI_GEN + idx] += 1
-                    if not use_table:
-                        for i in range(n):
-                            r_i = ringk[i] - 1
-                            dz = wr[r_i] / cnt[r_i]
-                            for c in range(3):
-                                xfk[i, c] = X0fk[i, c] - dz * ax[c]
-                    sweeps *= 2
-                    rx = q[0] - X0fk[0, 0]
-                    ry = q[1] - X0fk[0, 1]
-                    rz = q[2] - X0fk[0, 2]
-                    dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
-                fn_table = 0.0
-                if use_table:
-                    # The net's static response at this (lateral offset, depth). Its shape is laid
-                    # onto the particles only when someone looks: the visual loop (from the tip
-                    # kept in sf, NeedleModel.net_positions) and the puncture hand-over below.
-                    lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
-                    fn_table, rw = lookup(tab, tmeta[k], lat2, dz1)
-                    for c in range(3):
-                        sf[SF_SLOT_Q + 3 * idx + c] = q[c]
-                else:
-                    for c in range(3):
-                        xfk[0, c] = q[c]
-                    for it in range(sweeps):
-                        relax(xfk, X0fk, rlk, nbrk, ringk, n, w, ax, lp[k, LP_K], lp[k, LP_KS],
-                              lp[k, LP_L], si[SI_SWEEP + k] % 2)
-                        si[SI_SWEEP + k] += 1
-                    rw = ring_w_mean_deflection(xfk, X0fk, ringk, n, w, ax)
-                diag[D_RINGW] = rw
-                diag[D_DZ1] = dz1
-                if rw > lp[k, LP_THRESH]:
-                    # Puncture: virtual springs go, surface force vanishes, net handed to springback.
-                    si[SI_STATE + k] = PUNCTURED
-                    if use_table:
-                        lay_field(tab, tmeta[k], dz1, n, X0fk, ax, xfk)
-                        for c in range(3):
-                            xfk[0, c] = q[c]
-                    sync_curved(xk, X0k, xfk, X0fk, n)
-                    si[SI_OWNER + idx] = 2
-                    diag[D_PUNCTURE] = k
-                    if k == 0:
-                        # The insertion axis: from the contact point to the tip at the break.
-                        m = math.sqrt(rx * rx + ry * ry + rz * rz)
-                        if m > 1e-4:
-                            a0, a1, a2 = rx / m, ry / m, rz / m
-                        else:
-                            a0, a1, a2 = -ax[0], -ax[1], -ax[2]
-                        sf[SF_AXIS] = a0
-                        sf[SF_AXIS + 1] = a1
-                        sf[SF_AXIS + 2] = a2
-                        for c in range(3):
-                            sf[SF_ENTRY + c] = X0fk[0, c]
-                        inserted = True
-                        si[SI_INSERTED] = 1
-                    # Record the hole.
-                    h = si[SI_NHOLES] % MAX_HOLES
-                    for c in range(3):
-                        holes[h, c] = X0fk[0, c]
-                    holes[h, 3] = k
-                    holes[h, 4] = a0
-                    holes[h, 5] = a1
-                    holes[h, 6] = a2
-                    si[SI_NHOLES] += 1
-                    # The tissue beneath stays compressed by the dent: lift the tip's frame.
-                    comp = rx * a0 + ry * a1 + rz * a2
-                    if comp > 0.0:
-                        o += comp
-                    sf[SF_OFFSET] = o
-                    q[0] = p[0] - o * a0
-                    q[1] = p[1] - o * a1
-                    q[2] = p[2] - o * a2
-                    rho = _radii_at_tip(coeffs, lmax, centre, q, radii)
-                    front = k + 1
-                else:
-                    if use_table:
-                        fn = fn_table
-                    else:
-                        fo = scratch[9:12]
-                        force_on(0, xfk, X0fk, rlk, nbrk, ax, lp[k, LP_K], lp[k, LP_KS], fo)
-                        fn = fo[0] * ax[0] + fo[1] * ax[1] + fo[2] * ax[2]
-                    if fn < 0.0:
-                        fn = 0.0  # a surface only pushes
-                    fx += fn * ax[0]
-                    fy += fn * ax[1]
-                    fz += fn * ax[2]
-                    diag[D_F_SURFACE] = fn
-                    diag[D_F_LAYER + k] = fn
+                sv.entry[c] = s.holes[h].point[c]
+                sv.axis[c] = s.holes[h].axis[c]
+        return PUNCTURED
+    sl = take_slot(s, k)
+    sv.slot[k] = sl
+    sv.owner[k, sl] = SERVO_OWNS
+    sv.gen[k, sl] += 1
+    build_slot(m, s, k, 2 * k + sl)
+    sv.state[k] = PRESSING
+    return PRESSING
 
-    # ---- damping of the layers passed (Table 1) --------------------------------------------------
-    if inserted:
-        v_ax = v[0] * a0 + v[1] * a1 + v[2] * a2
-        total_d = 0.0
-        for j in range(N_LAYERS):
-            if si[SI_STATE + j] == PUNCTURED:
-                h = radii[j] - rho
-                thick = radii[j] - radii[j + 1]
-                if h < 0.0:
-                    h = 0.0
-                if h > thick:
-                    h = thick
-                cj = lp[j, LP_D] * h
-                total_d += cj
-                diag[D_F_LAYER + j] += -cj * v_ax
-        fd = -total_d * v_ax
-        fx += fd * a0
-        fy += fd * a1
-        fz += fd * a2
-        diag[D_F_DAMP] = fd
-        # ---- lateral constraint ---------------------------------------------------------------------
-        if npar[NP_LAT_ON] != 0.0:
-            ex = p[0] - sf[SF_ENTRY]
-            ey = p[1] - sf[SF_ENTRY + 1]
-            ez = p[2] - sf[SF_ENTRY + 2]
-            t = ex * a0 + ey * a1 + ez * a2
-            lx = ex - t * a0
-            ly = ey - t * a1
-            lz = ez - t * a2
-            kl = npar[NP_K_LAT]
-            fx -= kl * lx
-            fy -= kl * ly
-            fz -= kl * lz
-            diag[D_F_LATERAL] = kl * math.sqrt(lx * lx + ly * ly + lz * lz)
-        diag[D_DEPTH_SKIN] = s_p - o if s_p - o > 0.0 else 0.0
-    # ---- bone wall -------------------------------------------------------------------------------
-    if front >= N_LAYERS and radii[3] - rho > 0.0:
-        pen = radii[3] - rho
-        kb = npar[NP_K_BONE]
-        fx += kb * pen * (q[0] - centre[0]) / rho
-        fy += kb * pen * (q[1] - centre[1]) / rho
-        fz += kb * pen * (q[2] - centre[2]) / rho
-        diag[D_F_BONE] = kb * pen
 
-    # ---- where the tip is ----------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True, inline="always")
+def tip_on_net(s, X0f, ax):
+    """The tip relative to N1's rest position (``work.r``) and N1's deflection along the axis
+    (``work.dz1``); returns the squared lateral distance."""
+    wk = s.work[0]
+    rx = wk.q[0] - X0f[0, 0]
+    ry = wk.q[1] - X0f[0, 1]
+    rz = wk.q[2] - X0f[0, 2]
+    dz1 = -(rx * ax[0] + ry * ax[1] + rz * ax[2])
+    wk.r[0] = rx
+    wk.r[1] = ry
+    wk.r[2] = rz
+    wk.dz1 = dz1
+    return (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
+
+
+@nb.njit(cache=True, nogil=True)
+def recentre(m, s, k, idx, use_table):
+    """The tip slid half a spacing sideways: rebuild the net under it. A swept net keeps its
+    ring-mean deflection profile as the warm start; a tabulated one is read at its new offset."""
+    wk = s.work[0]
+    w = m.layer[k].w
+    n = n_particles_of(m, k)
+    ringk = lattice_views(m, k)[1]
+    xf, X0f, X0, x, rl, ax = net_views(m, s, idx)
+    if not use_table:
+        for j in range(w):
+            wk.wr[j] = 0.0
+            wk.cnt[j] = 0.0
+        for i in range(n):
+            r_i = ringk[i] - 1
+            wk.wr[r_i] += -((xf[i, 0] - X0f[i, 0]) * ax[0] + (xf[i, 1] - X0f[i, 1]) * ax[1]
+                            + (xf[i, 2] - X0f[i, 2]) * ax[2])
+            wk.cnt[r_i] += 1.0
+    contact_point(m, s, k)
+    build_slot(m, s, k, idx)
+    s.servo[0].gen[k, idx % 2] += 1
+    if not use_table:
+        for i in range(n):
+            r_i = ringk[i] - 1
+            dz = wk.wr[r_i] / wk.cnt[r_i]
+            for c in range(3):
+                xf[i, c] = X0f[i, c] - dz * ax[c]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def table_response(m, s, k, idx):
+    """The tabulated net's static response at the tip: (surface force, ring-w deflection). Its shape
+    is laid onto the particles only when someone looks (the visual loop, from the tip kept in
+    ``servo.slot_q``; the puncture hand-over)."""
+    wk = s.work[0]
+    ax = s.axes[idx]
+    rx, ry, rz, dz1 = wk.r[0], wk.r[1], wk.r[2], wk.dz1
+    lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
+    fn, rw = lookup(m.tab, m.tmeta[k], lat2, dz1)
+    for c in range(3):
+        s.servo[0].slot_q[idx, c] = wk.q[c]
+    return fn, rw
+
+
+@nb.njit(cache=True, nogil=True)
+def sweep_net(m, s, k, idx, sweeps):
+    """N1 on the tip, ``sweeps`` relaxation sweeps of the net; returns its ring-w deflection."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    lay = m.layer[k]
+    n = n_particles_of(m, k)
+    nbrk, ringk, _ = lattice_views(m, k)
+    xf, X0f, _X0, _x, rl, ax = net_views(m, s, idx)
+    for c in range(3):
+        xf[0, c] = wk.q[c]
+    for it in range(sweeps):
+        relax(xf, X0f, rl, nbrk, ringk, n, lay.w, ax, lay.k_virtual, lay.k_surface, lay.spacing, sv.sweep[k] % 2)
+        sv.sweep[k] += 1
+    return ring_w_mean_deflection(xf, X0f, ringk, n, lay.w, ax)
+
+
+@nb.njit(cache=True, nogil=True)
+def puncture(inp, m, s, d, k, idx, use_table):
+    """Layer ``k`` breaks: its net goes to springback (shape laid, copied onto the curved surface,
+    owner VISUAL_OWNS), the hole is recorded, a skin break fixes the entry point and axis, and the
+    tissue beneath stays compressed by the dent (the offset grows; the tip is lifted again)."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    n = n_particles_of(m, k)
+    xf, X0f, X0, x, rl, ax = net_views(m, s, idx)
+    sv.state[k] = PUNCTURED
+    if use_table:
+        lay_field(m.tab, m.tmeta[k], wk.dz1, n, X0f, ax, xf)
+        for c in range(3):
+            xf[0, c] = wk.q[c]
+    sync_curved(x, X0, xf, X0f, n)
+    sv.owner[k, idx % 2] = VISUAL_OWNS
+    d.puncture = k
+    rx, ry, rz = wk.r[0], wk.r[1], wk.r[2]
+    if k == 0:
+        # The insertion axis: from the contact point to the tip at the break.
+        mag = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if mag > 1e-4:
+            a0, a1, a2 = rx / mag, ry / mag, rz / mag
+        else:
+            a0, a1, a2 = -ax[0], -ax[1], -ax[2]
+        sv.axis[0] = a0
+        sv.axis[1] = a1
+        sv.axis[2] = a2
+        for c in range(3):
+            sv.entry[c] = X0f[0, c]
+        sv.inserted = 1
+    a = sv.axis
+    hole = s.holes[sv.nholes % MAX_HOLES]
+    for c in range(3):
+        hole.point[c] = X0f[0, c]
+        hole.axis[c] = a[c]
+    hole.layer = k
+    sv.nholes += 1
+    comp = rx * a[0] + ry * a[1] + rz * a[2]
+    if comp > 0.0:
+        sv.offset += comp
+    lift_tip(inp, s)
+    tip_radii(m, s)
+    wk.front = k + 1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def surface_force(m, s, d, k, idx, use_table, fn_table):
+    """The pressed net's reaction along its axis (a surface only pushes), added to ``work.f``."""
+    wk = s.work[0]
+    if use_table:
+        fn = fn_table
+    else:
+        lay = m.layer[k]
+        xf, X0f, _X0, _x, rl, ax = net_views(m, s, idx)
+        nbrk = lattice_views(m, k)[0]
+        force_on(0, xf, X0f, rl, nbrk, ax, lay.k_virtual, lay.k_surface, wk.fo)
+        fn = wk.fo[0] * ax[0] + wk.fo[1] * ax[1] + wk.fo[2] * ax[2]
+    if fn < 0.0:
+        fn = 0.0
+    ax = s.axes[idx]
+    for c in range(3):
+        wk.f[c] += fn * ax[c]
+    d.f_surface = fn
+    d.f_layer[k] = fn
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def press(inp, m, s, d, k):
+    """Layer ``k`` is being pressed: N1 follows the tip (lifted off: the net goes, nothing broke);
+    re-centre the net if the tip slid away; the net's response (table or sweeps); puncture past the
+    threshold, else the surface force."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    idx = 2 * k + sv.slot[k]
+    X0f = net_views(m, s, idx)[1]
+    ax = s.axes[idx]
+    lat2 = tip_on_net(s, X0f, ax)
+    if wk.dz1 <= 0.0:
+        sv.state[k] = UNTOUCHED
+        sv.owner[k, idx % 2] = FREE
+        return
+    sweeps = m.params[0].sweeps
+    use_table = m.tmeta[k, TM_NR] > 0.0
+    if lat2 > (0.5 * m.layer[k].spacing) ** 2:
+        recentre(m, s, k, idx, use_table)
+        sweeps *= 2
+        tip_on_net(s, X0f, ax)
+    fn_table = 0.0
+    if use_table:
+        fn_table, rw = table_response(m, s, k, idx)
+    else:
+        rw = sweep_net(m, s, k, idx, sweeps)
+    d.ringw = rw
+    d.dz1 = wk.dz1
+    if rw > m.layer[k].threshold:
+        puncture(inp, m, s, d, k, idx, use_table)
+    else:
+        surface_force(m, s, d, k, idx, use_table, fn_table)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def front_contact(inp, m, s, d):
+    """The front layer: first touch (hole or new net), then pressing."""
+    k = s.work[0].front
+    st = s.servo[0].state[k]
+    if st == UNTOUCHED and s.radii[k] - s.work[0].rho >= 0.0:
+        st = touch(m, s, k)
+    if st == PRESSING:
+        press(inp, m, s, d, k)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def passed_layer_damping(inp, m, s, d):
+    """Table 1: ``-(sum_j d_j h_j) v_axial a`` over the punctured layers, h_j the needle's length in
+    layer j; each layer's share into ``d.f_layer``."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    a = sv.axis
+    v = inp.v
+    radii = s.radii
+    v_ax = v[0] * a[0] + v[1] * a[1] + v[2] * a[2]
+    total_d = 0.0
+    for j in range(N_LAYERS):
+        if sv.state[j] == PUNCTURED:
+            h = radii[j] - wk.rho
+            thick = radii[j] - radii[j + 1]
+            if h < 0.0:
+                h = 0.0
+            if h > thick:
+                h = thick
+            cj = m.layer[j].damping * h
+            total_d += cj
+            d.f_layer[j] += -cj * v_ax
+    fd = -total_d * v_ax
+    for c in range(3):
+        wk.f[c] += fd * a[c]
+    d.f_damp = fd
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def lateral_guidance(inp, m, s, d):
+    """A spring pulling the tip back to the insertion line through the entry point."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    a = sv.axis
+    p = inp.p
+    ex = p[0] - sv.entry[0]
+    ey = p[1] - sv.entry[1]
+    ez = p[2] - sv.entry[2]
+    t = ex * a[0] + ey * a[1] + ez * a[2]
+    lx = ex - t * a[0]
+    ly = ey - t * a[1]
+    lz = ez - t * a[2]
+    kl = m.params[0].k_lateral
+    wk.f[0] -= kl * lx
+    wk.f[1] -= kl * ly
+    wk.f[2] -= kl * lz
+    d.f_lateral = kl * math.sqrt(lx * lx + ly * ly + lz * lz)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def post_puncture(inp, m, s, d):
+    """Forces of a needle inside the tissue: damping of the layers passed, lateral guidance, and
+    the depth below the skin."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    passed_layer_damping(inp, m, s, d)
+    if m.params[0].lateral_on != 0:
+        lateral_guidance(inp, m, s, d)
+    dep = wk.s_p - sv.offset
+    d.depth_skin = dep if dep > 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def bone_wall(m, s, d):
+    """A penalty wall at the muscle/bone boundary, once every layer is punctured."""
+    wk = s.work[0]
+    rho = wk.rho
+    pen = s.radii[N_LAYERS] - rho
+    if wk.front >= N_LAYERS and pen > 0.0:
+        kb = m.params[0].k_bone
+        for c in range(3):
+            wk.f[c] += kb * pen * (wk.q[c] - m.centre[c]) / rho
+        d.f_bone = kb * pen
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def locate(s, d):
+    """Where the tip is: ``d.layer`` (-1 outside, 3 bone; pressing a surface is not being inside
+    that layer), ``d.depth`` into it, ``d.front``."""
+    radii = s.radii
+    rho = s.work[0].rho
+    front = s.work[0].front
     layer = -1
     if rho <= radii[0]:
-        layer = 3
+        layer = N_LAYERS
         for j in range(N_LAYERS):
             if rho > radii[j + 1]:
                 layer = j
                 break
     if layer > front - 1 and front < N_LAYERS:
-        layer = front - 1  # pressing a surface is not being inside that layer
-    diag[D_LAYER] = layer
+        layer = front - 1
+    d.layer = layer
     if layer >= 0:
         dep = radii[layer] - rho
         if layer < N_LAYERS:
             thick = radii[layer] - radii[layer + 1]
             if dep > thick:
                 dep = thick
-        diag[D_DEPTH] = dep if dep > 0.0 else 0.0
-    diag[D_FRONT] = front
+        d.depth = dep if dep > 0.0 else 0.0
+    d.front = front
 
-    # ---- safety clamp (no fastmath here: isfinite must work) -----------------------------------
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def clamp(m, s, d):
+    """The safety clamp (no fastmath here: isfinite must work): a non-finite force latches the
+    fault and stays zero; a force above the limit is scaled to it. Writes ``d.force``."""
+    f = s.work[0].f
+    fx, fy, fz = f[0], f[1], f[2]
     if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-        si[SI_FAULT] = 1
-        diag[D_FAULT] = 1.0
+        s.servo[0].fault = 1
+        d.fault = 1.0
         return
     mag = math.sqrt(fx * fx + fy * fy + fz * fz)
-    lim = npar[NP_LIMIT]
+    lim = m.params[0].force_limit
     if mag > lim:
         sc = lim / mag
         fx *= sc
         fy *= sc
         fz *= sc
-        diag[D_CLAMPED] = 1.0
-    diag[D_FX] = fx
-    diag[D_FY] = fy
-    diag[D_FZ] = fz
-
-
-# step_kernel's model arrays (everything after p, v but lmax), in its order: what the C entry points
-# (step_entry here, the OMNI callback in omniloop.py) read through an address table (cptr.py).
-MODEL_ARRAYS = (("coeffs", np.float64, 2), ("centre", np.float64, 1), ("lp", np.float64, 2), ("npar", np.float64, 1),
-                ("pos", np.float64, 2), ("rest_all", np.float64, 2), ("axes", np.float64, 2),
-                ("nbr_all", np.int64, 2), ("ring_all", np.int64, 1), ("plane_all", np.float64, 2),
-                ("offs", np.int64, 1), ("tab", np.float64, 1), ("tmeta", np.float64, 2), ("si", np.int64, 1),
-                ("sf", np.float64, 1), ("holes", np.float64, 2), ("radii", np.float64, 1),
-                ("scratch", np.float64, 1), ("diag", np.float64, 1))
-STEP_ARRAYS = (("p", np.float64, 1), ("v", np.float64, 1)) + MODEL_ARRAYS
+        d.clamped = 1.0
+    d.force[0] = fx
+    d.force[1] = fy
+    d.force[2] = fz
 
 
 @nb.njit(cache=True, nogil=True)
-def model_views(t, b):
-    """The :data:`MODEL_ARRAYS` of an address table ``t`` whose entry ``b`` is ``coeffs``, as arrays."""
-    o = 3 * b
-    return (nb.carray(f64p(t[o]), (t[o + 1], t[o + 2])), nb.carray(f64p(t[o + 3]), t[o + 4]),
-            nb.carray(f64p(t[o + 6]), (t[o + 7], t[o + 8])), nb.carray(f64p(t[o + 9]), t[o + 10]),
-            nb.carray(f64p(t[o + 12]), (t[o + 13], t[o + 14])), nb.carray(f64p(t[o + 15]), (t[o + 16], t[o + 17])),
-            nb.carray(f64p(t[o + 18]), (t[o + 19], t[o + 20])), nb.carray(i64p(t[o + 21]), (t[o + 22], t[o + 23])),
-            nb.carray(i64p(t[o + 24]), t[o + 25]), nb.carray(f64p(t[o + 27]), (t[o + 28], t[o + 29])),
-            nb.carray(i64p(t[o + 30]), t[o + 31]), nb.carray(f64p(t[o + 33]), t[o + 34]),
-            nb.carray(f64p(t[o + 36]), (t[o + 37], t[o + 38])), nb.carray(i64p(t[o + 39]), t[o + 40]),
-            nb.carray(f64p(t[o + 42]), t[o + 43]), nb.carray(f64p(t[o + 45]), (t[o + 46], t[o + 47])),
-            nb.carray(f64p(t[o + 48]), t[o + 49]), nb.carray(f64p(t[o + 51]), t[o + 52]),
-            nb.carray(f64p(t[o + 54]), t[o + 55]))
+def step_kernel(inp, m, s, out):
+    """One servo tick. ``inp``: :class:`~haptic_acu.servostate.TickIn` (tip position, m; velocity,
+    m/s; scene frame); ``m``: the read-only :class:`~haptic_acu.servostate.Model`; ``s``: the
+    mutable :class:`~haptic_acu.servostate.State`; ``out``: a one-row :data:`DIAG` record array,
+    which receives the force on the needle (``force``) and the tick's diagnostics."""
+    d = out[0]
+    ss.clear(out)
+    ss.clear(s.work)
+    d.puncture = -1.0
+    d.layer = -1.0
+    s.servo[0].tick += 1
+    if not check_input(inp, s, d):
+        return
+    track_entry(inp, s)
+    tip_radii(m, s)
+    front_layer(s)
+    if s.work[0].front < N_LAYERS:
+        front_contact(inp, m, s, d)
+    if s.servo[0].inserted != 0:
+        post_puncture(inp, m, s, d)
+    bone_wall(m, s, d)
+    locate(s, d)
+    clamp(m, s, d)
 
 
 _STEP_C = None
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def step_servo(sv):
+    """:func:`step_kernel` on a :class:`~haptic_acu.servostate.Servo`."""
+    step_kernel(sv.inp, sv.model, sv.state, sv.out.diag)
+
+
 def step_entry():
-    """:func:`step_kernel` as a C function ``void step(int64_t *table, int64_t lmax)`` (a cached numba
-    cfunc): called through ctypes with one pointer it costs about half of a numba dispatch that
-    checks and unboxes 22 arrays, which is most of a tick called from Python."""
+    """:func:`step_kernel` as a C function ``void step(int64_t *table)`` (a cached numba cfunc):
+    called through ctypes with one pointer it costs about half of a numba dispatch that checks and
+    unboxes every array, which is most of a tick called from Python."""
     global _STEP_C
     if _STEP_C is None:
         from numba import types
 
-        @nb.cfunc(types.void(types.voidptr, types.int64), nopython=True, cache=True)
-        def step_c(data, lmax):
-            t = nb.carray(i64p(address_of(data)), 3 * len(STEP_ARRAYS))
-            m = model_views(t, 2)
-            step_kernel(nb.carray(f64p(t[0]), t[1]), nb.carray(f64p(t[3]), t[4]), m[0], lmax, m[1], m[2], m[3],
-                        m[4], m[5], m[6], m[7], m[8], m[9], m[10], m[11], m[12], m[13], m[14], m[15], m[16], m[17],
-                        m[18])
+        from .cptr import address_of, i64p
+
+        key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
+        words = ss.HEADER + ss.SERVO_TABLE
+
+        @nb.cfunc(types.void(types.voidptr), nopython=True, cache=True)
+        def step_c(data):
+            t = nb.carray(i64p(address_of(data)), words)
+            if ss.accept(t, key):
+                step_servo(ss.unpack_servo(t, ss.HEADER))
 
         import ctypes
 
-        _STEP_C = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64)(step_c.address), step_c
+        _STEP_C = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(step_c.address), step_c
     return _STEP_C[0]
 
 
 class NeedleModel:
-    """The layered needle-tissue model for one scene: owns every array the servo step touches.
+    """The layered needle-tissue model for one scene: owns every array the servo step touches, as
+    the NamedTuples of :mod:`haptic_acu.servostate` (``model``, ``state``, ``inp``, ``out``).
 
     ``step(p, v)`` runs one servo tick and returns the force on the needle (N, a view into
-    ``diag``; copy it if you keep it). Build it once, call :meth:`warm_up` before real-time loops.
+    ``diag``; copy it if you keep it). ``diag`` is the tick's :data:`~haptic_acu.servostate.DIAG`
+    record (``model.diag["puncture"]``). Build it once, call :meth:`warm_up` before real-time loops.
     """
 
     def __init__(self, cfg, tissue: Tissue | None = None):
@@ -575,114 +695,136 @@ class NeedleModel:
         self.coeffs = t.coeffs
         self.centre = t.centre
         self.params = [NetParams.from_layer(layer) for layer in cfg.layers]
-        self.lp = np.zeros((N_LAYERS, 8))
-        for k, (layer, prm) in enumerate(zip(cfg.layers, self.params)):
-            self.lp[k] = [prm.k_virtual, prm.k_surface, prm.spacing_m, prm.pretension, prm.threshold_m,
-                          prm.w, layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3]
-        nd = cfg.needle
-        self.npar = np.array([nd.hole_radius_mm * 1e-3, 1.0 if nd.lateral_constraint else 0.0,
-                              nd.lateral_stiffness_n_per_mm * 1e3, nd.bone_stiffness_n_per_mm * 1e3,
-                              cfg.safety.force_limit_n, float(cfg.solver.sweeps_per_tick)])
         margin = cfg.springback.margin_rings
         self.lattices = [lattice(prm.w + margin) for prm in self.params]
         self.n = [n_particles(prm.w) for prm in self.params]
-        # Packed storage (see step_kernel); the tuples below are views into it.
         self.n_all = [lat.ring.size for lat in self.lattices]
-        self.offs = np.zeros(36, dtype=np.int64)
-        rows = 0
-        rl_rows = 0
-        for k in range(N_LAYERS):
-            for s in range(N_SLOTS):
-                idx = 2 * k + s
-                for b, size in enumerate((self.n[k], self.n[k], self.n_all[k], self.n_all[k])):
-                    self.offs[4 * idx + b] = rows
-                    rows += size
-                self.offs[24 + idx] = rl_rows
-                rl_rows += self.n[k]
-        topo = 0
-        for k in range(N_LAYERS):
-            self.offs[30 + k] = topo
-            self.offs[33 + k] = self.n_all[k]
-            topo += self.n_all[k]
-        self.pos = np.zeros((rows, 3))
-        self.rest_all = np.zeros((rl_rows, 6))
-        self.axes_all = np.zeros((N_LAYERS * N_SLOTS, 3))
-        self.axes_all[:, 2] = 1.0
-        self.nbr_all = np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices]))
-        self.ring_all = np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices]))
-        self.plane_all = np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices]))
-        o = self.offs
-
-        def view(idx, b, size):
-            return self.pos[o[4 * idx + b]:o[4 * idx + b] + size]
-
-        slots = range(N_LAYERS * N_SLOTS)
-        self.xf = tuple(view(i, 0, self.n[i // 2]) for i in slots)
-        self.X0f = tuple(view(i, 1, self.n[i // 2]) for i in slots)
-        self.X0 = tuple(view(i, 2, self.n_all[i // 2]) for i in slots)
-        self.x = tuple(view(i, 3, self.n_all[i // 2]) for i in slots)
-        self.rest_len = tuple(self.rest_all[o[24 + i]:o[24 + i] + self.n[i // 2]] for i in slots)
-        self.axes = tuple(self.axes_all[i] for i in slots)
-        self.nbr = tuple(lat.nbr for lat in self.lattices)
-        self.ring = tuple(lat.ring for lat in self.lattices)
-        self.plane = tuple(lat.plane for lat in self.lattices)
-        self.si = np.zeros(SI_SIZE, dtype=np.int64)
-        self.sf = np.zeros(SF_SIZE)
-        self.holes = np.zeros((MAX_HOLES, 7))
-        self.radii = np.zeros(4)
         # The servo's fast path: each layer's tabulated static net response (netresponse.py).
         tol = cfg.solver.static_tolerance_um * 1e-6
         self.tables = [table_for(prm, tol) if cfg.solver.servo_net == "table" else None for prm in self.params]
-        self.tab, self.tmeta = pack_tables(self.tables, N_LAYERS)
-        self.scratch = np.zeros(16 + 80)
-        self.diag = np.zeros(D_SIZE)
-        self._p = np.zeros(3)
-        self._v = np.zeros(3)
+        tab, tmeta = pack_tables(self.tables, N_LAYERS)
+        layout, rows, rest_rows = self._layout()
+        self.model = Model(coeffs=self.coeffs, centre=self.centre, layer=self._layer_params(cfg),
+                           params=self._needle_params(cfg), layout=layout,
+                           nbr=np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices])),
+                           ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
+                           plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
+                           tab=tab, tmeta=tmeta)
+        self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
+                              holes=(MAX_HOLES,), radii=(N_LAYERS + 1,))
+        self.state.axes[:, 2] = 1.0
+        self.inp = ss.zeros(TickIn, p=(3,), v=(3,))
+        self.out = ss.zeros(ss.Out)
+        self.servo = ss.Servo(self.inp, self.model, self.state, self.out)  # what a tick reads and writes
+        self.rec = self.state.servo[0]  # the servo record (a view: reads see the servo's writes)
+        self.diag = self.out.diag[0]  # the last tick's DIAG record (a view)
+        self._force = self.out.diag["force"][0]  # its force (a view, made once: step() returns it)
+        self._p, self._v = self.inp.p, self.inp.v
+        self._slot_views()
         self._step_c = None  # step()'s C entry point, bound on first use
         self.reset(keep_holes=False)
 
+    @staticmethod
+    def _layer_params(cfg) -> np.ndarray:
+        lp = np.zeros(N_LAYERS, ss.LAYER)
+        for k, layer in enumerate(cfg.layers):
+            prm = NetParams.from_layer(layer)
+            lp[k] = (prm.k_virtual, prm.k_surface, prm.spacing_m, prm.pretension, prm.threshold_m, prm.w,
+                     layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3)
+        return lp
+
+    def _needle_params(self, cfg) -> np.ndarray:
+        nd = cfg.needle
+        prm = np.zeros(1, ss.PARAMS)
+        prm[0] = (self.lmax, nd.hole_radius_mm * 1e-3, 1 if nd.lateral_constraint else 0,
+                  nd.lateral_stiffness_n_per_mm * 1e3, nd.bone_stiffness_n_per_mm * 1e3, cfg.safety.force_limit_n,
+                  cfg.solver.sweeps_per_tick)
+        return prm
+
+    def _layout(self):
+        """Where each (layer, slot) net lives in the packed particle and rest-length storage."""
+        lay = np.zeros(1, ss.LAYOUT)
+        rows = 0
+        rest_rows = 0
+        for k in range(N_LAYERS):
+            for sl in range(N_SLOTS):
+                idx = 2 * k + sl
+                for block, size in (("xf", self.n[k]), ("X0f", self.n[k]), ("X0", self.n_all[k]),
+                                    ("x", self.n_all[k])):
+                    lay[block][0, idx] = rows
+                    rows += size
+                lay["rest"][0, idx] = rest_rows
+                rest_rows += self.n[k]
+        lay["n_all"][0] = self.n_all
+        lay["topo"][0] = np.concatenate([[0], np.cumsum(self.n_all)[:-1]])
+        return lay, rows, rest_rows
+
+    def _slot_views(self) -> None:
+        """Per-slot views (xf, X0f, X0, x, rest_len, axes) and per-layer lattices, for the visual side."""
+        lay = self.model.layout[0]
+        pos = self.state.pos
+        slots = range(N_LAYERS * N_SLOTS)
+
+        def view(block, i, size):
+            return pos[lay[block][i]:lay[block][i] + size]
+
+        self.xf = tuple(view("xf", i, self.n[i // 2]) for i in slots)
+        self.X0f = tuple(view("X0f", i, self.n[i // 2]) for i in slots)
+        self.X0 = tuple(view("X0", i, self.n_all[i // 2]) for i in slots)
+        self.x = tuple(view("x", i, self.n_all[i // 2]) for i in slots)
+        self.rest_len = tuple(self.state.rest[lay["rest"][i]:lay["rest"][i] + self.n[i // 2]] for i in slots)
+        self.axes = tuple(self.state.axes[i] for i in slots)
+        self.nbr = tuple(lat.nbr for lat in self.lattices)
+        self.ring = tuple(lat.ring for lat in self.lattices)
+        self.plane = tuple(lat.plane for lat in self.lattices)
+
     def reset(self, keep_holes: bool = True) -> None:
         """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False."""
-        nh = self.si[SI_NHOLES]
-        self.si[:] = 0
-        self.sf[:] = 0.0
-        self.sf[SF_AXIS + 2] = -1.0
+        nh = self.rec["nholes"]
+        self.state.servo[:] = np.zeros(1, ss.SERVO)
+        self.rec["axis"][2] = -1.0
         if keep_holes:
-            self.si[SI_NHOLES] = nh
+            self.rec["nholes"] = nh
         else:
-            self.holes[:] = 0.0
-        self.diag[:] = 0.0
-
-    def model_arrays(self) -> dict:
-        """The model's arrays by their :data:`MODEL_ARRAYS` names, in that order (what the C entry
-        points' address tables hold, and :func:`step_kernel`'s arguments but ``lmax``)."""
-        return dict(coeffs=self.coeffs, centre=self.centre, lp=self.lp, npar=self.npar, pos=self.pos,
-                    rest_all=self.rest_all, axes=self.axes_all, nbr_all=self.nbr_all, ring_all=self.ring_all,
-                    plane_all=self.plane_all, offs=self.offs, tab=self.tab, tmeta=self.tmeta, si=self.si,
-                    sf=self.sf, holes=self.holes, radii=self.radii, scratch=self.scratch, diag=self.diag)
+            self.state.holes[:] = np.zeros(MAX_HOLES, ss.HOLE)
+        self.out.diag[:] = np.zeros(1, DIAG)
 
     def kernel_args(self) -> tuple:
-        """Everything :func:`step_kernel` takes after ``p, v``, in order."""
-        coeffs, *rest = self.model_arrays().values()
-        return (coeffs, self.lmax, *rest)
+        """Everything :func:`step_kernel` takes: (inp, model, state, diag)."""
+        return (self.inp, self.model, self.state, self.out.diag)
+
+    def copy_state(self) -> tuple:
+        """A copy of the mutable state (with the last tick's output), for :meth:`restore_state`."""
+        return State(*(a.copy() for a in self.state)), self.out.diag.copy()
+
+    def restore_state(self, snap) -> None:
+        state, diag = snap
+        for a, b in zip(self.state, state):
+            a[...] = b
+        self.out.diag[...] = diag
 
     def step(self, p, v) -> np.ndarray:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N).
         Calls :func:`step_kernel` through its C entry point (:func:`step_entry`)."""
-        self._p[:] = p
-        self._v[:] = v
+        self.inp.p[:] = p
+        self.inp.v[:] = v
         if self._step_c is None:
             self._bind_step()
-        self._step_c(self._step_arg, self.lmax)
-        return self.diag[0:3]
+        else:
+            self._step_c(self._step_arg)
+        return self._force
 
     def _bind_step(self) -> None:
         from ctypes import c_void_p
 
-        arrays = dict(p=self._p, v=self._v, **self.model_arrays())
-        self._step_table = address_table(arrays, STEP_ARRAYS)  # the arrays are never reallocated
+        self._step_table = ss.address_table(self.servo)  # the arrays are never reallocated
         self._step_arg = c_void_p(self._step_table.ctypes.data)
-        self._step_c = step_entry()
+        step_c = step_entry()
+        step_c(self._step_arg)  # a tick at the current input; then the check that it ran
+        if self._step_table[1] != 1:
+            raise RuntimeError("haptic_acu.needle: the compiled servo step was built for another state layout "
+                               "(stale numba cache): remove haptic_acu/__pycache__/*.nbi and *.nbc")
+        self._step_c = step_c
 
     def warm_up(self) -> None:
         """Compile (or load from cache) every kernel the servo step calls, and the visual loop's
@@ -697,49 +839,54 @@ class NeedleModel:
     # -- read-outs ------------------------------------------------------------------------------
     @property
     def states(self) -> tuple[int, int, int]:
-        return tuple(int(s) for s in self.si[SI_STATE:SI_STATE + N_LAYERS])
+        return tuple(int(s) for s in self.rec["state"])
 
     @property
     def fault(self) -> bool:
-        return bool(self.si[SI_FAULT])
+        return bool(self.rec["fault"])
 
     @property
     def inserted(self) -> bool:
-        return bool(self.si[SI_INSERTED])
+        return bool(self.rec["inserted"])
+
+    @property
+    def offset(self) -> float:
+        return float(self.rec["offset"])
 
     @property
     def axis(self) -> np.ndarray:
-        return self.sf[SF_AXIS:SF_AXIS + 3].copy()
+        return self.rec["axis"].copy()
 
     @property
     def entry(self) -> np.ndarray:
-        return self.sf[SF_ENTRY:SF_ENTRY + 3].copy()
+        return self.rec["entry"].copy()
 
     @property
     def holes_list(self) -> np.ndarray:
-        return self.holes[: min(int(self.si[SI_NHOLES]), MAX_HOLES)].copy()
+        """The holes so far as HOLE records (``point``, ``layer``, ``axis``)."""
+        return self.state.holes[: min(int(self.rec["nholes"]), MAX_HOLES)].copy()
 
     def active_slot(self, k: int) -> int:
-        return 2 * k + int(self.si[SI_SLOT + k])
+        return 2 * k + int(self.rec["slot"][k])
 
     def owner(self, idx: int) -> int:
-        return int(self.si[SI_OWNER + idx])
+        return int(self.rec["owner"][idx // 2, idx % 2])
 
     def generation(self, idx: int) -> int:
-        return int(self.si[SI_GEN + idx])
+        return int(self.rec["gen"][idx // 2, idx % 2])
 
     def pressed_net_flat(self, idx: int) -> np.ndarray:
-        """Flat-lattice positions of a pressing (owner 1) net: the relaxed particles, or for a
-        tabulated net its equilibrium shape at the tip the servo last held N1 at."""
+        """Flat-lattice positions of a pressing (owner SERVO_OWNS) net: the relaxed particles, or for
+        a tabulated net its equilibrium shape at the tip the servo last held N1 at."""
         k = idx // 2
         if self.tables[k] is None:
             return self.xf[idx].copy()
         n = self.n[k]
-        q = self.sf[SF_SLOT_Q + 3 * idx:SF_SLOT_Q + 3 * idx + 3].copy()
+        q = self.rec["slot_q"][idx].copy()
         axis = self.axes[idx].copy()
         X0f = self.X0f[idx]
         out = np.empty((n, 3))
-        lay_field(self.tab, self.tmeta[k], float(-((q - X0f[0]) @ axis)), n, X0f, axis, out)
+        lay_field(self.model.tab, self.model.tmeta[k], float(-((q - X0f[0]) @ axis)), n, X0f, axis, out)
         out[0] = q
         return out
 
@@ -747,7 +894,7 @@ class NeedleModel:
         """Current curved-surface positions of slot ``idx``'s particles (force net + margin)."""
         k = idx // 2
         n = self.n[k]
-        if self.owner(idx) == 1:
+        if self.owner(idx) == SERVO_OWNS:
             out = self.X0[idx].copy()
             out[:n] += self.pressed_net_flat(idx) - self.X0f[idx]
             return out

@@ -1,16 +1,30 @@
 """The OMNI's servo tick as one compiled C callback: the HD scheduler runs it without the GIL.
 
+The device's guard is written once, here: :func:`guard_in` (non-finite and frozen positions,
+non-finite velocity, the velocity filter, the workspace mapping) and :func:`guard_out` (ramp-in,
+clamps in both frames, finite check). The compiled callback calls them between its HD calls; the
+OMNI's Python callback (``devices/omni.py``, ``OmniDevice._tick_body``) calls the same compiled
+functions on its own :class:`OmniArrays` (:func:`make_arrays`), so a safety change is made once.
+
 With a Python callback (``OmniDevice.run_servo(step, stop)``) every 1 kHz tick of the HD scheduler
 thread has to take the GIL, so the visual thread's C calls (NumPy, file writes) delay the
 trainee's force by milliseconds (see :mod:`haptic_acu.rtloop` for the measurement on the scripted
 device). Here the whole tick, the device part of ``OmniDevice._tick_body`` (HD frame, stylus
 reads and their error checks, non-finite and frozen-position faults, filtered velocity when the
-device gives none, workspace mapping, force ramp-in, clamp in both frames) and the engine part
-(period error, ``step_kernel``, the sample row into the ring), is a numba ``cfunc`` handed to
-``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer: a table
-of (address, rows, columns) that the cfunc views with ``carray``. It reports how it ended through
+device gives none, workspace mapping: :func:`read_stylus`; force ramp-in, clamp in both frames:
+:func:`command_force`) and the engine part (:func:`engine_tick`: period error and
+:func:`~haptic_acu.servotick.servo_tick`, the same tick every driver runs), is a numba ``cfunc``
+handed to ``hdScheduleAsynchronous``. Its arrays reach it through the callback's user-data pointer:
+an address table (:func:`address_table`: the servo's :class:`~haptic_acu.servostate.Servo`, the
+sample ring, the timing, then :class:`OmniArrays`) that the cfunc unpacks with
+:func:`haptic_acu.servostate.unpack`. It reports how it ended through
 an int64 control array; :meth:`devices.omni.OmniDevice.run_servo_compiled` turns that into the same
 one-line faults as the Python callback.
+
+Imports run one way: this module knows nothing of ``haptic_acu.devices``; the OMNI device
+(``devices/omni.py``) imports it lazily to read the control record (:data:`CTL`) of a callback it runs, and
+the engine asks the device only through ``devices.base.Device`` (``servo_library``, ``servo_guard``,
+``run_servo_compiled``).
 
 The HD calls are LLVM declarations of the HD API's C functions, resolved against the library
 pyOpenHaptics loaded (made visible to the JIT by :func:`load_library`), so the tick is cached like
@@ -25,7 +39,9 @@ from __future__ import annotations
 import math
 import platform
 import sys
+import zlib
 from pathlib import Path
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -34,14 +50,11 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from . import cptr
+from . import servostate as ss
 from .cptr import address_of as data_address
-from .cptr import f64p as _f64p
-from .cptr import i32p as _i32p
 from .cptr import i64p as _i64p
-from .needle import D_FAULT, MODEL_ARRAYS, model_views, step_kernel
-from .rtloop import _fence, now_ns
-from .samples import write_sample
+from .rtloop import now_ns
+from .servotick import TICK_TABLE, account, servo_tick, tick_table, unpack_tick
 
 # HD API values (as in devices/omni.py)
 HD_SUCCESS = 0x0000
@@ -53,26 +66,25 @@ HD_CURRENT_FORCE = 0x2700
 HD_CALLBACK_DONE = 0
 HD_CALLBACK_CONTINUE = 1
 
-# ictl (int64) words
-(I_STOP, I_ABORT, I_TICKS, I_IN_TICK, I_VALID, I_FROZEN, I_FORCE_ON, I_VEL_DEV, I_HAS_LAST, I_STATUS,
- I_CODE, I_WHERE, I_INTERNAL, I_ETICK, I_NERR, I_MISSED, I_LAST_NS, I_T0_NS, I_DONE, I_TS) = range(20)
-I_SIZE = 22  # I_TS: 2 words, the clock's timespec
-# fctl (float64) words
-F_LAST = 0  # 3: last position (mm, device frame)
-F_VFILT = 3  # 3: filtered velocity (mm/s)
-F_DETAIL = 6  # 3: values for a fault's message
-F_TSESSION = 9
-F_SIZE = 10
-# prm (float64): scalars
-P_HANDLE, P_LMAX, P_STALL, P_RAMP, P_LIMIT_N, P_ALPHA, P_PERIOD_NS, P_LIMIT_T, P_RATE = range(9)
-P_SIZE = 9
-# ws (float64): scale, R (3x3 row-major), offset (mm)
-W_SCALE, W_R, W_OFF = 0, 1, 10
-W_SIZE = 13
+# The callback's control record (ictl[0]), shared with the device's watcher and the engine
+CTL = np.dtype([("stop", "i8"), ("abort", "i8"), ("ticks", "i8"), ("in_tick", "i8"), ("valid", "i8"), ("frozen", "i8"),
+                ("force_on", "i8"), ("vel_dev", "i8"), ("has_last", "i8"), ("status", "i8"), ("code", "i8"),
+                ("where", "i8"), ("internal", "i8"), ("etick", "i8"), ("last_ns", "i8"), ("t0_ns", "i8"),
+                ("done", "i8")])
+# its float record (fctl[0])
+FST = np.dtype([("last", "f8", 3),  # last position (mm, device frame)
+                ("vfilt", "f8", 3),  # filtered velocity (mm/s)
+                ("detail", "f8", 3),  # values for a fault's message
+                ("t_session", "f8")])
+# its parameters (prm[0])
+PRM = np.dtype([("handle", "f8"), ("stall", "f8"), ("ramp", "f8"), ("limit_n", "f8"), ("alpha", "f8"),
+                ("period_ns", "f8"), ("limit_t", "f8"), ("rate", "f8")])
+# the workspace mapping (ws[0]): p_scene = (scale * R p_dev + offset) * 1e-3
+WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3)])
 
-# statuses (I_STATUS)
+# statuses (CTL.status)
 S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN = range(9)
-# where an HD error came from (I_WHERE)
+# where an HD error came from (CTL.where)
 WHERE = ("hdBeginFrame", "hdGetDoublev(HD_CURRENT_TRANSFORM)", "hdGetDoublev(HD_CURRENT_VELOCITY)",
          "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame")
 W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END = range(6)
@@ -83,19 +95,57 @@ def supported() -> bool:
     return sys.platform.startswith("linux") and platform.machine() in ("x86_64", "AMD64", "aarch64", "arm64")
 
 
-# The arrays the callback reaches, in table order: (name, dtype, ndim).
-ARRAYS = ((("ictl", np.int64, 1), ("fctl", np.float64, 1), ("hdt", np.float64, 1), ("hdv", np.float64, 1),
-           ("hdf", np.float64, 1), ("hdb", np.int32, 1), ("ws", np.float64, 1), ("prm", np.float64, 1))
-          + MODEL_ARRAYS
-          + (("pbuf", np.float64, 1), ("vbuf", np.float64, 1), ("rbuf", np.float64, 2), ("rctr", np.int64, 1),
-             ("errs", np.float64, 1)))
-_M0 = 8  # the table entry of the first model array
-_E0 = _M0 + len(MODEL_ARRAYS)  # the entry after the last
+class OmniArrays(NamedTuple):
+    """The device side of the callback's arrays."""
+    ictl: np.ndarray  # (1,) CTL
+    fctl: np.ndarray  # (1,) FST
+    hdt: np.ndarray  # (16,) the stylus transform
+    hdv: np.ndarray  # (3,) its velocity
+    hdf: np.ndarray  # (3,) the force set
+    hdb: np.ndarray  # (1,) int32 buttons
+    ws: np.ndarray  # (1,) WS
+    prm: np.ndarray  # (1,) PRM
+    ts: np.ndarray  # int64[2]: the clock's timespec
 
 
-def address_table(arrays: dict) -> np.ndarray:
-    """(address, rows, columns) per array of :data:`ARRAYS`."""
-    return cptr.address_table(arrays, ARRAYS)
+ss.SPEC[OmniArrays] = dict(ictl=(CTL, 1), fctl=(FST, 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
+                           hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1))
+# The callback's table: a tick table (servotick.tick_table: header, Servo, Ring, Timing), then OmniArrays.
+_AT_OMNI = TICK_TABLE
+TABLE = _AT_OMNI + ss.table_size(OmniArrays)
+LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
+
+
+def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, period_s: float = 1e-3,
+                limit_t: float = math.inf) -> OmniArrays:
+    """The device side's arrays for one run: the workspace mapping, the guard's parameters
+    (``Device.servo_guard()``), the force limit, the rate, the servo period and the session length."""
+    ws = np.zeros(1, WS)
+    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm)
+    prm = np.zeros(1, PRM)
+    prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
+              period_s * 1e9, limit_t, rate_hz)
+    ictl = np.zeros(1, CTL)
+    ictl["vel_dev"] = 1
+    return OmniArrays(ictl=ictl, fctl=np.zeros(1, FST), hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
+                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64))
+
+
+def warm_guard() -> None:
+    """Compile (or load) :func:`guard_in` and :func:`guard_out` for the Python callback."""
+    from types import SimpleNamespace
+
+    identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
+    o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0}, 1.0, 1000.0)
+    guard_in(o, ss.TickIn(np.zeros(3), np.zeros(3)))
+    guard_out(o, 0.0, 0.0, 0.0)
+
+
+def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
+    """The callback's user data: (address, rows, columns) of every array, in :data:`TABLE` order."""
+    t = tick_table(servo, ring, timing, omni)
+    t[0] = LAYOUT_KEY
+    return t
 
 
 def _external(name, ret, args):
@@ -163,10 +213,10 @@ def fail_hd(ictl, h, hdf, where, e):
         hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
         hd_end_frame(h)
         hd_error()
-    ictl[I_CODE] = e & 0xFFFFFFFF
-    ictl[I_INTERNAL] = (e >> 32) & 0xFFFFFFFF
-    ictl[I_WHERE] = where
-    ictl[I_STATUS] = S_HD_ERROR
+    ictl[0].code = e & 0xFFFFFFFF
+    ictl[0].internal = (e >> 32) & 0xFFFFFFFF
+    ictl[0].where = where
+    ictl[0].status = S_HD_ERROR
     return HD_CALLBACK_DONE
 
 @nb.njit(nogil=True, cache=True)
@@ -177,23 +227,26 @@ def abort(ictl, h, hdf, status):
     hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
     hd_end_frame(h)
     hd_error()
-    ictl[I_STATUS] = status
+    ictl[0].status = status
     return HD_CALLBACK_DONE
 
 @nb.njit(nogil=True, cache=True)
-def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos, rest_all, axes, nbr_all,
-         ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag, pbuf, vbuf, rbuf, rctr,
-         errs):
-    ts = ictl[I_TS:I_TS + 2]
-    h = int(prm[P_HANDLE])
-    ictl[I_TICKS] += 1
+def read_stylus(o, inp):
+    """The device part before the step: HD frame, stylus reads and their error checks, non-finite and
+    frozen-position faults, filtered velocity when the device gives none, workspace mapping into
+    ``inp``. Returns -1 to go on, else the callback's return code (the frame is closed)."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    pbuf = inp.p
+    vbuf = inp.v
+    h = int(prm[0].handle)
+    ictl[0].ticks += 1
     hd_begin_frame(h)
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_BEGIN, e)
-    if ictl[I_ABORT] != 0:
+    if ictl[0].abort != 0:
         return abort(ictl, h, hdf, S_CLOSED)
-    if ictl[I_STOP] != 0:
+    if ictl[0].stop != 0:
         hdf[0] = 0.0
         hdf[1] = 0.0
         hdf[2] = 0.0
@@ -202,137 +255,174 @@ def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos,
         e = hd_error()
         if (e & 0xFFFFFFFF) != HD_SUCCESS:
             return fail_hd(ictl, h, hdf, W_END, e)
-        ictl[I_STATUS] = S_STOPPED
+        ictl[0].status = S_STOPPED
         return HD_CALLBACK_DONE
     hd_get_doublev(HD_CURRENT_TRANSFORM, hdt.ctypes.data)
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_TRANSFORM, e)
-    px = hdt[12]
-    py = hdt[13]
-    pz = hdt[14]
-    if ictl[I_VEL_DEV] != 0:
+    if ictl[0].vel_dev != 0:
         hd_get_doublev(HD_CURRENT_VELOCITY, hdv.ctypes.data)
         e = hd_error() & 0xFFFFFFFF
         if e == HD_INVALID_ENUM:
-            ictl[I_VEL_DEV] = 0
+            ictl[0].vel_dev = 0
         elif e != HD_SUCCESS:
             return fail_hd(ictl, h, hdf, W_VELOCITY, e)
     hd_get_integerv(HD_CURRENT_BUTTONS, hdb.ctypes.data)
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_BUTTONS, e)
-    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
-        fctl[F_DETAIL] = px
-        fctl[F_DETAIL + 1] = py
-        fctl[F_DETAIL + 2] = pz
-        return abort(ictl, h, hdf, S_POS_NAN)
-    same = (ictl[I_HAS_LAST] != 0 and px == fctl[F_LAST] and py == fctl[F_LAST + 1] and pz == fctl[F_LAST + 2])
-    if same and ictl[I_FORCE_ON] != 0:
-        ictl[I_FROZEN] += 1
-        if ictl[I_FROZEN] >= prm[P_STALL]:
-            fctl[F_DETAIL] = px
-            fctl[F_DETAIL + 1] = py
-            fctl[F_DETAIL + 2] = pz
-            return abort(ictl, h, hdf, S_STALL)
+    st = guard_in(o, inp)
+    if st != S_RUNNING:
+        return abort(ictl, h, hdf, st)
+    return -1
+
+
+@nb.njit(nogil=True, cache=True)
+def engine_tick(o, sv, ring, timing):
+    """The engine's tick on the device's clock: period error, :func:`servo_tick`. Returns the force
+    to command (zero past the session's length or on a non-finite state)."""
+    ictl, fctl, prm = o.ictl, o.fctl, o.prm
+    ts = o.ts
+    now = now_ns(ts)
+    period = prm[0].period_ns
+    err = (now - ictl[0].last_ns) - period
+    ictl[0].last_ns = now
+    account(timing, err, period, 1e-9)
+    t = (now - ictl[0].t0_ns) * 1e-9
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    if t > prm[0].limit_t:
+        ictl[0].stop = 1  # session length reached: zero now, the next tick finishes
+        ictl[0].done = 1
     else:
-        ictl[I_FROZEN] = 0
-    if ictl[I_VEL_DEV] != 0:
+        fctl[0].t_session = t
+        ok = servo_tick(sv, ring, t, ictl[0].etick, err * 1e-9)
+        ictl[0].etick += 1
+        if not ok:
+            ictl[0].stop = 1  # the engine reports the non-finite state; zero force from here
+            ictl[0].done = 2
+        else:
+            f = sv.out.diag[0].force
+            fx = f[0]
+            fy = f[1]
+            fz = f[2]
+    return fx, fy, fz
+
+
+
+@nb.njit(nogil=True, cache=True)
+def guard_in(o, inp):
+    """The device's guard on a stylus sample (``o.hdt``; ``o.hdv`` if ``ictl.vel_dev``): a non-finite
+    position, a position frozen while a force is on (stall), a non-finite velocity are faults (their
+    status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
+    low-pass of backward differences) and the position mapped into the scene, into ``inp``; returns
+    S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
+    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o
+    pbuf = inp.p
+    vbuf = inp.v
+    px = hdt[12]
+    py = hdt[13]
+    pz = hdt[14]
+    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        fctl[0].detail[0] = px
+        fctl[0].detail[1] = py
+        fctl[0].detail[2] = pz
+        return S_POS_NAN
+    same = (ictl[0].has_last != 0 and px == fctl[0].last[0] and py == fctl[0].last[1] and pz == fctl[0].last[2])
+    if same and ictl[0].force_on != 0:
+        ictl[0].frozen += 1
+        if ictl[0].frozen >= prm[0].stall:
+            fctl[0].detail[0] = px
+            fctl[0].detail[1] = py
+            fctl[0].detail[2] = pz
+            return S_STALL
+    else:
+        ictl[0].frozen = 0
+    if ictl[0].vel_dev != 0:
         vx = hdv[0]
         vy = hdv[1]
         vz = hdv[2]
         if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
-            fctl[F_DETAIL] = vx
-            fctl[F_DETAIL + 1] = vy
-            fctl[F_DETAIL + 2] = vz
-            return abort(ictl, h, hdf, S_VEL_NAN)
+            fctl[0].detail[0] = vx
+            fctl[0].detail[1] = vy
+            fctl[0].detail[2] = vz
+            return S_VEL_NAN
     else:  # first-order low-pass of backward differences
-        if ictl[I_HAS_LAST] != 0:
-            a = prm[P_ALPHA]
-            rate = prm[P_RATE]
-            fctl[F_VFILT] += a * ((px - fctl[F_LAST]) * rate - fctl[F_VFILT])
-            fctl[F_VFILT + 1] += a * ((py - fctl[F_LAST + 1]) * rate - fctl[F_VFILT + 1])
-            fctl[F_VFILT + 2] += a * ((pz - fctl[F_LAST + 2]) * rate - fctl[F_VFILT + 2])
-        vx = fctl[F_VFILT]
-        vy = fctl[F_VFILT + 1]
-        vz = fctl[F_VFILT + 2]
-    fctl[F_LAST] = px
-    fctl[F_LAST + 1] = py
-    fctl[F_LAST + 2] = pz
-    ictl[I_HAS_LAST] = 1
+        if ictl[0].has_last != 0:
+            a = prm[0].alpha
+            rate = prm[0].rate
+            fctl[0].vfilt[0] += a * ((px - fctl[0].last[0]) * rate - fctl[0].vfilt[0])
+            fctl[0].vfilt[1] += a * ((py - fctl[0].last[1]) * rate - fctl[0].vfilt[1])
+            fctl[0].vfilt[2] += a * ((pz - fctl[0].last[2]) * rate - fctl[0].vfilt[2])
+        vx = fctl[0].vfilt[0]
+        vy = fctl[0].vfilt[1]
+        vz = fctl[0].vfilt[2]
+    fctl[0].last[0] = px
+    fctl[0].last[1] = py
+    fctl[0].last[2] = pz
+    ictl[0].has_last = 1
     # device (mm) -> scene (m)
-    sc = ws[W_SCALE] * 1e-3
+    sc = ws[0].scale * 1e-3
     for r in range(3):
-        pbuf[r] = (ws[W_SCALE] * (ws[W_R + 3 * r] * px + ws[W_R + 3 * r + 1] * py + ws[W_R + 3 * r + 2] * pz)
-                   + ws[W_OFF + r]) * 1e-3
-        vbuf[r] = sc * (ws[W_R + 3 * r] * vx + ws[W_R + 3 * r + 1] * vy + ws[W_R + 3 * r + 2] * vz)
+        pbuf[r] = (ws[0].scale * (ws[0].R[r, 0] * px + ws[0].R[r, 1] * py + ws[0].R[r, 2] * pz)
+                   + ws[0].offset[r]) * 1e-3
+        vbuf[r] = sc * (ws[0].R[r, 0] * vx + ws[0].R[r, 1] * vy + ws[0].R[r, 2] * vz)
+    return S_RUNNING
 
-    # ---- the engine's tick (Session._run_device_clock's step + _servo_tick) ----------------
-    now = now_ns(ts)
-    period = prm[P_PERIOD_NS]
-    err = (now - ictl[I_LAST_NS]) - period
-    ictl[I_LAST_NS] = now
-    n = ictl[I_NERR]
-    if n < errs.shape[0]:
-        errs[n] = err * 1e-9
-    ictl[I_NERR] = n + 1
-    if err > period:
-        ictl[I_MISSED] += 1
-    t = (now - ictl[I_T0_NS]) * 1e-9
-    fx = 0.0
-    fy = 0.0
-    fz = 0.0
-    if t > prm[P_LIMIT_T]:
-        ictl[I_STOP] = 1  # session length reached: zero now, the next tick finishes
-        ictl[I_DONE] = 1
-    else:
-        fctl[F_TSESSION] = t
-        step_kernel(pbuf, vbuf, coeffs, int(prm[P_LMAX]), centre, lp, npar, pos, rest_all, axes, nbr_all,
-                    ring_all, plane_all, offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        head = rctr[0]
-        write_sample(rbuf, head % rbuf.shape[0], t, ictl[I_ETICK], pbuf, vbuf, diag, si, err * 1e-9)
-        _fence()
-        rctr[0] = head + 1
-        ictl[I_ETICK] += 1
-        if diag[D_FAULT] != 0.0:
-            ictl[I_STOP] = 1  # the engine reports the non-finite state; zero force from here
-            ictl[I_DONE] = 2
-        else:
-            fx = diag[0]
-            fy = diag[1]
-            fz = diag[2]
 
-    # ---- the device's safety: ramp-in, clamp in both frames, finite check ------------------
-    ramp = ictl[I_VALID] / prm[P_RAMP]
+@nb.njit(nogil=True, cache=True)
+def guard_out(o, fx, fy, fz):
+    """The device's guard on the way out: force ramp-in, clamp in the scene and the device frame,
+    finite check; the device force into ``o.hdf`` and S_RUNNING, or S_FORCE_NAN (values in
+    ``fctl.detail``)."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ramp = ictl[0].valid / prm[0].ramp
     if ramp > 1.0:
         ramp = 1.0
-    ictl[I_VALID] += 1
+    ictl[0].valid += 1
     fx *= ramp
     fy *= ramp
     fz *= ramp
-    lim = prm[P_LIMIT_N]
+    lim = prm[0].limit_n
     m = math.sqrt(fx * fx + fy * fy + fz * fz)
     if m > lim:
         fx *= lim / m
         fy *= lim / m
         fz *= lim / m
     # scene -> device: R^T (forces are not scaled)
-    dx = ws[W_R] * fx + ws[W_R + 3] * fy + ws[W_R + 6] * fz
-    dy = ws[W_R + 1] * fx + ws[W_R + 4] * fy + ws[W_R + 7] * fz
-    dz = ws[W_R + 2] * fx + ws[W_R + 5] * fy + ws[W_R + 8] * fz
+    dx = ws[0].R[0, 0] * fx + ws[0].R[1, 0] * fy + ws[0].R[2, 0] * fz
+    dy = ws[0].R[0, 1] * fx + ws[0].R[1, 1] * fy + ws[0].R[2, 1] * fz
+    dz = ws[0].R[0, 2] * fx + ws[0].R[1, 2] * fy + ws[0].R[2, 2] * fz
     m = math.sqrt(dx * dx + dy * dy + dz * dz)
     if m > lim:
         dx *= lim / m
         dy *= lim / m
         dz *= lim / m
     if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz)):
-        fctl[F_DETAIL] = dx
-        fctl[F_DETAIL + 1] = dy
-        fctl[F_DETAIL + 2] = dz
-        return abort(ictl, h, hdf, S_FORCE_NAN)
+        fctl[0].detail[0] = dx
+        fctl[0].detail[1] = dy
+        fctl[0].detail[2] = dz
+        return S_FORCE_NAN
     hdf[0] = dx
     hdf[1] = dy
     hdf[2] = dz
+    return S_RUNNING
+
+
+@nb.njit(nogil=True, cache=True)
+def command_force(o, fx, fy, fz):
+    """The force out: :func:`guard_out`, then the force is set and the frame closed. Returns the
+    callback's return code."""
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    h = int(prm[0].handle)
+    st = guard_out(o, fx, fy, fz)
+    if st != S_RUNNING:
+        return abort(ictl, h, hdf, st)
+    dx = hdf[0]
+    dy = hdf[1]
+    dz = hdf[2]
     hd_set_doublev(HD_CURRENT_FORCE, hdf.ctypes.data)
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
@@ -341,8 +431,18 @@ def tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, coeffs, centre, lp, npar, pos,
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_END, e)
-    ictl[I_FORCE_ON] = 1 if (dx != 0.0 or dy != 0.0 or dz != 0.0) else 0
+    ictl[0].force_on = 1 if (dx != 0.0 or dy != 0.0 or dz != 0.0) else 0
     return HD_CALLBACK_CONTINUE
+
+
+@nb.njit(nogil=True, cache=True)
+def tick(o, sv, ring, timing):
+    """One HD scheduler tick: :func:`read_stylus`, :func:`engine_tick`, :func:`command_force`."""
+    rc = read_stylus(o, sv.inp)
+    if rc >= 0:
+        return rc
+    fx, fy, fz = engine_tick(o, sv, ring, timing)
+    return command_force(o, fx, fy, fz)
 
 
 def build_callback(lib):
@@ -352,29 +452,22 @@ def build_callback(lib):
     load_library(lib)
     index = Path(__file__).with_name("__pycache__")
     if sys.stderr.isatty() and not any(index.glob("omniloop.tick-*.nbi")):
-        print("haptic-acu: compiling the OMNI servo callback (first run on this machine, about 10 s)",
+        print("haptic-acu: compiling the OMNI servo callback (first run on this machine; cached after)",
               file=sys.stderr)
+
+    key = LAYOUT_KEY  # in the closure: a new layout is a new cache entry
+    words = TABLE
 
     @nb.cfunc(types.uint32(types.voidptr), nopython=True, cache=True)
     def callback(data):
-        t = nb.carray(_i64p(data_address(data)), 3 * len(ARRAYS))
-        ictl = nb.carray(_i64p(t[0]), t[1])
-        ictl[I_IN_TICK] = 1
-        fctl = nb.carray(_f64p(t[3]), t[4])
-        hdt = nb.carray(_f64p(t[6]), t[7])
-        hdv = nb.carray(_f64p(t[9]), t[10])
-        hdf = nb.carray(_f64p(t[12]), t[13])
-        hdb = nb.carray(_i32p(t[15]), t[16])
-        ws = nb.carray(_f64p(t[18]), t[19])
-        prm = nb.carray(_f64p(t[21]), t[22])
-        m = model_views(t, _M0)
-        e = 3 * _E0
-        rc = tick(ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8],
-                  m[9], m[10], m[11], m[12], m[13], m[14], m[15], m[16], m[17], m[18],
-                  nb.carray(_f64p(t[e]), t[e + 1]), nb.carray(_f64p(t[e + 3]), t[e + 4]),
-                  nb.carray(_f64p(t[e + 6]), (t[e + 7], t[e + 8])), nb.carray(_i64p(t[e + 9]), t[e + 10]),
-                  nb.carray(_f64p(t[e + 12]), t[e + 13]))
-        ictl[I_IN_TICK] = 0
+        t = nb.carray(_i64p(data_address(data)), words)
+        if t[0] != key:
+            return HD_CALLBACK_DONE  # a table for another layout: touch nothing (see address_table)
+        o = ss.unpack(t, _AT_OMNI, OmniArrays)
+        o.ictl[0].in_tick = 1
+        sv, ring, timing = unpack_tick(t)
+        rc = tick(o, sv, ring, timing)
+        o.ictl[0].in_tick = 0
         return rc
 
     return callback
@@ -382,13 +475,14 @@ def build_callback(lib):
 
 def fault_message(ictl, fctl, hd_error_name) -> str | None:
     """The one-line fault the Python callback would have reported, or None for a clean stop."""
-    st = int(ictl[I_STATUS])
-    d = tuple(float(x) for x in fctl[F_DETAIL:F_DETAIL + 3])
+    c = ictl[0]
+    st = int(c["status"])
+    d = tuple(float(x) for x in fctl[0]["detail"])
     if st in (S_RUNNING, S_STOPPED):
         return None
     if st == S_HD_ERROR:
-        code, where = int(ictl[I_CODE]), int(ictl[I_WHERE])
-        internal = int(ictl[I_INTERNAL])
+        code, where = int(c["code"]), int(c["where"])
+        internal = int(c["internal"])
         internal = internal - (1 << 32) if internal >= (1 << 31) else internal
         if where == W_VELOCITY:
             return f"{hd_error_name(code)} after {WHERE[where]}"
@@ -399,7 +493,7 @@ def fault_message(ictl, fctl, hd_error_name) -> str | None:
         return f"device reported a non-finite position {d} mm"
     if st == S_STALL:
         where = ", ".join(f"{c:.3f}" for c in d)
-        return (f"position frozen at ({where}) mm for {int(ictl[I_FROZEN])} ms of servo ticks "
+        return (f"position frozen at ({where}) mm for {int(c['frozen'])} ms of servo ticks "
                 "while a force was applied: device stalled")
     if st == S_VEL_NAN:
         return f"device reported a non-finite velocity {d} mm/s"

@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from .samples import COL, NCOL
+from .servostate import PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 
-PLACES = ("outside", "skin", "fat", "muscle", "bone")  # sample ``layer`` codes -1..3
+PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
-PRESSING, PUNCTURED = 1, 2  # layer states (haptic_acu.needle)
-STATE_NAMES = ("untouched", "pressing", "punctured")
 
 _C_X = COL["x_m"]
 _C_F = COL["fx_n"]

@@ -44,6 +44,7 @@ from .errors import UserError
 from .report import LAYERS, SessionScan, tip_depth_m
 from .samples import COL
 from .tissue import grid_triangles
+from .servostate import FREE
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -420,7 +421,7 @@ class RerunSink:
         for k in range(3):
             if k in dents:
                 dent = np.asarray(dents[k])
-            elif any(model.owner(2 * k + s) != 0 for s in range(2)):
+            elif any(model.owner(2 * k + s) != FREE for s in range(2)):
                 continue  # a settled net: its dent has stopped changing, keep what was logged
             else:
                 dent = None
@@ -437,7 +438,7 @@ class RerunSink:
         for idx in range(2 * len(LAYERS)):
             k, s = divmod(idx, 2)
             path = f"world/nets/{LAYERS[k]}/slot{s}"
-            if model.owner(idx) == 0:
+            if model.owner(idx) == FREE:
                 if idx in self._net_last:
                     rec.log(path, rr.Clear(recursive=True))
                     del self._net_last[idx]

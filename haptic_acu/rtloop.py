@@ -1,14 +1,13 @@
 """The real-time servo loop as one compiled, GIL-free function (devices whose input can be fed ahead).
 
 Why. A 1 kHz loop written in Python needs the GIL between ticks, and the 60 Hz visual thread holds it
-for milliseconds at a time inside C calls (NumPy, rerun, file writes): measured on the default
-trajectory with the visual loop running, the Python servo loop's period error was p99 785 us, p99.9
-3.3 ms, 60 missed ticks in 8,000; with the visual frames emptied, p99 11 us and 1 missed. No switch
-interval fixes a C call that does not return. So for a device whose positions can be computed ahead
-(the scripted device: a trajectory file), the whole loop runs in :func:`servo_loop`, compiled with
-``nogil``: it waits for each absolute deadline (``clock_nanosleep`` to 300 us before it, then spins
-on ``clock_gettime``), runs :func:`~haptic_acu.needle.step_kernel`, writes the sample row into the
-ring and publishes it, and never returns to Python until the session ends. A Python feeder thread
+for milliseconds at a time inside C calls (NumPy, rerun, file writes), so the Python loop's period
+error has a long tail (the benchmark's loop rows measure it); no switch interval fixes a C call that
+does not return. So for a device whose positions can be computed ahead (the scripted device: a
+trajectory file), the whole loop runs in :func:`servo_loop`, compiled with ``nogil``: it waits for
+each absolute deadline (:func:`wait_until`: ``clock_nanosleep`` to 300 us before it, then a spin on
+``clock_gettime``), runs :func:`~haptic_acu.servotick.servo_tick` (the step, the sample row into the
+ring, published), and never returns to Python until the session ends. A Python feeder thread
 keeps the trajectory's positions for the next second of ticks in a ring (:class:`Feed`); the visual
 thread drains the sample ring as before.
 
@@ -17,7 +16,7 @@ pointers), so the functions stay cacheable like every other kernel.
 
 Ticks happen at ``t0 + k * period``; tick k reads the position at session time ``k * period`` and
 its sample row carries that time and its lateness (``period_err_s``). A stall longer than
-``ctl[CT_SKIP_AFTER]`` periods (the session's default: 10) skips ahead to the present (the skipped
+``ctl[0].skip_after`` periods (the session's default: 10) skips ahead to the present (the skipped
 ticks count as missed) instead of bursting through them; with :data:`NO_END` there the loop never
 skips and runs late ticks back to back, so every tick of the trajectory is a row whatever the host
 does (what a comparison against the headless replay needs).
@@ -25,6 +24,7 @@ does (what a comparison against the headless replay needs).
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -33,21 +33,29 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .needle import D_FAULT, step_kernel
-from .samples import write_sample
+from . import servostate as ss
+from .servotick import STALE, account, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
-# control words (int64 array shared between the compiled loop and Python)
-CT_STOP, CT_TICK, CT_FED, CT_END, CT_STATUS, CT_MISSED, CT_NERR, CT_FORCES, CT_T0, CT_RAN, CT_SKIP_AFTER = range(11)
-CT_SIZE = 11  # CT_TICK: the next tick's index; CT_RAN: ticks run (fewer if a stall skipped some)
-# CT_SKIP_AFTER: a tick later than this many periods skips ahead to the present (0 reads as 10)
+# The loop's control record, shared between the compiled loop and Python (ctl[0])
+CTL = np.dtype([
+    ("stop", "i8"),  # set by Python: stop before the next tick
+    ("tick", "i8"),  # the next tick's index
+    ("fed", "i8"),  # ticks whose positions the feed holds
+    ("end", "i8"),  # the feed's end (NO_END: not known yet)
+    ("status", "i8"),  # how the loop ended (RUNNING...)
+    ("forces", "i8"),  # forces commanded
+    ("t0", "i8"),  # tick 0's deadline (ns)
+    ("ran", "i8"),  # ticks run (fewer than tick if a stall skipped some)
+    ("skip_after", "i8"),  # a tick later than this many periods skips ahead to the present (0 reads as 10)
+])
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
-# float outputs
-FL_MAXF, FL_F = 0, 1  # largest |F| commanded; last force (3)
-FL_SIZE = 4
+# the loop's float outputs (fl[0])
+FL = np.dtype([("maxf", "f8"),  # largest |F| commanded
+               ("f", "f8", 3)])  # last force
 
 NO_END = np.iinfo(np.int64).max // 4
 
@@ -83,18 +91,6 @@ def _clock_nanosleep_abs(typingctx, clk, addr):
     return sig, codegen
 
 
-@intrinsic
-def _fence(typingctx):
-    """A full memory fence: the sample row is written before its index is published."""
-    sig = types.void()
-
-    def codegen(context, builder, signature, args):
-        builder.fence("seq_cst")
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
 @nb.njit(cache=True, nogil=True)
 def now_ns(ts):
     """CLOCK_MONOTONIC in ns (the clock ``time.perf_counter`` reads on Linux); ``ts``: int64[2]."""
@@ -109,89 +105,120 @@ def sleep_until_ns(ts, t_ns):
     return _clock_nanosleep_abs(CLOCK_MONOTONIC, ts.ctypes.data)
 
 
+class Loop(NamedTuple):
+    ctl: np.ndarray  # (1,) CTL, shared with Python
+    fl: np.ndarray  # (1,) FL
+    ts: np.ndarray  # int64[2]: the clock's timespec
+
+
+class FeedRows(NamedTuple):
+    p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
+    v: np.ndarray  # (capacity, 3) velocities
+
+
 @nb.njit(cache=True, nogil=True)
-def servo_loop(ctl, fl, t0_ns, period_ns, k_limit, feed_p, feed_v, rbuf, rctr, errs, ts,
-               coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all, offs, tab, tmeta,
-               si, sf, holes, radii, scratch, diag, pbuf, vbuf):
-    """Run servo ticks from ``ctl[CT_TICK]`` until stopped (``ctl[CT_STOP]``), the feed ends
-    (``ctl[CT_END]``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
-    velocities of tick k are ``feed_p/feed_v[k % len]``, valid for k < ``ctl[CT_FED]``. Sample rows
-    go to ``rbuf[rctr[0] % len]``, then ``rctr[0]`` is advanced. Returns the status (also in
-    ``ctl[CT_STATUS]``). A loop entered after tick ``ctl[CT_TICK]``'s deadline moves ``t0_ns`` to
-    now (written to ``ctl[CT_T0]``)."""
-    fcap = feed_p.shape[0]
-    rcap = rbuf.shape[0]
-    ecap = errs.shape[0]
+def wait_until(ts, deadline):
+    """Sleep to 300 us before ``deadline`` (ns), then spin on the clock; returns the time (ns)."""
+    now = now_ns(ts)
+    if deadline - now > 400000:
+        sleep_until_ns(ts, deadline - 300000)
+    now = now_ns(ts)
+    while now < deadline:
+        now = now_ns(ts)
+    return now
+
+
+@nb.njit(cache=True, nogil=True)
+def skip_ahead(ctl, timing, k, k_limit, late, period_ns, skip_after):
+    """After a stall of ``late`` ns: the number of ticks to skip (counted missed), or 0."""
+    if skip_after >= NO_END or late <= skip_after * period_ns:
+        return 0
+    skip = late // period_ns
+    last = min(k_limit, ctl[0].end)  # skipped ticks past the session's end are not missed
+    if k + skip > last:
+        skip = max(last - k, 0)
+    timing.count[0].missed += skip
+    return skip
+
+
+@nb.njit(cache=True, nogil=True)
+def stop_reason(ctl, k, k_limit):
+    """The status that ends the loop before tick ``k``, or RUNNING."""
+    if k >= k_limit:
+        return LIMIT
+    if k >= ctl[0].end:
+        return ENDED
+    if k >= ctl[0].fed:
+        return STARVED
+    return RUNNING
+
+
+@nb.njit(cache=True, nogil=True)
+def record_force(fl, ctl, diag):
+    """The force this tick commanded (zero on a fault) and the largest so far."""
+    d = diag[0]
+    fault = d.fault != 0.0
+    mag = 0.0
+    for c in range(3):
+        f = 0.0 if fault else d.force[c]
+        fl[0].f[c] = f
+        mag += f * f
+    if mag > fl[0].maxf * fl[0].maxf:
+        fl[0].maxf = np.sqrt(mag)
+    ctl[0].forces += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
+    """Run servo ticks from ``ctl[0].tick`` until stopped (``ctl[0].stop``), the feed ends
+    (``ctl[0].end``), tick ``k_limit``, a non-finite state, or the feed runs dry. Positions and
+    velocities of tick k are ``feed.p/feed.v[k % len]``, valid for k < ``ctl[0].fed``. Each tick is
+    :func:`~haptic_acu.servotick.servo_tick` on the servo of ``table``
+    (:func:`~haptic_acu.servotick.tick_table`: sample rows into its ring, lateness into its timing).
+    Returns the status (also in ``ctl[0].status``; STALE: see
+    :func:`~haptic_acu.servotick.call_driver`). A loop entered after tick ``ctl[0].tick``'s
+    deadline moves ``t0_ns`` to now (written to ``ctl[0].t0``)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE
+    sv, ring, timing = unpack_tick(table)
+    ctl = lp.ctl
+    ts = lp.ts
+    fcap = feed.p.shape[0]
     dt = period_ns * 1e-9
-    k = ctl[CT_TICK]
+    k = ctl[0].tick
     status = RUNNING
-    skip_after = ctl[CT_SKIP_AFTER] if ctl[CT_SKIP_AFTER] > 0 else 10
+    skip_after = ctl[0].skip_after if ctl[0].skip_after > 0 else 10
     start = now_ns(ts)
     if start > t0_ns + k * period_ns:
         t0_ns = start - k * period_ns  # entered late (thread start-up): the clock starts now
-    ctl[CT_T0] = t0_ns
+    ctl[0].t0 = t0_ns
     while True:
-        if ctl[CT_STOP] != 0:
+        if ctl[0].stop != 0:
             status = STOPPED
             break
         deadline = t0_ns + k * period_ns
-        now = now_ns(ts)
-        if deadline - now > 400000:
-            sleep_until_ns(ts, deadline - 300000)
-        now = now_ns(ts)
-        while now < deadline:
-            now = now_ns(ts)
+        now = wait_until(ts, deadline)
+        skip = skip_ahead(ctl, timing, k, k_limit, now - deadline, period_ns, skip_after)
+        k += skip
+        deadline += skip * period_ns
         late = now - deadline
-        if skip_after < NO_END and late > skip_after * period_ns:
-            skip = late // period_ns
-            last = min(k_limit, ctl[CT_END])  # skipped ticks past the session's end are not missed
-            if k + skip > last:
-                skip = max(last - k, 0)
-            ctl[CT_MISSED] += skip
-            k += skip
-            deadline += skip * period_ns
-            late = now - deadline
-        if k >= k_limit:
-            status = LIMIT
+        status = stop_reason(ctl, k, k_limit)
+        if status != RUNNING:
             break
-        if k >= ctl[CT_END]:
-            status = ENDED
-            break
-        if k >= ctl[CT_FED]:
-            status = STARVED
-            break
-        if late > period_ns:
-            ctl[CT_MISSED] += 1
-        n = ctl[CT_NERR]
-        if n < ecap:
-            errs[n] = late * 1e-9
-        ctl[CT_NERR] = n + 1
+        account(timing, late, period_ns, 1e-9)
         j = k % fcap
         for c in range(3):
-            pbuf[c] = feed_p[j, c]
-            vbuf[c] = feed_v[j, c]
-        step_kernel(pbuf, vbuf, coeffs, lmax, centre, lp, npar, pos, rest_all, axes, nbr_all, ring_all, plane_all,
-                    offs, tab, tmeta, si, sf, holes, radii, scratch, diag)
-        fault = diag[D_FAULT] != 0.0
-        mag = 0.0
-        for c in range(3):
-            f = 0.0 if fault else diag[c]
-            fl[FL_F + c] = f
-            mag += f * f
-        if mag > fl[FL_MAXF] * fl[FL_MAXF]:
-            fl[FL_MAXF] = np.sqrt(mag)
-        ctl[CT_FORCES] += 1
-        head = rctr[0]
-        write_sample(rbuf, head % rcap, k * dt, k, pbuf, vbuf, diag, si, late * 1e-9)
-        _fence()
-        rctr[0] = head + 1
+            sv.inp.p[c] = feed.p[j, c]
+            sv.inp.v[c] = feed.v[j, c]
+        ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
+        record_force(lp.fl, ctl, sv.out.diag)
         k += 1
-        ctl[CT_TICK] = k
-        ctl[CT_RAN] += 1
-        if fault:
+        ctl[0].tick = k
+        ctl[0].ran += 1
+        if not ok:
             status = FAULTED
             break
-    ctl[CT_STATUS] = status
+    ctl[0].status = status
     return status
 
 
@@ -215,21 +242,21 @@ class Feed:
     def fill(self) -> bool:
         """Read ahead up to ``lead`` ticks past the loop; False once the device has ended."""
         ctl = self.ctl
-        while ctl[CT_FED] < ctl[CT_END] and ctl[CT_FED] - ctl[CT_TICK] < self.lead:
-            k0 = int(ctl[CT_FED])
-            n = min(self.chunk, self.capacity - (k0 - int(ctl[CT_TICK])) - 1)
+        while ctl[0]["fed"] < ctl[0]["end"] and ctl[0]["fed"] - ctl[0]["tick"] < self.lead:
+            k0 = int(ctl[0]["fed"])
+            n = min(self.chunk, self.capacity - (k0 - int(ctl[0]["tick"])) - 1)
             if n <= 0:
                 break
             T = np.arange(k0, k0 + n) * self.dt
             P, V, done = self.device.read_block(T)
             if done.any():
                 n = int(np.argmax(done))
-                ctl[CT_END] = k0 + n
+                ctl[0]["end"] = k0 + n
             idx = np.arange(k0, k0 + n) % self.capacity
             self.p[idx] = P[:n]
             self.v[idx] = V[:n]
-            ctl[CT_FED] = k0 + n  # published after the rows (CPython runs these in order)
-        return ctl[CT_FED] < ctl[CT_END]
+            ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
+        return ctl[0]["fed"] < ctl[0]["end"]
 
     def start(self, stop: threading.Event) -> None:
         def run():

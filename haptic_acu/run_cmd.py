@@ -135,7 +135,7 @@ def run(args) -> int:
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,  # resets need read_at:
-                      compiled_loop=not args.python_servo and not getattr(device, "has_events", False))
+                      compiled_loop=not args.python_servo and not device.has_events)
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()

@@ -11,7 +11,7 @@ import threading
 import numba as nb
 import numpy as np
 
-from . import needle as nd
+from .servostate import LAYER_NAMES, N_LAYERS
 
 COLUMNS = (
     "t_s", "tick",
@@ -19,9 +19,9 @@ COLUMNS = (
     "vx_m_s", "vy_m_s", "vz_m_s",
     "fx_n", "fy_n", "fz_n",
     "f_surface_n", "f_damp_n", "f_lateral_n", "f_bone_n",
-    "f_skin_n", "f_fat_n", "f_muscle_n",
+    *(f"f_{name}_n" for name in LAYER_NAMES),
     "layer", "depth_m", "depth_skin_m", "front",
-    "state_skin", "state_fat", "state_muscle",
+    *(f"state_{name}" for name in LAYER_NAMES),
     "ringw_m", "dz1_m", "puncture", "fault", "clamped",
     "period_err_s",
 )
@@ -32,34 +32,46 @@ C_T, C_TICK = COL["t_s"], COL["tick"]
 C_X, C_V, C_F = COL["x_m"], COL["vx_m_s"], COL["fx_n"]
 
 
-@nb.njit(cache=True, nogil=True)
-def write_sample(buf, row, t, tick, p, v, diag, si, period_err):
-    """Fill ``buf[row]`` from one tick's state. Allocation-free."""
+# column indices, by name (numba reads module-level integers as constants)
+_T, _TICK, _X, _V, _F = COL["t_s"], COL["tick"], COL["x_m"], COL["vx_m_s"], COL["fx_n"]
+_F_SURFACE, _F_DAMP, _F_LATERAL, _F_BONE = COL["f_surface_n"], COL["f_damp_n"], COL["f_lateral_n"], COL["f_bone_n"]
+_F_LAYER = COL[f"f_{LAYER_NAMES[0]}_n"]
+_STATE = COL[f"state_{LAYER_NAMES[0]}"]
+_LAYER, _DEPTH, _DEPTH_SKIN, _FRONT = COL["layer"], COL["depth_m"], COL["depth_skin_m"], COL["front"]
+_RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["puncture"], COL["fault"], COL["clamped"]
+_PERIOD_ERR = COL["period_err_s"]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def write_sample(buf, row, t, tick, inp, s, diag, period_err):
+    """Fill ``buf[row]`` from one tick: its time and index, the input ``inp`` (TickIn), the servo
+    state ``s`` (State) and output ``diag`` (the one-row DIAG record array). Allocation-free."""
     r = buf[row]
-    r[0] = t
-    r[1] = tick
+    d = diag[0]
+    sv = s.servo[0]
+    r[_T] = t
+    r[_TICK] = tick
     for k in range(3):
-        r[2 + k] = p[k]
-        r[5 + k] = v[k]
-        r[8 + k] = diag[k]
-    r[11] = diag[nd.D_F_SURFACE]
-    r[12] = diag[nd.D_F_DAMP]
-    r[13] = diag[nd.D_F_LATERAL]
-    r[14] = diag[nd.D_F_BONE]
-    for k in range(3):
-        r[15 + k] = diag[nd.D_F_LAYER + k]
-    r[18] = diag[nd.D_LAYER]
-    r[19] = diag[nd.D_DEPTH]
-    r[20] = diag[nd.D_DEPTH_SKIN]
-    r[21] = diag[nd.D_FRONT]
-    for k in range(3):
-        r[22 + k] = si[nd.SI_STATE + k]
-    r[25] = diag[nd.D_RINGW]
-    r[26] = diag[nd.D_DZ1]
-    r[27] = diag[nd.D_PUNCTURE]
-    r[28] = diag[nd.D_FAULT]
-    r[29] = diag[nd.D_CLAMPED]
-    r[30] = period_err
+        r[_X + k] = inp.p[k]
+        r[_V + k] = inp.v[k]
+        r[_F + k] = d.force[k]
+    r[_F_SURFACE] = d.f_surface
+    r[_F_DAMP] = d.f_damp
+    r[_F_LATERAL] = d.f_lateral
+    r[_F_BONE] = d.f_bone
+    for k in range(N_LAYERS):
+        r[_F_LAYER + k] = d.f_layer[k]
+        r[_STATE + k] = sv.state[k]
+    r[_LAYER] = d.layer
+    r[_DEPTH] = d.depth
+    r[_DEPTH_SKIN] = d.depth_skin
+    r[_FRONT] = d.front
+    r[_RINGW] = d.ringw
+    r[_DZ1] = d.dz1
+    r[_PUNCTURE] = d.puncture
+    r[_FAULT] = d.fault
+    r[_CLAMPED] = d.clamped
+    r[_PERIOD_ERR] = period_err
 
 
 class SampleRing:

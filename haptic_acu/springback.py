@@ -19,6 +19,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .servostate import VISUAL_OWNS
+
 
 @nb.njit(cache=True, nogil=True)
 def polar_rotation(A):
@@ -108,7 +110,7 @@ class Springback:
         m = self.model
         moved = 0
         for idx in range(len(m.x)):
-            if m.owner(idx) != 2:
+            if m.owner(idx) != VISUAL_OWNS:
                 continue
             g = m.generation(idx)
             if g != self.gen[idx]:

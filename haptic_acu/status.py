@@ -37,9 +37,10 @@ import numpy as np
 
 from .config import LAYER_NAMES
 from .samples import COL
+from .servostate import PLACE_NAMES
 
-_STATE_SHORT = ("-", "press", "punct")  # needle.UNTOUCHED, PRESSING, PUNCTURED
-_PLACE = {-1: "air", 0: "skin", 1: "fat", 2: "muscle", 3: "bone"}  # needle.D_LAYER values
+_STATE_SHORT = ("-", "press", "punct")  # short forms of servostate.STATE_NAMES
+_PLACE = {i - 1: name for i, name in enumerate(PLACE_NAMES)}  # the DIAG.layer values (-1 air ... 3 bone)
 _C_F = COL["fx_n"]
 _C_V = COL["vx_m_s"]
 _C_STATE = COL["state_skin"]

@@ -57,7 +57,8 @@ def locate_kernel(coeffs, lmax, centre, p, radii):
     """(layer, depth below that layer's top surface) for point ``p``; fills ``radii[4]``.
 
     Layer -1 is outside the skin (depth then negative: the height above the skin), 3 is bone.
-    Allocates nothing, so the servo step calls it every tick.
+    Allocates nothing. (The servo step reads the same radii through ``boundary_radii``, in
+    ``needle.tip_radii``, and places the tip itself in ``needle.locate``.)
     """
     rho = boundary_radii(coeffs, lmax, centre, p, radii)
     nb_ = coeffs.shape[0]

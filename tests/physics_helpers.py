@@ -88,7 +88,7 @@ def drive(model, points, velocity) -> list[Tick]:
     out = []
     for p, v in zip(points, vel):
         f = model.step(p, v)
-        out.append(Tick(p.copy(), v.copy(), np.array(f, dtype=float), np.array(model.diag, dtype=float),
+        out.append(Tick(p.copy(), v.copy(), np.array(f, dtype=float), model.diag.copy(),
                         model.states))
     return out
 

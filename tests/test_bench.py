@@ -19,7 +19,7 @@ from haptic_acu.bench import run, scenarios
 from haptic_acu.bench.numpy_reference import HexNet, NumpyNeedle, SHBasis
 from haptic_acu import shf
 from haptic_acu.forcenet import lattice, n_particles
-from haptic_acu.needle import D_PUNCTURE, NP_SWEEPS, PRESSING, PUNCTURED
+from haptic_acu.needle import PRESSING, PUNCTURED
 from haptic_acu.trajectory import TrajectoryWriter
 
 
@@ -60,8 +60,8 @@ def test_reference_lattice_is_the_hexagonal_net_and_three_coloured(w):
 def _converge(model, ref, p, sweeps=200, max_ticks=40):
     """Hold the tip at ``p`` with ``sweeps`` sweeps per tick until neither force changes by more
     than 1e-13 N between ticks; returns both forces."""
-    saved = model.npar[NP_SWEEPS]
-    model.npar[NP_SWEEPS] = sweeps
+    saved = model.model.params["sweeps"][0]
+    model.model.params["sweeps"][0] = sweeps
     fc_prev = fr_prev = None
     try:
         for _ in range(max_ticks):
@@ -71,7 +71,7 @@ def _converge(model, ref, p, sweeps=200, max_ticks=40):
                 return fc, fr
             fc_prev, fr_prev = fc, fr
     finally:
-        model.npar[NP_SWEEPS] = saved
+        model.model.params["sweeps"][0] = saved
     raise AssertionError("the static press did not converge")
 
 
@@ -125,17 +125,17 @@ def test_reference_matches_compiled_step_through_every_layer():
     for i, (p, v) in enumerate(zip(P, V)):
         fc = model.step(p, v).copy()
         fr = ref.step(p, v).copy()
-        if model.diag[D_PUNCTURE] >= 0:
-            punct_c.append((int(model.diag[D_PUNCTURE]), i))
+        if model.diag["puncture"] >= 0:
+            punct_c.append((int(model.diag["puncture"]), i))
         if ref.punctured_now >= 0:
             punct_r.append((ref.punctured_now, i))
-        if all(s == PUNCTURED for s in model.states) and not model.diag[D_PUNCTURE] >= 0:
+        if all(s == PUNCTURED for s in model.states) and not model.diag["puncture"] >= 0:
             after_all.append(np.abs(fc - fr).max())
         else:
             assert np.abs(fc - fr).max() < 1e-4, (i, fc, fr)
     assert [k for k, _ in punct_c] == [0, 1, 2]
     assert punct_r == punct_c
-    assert math.isclose(ref.offset, model.sf[0], rel_tol=0, abs_tol=1e-15)
+    assert math.isclose(ref.offset, model.offset, rel_tol=0, abs_tol=1e-15)
     assert len(after_all) > 1000 and max(after_all) < 1e-9
     assert np.abs(fc).max() > 0.05  # the stroke meets real damping, not zero force
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from haptic_acu.config import CONFIG_DIR, load_config
-from haptic_acu.needle import D_PUNCTURE, PUNCTURED, NeedleModel
+from haptic_acu.needle import PUNCTURED, NeedleModel
 from haptic_acu.tissue import Tissue
 from physics_helpers import drive, straight_line
 
@@ -30,7 +30,7 @@ def insertion(cfg, tissue, depth_after_muscle_m=20e-3):
     s_muscle = None
     for p in pts:
         ticks.extend(drive(model, [p], v))
-        if ticks[-1].diag[D_PUNCTURE] == 2:
+        if ticks[-1].diag["puncture"] == 2:
             s_muscle = -p[2]
         if s_muscle is not None and -p[2] >= s_muscle + depth_after_muscle_m - 1e-9:
             break
@@ -44,7 +44,7 @@ def default_run():
 
 
 def punctures(ticks):
-    return [(i, int(t.diag[D_PUNCTURE])) for i, t in enumerate(ticks) if t.diag[D_PUNCTURE] >= 0]
+    return [(i, int(t.diag["puncture"])) for i, t in enumerate(ticks) if t.diag["puncture"] >= 0]
 
 
 def test_punctures_skin_then_fat_then_muscle(default_run):

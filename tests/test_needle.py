@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 
 from haptic_acu.forcenet import Net, NetParams
-from haptic_acu.needle import (D_DZ1, D_F_SURFACE, D_PUNCTURE, D_RINGW, PRESSING, PUNCTURED, UNTOUCHED,
-                               NeedleModel)
+from haptic_acu.needle import PRESSING, PUNCTURED, UNTOUCHED, NeedleModel
 from physics_helpers import (damping_m, drive, layer_tops_m, replace, sphere_config, sphere_tissue,
                              straight_line, table1_damping)
 
@@ -50,7 +49,7 @@ def depth(tick):
 
 
 def puncture_ticks(ticks):
-    return [i for i, t in enumerate(ticks) if t.diag[D_PUNCTURE] >= 0]
+    return [i for i, t in enumerate(ticks) if t.diag["puncture"] >= 0]
 
 
 def offsets(cfg, s_punct):
@@ -88,14 +87,14 @@ def test_zero_force_outside_the_tissue(cfg, tissue, insertion):
 
 def test_punctures_in_order_exactly_at_the_threshold(cfg, insertion):
     idx = puncture_ticks(insertion)
-    assert [int(insertion[i].diag[D_PUNCTURE]) for i in idx] == [0, 1, 2]
+    assert [int(insertion[i].diag["puncture"]) for i in idx] == [0, 1, 2]
     for k, i in enumerate(idx):
         thresh = cfg.layers[k].puncture_threshold_um * 1e-6
         pressing = [j for j, t in enumerate(insertion) if t.states[k] == PRESSING]
         assert pressing and pressing == list(range(pressing[0], i)), k  # pressed without a break up to i
         for j in pressing:
-            assert insertion[j].diag[D_RINGW] <= thresh, (k, j)
-        assert insertion[i].diag[D_RINGW] > thresh
+            assert insertion[j].diag["ringw"] <= thresh, (k, j)
+        assert insertion[i].diag["ringw"] > thresh
         assert insertion[i].states[k] == PUNCTURED
         assert all(t.states[k] == PUNCTURED for t in insertion[i:])
         # the force drops by at least half at the puncture
@@ -111,7 +110,7 @@ def test_compression_offset_is_the_dent_at_the_break(cfg, insertion):
     tops, _ = layer_tops_m(cfg)
     prev = 0.0
     for k, i in enumerate(idx):
-        dent = insertion[i].diag[D_DZ1]
+        dent = insertion[i].diag["dz1"]
         assert abs(dent - (s[k] - prev - tops[k])) < 1e-9
         assert abs(o[k] - (prev + dent)) < 1e-9
         prev = o[k]
@@ -122,7 +121,7 @@ def test_pressing_skin_is_the_net_alone(cfg, insertion):
     assert len(pressing) > 100
     for t in pressing:
         assert t.force[0] == 0 and t.force[1] == 0
-        assert t.force[2] == pytest.approx(t.diag[D_F_SURFACE], abs=1e-12) and t.force[2] > 0
+        assert t.force[2] == pytest.approx(t.diag["f_surface"], abs=1e-12) and t.force[2] > 0
 
 
 @pytest.mark.parametrize("layer", [0, 1, 2])
@@ -155,10 +154,10 @@ def test_pressing_a_deeper_layer_adds_the_damping_above(cfg, insertion, layer):
     _, thick = layer_tops_m(cfg)
     above = sum(damping_m(cfg)[j] * thick[j] for j in range(layer)) * SPEED
     for t in ticks:
-        surface = t.diag[D_F_SURFACE]
+        surface = t.diag["f_surface"]
         assert surface >= 0
         assert t.force[2] == pytest.approx(surface + above, rel=1e-9, abs=1e-12)
-    assert max(t.diag[D_F_SURFACE] for t in ticks) > 10 * above  # the net dominates before the break
+    assert max(t.diag["f_surface"] for t in ticks) > 10 * above  # the net dominates before the break
 
 
 def drive_until(model, states, dent_m, cfg):
@@ -172,7 +171,7 @@ def drive_until(model, states, dent_m, cfg):
         z -= SPEED * 1e-3
         p = np.array([0.0, 0.0, z])
         model.step(p, DOWN)
-        if model.diag[D_PUNCTURE] >= 0:
+        if model.diag["puncture"] >= 0:
             s_punct.append(-z)
         o = offsets(cfg, s_punct)[-1] if s_punct else 0.0
         if model.states == states and (-z - o) - tops[front] >= dent_m:
@@ -214,7 +213,7 @@ def test_damping_opposes_motion_and_ends_as_the_tip_leaves_each_layer(cfg, tissu
     pts, v = straight_line(1e-3, -25e-3, SPEED)
     for p in pts:
         model.step(p, v)
-        if model.diag[D_PUNCTURE] >= 0:
+        if model.diag["puncture"] >= 0:
             s_punct.append(-p[2])
     assert model.states == (PUNCTURED,) * 3
     o = offsets(cfg, s_punct)[2]
@@ -258,12 +257,12 @@ def test_holes_stay_and_reentry_meets_no_surface(cfg, tissue):
     tops, _ = layer_tops_m(cfg)
     # one hole per layer, where the needle met each layer's rest surface: straight below the acupoint
     assert holes.shape[0] == 3
-    assert [int(h) for h in holes[:, 3]] == [0, 1, 2]
-    np.testing.assert_allclose(holes[:, :3], [[0.0, 0.0, -t] for t in tops], atol=1e-9)
+    assert [int(h) for h in holes["layer"]] == [0, 1, 2]
+    np.testing.assert_allclose(holes["point"], [[0.0, 0.0, -t] for t in tops], atol=1e-9)
     # re-insertion through the same holes: never a pressing state, force is the damping alone
     again, _ = insert_and_withdraw(model)
     assert not any(PRESSING in t.states for t in again)
-    assert all(t.diag[D_F_SURFACE] == 0 for t in again)
+    assert all(t.diag["f_surface"] == 0 for t in again)
     for t in again:  # no dent this time, so no compression offset
         assert t.force[2] == pytest.approx(table1_damping(cfg, max(depth(t), 0.0), [True] * 3, SPEED),
                                            rel=1e-9, abs=1e-12)
@@ -271,7 +270,7 @@ def test_holes_stay_and_reentry_meets_no_surface(cfg, tissue):
     # a new site 5 mm away meets the skin's surface force again
     new, _ = insert_and_withdraw(model, xy=(5e-3, 0.0))
     assert any(t.states[0] == PRESSING for t in new)
-    assert max(t.diag[D_F_SURFACE] for t in new) > 0.5
+    assert max(t.diag["f_surface"] for t in new) > 0.5
     assert model.holes_list.shape[0] == 6
 
 
@@ -282,7 +281,7 @@ def into_fat(cfg, tissue):
     s_fat = None
     for p in pts:
         model.step(p, v)
-        if model.diag[D_PUNCTURE] == 1:
+        if model.diag["puncture"] == 1:
             s_fat = -p[2]
         if s_fat is not None and -p[2] >= s_fat + 2e-3:
             assert model.states == (PUNCTURED, PUNCTURED, UNTOUCHED)
@@ -315,7 +314,7 @@ def test_bone_wall_pushes_out_by_its_penetration(cfg, tissue):
     s_punct = []
     for p in pts:
         model.step(p, v)
-        if model.diag[D_PUNCTURE] >= 0:
+        if model.diag["puncture"] >= 0:
             s_punct.append(-p[2])
     o = offsets(cfg, s_punct)[2]
     tops, thick = layer_tops_m(cfg)
@@ -330,7 +329,7 @@ def pressing_skin(cfg, tissue):
     model = NeedleModel(cfg, tissue)
     pts, v = straight_line(1e-3, -1e-3, SPEED)
     drive(model, pts, v)
-    assert model.states[0] == PRESSING and model.diag[D_F_SURFACE] > 0.3
+    assert model.states[0] == PRESSING and model.diag["f_surface"] > 0.3
     return model, pts[-1]
 
 

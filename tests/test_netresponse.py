@@ -19,7 +19,7 @@ from haptic_acu.bench.numpy_reference import NumpyNeedle
 from haptic_acu import netresponse
 from haptic_acu.config import load_config
 from haptic_acu.forcenet import NetParams, lattice, n_particles
-from haptic_acu.needle import D_PUNCTURE, PUNCTURED
+from haptic_acu.needle import PUNCTURED
 
 TOL = 1e-10  # the default config's static tolerance (m)
 
@@ -158,8 +158,8 @@ def test_servo_on_the_table_matches_the_numpy_reference_through_every_layer(cfg)
     for i, (p, v) in enumerate(zip(P, V)):
         fc = model.step(p, v).copy()
         fr = ref.step(p, v).copy()
-        if model.diag[D_PUNCTURE] >= 0:
-            punct_c.append((int(model.diag[D_PUNCTURE]), i))
+        if model.diag["puncture"] >= 0:
+            punct_c.append((int(model.diag["puncture"]), i))
         if ref.punctured_now >= 0:
             punct_r.append((ref.punctured_now, i))
         worst = max(worst, float(np.abs(fc - fr).max()))
@@ -183,10 +183,10 @@ def test_servo_on_the_table_tracks_converged_sweeps(cfg):
     fa, fb = [], []
     for p, v in zip(P, V):
         f1 = a.step(p, v)[2]
-        if a.diag[D_PUNCTURE] >= 0:
+        if a.diag["puncture"] >= 0:
             pa.append(float(-p[2]))
         f2 = b.step(p, v)[2]
-        if b.diag[D_PUNCTURE] >= 0:
+        if b.diag["puncture"] >= 0:
             pb.append(float(-p[2]))
         if len(pa) == len(pb):
             fa.append(f1)

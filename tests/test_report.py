@@ -37,7 +37,7 @@ def drive_rows(model, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3) -> np.ndarray:
     for i in range(n):
         p = np.array([0.0, 0.0, z0 - speed * dt * i])
         model.step(p, v)
-        S.write_sample(rows, i, i * dt, i, p, v, model.diag, model.si, 0.0)
+        S.write_sample(rows, i, i * dt, i, model.inp, model.state, model.out.diag, 0.0)
     return rows
 
 

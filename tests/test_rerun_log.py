@@ -63,7 +63,7 @@ def run_session(model, cfg, sink, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3, frame
     for i in range(n):
         p = np.array([0.0, 0.0, z0 - speed * dt * i])
         model.step(p, v)
-        S.write_sample(rows, i, i * dt, i, p, v, model.diag, model.si, 0.0)
+        S.write_sample(rows, i, i * dt, i, model.inp, model.state, model.out.diag, 0.0)
         if i + 1 - start == frame_rows or i == n - 1:
             spring.frame()
             sink.on_frame(SimpleNamespace(t_s=i * dt, index=start // frame_rows, samples=rows[start:i + 1].copy(),

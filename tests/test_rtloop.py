@@ -21,6 +21,8 @@ from haptic_acu import rtloop
 from haptic_acu.config import load_config
 from haptic_acu.engine import Session
 from haptic_acu.needle import NeedleModel
+from haptic_acu.servostate import TIMING, Ring, Timing
+from haptic_acu.servotick import call_driver, tick_table
 from haptic_acu.samples import COL
 from haptic_acu.tissue import Tissue
 from haptic_acu.trajectory import TrajectoryWriter
@@ -111,29 +113,31 @@ def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):
     feed_p[:, 0] = np.arange(fcap) * 1e-7  # tick k's row is recognisable by its x
     feed_p[:, 2] = 5e-3
     feed_v = np.zeros((fcap, 3))
-    ctl = np.zeros(rtloop.CT_SIZE, np.int64)
-    ctl[rtloop.CT_FED] = fcap
-    ctl[rtloop.CT_END] = rtloop.NO_END
-    ctl[rtloop.CT_SKIP_AFTER] = skip_after
+    ctl = np.zeros(1, rtloop.CTL)
+    ctl["fed"] = fcap
+    ctl["end"] = rtloop.NO_END
+    ctl["skip_after"] = skip_after
     ring = np.zeros((fcap, len(COL)))
     rctr = np.zeros(1, np.int64)
-    errs = np.zeros(fcap)
+    timing = Timing(np.zeros(fcap), np.zeros(1, TIMING))
+    errs = timing.errs
     ts = np.zeros(2, np.int64)
-    status = rtloop.servo_loop(ctl, np.zeros(rtloop.FL_SIZE), rtloop.now_ns(ts), period_ns, k_limit, feed_p, feed_v,
-                               ring, rctr, errs, ts, *m.kernel_args(), m._p, m._v)
+    rows = Ring(ring, rctr)
+    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(1, rtloop.FL), ts), rtloop.now_ns(ts),
+                         period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v), tick_table(m.servo, rows, timing))
     assert status == rtloop.LIMIT
     rows = ring[:rctr[0]]
     ticks = rows[:, COL["tick"]].astype(int)
     np.testing.assert_array_equal(rows[:, COL["x_m"]], feed_p[ticks, 0])  # each row is its own tick's
     np.testing.assert_allclose(rows[:, COL["t_s"]], ticks * period_ns * 1e-9, rtol=0, atol=1e-15)
-    assert ctl[rtloop.CT_RAN] == rctr[0] == ctl[rtloop.CT_NERR]
-    return ctl, ticks, errs[:rctr[0]] * 1e9 / period_ns
+    assert ctl[0]["ran"] == rctr[0] == timing.count[0]["n_err"]
+    return timing.count[0]["missed"], ticks, errs[:rctr[0]] * 1e9 / period_ns
 
 
 def test_a_loop_late_by_more_than_its_threshold_skips_ahead_and_counts_what_it_skipped(cfg, tissue):
     # A period of 100 ns (far shorter than any tick) keeps the loop late by many periods at every
     # tick: with the threshold at 2 periods, every late tick jumps to the present.
-    ctl, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, 2)
+    missed, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, 2)
     gaps = np.diff(ticks)
     assert ticks[0] == 0 and np.all(gaps >= 1) and gaps.max() > 1
     assert ticks[-1] < 3000 and len(ticks) < 3000  # ticks were skipped, none past the limit
@@ -141,14 +145,14 @@ def test_a_loop_late_by_more_than_its_threshold_skips_ahead_and_counts_what_it_s
     skipped = int((gaps - 1).sum()) + (3000 - 1 - ticks[-1])  # between rows, and after the last up to the limit
     # every skipped tick of the session is missed (none past its end), and so is every tick run
     # more than a period late
-    assert ctl[rtloop.CT_MISSED] == skipped + int((late > 1).sum())
+    assert missed == skipped + int((late > 1).sum())
 
 
 def test_a_loop_that_never_skips_runs_every_tick_however_late(cfg, tissue):
-    ctl, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, rtloop.NO_END)
+    missed, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, rtloop.NO_END)
     np.testing.assert_array_equal(ticks, np.arange(3000))
     assert late[-1] > 1000  # far behind by the end, and still every tick ran
-    assert ctl[rtloop.CT_MISSED] == int((late > 1).sum())
+    assert missed == int((late > 1).sum())
 
 
 def test_stop_from_another_thread_ends_at_once_with_zero_force_and_every_row(cfg, tissue):

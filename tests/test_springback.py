@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from haptic_acu.config import load_config
 from haptic_acu.forcenet import Net, NetParams, n_particles
-from haptic_acu.needle import D_PUNCTURE, N_LAYERS, N_SLOTS, NeedleModel
+from haptic_acu.needle import N_LAYERS, N_SLOTS, NeedleModel
 from haptic_acu.springback import Springback, polar_rotation, shape_matching_goals, springback_step
 from physics_helpers import sh_sphere, sphere_config, sphere_tissue, straight_line
 
@@ -155,7 +155,7 @@ def test_springback_class_returns_a_punctured_skin_to_the_rest_surface():
     pts, v = straight_line(1e-3, -3e-3, 0.01)
     for p in pts:
         model.step(p, v)
-        if model.diag[D_PUNCTURE] == 0:
+        if model.diag["puncture"] == 0:
             break
     handed = [i for i in range(N_LAYERS * N_SLOTS) if model.owner(i) == 2]
     assert len(handed) == 1

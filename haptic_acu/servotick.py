@@ -1,0 +1,109 @@
+"""One servo tick, written once: the step, the period-error statistics, the sample row, publishing.
+
+Every driver of the servo calls :func:`servo_tick`: the headless replay (:func:`run_ticks`, on
+simulated time), the compiled real-time loop (:func:`haptic_acu.rtloop.servo_loop`, on our timer)
+and the OMNI's compiled callback (:mod:`haptic_acu.omniloop`, on the device's clock). A tick's
+lateness goes through :func:`account` in each driver's own units. The arguments are the NamedTuples
+of :mod:`haptic_acu.servostate`: ``sv`` (Servo: input, model, state, output), ``ring`` (Ring: the
+sample rows and their published count), ``timing`` (Timing: period errors, their count, missed);
+a compiled driver gets all three in one address table (:func:`tick_table`).
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numba import types
+from numba.extending import intrinsic, register_jitable
+
+from . import servostate as ss
+from .needle import step_servo
+from .samples import write_sample
+
+STALE = -1  # what a compiled driver returns for a table of another layout (see call_driver)
+# A driver's table: the header, the Servo, the sample Ring, the Timing (a device may append its own).
+AT_RING = ss.HEADER + ss.SERVO_TABLE
+AT_TIMING = AT_RING + ss.table_size(ss.Ring)
+TICK_TABLE = AT_TIMING + ss.table_size(ss.Timing)
+
+
+def tick_table(servo, ring, timing, *more) -> np.ndarray:
+    """The address table a compiled driver unpacks (:func:`unpack_tick`): the servo, its sample ring,
+    its timing, then ``more``. The caller keeps every array alive while the table is in use.
+
+    Why a table rather than the NamedTuples themselves: arrays viewed from addresses carry no
+    reference count, so the phases of the step pass them around for free."""
+    return ss.address_table(servo, ring, timing, *more)
+
+
+def call_driver(driver, *args):
+    """Call a compiled driver whose last argument is a :func:`tick_table`. A driver loaded from a numba
+    cache written for another state layout refuses the table (returns :data:`STALE`) before touching
+    it: it is then recompiled (its stale cache entry flushed) and called again."""
+    r = driver(*args)
+    if r == STALE:
+        driver.recompile()
+        r = driver(*args)
+    return r
+
+
+@register_jitable
+def unpack_tick(table):
+    """In compiled code: (Servo, Ring, Timing) from a :func:`tick_table`."""
+    return (ss.unpack_servo(table, ss.HEADER), ss.unpack(table, AT_RING, ss.Ring),
+            ss.unpack(table, AT_TIMING, ss.Timing))
+
+
+@intrinsic
+def fence(typingctx):
+    """A full memory fence: the sample row is written before its index is published."""
+    sig = types.void()
+
+    def codegen(context, builder, signature, args):
+        builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def account(timing, err, period, to_s):
+    """A tick's period error ``err`` (in the driver's units; ``period`` in the same): kept in
+    seconds (``err * to_s``) while there is room, counted, and a tick later than a period missed."""
+    c = timing.count[0]
+    n = c.n_err
+    if n < timing.errs.shape[0]:
+        timing.errs[n] = err * to_s
+    c.n_err = n + 1
+    if err > period:
+        c.missed += 1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def servo_tick(sv, ring, t, tick, err_s):
+    """One tick on ``sv.inp`` (the caller has written the position and velocity): the step, its
+    sample row (time ``t``, index ``tick``, period error ``err_s``) written and published. Returns
+    False if the state is not finite (the fault is latched: the force is zero from here)."""
+    step_servo(sv)
+    head = ring.ctr[0]
+    write_sample(ring.buf, head % ring.buf.shape[0], t, tick, sv.inp, sv.state, sv.out.diag, err_s)
+    fence()
+    ring.ctr[0] = head + 1
+    return sv.out.diag[0].fault == 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def run_ticks(P, V, T, tick0, table):
+    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V`` at
+    times ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip
+    per tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
+    :func:`call_driver`)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE
+    sv, ring, _ = unpack_tick(table)
+    for i in range(T.shape[0]):
+        for c in range(3):
+            sv.inp.p[c] = P[i, c]
+            sv.inp.v[c] = V[i, c]
+        if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
+            return i + 1
+    return T.shape[0]

@@ -1,0 +1,134 @@
+"""The servo's named data (haptic_acu.servostate) and the step's phases (haptic_acu.needle) on their own.
+
+The address tables are checked against NumPy (what compiled code unpacks is the arrays themselves);
+the phases against closed forms: Table 1 damping over the passed layers, the lateral spring's
+perpendicular pull, the safety clamp's scaling and fault latch, on a state written by hand.
+"""
+import math
+
+import numba as nb
+import numpy as np
+import pytest
+
+from haptic_acu import needle
+from haptic_acu import servostate as ss
+from haptic_acu.needle import NeedleModel
+from physics_helpers import sphere_config, sphere_tissue
+
+
+@pytest.fixture(scope="module")
+def model():
+    cfg = sphere_config()
+    m = NeedleModel(cfg, sphere_tissue(cfg))
+    m.warm_up()
+    return m
+
+
+@nb.njit
+def _sums_from_table(t):
+    sv = ss.unpack_servo(t, ss.HEADER)
+    m = sv.model
+    return (m.coeffs.sum(), m.nbr.sum(), m.layer[2].threshold, m.params[0].lmax, sv.state.pos.shape[0],
+            sv.state.holes.shape[0], sv.inp.p[2], sv.out.diag.shape[0])
+
+
+def test_an_address_table_unpacks_to_the_same_arrays(model):
+    model.inp.p[:] = [0.0, 0.0, 0.125]
+    t = ss.address_table(model.servo)
+    assert t[0] == ss.LAYOUT_KEY and t.size == ss.HEADER + ss.SERVO_TABLE
+    got = _sums_from_table(t)
+    want = (model.model.coeffs.sum(), model.model.nbr.sum(), model.model.layer["threshold"][2],
+            model.lmax, model.state.pos.shape[0], ss.MAX_HOLES, 0.125, 1)
+    assert got == want
+
+
+def test_an_address_table_names_the_field_it_refuses():
+    bad = ss.TickIn(np.zeros(3, np.float32), np.zeros(3))
+    with pytest.raises(TypeError, match=r"TickIn\.p"):
+        ss.address_table(bad)
+
+
+def test_the_step_entry_refuses_a_table_for_another_layout(model):
+    model.step(np.array([0.0, 0.0, 5e-3]), np.zeros(3))
+    tick = int(model.rec["tick"])
+    model._step_table[0] += 1  # as a table written for another layout would be
+    try:
+        model.step(np.array([0.0, 0.0, 5e-3]), np.zeros(3))
+        assert int(model.rec["tick"]) == tick  # nothing ran, nothing was written
+    finally:
+        model._step_table[0] -= 1
+    model.step(np.array([0.0, 0.0, 5e-3]), np.zeros(3))
+    assert int(model.rec["tick"]) == tick + 1
+
+
+@nb.njit
+def _damping_phase(inp, m, s, out):
+    needle.passed_layer_damping(inp, m, s, out[0])
+
+
+@nb.njit
+def _lateral_phase(inp, m, s, out):
+    needle.lateral_guidance(inp, m, s, out[0])
+
+
+@nb.njit
+def _clamp_phase(m, s, out):
+    needle.clamp(m, s, out[0])
+
+
+@pytest.fixture
+def fresh(model):
+    """The model with every layer punctured along -z through the origin, work zeroed; restored after."""
+    snap = model.copy_state()
+    model.reset(keep_holes=False)
+    model.state.work[:] = np.zeros(1, ss.WORK)
+    rec = model.rec
+    rec["state"][:] = ss.PUNCTURED
+    rec["inserted"] = 1
+    rec["axis"][:] = [0.0, 0.0, -1.0]
+    rec["entry"][:] = [0.0, 0.0, 0.0]
+    yield model
+    model.restore_state(snap)
+
+
+@pytest.mark.parametrize("rho", [0.0995, 0.097, 0.085, 0.070])
+def test_damping_of_the_passed_layers_is_table_1(fresh, rho):
+    m = fresh
+    radii = np.array([0.100, 0.099, 0.094, 0.074])
+    m.state.radii[:] = radii
+    m.state.work[0]["rho"] = rho
+    v = np.array([0.001, 0.0, -0.02])  # 20 mm/s into the tissue, a little sideways
+    m.inp.v[:] = v
+    out = np.zeros(1, ss.DIAG)
+    _damping_phase(m.inp, m.model, m.state, out)
+    d = m.model.layer["damping"]
+    h = [min(max(radii[j] - rho, 0.0), radii[j] - radii[j + 1]) for j in range(3)]
+    v_ax = 0.02
+    want = -sum(d[j] * h[j] for j in range(3)) * v_ax
+    assert out[0]["f_damp"] == pytest.approx(want, rel=1e-12)
+    np.testing.assert_allclose(m.state.work[0]["f"], [0.0, 0.0, -want], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(out[0]["f_layer"], [-d[j] * h[j] * v_ax for j in range(3)], rtol=1e-12)
+
+
+def test_lateral_guidance_pulls_back_to_the_insertion_line(fresh):
+    m = fresh
+    m.inp.p[:] = [0.002, -0.001, -0.010]  # 10 mm deep, (2, -1) mm off the line
+    out = np.zeros(1, ss.DIAG)
+    _lateral_phase(m.inp, m.model, m.state, out)
+    k = m.model.params[0]["k_lateral"]
+    np.testing.assert_allclose(m.state.work[0]["f"], [-k * 0.002, k * 0.001, 0.0], rtol=1e-12, atol=1e-15)
+    assert out[0]["f_lateral"] == pytest.approx(k * math.hypot(0.002, 0.001), rel=1e-12)
+
+
+def test_the_clamp_scales_to_the_limit_and_latches_a_non_finite_force(fresh):
+    m = fresh
+    lim = m.model.params[0]["force_limit"]
+    m.state.work[0]["f"] = [3.0 * lim, 4.0 * lim, 0.0]
+    out = np.zeros(1, ss.DIAG)
+    _clamp_phase(m.model, m.state, out)
+    np.testing.assert_allclose(out[0]["force"], [0.6 * lim, 0.8 * lim, 0.0], rtol=1e-12)
+    assert out[0]["clamped"] == 1.0 and m.rec["fault"] == 0
+    m.state.work[0]["f"] = [0.1, math.nan, 0.0]
+    out = np.zeros(1, ss.DIAG)
+    _clamp_phase(m.model, m.state, out)
+    assert not np.any(out[0]["force"]) and out[0]["fault"] == 1.0 and m.rec["fault"] == 1
