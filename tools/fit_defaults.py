@@ -1,7 +1,7 @@
 """Fit the default surface nets (config/tissue.toml) to the published puncture targets (docs/model.md,
 section 2.1), keeping each layer's Table 2 K, w and L.
 
-Run: ``.venv/bin/python tools/fit_defaults.py`` (about a minute). It prints, per layer, the target,
+Run: ``.venv/bin/python tools/fit_defaults.py`` (about 10 s). It prints, per layer, the target,
 the fitted surface-spring stiffness, pre-tension and ring-w threshold, and the fit at the servo
 table's own resolution (R^2 of the rise, break depth and force errors). The numbers go into
 config/tissue.toml by hand, with the figures into docs/model.md.
