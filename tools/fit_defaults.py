@@ -1,5 +1,5 @@
 """Fit the default surface nets (config/tissue.toml) to the published puncture targets (docs/model.md,
-section 2.1), keeping each layer's Table 2 K, w and L.
+section 2.1), keeping each layer's Table 2 K, and its w and L where the fit allows (LAYOUT below).
 
 Run: ``.venv/bin/python tools/fit_defaults.py`` (about 10 s). It prints, per layer, the target,
 the fitted surface-spring stiffness, pre-tension and ring-w threshold, and the fit at the servo
@@ -10,8 +10,8 @@ How. ``haptic-acu calibrate`` fits the first layer with K and L free (:class:`Ri
 net is the same lattice with its own (w, K, L, ks, pre-tension, threshold), and its centred column
 scales exactly: F(c) = K L f(c / L; w, ks/K, pre) and ring w's deflection L r(c / L) (docs/model.md
 section 10). So the fit reuses :meth:`RiseFit.shape` (the dimensionless column of one shape) for any
-layer's w, holds K and L at Table 2's values and searches only the shape (ks/K, pre-tension), on a
-grid and then Nelder-Mead; the threshold is the ring-w deflection at the target's break depth.
+layer's w, holds K at Table 2's value and w, L at LAYOUT's, and searches only the shape (ks/K,
+pre-tension), on a grid and then Nelder-Mead; the threshold is the ring-w deflection at the target's break depth.
 """
 from __future__ import annotations
 
