@@ -44,7 +44,7 @@ from scipy.signal import butter, sosfiltfilt
 from haptic_acu import rendering as R
 from haptic_acu import stylus
 from haptic_acu.config import load_config
-from haptic_acu.needle import D_F_DAMP, D_PUNCTURE, NP_K_BONE, NP_K_LAT, PRESSING, PUNCTURED, NeedleModel
+from haptic_acu.needle import PRESSING, PUNCTURED, NeedleModel
 
 DT = 1e-3
 ENCODER_STEP_M = 0.055e-3
@@ -126,7 +126,7 @@ class NeedleAdapter:
     its diagnostics and state after each step). The damping along the axis comes from the step's
     own damping force over the axial velocity it was given (exact, Table 1 is linear in v; kept
     while the proxy is still); a pressed net's stiffness is bounded above; the lateral constraint's
-    and the bone's stiffnesses are the model's; a puncture (``D_PUNCTURE``) is a release. Coulomb
+    and the bone's stiffnesses are the model's; a puncture (``diag["puncture"]``) is a release. Coulomb
     friction: none in today's model."""
 
     def __init__(self, model: NeedleModel):
@@ -137,7 +137,7 @@ class NeedleAdapter:
         return np.array(self.m.step(p, v), float)
 
     def puncture(self):
-        return int(self.m.diag[D_PUNCTURE])
+        return int(self.m.diag["puncture"])
 
     def step(self, p, v):
         m = self.m
@@ -145,7 +145,7 @@ class NeedleAdapter:
         a = m.axis
         states = m.states
         inserted = m.inserted
-        fd = m.diag[D_F_DAMP]
+        fd = m.diag["f_damp"]
         v_ax = float(v @ a)
         if inserted:
             if abs(v_ax) > 1e-7:
@@ -155,15 +155,15 @@ class NeedleAdapter:
         elastic = f - fd * a if inserted else f
         pressing = any(s == PRESSING for s in states)
         along = PRESS_STIFFNESS if pressing else 0.0
-        across = m.npar[NP_K_LAT] if inserted else 0.0
+        across = m.model.params[0]["k_lateral"] if inserted else 0.0
         if all(s == PUNCTURED for s in states):
-            along = max(along, m.npar[NP_K_BONE])
+            along = max(along, m.model.params[0]["k_bone"])
         axis = a if (inserted or pressing) else np.zeros(3)
         if pressing and not inserted:
-            axis = m.axes_all[m.active_slot(next(k for k, s in enumerate(states) if s == PRESSING))]
+            axis = m.state.axes[m.active_slot(next(k for k, s in enumerate(states) if s == PRESSING))]
             across = 0.0  # a pressed net only pushes along its axis; it re-centres under a sliding tip
         return f, R.TissueLocal(np.ascontiguousarray(elastic), np.ascontiguousarray(axis), float(self.c),
-                                float(along), float(across), 0.0, 1.0 if m.diag[D_PUNCTURE] >= 0 else 0.0)
+                                float(along), float(across), 0.0, 1.0 if m.diag["puncture"] >= 0 else 0.0)
 
 
 def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | None = None,

@@ -209,7 +209,7 @@ def _same_phase(states, sc) -> bool:
 
 
 def servo(sizes: Sizes, progress=False) -> dict:
-    scen = [scenarios.press(sizes.servo_ticks, layer=0, w=10), scenarios.press(sizes.servo_ticks, layer=2),
+    scen = [scenarios.press(sizes.servo_ticks, layer=0, w=10), scenarios.press(sizes.servo_ticks, layer=2, w=10),
             scenarios.inside_muscle(sizes.servo_ticks)]
     res = {k: {} for k in ("servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
                            "servo_tick_numpy_us", "speedup_vs_numpy", "servo_particles")}

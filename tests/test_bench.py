@@ -101,20 +101,16 @@ def test_reference_matches_compiled_step_on_a_converged_static_press():
 
 
 def test_reference_matches_compiled_step_through_every_layer():
-    # The default tissue with smaller skin and muscle nets (w = 5, puncture at 20 um of ring-w
-    # deflection; fat as configured), 10 mm/s straight in to 20 mm below the skin, then a
-    # lift-thrust stroke. With 20 sweeps per tick (both), the two small nets track their static
-    # solutions closely enough that their ring-w deflections differ by a few per cent of one tick's
-    # change at most, so each layer breaks on the same tick. (On the w = 10 muscle net the two
-    # sweep orders lag the static solution by visibly different amounts and a break can fall one
-    # tick apart: the converged comparison above covers that net.) While a layer is pressed the
-    # forces differ only by what 20 sweeps leave unsolved: 1e-4 N against presses of 0.5-2 N. Once
-    # every layer is broken no net is left and the force (damping of the layers passed, lateral
-    # spring, clamp) depends only on where the punctures happened, so the two agree to rounding.
+    # The default tissue (its nets are small: w = 3 / 4 / 4), 10 mm/s straight in to 20 mm below the
+    # skin, then a lift-thrust stroke. With 20 sweeps per tick (both), the small nets track their
+    # static solutions closely enough that their ring-w deflections differ by a few per cent of one
+    # tick's change at most, so each layer breaks on the same tick. (On a w = 10 net the two sweep
+    # orders lag the static solution by visibly different amounts and a break can fall one tick
+    # apart: the converged comparison above covers such a net.) While a layer is pressed the forces
+    # differ only by what 20 sweeps leave unsolved: 1e-4 N against presses of 0.2-0.6 N. Once every
+    # layer is broken no net is left and the force (damping of the layers passed, lateral spring,
+    # clamp) depends only on where the punctures happened, so the two agree to rounding.
     cfg = scenarios.config_copy(sweeps_per_tick=20, servo_net="sweeps")
-    for name in ("skin", "muscle"):
-        cfg = dataclasses.replace(cfg, **{name: dataclasses.replace(getattr(cfg, name), rings=5,
-                                                                     puncture_threshold_um=20.0)})
     model = scenarios.model_for(cfg)
     ref = NumpyNeedle(cfg, model.tissue)
     P1, V1 = scenarios.straight(1e-3, -20e-3, 0.01)
@@ -142,7 +138,7 @@ def test_reference_matches_compiled_step_through_every_layer():
 
 def test_reference_clamps_and_latches_faults_like_the_compiled_step():
     sc = scenarios.press(300, layer=0, w=4)
-    limit = 0.05  # N: well under what the press reaches
+    limit = 0.02  # N: well under what the press reaches (the fine-needle skin: about 0.06 N by its end)
     clamped = dataclasses.replace(sc.cfg, safety=dataclasses.replace(sc.cfg.safety, force_limit_n=limit))
     model = scenarios.model_for(clamped)
     ref = NumpyNeedle(clamped, model.tissue)

@@ -91,7 +91,7 @@ def test_okamura_liver_replayed_through_the_servo_step(tmp_path, capsys):
     breaking at 16.7 mm, then ~0.94 N cutting plus friction; 18 G needle, 3 mm/s), 500 points with
     noise: a perpendicular insertion through the servo step (NeedleModel) with the fitted config
     reproduces the rise (R^2 >= 0.95) and the break (depth and force within 10%)."""
-    from haptic_acu.needle import D_PUNCTURE, NeedleModel
+    from haptic_acu.needle import NeedleModel
 
     rng = np.random.default_rng(3)
     x = np.linspace(0.0, 30.0, 500)
@@ -108,7 +108,7 @@ def test_okamura_liver_replayed_through_the_servo_step(tmp_path, capsys):
     forces, ib = [], None
     for i, zi in enumerate(z):
         forces.append(float(model.step(np.array([0.0, 0.0, zi]), np.array([0.0, 0.0, -3e-3]))[2]))
-        if model.diag[D_PUNCTURE] == 0:
+        if model.diag["puncture"] == 0:
             ib = i
             break
     assert ib is not None

@@ -1,5 +1,5 @@
-"""Calibration of config/tissue.toml against published needle-insertion forces (MODEL.md, "Published
-needle-insertion figures"), and the paper preset (config/presets/paper.toml) against Table 2.
+"""Calibration of config/tissue.toml against its published-figure targets for a fine needle
+(docs/model.md section 2.1), and the paper preset (config/presets/paper.toml) against Table 2.
 
 A straight perpendicular insertion at the acupoint at 10 mm/s, one servo tick per millisecond.
 """
@@ -20,6 +20,16 @@ TABLE2 = {
     "fat": (8.4, 0.08, 1.0, 4, 1.0),
     "muscle": (39.0, 0.23, 3.0, 10, 2.5),
 }
+
+# The defaults' targets for a 0.25 mm acupuncture needle (docs/model.md section 2.1): the surface's
+# break, as (N1's travel from the layer's first touch in mm, the net's force there in N).
+# Skin: 0.5 N, the smallest taper-point needle's mean puncture force in human skin (Maloney et al.:
+# 0.48 N; 0.74 and 1.00 N for thicker ones), below the survey median 1.22 N (van Gerwen et al. 2012,
+# mostly hypodermic needles). Fat and muscle: the previous (hypodermic-range) figures scaled by the
+# skin's factor. Depths: ours (no fine-needle measurement found).
+TARGETS = {"skin": (1.5, 0.50), "fat": (1.0, 0.20), "muscle": (1.0, 0.65)}
+FIT_TOLERANCE = 0.10  # haptic-acu calibrate's acceptance on break depth and force (issue 12)
+SURVEY_MEDIAN_N = 1.22  # van Gerwen et al. 2012: median skin puncture force over 24 studies
 
 
 def insertion(cfg, tissue, depth_after_muscle_m=20e-3):
@@ -55,13 +65,28 @@ def test_punctures_skin_then_fat_then_muscle(default_run):
 
 
 def test_skin_puncture_force_and_travel(default_run):
-    """Peak 0.3-3 N (van Gerwen 2012: median 1.22 N; cadaver skin ~2.8 N) after 1-10 mm of travel."""
+    """The skin's peak force (everything the hand feels) before it breaks, and the travel from the
+    first touch: the skin target within the fit's tolerance, and below the survey's median."""
     _, ticks = default_run
     i_skin = punctures(ticks)[0][0]
     peak = max(np.linalg.norm(t.force) for t in ticks[:i_skin])
-    travel = -ticks[i_skin].p[2]  # the skin surface is at z = 0 at the acupoint
-    assert 0.3 <= peak <= 3.0, peak
-    assert 1e-3 <= travel <= 10e-3, travel
+    travel_mm = -ticks[i_skin].p[2] * 1e3  # the skin surface is at z = 0 at the acupoint
+    depth, force = TARGETS["skin"]
+    assert peak == pytest.approx(force, rel=FIT_TOLERANCE), peak
+    assert peak < SURVEY_MEDIAN_N
+    assert travel_mm == pytest.approx(depth, rel=FIT_TOLERANCE), travel_mm
+
+
+@pytest.mark.parametrize("k, name", [(0, "skin"), (1, "fat"), (2, "muscle")])
+def test_each_surface_breaks_at_its_target(default_run, k, name):
+    """Each layer's net, in the servo step, breaks at its target: N1's deflection and the net's force
+    on the last tick before the puncture (the force without the layers' damping above it)."""
+    _, ticks = default_run
+    i = dict((layer, j) for j, layer in punctures(ticks))[k]
+    before = ticks[i - 1]
+    depth, force = TARGETS[name]
+    assert before.diag["dz1"] * 1e3 == pytest.approx(depth, rel=FIT_TOLERANCE), (name, before.diag["dz1"])
+    assert before.diag["f_surface"] == pytest.approx(force, rel=FIT_TOLERANCE), (name, before.diag["f_surface"])
 
 
 def test_force_drops_by_half_at_each_puncture(default_run):

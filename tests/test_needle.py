@@ -157,7 +157,8 @@ def test_pressing_a_deeper_layer_adds_the_damping_above(cfg, insertion, layer):
         surface = t.diag["f_surface"]
         assert surface >= 0
         assert t.force[2] == pytest.approx(surface + above, rel=1e-9, abs=1e-12)
-    assert max(t.diag["f_surface"] for t in ticks) > 10 * above  # the net dominates before the break
+    # the net dominates before the break (the fine-needle fat: 0.19 N against 0.03 N of skin damping)
+    assert max(t.diag["f_surface"] for t in ticks) > 5 * above
 
 
 def drive_until(model, states, dent_m, cfg):
@@ -199,7 +200,7 @@ def test_surface_force_is_the_static_net_reaction(cfg, tissue, layer, servo_net,
     net.build(tissue.coeffs[layer], tissue.lmax, tissue.centre, [0.0, 0.0, -tops[layer]], [0.0, 0.0, 1.0])
     net.solve(np.array([0.0, 0.0, p[2] + o]), tol_m=1e-14, max_sweeps=100000)
     f_static = net.reaction()
-    assert f_static[2] > 0.1
+    assert f_static[2] > 0.03  # loaded (the fine-needle skin and fat nets: 0.08 and 0.05 N at 0.4 mm)
     np.testing.assert_allclose(f_hold, f_static, rtol=0, atol=rel_tol * f_static[2])
     f_moving = model.step(p, DOWN).copy()
     above = sum(damping_m(cfg)[j] * thick[j] for j in range(layer)) * SPEED
@@ -329,7 +330,7 @@ def pressing_skin(cfg, tissue):
     model = NeedleModel(cfg, tissue)
     pts, v = straight_line(1e-3, -1e-3, SPEED)
     drive(model, pts, v)
-    assert model.states[0] == PRESSING and model.diag["f_surface"] > 0.3
+    assert model.states[0] == PRESSING and model.diag["f_surface"] > 0.1  # about half the skin's break force
     return model, pts[-1]
 
 

@@ -176,7 +176,11 @@ def test_skin_patch_follows_the_tip_and_springs_back(recording):
         if pressing[t] and -rows[t, C["z_m"]] > 0.3e-3:
             tip_z = rows[t, C["z_m"]]
             low = v[-1, 2]  # the pole vertex, at the acupoint
-            assert tip_z - 1e-6 <= low < 0.4 * tip_z  # dented by a good part of the tip's depth
+            # dented by a good part of the tip's depth: the fine-needle skin's dent is local (its ring 2,
+            # 2 mm out, moves a fraction of N1's travel) and the drawn surface interpolates the net's
+            # particles over 1.5 L, so the pole shows about a third of N1's dent (0.4 with the earlier,
+            # stiffer hypodermic-range nets)
+            assert tip_z - 1e-6 <= low < 0.25 * tip_z
             lows.append(low)
     assert len(lows) >= 3 and all(b < a for a, b in zip(lows, lows[1:]))
     last = np.array(verts[-1], dtype=np.float64)[:-1]  # the grid vertices (the last one is the pole)

@@ -166,7 +166,8 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
         err = np.abs(f_rep - f_live)
         tol = 0.02 + 0.05 * np.abs(f_live)
         assert np.all(err <= tol), (axis, float(err.max()), float(t[keep][np.argmax(err - tol)]))
-    assert tr.extra["fz_n"].max() > 1.0  # the comparison covered real forces (the skin's ~1.5 N peak)
+    # the comparison covered real forces (the fine-needle defaults: skin ~0.5 N, muscle ~0.7 N peaks)
+    assert tr.extra["fz_n"].max() > 0.4
 
 
 def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):

@@ -36,7 +36,9 @@ from haptic_acu.recorder import EXTRA  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
-NOMINAL_MAX_N = 1.0  # the emulated device's nominal maximum: below the config's 3.3 N, so it is the limit
+# the emulated device's nominal maximum: below the config's 3.3 N, so it is the limit, and below the
+# ~0.4 N the press path reaches on the fine-needle skin (1.3 mm of its ~1.5 mm to puncture), so it engages
+NOMINAL_MAX_N = 0.25
 TIMEOUT_S = 180
 
 
@@ -180,7 +182,7 @@ def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, k
 
     f = frames[:, 5:8]
     assert np.all(np.isfinite(f))
-    assert np.any(f[frames[:, 0] < FAULT_AT, 2] > 0.5)  # it was pressing when the fault came
+    assert np.any(f[frames[:, 0] < FAULT_AT, 2] > 0.5 * NOMINAL_MAX_N)  # it was pressing when the fault came
     assert np.all(f[-1] == 0.0)  # the last frame commanded zero
 
     tr = trajectory.load(rec, extra_columns=EXTRA)
