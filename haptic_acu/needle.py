@@ -55,6 +55,7 @@ import numpy as np
 
 from . import servostate as ss
 from . import shf
+from .clamp import clamp_force
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
 from .netresponse import TM_NR, lay_field, lookup
@@ -605,13 +606,9 @@ def clamp(m, s, d):
         s.servo[0].fault = 1
         d.fault = 1.0
         return
-    mag = math.sqrt(fx * fx + fy * fy + fz * fz)
-    lim = m.params[0].force_limit
-    if mag > lim:
-        sc = lim / mag
-        fx *= sc
-        fy *= sc
-        fz *= sc
+    # exact in floating point: never 1 ulp over the limit, the limit (not 0 N) for a huge force
+    fx, fy, fz, c = clamp_force(fx, fy, fz, m.params[0].force_limit)
+    if c > 0.0:
         d.clamped = 1.0
     d.force[0] = fx
     d.force[1] = fy

@@ -51,6 +51,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from . import servostate as ss
+from .clamp import clamp_force
 from .cptr import address_of as data_address
 from .cptr import i64p as _i64p
 from .rtloop import now_ns
@@ -386,24 +387,18 @@ def guard_out(o, fx, fy, fz):
     fy *= ramp
     fz *= ramp
     lim = prm[0].limit_n
-    m = math.sqrt(fx * fx + fy * fy + fz * fz)
-    if m > lim:
-        fx *= lim / m
-        fy *= lim / m
-        fz *= lim / m
+    fx_in, fy_in, fz_in = fx, fy, fz
+    fx, fy, fz, c = clamp_force(fx, fy, fz, lim)  # exact in floating point (haptic_acu.clamp)
     # scene -> device: R^T (forces are not scaled)
     dx = ws[0].R[0, 0] * fx + ws[0].R[1, 0] * fy + ws[0].R[2, 0] * fz
     dy = ws[0].R[0, 1] * fx + ws[0].R[1, 1] * fy + ws[0].R[2, 1] * fz
     dz = ws[0].R[0, 2] * fx + ws[0].R[1, 2] * fy + ws[0].R[2, 2] * fz
-    m = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if m > lim:
-        dx *= lim / m
-        dy *= lim / m
-        dz *= lim / m
-    if not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz)):
-        fctl[0].detail[0] = dx
-        fctl[0].detail[1] = dy
-        fctl[0].detail[2] = dz
+    if c >= 0.0:  # the rotation's rounding: clamped again in the device frame
+        dx, dy, dz, c = clamp_force(dx, dy, dz, lim)
+    if c < 0.0 or not (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dz)):
+        fctl[0].detail[0] = dx if c >= 0.0 else fx_in
+        fctl[0].detail[1] = dy if c >= 0.0 else fy_in
+        fctl[0].detail[2] = dz if c >= 0.0 else fz_in
         return S_FORCE_NAN
     hdf[0] = dx
     hdf[1] = dy

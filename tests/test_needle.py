@@ -385,3 +385,44 @@ def test_tip_exactly_at_the_tissue_centre_is_handled(cfg, tissue):
     k_bone = cfg.needle.bone_stiffness_n_per_mm * 1e3
     assert not big.fault
     np.testing.assert_allclose(f, [0.0, 0.0, k_bone * bone_radius], rtol=1e-9)
+
+
+def _exact_norm2(f):
+    from fractions import Fraction
+    return sum(Fraction(float(x)) ** 2 for x in f)
+
+
+def test_clamp_is_exact_through_the_step(cfg, tissue):
+    """Issue 15: through the servo step, a clamped force is never above the limit by even 1 ulp (its
+    exact rational magnitude), and sits at the limit to within a few ulps."""
+    from fractions import Fraction
+    limit = 0.5
+    model = NeedleModel(replace(cfg, "safety", force_limit_n=limit), tissue)
+    pts, v = straight_line(1e-3, -40e-3, 0.05)  # through every layer into the bone wall
+    clamped = 0
+    for p in pts:
+        f = model.step(p, v)
+        n2 = _exact_norm2(f)
+        assert n2 <= Fraction(limit) ** 2
+        if model.diag["clamped"]:
+            clamped += 1
+            assert float(n2) ** 0.5 >= limit * (1 - 8 * 2.0 ** -52)
+    assert clamped > 100
+
+
+def test_a_huge_stiffness_gives_the_limit_not_zero(cfg, tissue):
+    """A bone wall of 1e300 N/mm: the naive clamp's |F|**2 overflowed to inf and commanded 0 N; the
+    step must command the limit, along the wall's normal (outwards, +z here)."""
+    limit = 3.3
+    c = replace(replace(cfg, "safety", force_limit_n=limit), "needle", bone_stiffness_n_per_mm=1e300)
+    model = NeedleModel(c, tissue)
+    pts, v = straight_line(1e-3, -32e-3, 0.05)  # 1 mm past the compressed bone boundary and more
+    f = None
+    for p in pts:
+        f = model.step(p, v).copy()
+    assert not model.fault
+    assert model.diag["clamped"] == 1.0
+    assert np.all(np.isfinite(f))
+    assert _exact_norm2(f) <= _exact_norm2([limit])
+    assert np.linalg.norm(f) == pytest.approx(limit, rel=1e-14)
+    assert f[2] > 0.99 * limit
