@@ -302,14 +302,169 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
     dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
     insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth)
                   for a, b in insertion_runs(rows[:, _SKIN])]
+    return _session_dict(insertions, int(np.count_nonzero(rows[:, _SKIN] == PUNCTURED)), dt, target,
+                         lateral_comfort_n)
+
+
+def _session_dict(insertions, punctured_rows, dt, target, lateral_comfort_n) -> dict:
+    """The session level of :func:`session_metrics` from its per-insertion dicts."""
     ticks_over = sum(m["lateral"]["ticks_over"] for m in insertions)
     max_lat = max((m["lateral"]["max_n"] for m in insertions), default=0.0)
     return {
         "insertions": len(insertions),
         "skin_punctures": sum(m["skin_punctured"] for m in insertions),
-        "time_in_tissue_s": _r(np.count_nonzero(rows[:, _SKIN] == PUNCTURED) * dt, 4),
+        "time_in_tissue_s": _r(punctured_rows * dt, 4),
         "target_depth_mm": list(target),
         "lateral_comfort_n": float(lateral_comfort_n),
         "lateral": {"ticks_over": ticks_over, "time_over_s": _r(ticks_over * dt, 4), "max_n": _r(max_lat, 4)},
         "per_insertion": insertions,
     }
+
+
+class MedianCounter:
+    """The exact median of a stream of values (``numpy.median``'s result) kept as value -> count: a
+    session's tick intervals take a handful of distinct values, so this stays small."""
+
+    def __init__(self):
+        self.counts: dict[float, int] = {}
+        self.n = 0
+
+    def add(self, values: np.ndarray) -> None:
+        if values.size:
+            v, c = np.unique(values, return_counts=True)
+            for a, b in zip(v.tolist(), c.tolist()):
+                self.counts[a] = self.counts.get(a, 0) + b
+            self.n += int(values.size)
+
+    def median(self) -> float:
+        if not self.n:
+            return float("nan")
+        want = (self.n - 1) // 2, self.n // 2  # the middle one or two (sorted) positions
+        got, seen = [], 0
+        for v in sorted(self.counts):
+            c = self.counts[v]
+            for w in want[len(got):]:
+                if w < seen + c:
+                    got.append(v)
+            seen += c
+            if len(got) == 2:
+                break
+        return float(np.mean(np.array(got)))
+
+
+class SessionMetricsScan:
+    """:func:`session_metrics` on a stream of row blocks, in memory bounded by the longest insertion.
+
+    Rows are kept only from the start of the open insertion's window (its entry tick: the skin's
+    pressing run before the puncture) to the newest row; an insertion is measured with
+    :func:`insertion_metrics` on its window as soon as it ends, and the window is dropped. The tick
+    period (the median interval) is counted as it goes (:class:`MedianCounter`) and applied at
+    :meth:`result`. The result is identical to :func:`session_metrics` on all the rows
+    (tests/test_metrics.py checks it on random block splits).
+
+    ``entries``: each insertion's entry tick as a row index of the whole stream (for the figure's
+    colours, :func:`haptic_acu.report.insertion_index`)."""
+
+    def __init__(self, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N):
+        self.target = tuple(float(v) for v in cfg.scene.target_depth_mm)
+        self.tissue = tissue
+        self.comfort = float(lateral_comfort_n)
+        self.rows_seen = 0
+        self.punctured_rows = 0
+        self.dt = MedianCounter()
+        self.insertions: list[tuple[dict, int]] = []  # (metrics without dt, run length)
+        self.entries: list[int] = []
+        self._win: list[np.ndarray] = []  # the open window's row blocks
+        self._win_start = 0  # the window's first row, as an index of the stream
+        self._last_state = 0.0
+        self._last_t: float | None = None
+
+    def feed(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, dtype=np.float64)
+        k = len(rows)
+        if k == 0:
+            return
+        if rows.ndim != 2 or rows.shape[1] != NCOL:
+            raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
+        t = rows[:, _T]
+        if self._last_t is not None:
+            self.dt.add(np.array([t[0] - self._last_t]))
+        self.dt.add(np.diff(t))
+        self._last_t = float(t[-1])
+        st = rows[:, _SKIN]
+        self.punctured_rows += int(np.count_nonzero(st == PUNCTURED))
+        inside = st == PUNCTURED
+        closing = (self._last_state == PUNCTURED and not inside[0]) or bool(np.any(inside[:-1] & ~inside[1:]))
+        start = self.rows_seen
+        self.rows_seen += k
+        self._last_state = float(st[-1])
+        if closing:
+            buf = np.concatenate(self._win + [rows]) if self._win else rows
+            self._win_start = start - (len(buf) - k)
+            self._measure_closed(buf)
+            return
+        e = _open_start(st)
+        if e > 0 or not self._win:
+            self._win = [rows[e:]] if e < k else []
+            self._win_start = start + e
+        else:
+            self._win.append(rows)
+        if st[-1] == PUNCTURED and (not self.entries or self.entries[-1] != self._win_start):
+            self.entries.append(self._win_start)  # an open insertion's window starts at its entry
+
+    def _measure_closed(self, buf: np.ndarray) -> None:
+        st = buf[:, _SKIN]
+        n = len(buf)
+        tip = None
+        if self.tissue is not None:
+            from .report import tip_depth_m
+            tip = tip_depth_m(buf[:, _X:_X + 3], self.tissue)
+        for a, b in insertion_runs(st):
+            e = self._win_start + entry_tick(st, a)
+            if not self.entries or self.entries[-1] != e:
+                self.entries.append(e)
+            if b < n - 1:
+                m = insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip)
+                self.insertions.append((m, b - a + 1))
+        e = _open_start(st)
+        self._win = [buf[e:].copy()] if e < n else []
+        self._win_start += e
+
+    def result(self, punctures=()) -> dict:
+        """The :func:`session_metrics` dict (an insertion still open at the end is measured here);
+        ``punctures``: the summary's puncture list."""
+        pending = []
+        if self._win:
+            buf = np.concatenate(self._win) if len(self._win) > 1 else self._win[0]
+            st = buf[:, _SKIN]
+            tip = None
+            if self.tissue is not None:
+                from .report import tip_depth_m
+                tip = tip_depth_m(buf[:, _X:_X + 3], self.tissue)
+            pending = [(insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip), b - a + 1)
+                       for a, b in insertion_runs(st)]
+        dt = self.dt.median() if self.rows_seen >= 2 else 0.0
+        insertions = []
+        for m, n_run in self.insertions + pending:
+            m = dict(m)
+            over = m["lateral"]["ticks_over"]
+            m["lateral"] = dict(m["lateral"], time_over_s=_r(over * dt, 4))
+            m["time_in_tissue_s"] = _r(n_run * dt, 4)
+            m["punctures"] = [p for p in punctures if m["t_entry_s"] <= p["t_s"] <= m["t_exit_s"]]
+            insertions.append(m)
+        return _session_dict(insertions, self.punctured_rows, dt, self.target, self.comfort)
+
+
+def _open_start(st: np.ndarray) -> int:
+    """Where the open window at the end of states ``st`` begins: the entry tick of a trailing
+    punctured run, or the start of a trailing pressing run; ``len(st)`` if neither."""
+    n = len(st)
+    last = st[-1]
+    if last != PUNCTURED and last != PRESSING:
+        return n
+    a = n
+    if last == PUNCTURED:
+        other = np.flatnonzero(st != PUNCTURED)
+        a = int(other[-1]) + 1 if other.size else 0
+    other = np.flatnonzero(st[:a] != PRESSING)
+    return int(other[-1]) + 1 if other.size else 0

@@ -31,7 +31,7 @@ from .errors import UserError
 
 BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
-MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it): the summary keeps every row
+MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it)
 MARKER = ".haptic-acu-replay"  # in every DIR.partial a replay makes: the folder is ours
 OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd", "compare.json",
              "compare.png"}
@@ -230,7 +230,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     out = OutputFolder(out_dir)
     partial = out.claim()
     try:
-        summary_sink = SummarySink(cfg)
+        summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: memory bounded by the work, not the file
         io = _IOErrors()
         sinks = [io.guard(SamplesCsvSink(partial / "samples.csv")), summary_sink]
         if rrd or spawn or connect:
@@ -267,14 +267,11 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                 exit_status=128 + (signum or signal.SIGINT))
         summary = summary_sink.summary()
         summary["trajectory"] = trajectory.name
-        try:
-            from .metrics import session_metrics
-            summary["metrics"] = session_metrics(summary_sink.rows(), cfg, summary_sink.tissue,
-                                                 punctures=summary["punctures"])
-        except ImportError:
-            pass
+        summary["metrics"] = summary_sink.metrics(summary["punctures"])
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-        plot_force_depth(summary_sink.rows(), partial / "force_depth.png", summary_sink.tissue, summary=summary)
+        fig_rows, fig_index = summary_sink.figure_rows()
+        plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
+                         index=fig_index)
         out.publish()
     except OSError as e:
         out.discard()

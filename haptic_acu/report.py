@@ -174,6 +174,8 @@ class SummarySink:
     def __init__(self, cfg=None, keep_rows: bool = True):
         self.keep_rows = keep_rows
         self.scan: SessionScan | None = None
+        self.metrics_scan = None  # without keep_rows: the metrics and the figure's rows, streamed
+        self.figure: FigureRows | None = None
         self.tissue = None
         self.config = cfg
         self._blocks: list[np.ndarray] = []
@@ -190,6 +192,10 @@ class SummarySink:
         if self.config is not None:
             remember_tissue(self.config, self.tissue)
         self.scan = SessionScan(self.tissue)
+        if not self.keep_rows:
+            from .metrics import SessionMetricsScan
+            self.metrics_scan = SessionMetricsScan(self.config, self.tissue) if self.config is not None else None
+            self.figure = FigureRows(self.tissue)
         self._blocks = []
         self._pending = []
         self._n_pending = 0
@@ -208,7 +214,13 @@ class SummarySink:
 
     def _scan_pending(self) -> None:
         if self._pending:
-            self.scan.feed(np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0])
+            rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+            self.scan.feed(rows, depth)
+            if self.metrics_scan is not None:
+                self.metrics_scan.feed(rows)
+            if self.figure is not None:
+                self.figure.feed(rows, depth)
             self._pending = []
             self._n_pending = 0
 
@@ -225,6 +237,24 @@ class SummarySink:
         if len(self._blocks) > 1:
             self._blocks = [np.concatenate(self._blocks)]
         return self._blocks[0]
+
+    def metrics(self, punctures) -> dict:
+        """The session's trainee metrics (:func:`haptic_acu.metrics.session_metrics`), streamed
+        (without ``keep_rows``) or from the kept rows; ``punctures``: the summary's."""
+        self._scan_pending()
+        if self.metrics_scan is not None:
+            return self.metrics_scan.result(punctures)
+        from .metrics import session_metrics
+        return session_metrics(self.rows(), self.config, self.tissue, punctures=punctures)
+
+    def figure_rows(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """(rows, insertion index per row or None) for :func:`plot_force_depth`: the bounded
+        min/max envelope (:class:`FigureRows`) without ``keep_rows``, else every row."""
+        self._scan_pending()
+        if self.figure is None:
+            return self.rows(), None
+        entries = self.metrics_scan.entries if self.metrics_scan is not None else None
+        return self.figure.result(entries)
 
     def summary(self) -> dict:
         s = self.scan
@@ -273,7 +303,85 @@ class SummarySink:
             print(f"  FAULT: {s['fault']}", file=file)
 
     def write_figure(self, path) -> None:
-        plot_force_depth(self.rows(), path, self.tissue, summary=self.summary())
+        rows, index = self.figure_rows()
+        plot_force_depth(rows, path, self.tissue, summary=self.summary(), index=index)
+
+
+class FigureRows:
+    """A bounded copy of a session's rows for the figure: every row up to ``cap`` rows; beyond, the
+    rows are binned by tick (bins doubling as the session grows) and each bin keeps only its rows of
+    smallest and largest force along and across the normal, tip depth and offset from the acupoint
+    (so every peak survives), plus every puncture row, the first and the last row. Memory: at most
+    about ``cap`` rows (``cap * NCOL * 8`` bytes) whatever the session's length."""
+
+    CAP = 50_000
+
+    def __init__(self, tissue, cap: int = CAP):
+        self.tissue = tissue
+        self.cap = int(cap)
+        self.bin = 1
+        self.seen = 0
+        self._rows: list[np.ndarray] = []
+        self._gidx: list[np.ndarray] = []
+        self._n = 0
+        self._last: tuple[np.ndarray, int] | None = None
+
+    def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> None:
+        k = len(rows)
+        if k == 0:
+            return
+        g = np.arange(self.seen, self.seen + k, dtype=np.int64)
+        self.seen += k
+        self._last = (rows[-1].copy(), int(g[-1]))
+        if self.bin > 1:
+            sel = self._select(rows, g, depth)
+            rows, g = rows[sel], g[sel]
+        self._rows.append(np.array(rows, dtype=np.float64))  # a copy: the caller's block is not pinned
+        self._gidx.append(g)
+        self._n += len(g)
+        if self._n > self.cap:
+            self._shrink()
+
+    def _select(self, rows, g, depth=None) -> np.ndarray:
+        """Indices of the rows kept with the current bin size (in order)."""
+        bins = g // self.bin
+        if depth is None:
+            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        keep = (rows[:, _C_PUNCT] >= 0) | (g == 0)
+        for key in (radial_force_n(rows, self.tissue), lateral_force_n(rows, self.tissue), depth,
+                    np.hypot(rows[:, _C_X], rows[:, _C_X + 1])):
+            order = np.lexsort((key, bins))  # by bin, then by the key (ties: first row first)
+            b = bins[order]
+            first = np.ones(len(b), bool)
+            first[1:] = b[1:] != b[:-1]
+            last = np.ones(len(b), bool)
+            last[:-1] = b[1:] != b[:-1]
+            keep[order[first | last]] = True
+        return np.flatnonzero(keep)
+
+    def _shrink(self) -> None:
+        rows = np.concatenate(self._rows)
+        g = np.concatenate(self._gidx)
+        while len(g) > self.cap // 2:
+            self.bin *= 2
+            sel = self._select(rows, g)
+            rows, g = rows[sel], g[sel]
+        self._rows, self._gidx, self._n = [rows], [g], len(g)
+
+    def result(self, entries=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(rows, insertion index per row): the index from ``entries`` (each insertion's entry row
+        in the stream, :attr:`haptic_acu.metrics.SessionMetricsScan.entries`), else None."""
+        if not self._rows:
+            return np.zeros((0, NCOL)), (None if entries is None else np.zeros(0, np.int64))
+        rows = np.concatenate(self._rows)
+        g = np.concatenate(self._gidx)
+        if self._last is not None and g[-1] != self._last[1]:
+            rows = np.vstack([rows, self._last[0]])
+            g = np.append(g, self._last[1])
+        self._rows, self._gidx = [rows], [g]
+        if entries is None:
+            return rows, None
+        return rows, np.searchsorted(np.asarray(entries, dtype=np.int64), g, side="right") - 1
 
 
 # ---- the figure -------------------------------------------------------------------------------
@@ -367,7 +475,8 @@ def _colour(k: int) -> str:
     return APPROACH_COLOUR if k < 0 else INSERTION_COLOURS[k % len(INSERTION_COLOURS)]
 
 
-def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None) -> None:
+def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
+                     index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
 
     Top: the force along the outward radial direction at the tip, ``F . u`` (N, positive resists
@@ -380,7 +489,9 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     direction (:func:`lateral_force_n`) against time. Bottom: ``F . u`` against time, punctures as
     dashed lines. Legends sit outside the axes. ``tissue``: a Tissue or a TissueConfig (a session
     sink's tissue is reused); default: the default config's. ``summary``: the session's summary
-    (its punctures are drawn; else they are found with :class:`SessionScan`).
+    (its punctures are drawn; else they are found with :class:`SessionScan`). ``index``: the
+    insertion index per row if the caller has it (rows thinned by :class:`FigureRows`), else
+    :func:`insertion_index`.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -397,7 +508,10 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     f_lat = lateral_force_n(rows, tissue)
     t = rows[:, _C_T]
     events = summary["punctures"] if summary is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
-    idx = insertion_index(rows) if rows.size else np.zeros(0, np.int64)
+    if index is not None:
+        idx = np.asarray(index, dtype=np.int64)
+    else:
+        idx = insertion_index(rows) if rows.size else np.zeros(0, np.int64)
     n_ins = int(idx.max()) + 1 if idx.size else 0
     offset_mm = np.linalg.norm(rows[:, _C_X:_C_X + 2], axis=1) * 1e3  # tip's distance from the acupoint's axis
     show_lat = bool(rows.size) and (float(f_lat.max()) > LATERAL_SHOWN_N
@@ -436,8 +550,11 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
             ax_lat.plot(t[sl], f_lat[sl], color=_colour(k), lw=1.0)
     if (idx < 0).any():
         handles.append(Line2D([], [], color=APPROACH_COLOUR, label="approach"))
-    for k in range(n_ins):
+    for k in range(min(n_ins, len(INSERTION_COLOURS))):  # a long session: the colours repeat, said once
         handles.append(Line2D([], [], color=_colour(k), label=f"insertion {k + 1}" if n_ins > 1 else "insertion"))
+    if n_ins > len(INSERTION_COLOURS):
+        handles.append(Line2D([], [], color="none", label=f"insertions {len(INSERTION_COLOURS) + 1}-{n_ins}: "
+                              "the colours repeat"))
     for ev in events:
         c = _EVENT_COLOURS[ev["layer"]]
         x, y = ev["tip_depth_mm"], ev["peak_force_n"]
@@ -645,5 +762,5 @@ def read_samples_csv(path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-__all__ = ["SummarySink", "SamplesCsvSink", "SessionScan", "plot_force_depth", "tip_depth_m", "radial_force_n",
+__all__ = ["SummarySink", "SamplesCsvSink", "SessionScan", "FigureRows", "plot_force_depth", "tip_depth_m", "radial_force_n",
            "place_name", "CSV_FIELDS", "read_samples_csv"]

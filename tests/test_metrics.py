@@ -431,3 +431,54 @@ def test_find_troughs_matches_scipy_find_peaks():
             got, got_prom = find_troughs(x, prom)
             assert np.array_equal(got, want), (x[:20], prom)
             np.testing.assert_allclose(got_prom, props["prominences"], rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------------- streamed = whole-array
+def _cohort_of_insertions(end_inside: bool):
+    s = Session()
+    s.hold_outside(0.1)
+    s.insertion(np.concatenate([ramp(10.0, 12.0), cosine_strokes(12.0, 2.0, 2.0, 3)]))
+    s.hold_outside(0.05)
+    s.insertion(ramp(6.0, 8.0), entry_mm=(1.0, -0.5, 0.0), direction=(0.2, 0.0, -1.0), through_hole=True)
+    s.insertion(np.concatenate([ramp(12.0, 18.0), hold(18.0, 0.3)]), dent_mm=1.0)
+    if end_inside:  # the session ends with the needle in: the open insertion is measured at the end
+        s.hold_outside(0.02)
+        s.insertion(ramp(9.0, 5.0))
+        s.blocks.pop()  # no withdrawal
+    return s.rows()
+
+
+@pytest.mark.parametrize("end_inside", [False, True])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_streamed_metrics_equal_the_whole_array_metrics(cfg, end_inside, seed):
+    """SessionMetricsScan (what a replay uses, bounded memory) gives exactly session_metrics' dict for
+    the same rows cut into random blocks (1 row to thousands), insertions crossing block edges."""
+    from haptic_acu.metrics import SessionMetricsScan
+    rows = _cohort_of_insertions(end_inside)
+    punct = [{"layer": "skin", "t_s": round(float(t), 4), "tip_depth_mm": 1.0, "peak_force_n": 0.5}
+             for t in rows[rows[:, COL["puncture"]] == 0, COL["t_s"]]]
+    whole = session_metrics(rows, cfg, punctures=punct)
+    assert whole["insertions"] == (4 if end_inside else 3)
+    rng = np.random.default_rng(seed)
+    scan = SessionMetricsScan(cfg)
+    i = 0
+    while i < len(rows):
+        k = int(rng.choice([1, 2, 7, 100, 2048, 5000]))
+        scan.feed(rows[i:i + k])
+        i += k
+    got = scan.result(punct)
+    assert json.dumps(got, sort_keys=True) == json.dumps(whole, sort_keys=True)
+    entries = [m for m in scan.entries]
+    assert len(entries) == whole["insertions"]
+    assert [round(float(rows[e, COL["t_s"]]), 4) for e in entries] == [m["t_entry_s"] for m in whole["per_insertion"]]
+
+
+def test_median_counter_is_numpy_median():
+    from haptic_acu.metrics import MedianCounter
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 11, 1000):
+        x = rng.choice([0.001, 0.0010000000000000009, 0.0009999999999999998, 0.002], size=n)
+        m = MedianCounter()
+        m.add(x[: n // 2])
+        m.add(x[n // 2:])
+        assert m.median() == np.median(x)

@@ -1,0 +1,75 @@
+"""Replay memory is bounded by the work, not the file (issue 15): the summary, the trainee metrics
+and the figure are streamed (haptic_acu.report.SummarySink without keep_rows,
+haptic_acu.metrics.SessionMetricsScan, haptic_acu.report.FigureRows).
+
+Each replay runs in a child process whose peak RSS (``resource.getrusage``) is the measurement; a
+trajectory four times longer must not raise it by more than a few MB (the whole-row summary grew by
+~0.7 kB per tick: +330 MB between these two lengths)."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+CHILD = """
+import json, resource, sys
+from haptic_acu.replay import replay_one
+s = replay_one(sys.argv[1], sys.argv[2], rrd=False, progress=False)
+print(json.dumps({"maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "ticks": s["ticks"], "punctures": len(s["punctures"]),
+                  "insertions": s["metrics"]["insertions"]}))
+"""
+
+
+def tiled(src: Path, minutes: float, out: Path) -> int:
+    """``src`` repeated back to back for ``minutes``; returns the number of copies."""
+    a = np.loadtxt(src, delimiter=",", skiprows=1)
+    period = a[-1, 0] + (a[1, 0] - a[0, 0])
+    n = int(np.ceil(minutes * 60 / period))
+    with open(out, "w") as f:
+        f.write("t_s,x_mm,y_mm,z_mm\n")
+        for k in range(n):
+            b = a.copy()
+            b[:, 0] += k * period
+            np.savetxt(f, b, fmt=["%.6f", "%.4f", "%.4f", "%.4f"], delimiter=",")
+    return n
+
+
+def peak_rss(traj: Path, out: Path) -> dict:
+    p = subprocess.Popen([sys.executable, "-c", CHILD, str(traj), str(out)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=ROOT)
+    try:
+        so, se = p.communicate(timeout=900)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 0, se
+    return json.loads(so.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_replay_peak_memory_does_not_grow_with_the_trajectory(tmp_path):
+    src = ROOT / "trajectories" / "default.csv"  # one insertion through skin, fat and muscle
+    res = {}
+    for minutes in (2.5, 10.0):
+        traj = tmp_path / f"long_{minutes}.csv"
+        copies = tiled(src, minutes, traj)
+        r = peak_rss(traj, tmp_path / f"out_{minutes}")
+        assert r["insertions"] == copies and r["punctures"] == 3  # every insertion measured (later ones: through the holes)
+        assert (tmp_path / f"out_{minutes}" / "force_depth.png").stat().st_size > 10_000
+        res[minutes] = r
+    short, long = res[2.5], res[10.0]
+    assert long["ticks"] > 3.5 * short["ticks"]
+    print(res)
+    growth = long["maxrss_mb"] - short["maxrss_mb"]
+    assert growth < 25.0, res  # ~0.25 kB per extra tick would be +110 MB
+    assert long["maxrss_mb"] < 500.0, res
