@@ -168,8 +168,9 @@ class ScriptedDevice(Device):
 
     @property
     def has_events(self) -> bool:
-        """The file has an ``event`` column (resets): a real-time session must honour them through
-        ``read_at`` (the Python servo loop); the compiled loop plays positions only."""
+        """The file has an ``event`` column (resets): every servo driver honours them (the headless
+        replay and the compiled real-time loop through :meth:`reset_ticks`, the Python loop through
+        ``read_at``'s ``reset``)."""
         return self._reader.has_event
 
     @property

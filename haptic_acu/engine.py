@@ -572,7 +572,7 @@ class Session:
             try:
                 outcome["status"] = call_driver(
                     rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
-                    rtloop.FeedRows(feed.p, feed.v), table)
+                    feed.rows(), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:

@@ -66,13 +66,75 @@ def _one(args_tuple):
 
 
 def _flat(summary: dict) -> dict:
+    """summaries.csv's row: the session's numbers (each the summary's, not a second estimate), the
+    first puncture of each layer, and the session-level trainee metrics."""
     row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
            "max_force_n": summary["max_force_n"], "max_depth_mm": summary["max_depth_mm"],
            "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
     for p in summary["punctures"]:
         row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])
         row.setdefault(f"{p['layer']}_peak_force_n", p["peak_force_n"])
+    m = summary.get("metrics") or {}
+    for key in ("insertions", "skin_punctures", "time_in_tissue_s"):
+        if key in m:
+            row[key] = m[key]
+    for key, v in (m.get("lateral") or {}).items():
+        row[f"lateral_{key}"] = v
     return row
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    """A nested metrics dict as flat CSV columns: ``a.b`` -> ``a_b``; a list of three numbers
+    (a position) -> ``_x``, ``_y``, ``_z``; a list of dicts (the insertion's punctures) -> its
+    count; None -> an empty cell. New metrics get their columns without a change here."""
+    out = {}
+    for k, v in d.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, name + "_"))
+        elif isinstance(v, (list, tuple)):
+            if not v or all(isinstance(x, dict) for x in v):
+                out[name] = len(v)
+            elif len(v) == 3:
+                out.update({f"{name}_{c}": x for c, x in zip("xyz", v)})
+            else:
+                out[name] = " ".join(str(x) for x in v)
+        else:
+            out[name] = "" if v is None else v
+    return out
+
+
+def insertion_rows(summary: dict) -> list[dict]:
+    """insertions.csv's rows: one per insertion, its trainee metrics (summary.json's
+    ``metrics.per_insertion``, flattened by :func:`flatten`), numbered from 1."""
+    m = summary.get("metrics") or {}
+    return [{"trajectory": summary["trajectory"], "insertion": n, **flatten(ins)}
+            for n, ins in enumerate(m.get("per_insertion", []), 1)]
+
+
+def puncture_rows(summary: dict) -> list[dict]:
+    """punctures.csv's rows: every puncture of the session (summary.json's ``punctures``) with the
+    insertion it belongs to (empty if none: a puncture outside every insertion's window)."""
+    ins = (summary.get("metrics") or {}).get("per_insertion", [])
+    rows = []
+    for n, p in enumerate(summary["punctures"], 1):
+        owner = next((k for k, i in enumerate(ins, 1) if i["t_entry_s"] <= p["t_s"] <= i["t_exit_s"]), "")
+        rows.append({"trajectory": summary["trajectory"], "puncture": n, "insertion": owner, **p})
+    return rows
+
+
+def write_table(path: Path, rows: list[dict]) -> None:
+    """A CSV with the union of the rows' columns in first-seen order (header on line 1)."""
+    cols: list[str] = []
+    for r in rows:
+        cols += [c for c in r if c not in cols]
+    try:
+        with open(path, "w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=cols or ["trajectory"])
+            wr.writeheader()
+            wr.writerows(rows)
+    except OSError as e:
+        raise UserError(f"{path}: cannot write: {e.strerror or e}") from None
 
 
 def run(args) -> int:
@@ -134,7 +196,7 @@ def _run_batch(args, paths, base: Path) -> int:
             results[traj] = (summary, err)
             progress.note(f"{len(results)}/{len(paths)} done: {Path(traj).name}" + (" (failed)" if err else ""))
     failed = 0
-    rows = []
+    rows, insertions, punctures = [], [], []
     for p, w in zip(paths, work):
         summary, err = results[str(p)]
         if err:
@@ -143,16 +205,12 @@ def _run_batch(args, paths, base: Path) -> int:
             continue
         print_summary(summary, Path(w[1]), quiet=args.quiet)
         rows.append(_flat(summary))
+        insertions += insertion_rows(summary)
+        punctures += puncture_rows(summary)
     if rows:
-        cols = []
-        for r in rows:
-            cols += [c for c in r if c not in cols]
-        try:
-            with open(base / "summaries.csv", "w", newline="") as f:
-                wr = csv.DictWriter(f, fieldnames=cols)
-                wr.writeheader()
-                wr.writerows(rows)
-        except OSError as e:
-            raise UserError(f"{base / 'summaries.csv'}: cannot write: {e.strerror or e}") from None
-        print(f"batch: {len(rows)} replayed, {failed} failed; combined summary {base / 'summaries.csv'}")
+        write_table(base / "summaries.csv", rows)
+        write_table(base / "insertions.csv", insertions)
+        write_table(base / "punctures.csv", punctures)
+        print(f"batch: {len(rows)} replayed, {failed} failed; combined tables in {base}/: summaries.csv (per "
+              "trajectory), insertions.csv (trainee metrics per insertion), punctures.csv (every puncture)")
     return 2 if failed else 0

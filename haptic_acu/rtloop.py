@@ -8,8 +8,9 @@ trajectory file), the whole loop runs in :func:`servo_loop`, compiled with ``nog
 each absolute deadline (:func:`wait_until`: ``clock_nanosleep`` to 300 us before it, then a spin on
 ``clock_gettime``), runs :func:`~haptic_acu.servotick.servo_tick` (the step, the sample row into the
 ring, published), and never returns to Python until the session ends. A Python feeder thread
-keeps the trajectory's positions for the next second of ticks in a ring (:class:`Feed`); the visual
-thread drains the sample ring as before.
+keeps the trajectory's positions for the next second of ticks in a ring (:class:`Feed`), with a flag
+per tick for the recording's ``reset`` events (fresh tissue before that tick, as the headless replay
+does); the visual thread drains the sample ring as before.
 
 The clock calls are LLVM declarations of libc's ``clock_gettime`` / ``clock_nanosleep`` (not ctypes
 pointers), so the functions stay cacheable like every other kernel.
@@ -34,7 +35,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from . import servostate as ss
-from .servotick import STALE, account, servo_tick, unpack_tick
+from .servotick import STALE, account, reset_servo, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -111,9 +112,13 @@ class Loop(NamedTuple):
     ts: np.ndarray  # int64[2]: the clock's timespec
 
 
+_NO_RESETS = np.zeros(1, np.int8)
+
+
 class FeedRows(NamedTuple):
     p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
     v: np.ndarray  # (capacity, 3) velocities
+    reset: np.ndarray = _NO_RESETS  # (capacity,) int8: 1 = fresh tissue before tick k (a reset event)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -210,6 +215,8 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
+        if feed.reset[j % feed.reset.shape[0]] != 0:
+            reset_servo(sv)  # the recording's reset event: fresh tissue before this tick
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1
@@ -233,6 +240,8 @@ class Feed:
         self.dt = period_s
         self.p = np.zeros((capacity, 3))
         self.v = np.zeros((capacity, 3))
+        self.reset = np.zeros(capacity, np.int8)  # the device's reset events (Device.reset_ticks)
+        self.events = bool(getattr(device, "has_events", False))
         self.capacity = capacity
         self.lead = min(lead, capacity - chunk)
         self.chunk = chunk
@@ -255,6 +264,10 @@ class Feed:
             idx = np.arange(k0, k0 + n) % self.capacity
             self.p[idx] = P[:n]
             self.v[idx] = V[:n]
+            self.reset[idx] = 0
+            if self.events:
+                cuts = [c for c in self.device.reset_ticks(T[:n]) if 0 <= c < n]
+                self.reset[idx[cuts]] = 1
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 
@@ -269,6 +282,10 @@ class Feed:
 
         self._thread = threading.Thread(target=run, name="haptic-acu-feed", daemon=True)
         self._thread.start()
+
+    def rows(self) -> FeedRows:
+        """The arrays the compiled loop reads."""
+        return FeedRows(self.p, self.v, self.reset)
 
     def join(self, timeout: float = 2.0) -> None:
         if self._thread is not None:

@@ -134,8 +134,8 @@ def run(args) -> int:
                                 force_limit_n=cfg.safety.force_limit_n, device=device))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
-    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,  # resets need read_at:
-                      compiled_loop=not args.python_servo and not device.has_events)
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
+                      compiled_loop=not args.python_servo)  # the compiled loop honours reset events
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()

@@ -78,6 +78,18 @@ def account(timing, err, period, to_s):
         c.missed += 1
 
 
+@nb.njit(cache=True, nogil=True)
+def reset_servo(sv):
+    """In compiled code, what ``NeedleModel.reset(keep_holes=False)`` does (a recording's ``reset``
+    event, the keyboard's ``r``): the needle out, every layer untouched, no holes, the insertion
+    axis back to -z, the last output cleared (tests/test_rtloop.py compares the two)."""
+    s = sv.state
+    ss.clear(s.servo)
+    s.servo[0].axis[2] = -1.0
+    ss.clear(s.holes)
+    ss.clear(sv.out.diag)
+
+
 @nb.njit(cache=True, nogil=True, inline="always")
 def servo_tick(sv, ring, t, tick, err_s):
     """One tick on ``sv.inp`` (the caller has written the position and velocity): the step, its

@@ -196,3 +196,41 @@ def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path):
     assert "bad.csv" in r.stderr and "line 3" in r.stderr and "Traceback" not in r.stderr
     assert (out / "good" / "summary.json").is_file()
     assert not (out / "bad").exists()
+
+
+def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path):
+    """Issue 16: a batch's insertions.csv has one row per insertion with the trainee metrics of each
+    replay's summary.json, punctures.csv every puncture (not only the first per layer), and
+    summaries.csv the session-level metrics; all with the header on line 1."""
+    src = tmp_path / "trajs"
+    src.mkdir()
+    for name in ("fast_insertion.csv", "second_insertion_same_site.csv"):
+        (src / name).write_bytes((TRAJ / name).read_bytes())
+    out = tmp_path / "batch"
+    r = replay(src, "--out", out, "--no-rrd", "--jobs", "1")
+    assert r.returncode == 0, r.stderr
+    read = lambda name: list(csv.DictReader(open(out / name, newline="")))  # noqa: E731
+    summaries = {row["trajectory"]: row for row in read("summaries.csv")}
+    insertions, punctures = read("insertions.csv"), read("punctures.csv")
+    for stem in ("fast_insertion", "second_insertion_same_site"):
+        s = json.loads((out / stem / "summary.json").read_text())
+        name = f"{stem}.csv"
+        m = s["metrics"]
+        assert int(summaries[name]["insertions"]) == m["insertions"]
+        assert float(summaries[name]["time_in_tissue_s"]) == m["time_in_tissue_s"]
+        mine = [row for row in insertions if row["trajectory"] == name]
+        assert [int(row["insertion"]) for row in mine] == list(range(1, m["insertions"] + 1))
+        for row, ins in zip(mine, m["per_insertion"]):
+            assert float(row["max_depth_mm"]) == ins["max_depth_mm"]
+            assert float(row["entry_mm_x"]) == ins["entry_mm"][0]
+            assert float(row["peak_layer_force_n_fat"]) == ins["peak_layer_force_n"]["fat"]
+            assert int(row["lift_thrust_cycles"]) == ins["lift_thrust"]["cycles"]
+            assert row["depth_verdict"] == ins["depth_verdict"]
+            assert int(row["punctures"]) == len(ins["punctures"])
+        got = [(row["layer"], float(row["t_s"]), float(row["peak_force_n"]), row["insertion"])
+               for row in punctures if row["trajectory"] == name]
+        want = [(p["layer"], p["t_s"], p["peak_force_n"],
+                 str(next(k for k, i in enumerate(m["per_insertion"], 1) if p in i["punctures"])))
+                for p in s["punctures"]]
+        assert got == want
+    assert json.loads((out / "second_insertion_same_site" / "summary.json").read_text())["metrics"]["insertions"] == 2

@@ -245,3 +245,52 @@ def test_a_skip_threshold_that_is_not_a_whole_number_of_ticks_is_refused(cfg, ti
     with pytest.raises(ValueError, match="skip_after_ticks"):
         Session(cfg, ScriptedDevice(DEFAULT_TRAJ, realtime=True), clock="realtime", model=NeedleModel(cfg, tissue),
                 skip_after_ticks=bad)
+
+
+def test_the_compiled_reset_is_the_models_reset(cfg, tissue):
+    """servotick.reset_servo (what the compiled loop runs on a reset event) leaves exactly the state
+    NeedleModel.reset(keep_holes=False) leaves, from a needle deep in the tissue with holes made."""
+    from haptic_acu.servotick import reset_servo
+    model = NeedleModel(cfg, tissue)
+    v = np.array([0.0, 0.0, -0.01])
+    for z in np.arange(5e-3, -15e-3, -1e-5):
+        model.step(np.array([0.0, 0.0, z]), v)
+    assert model.rec["nholes"] > 0 and max(model.rec["state"]) == 2
+    a = model.copy_state()
+    model.reset(keep_holes=False)
+    by_python = model.copy_state()
+    model.restore_state(a)
+    reset_servo(model.servo)
+    by_kernel = model.copy_state()
+    for x, y in zip(by_python[0], by_kernel[0]):
+        assert x.tobytes() == y.tobytes()
+    assert by_python[1].tobytes() == by_kernel[1].tobytes()
+    assert a[0].servo.tobytes() != by_kernel[0].servo.tobytes()  # the reset did change something
+
+
+def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tissue, tmp_path):
+    """second_insertion_same_site.csv with a reset between its two passes, in real time through the
+    compiled loop (no Python fallback): every row equals the headless replay's, and the second pass
+    breaks the fresh skin again."""
+    src = REPO / "trajectories" / "second_insertion_same_site.csv"
+    lines = src.read_text().splitlines()
+    out, done = [lines[0] + ",event"], False
+    for ln in lines[1:]:
+        ev = "reset" if float(ln.split(",", 1)[0]) >= 5.0 and not done else ""
+        done = done or bool(ev)
+        out.append(f"{ln},{ev}")
+    traj = tmp_path / "reset.csv"
+    traj.write_text("\n".join(out) + "\n")
+    dev = ScriptedDevice(traj, realtime=True)
+    dev.open()
+    s, result, rt = run(cfg, tissue, dev, "realtime", 8.0)
+    dev.close()
+    assert dev.has_events and s._servo_kind() == "compiled" and result.fault is None
+    dev2 = ScriptedDevice(traj)
+    dev2.open()
+    _, _, sim = run(cfg, tissue, dev2, "sim", 8.0)
+    dev2.close()
+    assert sim.shape == rt.shape
+    np.testing.assert_array_equal(rt[:, :COL["period_err_s"]], sim[:, :COL["period_err_s"]])
+    skin = np.flatnonzero(rt[:, COL["puncture"]] == 0)
+    assert len(skin) == 2 and rt[skin[1], COL["t_s"]] > 5.0
