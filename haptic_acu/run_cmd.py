@@ -123,7 +123,7 @@ def run(args) -> int:
     if args.rrd and not Path(args.rrd).resolve().parent.exists():
         raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
     out.mkdir(parents=True, exist_ok=True)
-    summary_sink = SummarySink(cfg)
+    summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: a long session's memory stays flat
     recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
     sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
     if args.rrd is not None or args.spawn or args.connect:
@@ -161,15 +161,14 @@ def run(args) -> int:
 
 def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False) -> dict:
     """summary.json and force_depth.png of a finished session into ``out``; print the results."""
-    from .metrics import session_metrics
     from .report import plot_force_depth, print_results
 
     summary = summary_sink.summary()
     summary["trajectory"] = name
-    rows = summary_sink.rows()
-    summary["metrics"] = session_metrics(rows, cfg, summary_sink.tissue, punctures=summary["punctures"])
+    summary["metrics"] = summary_sink.metrics(summary["punctures"])
     (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    rows, index = summary_sink.figure_rows()
     with step("drawing force_depth.png"):
-        plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary)
+        plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary, index=index)
     print_results(summary, out, quiet=quiet)
     return summary
