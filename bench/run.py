@@ -22,6 +22,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
   to one), with the two fits' agreement.
 * :func:`springback`, :func:`replay`, :func:`cold_start`, :func:`scaling`.
+* :func:`first_run` (the first `make demo` replay with empty caches, issue 16), :func:`cohort` (the
+  cohort throughput of bench/cohort_bench.py, issue 17).
 
 The bench never fails on a number, only on a crash: targets are reported as pass/miss.
 """
@@ -70,6 +72,10 @@ class Sizes:
     scaling_w: tuple = (4, 8, 12, 16)
     scaling_lmax: tuple = (5, 10, 15, 20)
     trajectory: str | None = None  # None: the bundled default
+    cohort_sessions: int = 8  # synthetic cohort replayed by `haptic-acu cohort` (0: not measured)
+    cohort_session_s: float = 10.0  # trajectory seconds per session
+    cohort_dask: bool = True  # also on a Dask LocalCluster (its overhead against the local pool)
+    first_run: bool = True  # the first replay with empty numba and table caches (issue 16)
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -78,7 +84,8 @@ FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
              cold_runs=3, cold_full_process=True, scaling_ticks=3000, omni_s=10.0)
 QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, loop_plain_s=0.0, sh_repeats=5,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
-                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0)
+                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0,
+                            cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False)
 
 # The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -690,6 +697,54 @@ def cold_start(sizes: Sizes, progress=False) -> dict:
                   "process_total: the whole replay process, an upper bound"}}
 
 
+def cohort(sizes: Sizes, progress=False) -> dict:
+    """Cohort throughput (:func:`bench.cohort_bench.measure`): a synthetic class of
+    ``sizes.cohort_sessions`` sessions replayed by ``haptic-acu cohort`` on the local pool (and on a
+    Dask LocalCluster unless ``sizes.cohort_dask`` is off)."""
+    if not sizes.cohort_sessions:
+        return {"cohort": None}
+    from . import cohort_bench
+
+    _log(progress, f"cohort, {sizes.cohort_sessions} sessions of {sizes.cohort_session_s:g} s")
+    return {"cohort": cohort_bench.measure(sizes.cohort_sessions, sizes.cohort_session_s, dask=sizes.cohort_dask)}
+
+
+def _timed_child(cmd, env, cwd) -> float:
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode != 0:
+        tail = (p.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"first-run replay failed (exit {p.returncode}): {tail}")
+    return wall
+
+
+def first_run(sizes: Sizes, progress=False) -> dict:
+    """The first ``make demo`` replay (``haptic-acu replay`` of the bundled default, .rrd included),
+    in child processes whose numba cache (``NUMBA_CACHE_DIR``) and net-table cache
+    (``HAPTIC_ACU_CACHE``) start as empty temporary folders: ``empty_caches`` is a first run with
+    nothing cached (what a plain ``pip install`` gives); ``after_install`` the same replay once the
+    caches hold what that first run (the same work ``make``'s ``python -m haptic_acu.precompile``
+    does at install) left there: issue 16's target, under 10 s."""
+    if not sizes.first_run:
+        return {"first_run_s": None}
+    from haptic_acu.replay import DEFAULT_TRAJECTORY
+
+    traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-first-run-") as tmp:
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba"), HAPTIC_ACU_CACHE=str(Path(tmp) / "tables"))
+        for key, run_dir in (("empty_caches", "cold"), ("after_install", "warm")):
+            _log(progress, f"first run, {key.replace('_', ' ')}")
+            cmd = [sys.executable, "-m", "haptic_acu", "replay", traj, "--quiet", "--out", str(Path(tmp) / run_dir)]
+            out[key] = _timed_child(cmd, env, tmp)
+    out["trajectory"] = Path(traj).name
+    out["method"] = ("wall time of `python -m haptic_acu replay TRAJ --quiet --out DIR` (with .rrd, as make demo) in a "
+                     "child with NUMBA_CACHE_DIR and HAPTIC_ACU_CACHE at empty temporary folders; after_install: "
+                     "the same replay again, the caches filled by the first")
+    return {"first_run_s": out}
+
+
 def scaling(sizes: Sizes, progress=False) -> dict:
     """Servo tick (model.step, skin pressed) for several net sizes; SH evaluation of one surface on
     the grid for several degrees."""
@@ -743,6 +798,7 @@ def targets(res: dict) -> list[dict]:
         ("replay without .rrd (x real time)", _get(res, "replay_speed_x", "no_rrd"), ">=", 50.0),
         ("replay with .rrd (x real time)", _get(res, "replay_speed_x", "rrd"), ">=", 10.0),
         ("cold start to first tick (s)", _get(res, "cold_start_s", "first_tick"), "<=", 5.0),
+        ("first make demo replay after install (s)", _get(res, "first_run_s", "after_install"), "<=", 10.0),
     ]
     out = []
     for label, value, op, limit in rows:
@@ -756,7 +812,8 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
                  "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
-                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes")
+                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes",
+                 "cohort", "first_run_s")
 
 
 def collect(sizes: Sizes, progress=False) -> dict:
@@ -775,6 +832,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("scaling", lambda: scaling(sizes, progress)),
               ("replay", lambda: replay(sizes, progress)),
               ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
+              ("first_run", lambda: first_run(sizes, progress)),  # its own empty caches
+              ("cohort", lambda: cohort(sizes, progress)),
               ("loop", lambda: loop(sizes, progress)),
               ("omni_loop", lambda: omni_loop(sizes, progress))]
     for name, fn in pieces:
@@ -909,6 +968,21 @@ def format_table(res: dict) -> str:
     cs = res["cold_start_s"]
     lines.append(f"cold start: first servo tick {_fmt(cs['first_tick'])} s after process start"
                  + (f" (whole replay process {_fmt(cs['process_total'])} s)" if cs["process_total"] else ""))
+    fr = res.get("first_run_s")
+    if fr:
+        lines.append(f"first run of make demo ({fr['trajectory']}, .rrd included): {_fmt(fr['empty_caches'])} s with "
+                     f"empty numba and table caches, {_fmt(fr['after_install'])} s once they are filled (after install)")
+    co = res.get("cohort")
+    if co:
+        loc = co["local"]
+        lines.append(f"cohort: {co['sessions']} sessions of {_fmt(co['session_s'])} s on {co['workers']} workers: "
+                     f"{_fmt(loc['sessions_per_s_per_core'])} sessions/s per core, {_fmt(loc['sim_s_per_wall_s'])}x "
+                     f"real time (replays {_fmt(loc['replay_s'])} s, all {_fmt(loc['total_s'])} s)")
+        if co.get("dask"):
+            d = co["dask"]
+            lines.append(f"  on a Dask LocalCluster: {_fmt(d['replay_s'])} s, overhead {_fmt(d['overhead_x'])}x "
+                         f"({_fmt(d['overhead_with_cluster_start_x'])}x with the cluster's start); identical tables: "
+                         f"{'yes' if d['identical_tables'] else 'NO'}")
     sc = res["scaling"]
     lines.append("scaling, servo tick p50 / p99 (us): " + ", ".join(
         f"w={w} ({sc['particles'][w]} p) {_fmt(p['p50'])} / {_fmt(p['p99'])}" for w, p in sc["servo_tick_us"].items()))

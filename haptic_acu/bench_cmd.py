@@ -6,9 +6,9 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="latency and throughput benchmarks (servo tick, loop timing, SH, replay)",
                        description="Measure the servo step (compiled and against a NumPy reference), the real-time "
                                    "loop's period error with the visual loop and rerun logging running, SH "
-                                   "evaluation and fitting against pyshtools, springback, replay speed and cold "
-                                   "start; print a table with the targets (pass/miss). Never fails on a number. "
-                                   "Full run about 2 minutes; --quick well under that.")
+                                   "evaluation and fitting against pyshtools, springback, replay speed, cold "
+                                   "start, the first replay with empty caches and cohort throughput; print a table with the targets (pass/miss). Never fails on a number. "
+                                   "Full run a few minutes; --quick well under that.")
     p.add_argument("--quick", action="store_true", help="fewer samples and a 5 s real-time loop (CI)")
     p.add_argument("--json", metavar="FILE", help="also write every figure to FILE as JSON")
     p.set_defaults(func=run)

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -261,7 +262,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         run.QUICK, servo_ticks=30, numpy_ticks=5, numpy_scenarios=("press_skin_w10",), loop_s=0.3, loop_plain_s=0.2,
         sh_repeats=1,
         fit_samples=600, sh_grid=(8, 16), springback_calls=20, replay_runs=1, cold_runs=1, scaling_ticks=25,
-        scaling_w=(3, 4), scaling_lmax=(2, 4), trajectory=str(traj))
+        scaling_w=(3, 4), scaling_lmax=(2, 4), trajectory=str(traj), cohort_sessions=0, first_run=False)
     res = run.collect(tiny)
     for key in run.REQUIRED_KEYS:
         assert key in res, key
@@ -280,7 +281,8 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     assert res["replay_speed_x"]["no_rrd"] > 0 and res["cold_start_s"]["first_tick"] > 0
     assert set(res["scaling"]["servo_tick_us"]) == {"3", "4"} and set(res["scaling"]["sh_eval_ms"]) == {"2", "4"}
     assert set(res["scaling"]["servo_tick_sweeps_us"]) == {"3", "4"}
-    assert len(res["targets"]) == 12 and all(t["pass"] in (True, False, None) for t in res["targets"])
+    assert res["cohort"] is None and res["first_run_s"] is None  # not asked for (measured below)
+    assert len(res["targets"]) == 13 and all(t["pass"] in (True, False, None) for t in res["targets"])
     if res["pyshtools_eval_ms"] is not None:
         assert res["sh_agreement_m"]["fit_surface_max_abs"] < 1e-10
     table = run.format_table(res)
@@ -326,3 +328,24 @@ def test_omni_loop_runs_both_callbacks_through_the_emulator():
         assert r["servo_loop"] == servo, r
         assert 500 <= r["ticks"] <= 1001 and 0 <= r["missed_ticks"] <= r["ticks"]  # 1 s; a loaded host costs ticks
         assert 0 <= r["period_error_us"]["p50"] <= r["period_error_us"]["p99"] <= r["period_error_us"]["max"]
+
+
+@pytest.mark.slow
+def test_first_run_times_a_replay_with_empty_caches(tmp_path, monkeypatch):
+    """The first-run row: two replays of a tiny trajectory in children whose numba and table caches
+    are fresh temporary folders (the second finds the first's caches), removed afterwards."""
+    traj = tmp_path / "short.csv"
+    with TrajectoryWriter(traj) as w:
+        w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.3, 0.0, 0.0, -2e-3], [0.6, 0.0, 0.0, 1e-3]])
+    seen = []
+    real = run._timed_child
+
+    def spy(cmd, env, cwd):
+        seen.append((env["NUMBA_CACHE_DIR"], env["HAPTIC_ACU_CACHE"], sorted(Path(env["NUMBA_CACHE_DIR"]).glob("*"))))
+        return real(cmd, env, cwd)
+
+    monkeypatch.setattr(run, "_timed_child", spy)
+    res = run.first_run(dataclasses.replace(run.QUICK, trajectory=str(traj)))["first_run_s"]
+    assert res["empty_caches"] > 0 and res["after_install"] > 0
+    assert seen[0][2] == [] and seen[1][2] != []  # empty at first; the second run found the first's cache
+    assert seen[0][:2] == seen[1][:2] and not Path(seen[0][0]).exists()  # removed afterwards
