@@ -201,3 +201,36 @@ def test_csv_is_byte_identical_for_identical_rows(session):
     other = SamplesCsvSink(session.tmp / "again.csv")
     feed([other], session.rows, session.model, session.cfg, frame_rows=50)
     assert (session.tmp / "again.csv").read_bytes() == session.csv.read_bytes()
+
+
+def test_figure_rows_are_bounded_and_keep_every_extreme(session):
+    """FigureRows with a small cap on the insertion repeated 8 times (with a lone spike): at most
+    ``cap`` rows kept whatever the length, and the kept rows hold exactly the extremes of the force
+    along and across the normal and of the tip depth, every puncture, the first and last rows, and
+    each kept row's insertion index equals insertion_index on all the rows."""
+    from haptic_acu.metrics import SessionMetricsScan
+    from haptic_acu.report import FigureRows, insertion_index, lateral_force_n, radial_force_n, tip_depth_m
+    tissue = session.model.tissue
+    reps = [session.rows.copy() for _ in range(8)]
+    n0 = len(session.rows)
+    for k, r in enumerate(reps):
+        r[:, C["t_s"]] += k * n0 * 1e-3
+        r[:, C["tick"]] += k * n0
+    rows = np.concatenate(reps)
+    rows[n0 * 5 + 123, C["fx_n"]] = 2.5  # a lone lateral spike
+    fig = FigureRows(tissue, cap=600)
+    scan = SessionMetricsScan(session.cfg, tissue)
+    for a in range(0, len(rows), 997):
+        fig.feed(rows[a:a + 997])
+        scan.feed(rows[a:a + 997])
+        assert fig._n <= 600
+    kept, index = fig.result(scan.entries)
+    assert len(kept) <= 600 + 1 and fig.bin > 1
+    for f in (radial_force_n, lateral_force_n):
+        assert f(kept, tissue).max() == f(rows, tissue).max() and f(kept, tissue).min() == f(rows, tissue).min()
+    assert tip_depth_m(kept[:, C["x_m"]:C["x_m"] + 3], tissue).max() == tip_depth_m(rows[:, C["x_m"]:C["x_m"] + 3], tissue).max()
+    assert np.array_equal(kept[0], rows[0]) and np.array_equal(kept[-1], rows[-1])
+    assert np.count_nonzero(kept[:, C["puncture"]] >= 0) == np.count_nonzero(rows[:, C["puncture"]] >= 0)
+    where = [int(np.flatnonzero((rows[:, C["tick"]] == t))[0]) for t in kept[:, C["tick"]]]
+    assert np.array_equal(index, insertion_index(rows)[where])
+    assert index.max() == 7
