@@ -162,6 +162,10 @@ def test_force_is_rotated_into_the_device_frame_and_limited_by_the_device(emulat
     f = frames(res)[:, 5:8]
     n = len(res["states"])
     assert np.all(np.linalg.norm(f, axis=1) <= 2.5 * (1 + 1e-12))
+    # exactly, in rational arithmetic on the commanded doubles (issue 15: the clamp in
+    # omniloop.guard_out is haptic_acu.clamp's; the naive one let the rotation's 6e-17 through)
+    from fractions import Fraction
+    assert all(sum(Fraction(float(x)) ** 2 for x in row) <= Fraction(2.5) ** 2 for row in f[:n])
     assert res["emulator_after_run_servo"]["overforce"] == 0
     np.testing.assert_allclose(f[250:n], np.tile([0.0, -2.5, 0.0], (n - 250, 1)), rtol=0, atol=1e-12)
     assert np.all(f[:n, 1] <= 0.0) and np.all(np.abs(f[:n, [0, 2]]) < 1e-12)  # cos 90 deg rounds to 6e-17
