@@ -158,6 +158,11 @@ class SessionScan:
 class SummarySink:
     """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
 
+    With ``keep_rows=False`` (what replay and run use) no row is kept: the trainee metrics are
+    streamed (:class:`haptic_acu.metrics.SessionMetricsScan`, :meth:`metrics`) and the figure gets a
+    bounded min/max envelope of the rows (:class:`FigureRows`, :meth:`figure_rows`), so memory does not
+    grow with the session; the numbers are identical either way.
+
     ``summary()`` is a JSON-ready dict, deterministic for identical rows: forces in N to 0.1 mN,
     depths in mm to 1 um, times in s to 0.1 ms. Keys: ``ticks``, ``duration_s``, ``max_force_n``
     (max |F|), ``max_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
