@@ -117,7 +117,7 @@ class Device(abc.ABC):
 
     @property
     def has_events(self) -> bool:
-        """The device plays events (resets) that only the Python servo loop honours. Default: no."""
+        """The device plays events (resets): :meth:`reset_ticks` says where. Default: no."""
         return False
 
     def record_forces(self, count: int, max_magnitude_n: float, last_n) -> None:

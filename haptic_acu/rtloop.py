@@ -268,6 +268,9 @@ class Feed:
             if self.events:
                 cuts = [c for c in self.device.reset_ticks(T[:n]) if 0 <= c < n]
                 self.reset[idx[cuts]] = 1
+                log = getattr(self.device, "events", None)  # (tick, name) for a recording, as read_at does
+                if log is not None:
+                    log.extend((k0 + c, "reset") for c in cuts)
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 

@@ -294,3 +294,7 @@ def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tiss
     np.testing.assert_array_equal(rt[:, :COL["period_err_s"]], sim[:, :COL["period_err_s"]])
     skin = np.flatnonzero(rt[:, COL["puncture"]] == 0)
     assert len(skin) == 2 and rt[skin[1], COL["t_s"]] > 5.0
+    # the event is logged for a recording (RecorderSink reads device.events) at the tick it took effect
+    t_reset = min(float(ln.split(",", 1)[0]) for ln in out[1:] if ln.endswith(",reset"))
+    k = int(np.ceil(t_reset / 1e-3 - 1e-9))
+    assert dev.events == [(k, "reset")]
