@@ -200,3 +200,28 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
     with open(out / "samples.csv", newline="") as f:
         assert sum(1 for _ in csv.DictReader(f)) == session_ticks(live.stderr) == s["ticks"]
     assert (out / "force_depth.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_scripted_session_with_a_reset_runs_compiled_and_records_the_reset(tmp_path):
+    """Issue 15/16: a trajectory with an ``event`` column no longer falls back to the Python loop:
+    the compiled loop gives fresh tissue at the reset (the skin breaks twice though the second pass
+    goes down the same hole) and the recording carries the reset, so it replays the same way."""
+    traj = tmp_path / "twice.csv"
+    traj.write_text("t_s,x_mm,y_mm,z_mm,event\n0,0,0,3,\n0.6,0,0,-3,\n1.2,0,0,3,\n1.3,0,0,3,reset\n"
+                    "1.9,0,0,-3,\n2.5,0,0,3,\n")
+    out = tmp_path / "live"
+    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", traj, "--no-status", "--out", out),
+                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert live.returncode == 0, live.stderr
+    assert "compiled servo loop" in live.stderr
+    s = json.loads((out / "summary.json").read_text())
+    skin = [p for p in s["punctures"] if p["layer"] == "skin"]
+    assert len(skin) == 2 and skin[0]["t_s"] < 1.3 < skin[1]["t_s"]
+    with open(out / "recording.csv", newline="") as f:
+        events = [row for row in csv.DictReader(f) if row.get("event")]
+    assert [e["event"] for e in events] == ["reset"] and float(events[0]["t_s"]) == pytest.approx(1.3, abs=1.5e-3)
+    again = subprocess.run(haptic_acu("replay", out / "recording.csv", "--no-rrd", "--quiet", "--out", tmp_path / "re"),
+                           cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert again.returncode == 0, again.stderr
+    re_skin = [p for p in json.loads((tmp_path / "re" / "summary.json").read_text())["punctures"] if p["layer"] == "skin"]
+    assert len(re_skin) == 2
