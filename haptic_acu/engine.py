@@ -375,11 +375,22 @@ class Session:
             try:
                 self._final_frame()
             finally:
-                result = SessionResult(self.tick, self._t_session, self.fault,
-                                       self._stats(time.perf_counter() - wall0))
-                for s in self.sinks:
-                    if hasattr(s, "close"):
-                        s.close(result)
+                result = self._close_sinks(wall0)
+        return result
+
+    def _close_sinks(self, wall0: float) -> SessionResult:
+        """Close every sink (each one, even after another failed). A sink that cannot finish its
+        file (a full disk) is a fault of the session if none was reported yet, never an exception."""
+        result = SessionResult(self.tick, self._t_session, self.fault, self._stats(time.perf_counter() - wall0))
+        for s in self.sinks:
+            if hasattr(s, "close"):
+                try:
+                    s.close(result)
+                except Exception as e:
+                    if self.fault is None:
+                        self._set_fault(f"closing the outputs: {e}")
+        if result.fault != self.fault:
+            result = SessionResult(result.ticks, result.duration_s, self.fault, result.stats)
         return result
 
     def _run_sim(self) -> None:

@@ -55,6 +55,8 @@ import numpy as np
 
 from . import servostate as ss
 from . import shf
+from .cptr import address_of as _address_of
+from .cptr import i64p as _i64p
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
 from .netresponse import TM_NR, lay_field, lookup
@@ -659,16 +661,15 @@ def step_entry():
     unboxes every array, which is most of a tick called from Python."""
     global _STEP_C
     if _STEP_C is None:
-        from numba import types
-
-        from .cptr import address_of, i64p
-
         key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
         words = ss.HEADER + ss.SERVO_TABLE
 
-        @nb.cfunc(types.void(types.voidptr), nopython=True, cache=True)
+        # Only plain values in the closure: numba's cache key hashes the closure's contents, and a
+        # numba type or intrinsic there pickles differently in every process (a cache miss and a
+        # recompile on every run). The helpers are module globals.
+        @nb.cfunc(nb.types.void(nb.types.voidptr), nopython=True, cache=True)
         def step_c(data):
-            t = nb.carray(i64p(address_of(data)), words)
+            t = nb.carray(_i64p(_address_of(data)), words)
             if ss.accept(t, key):
                 step_servo(ss.unpack_servo(t, ss.HEADER))
 
