@@ -275,10 +275,12 @@ def test_exception_in_the_servo_step(cfg, tissue, tmp_path, clock):
     rec = tmp_path / "rec.csv"
     result = session(cfg, tissue, dev, [RecorderSink(rec), counter], clock=clock).run()
     check_stopped(result, dev, counter, "RuntimeError: test actuator refused")
-    # set_force of tick 300 raised before its row was written: ticks 0..299 are the session.
-    assert result.ticks == FAULT_TICK == dev.reads - 1
+    # The tick writes its row, then its driver commands the force (as the compiled drivers do):
+    # set_force of tick 300 raised after its row was written, so ticks 0..300 are the session and
+    # no read after it was used.
+    assert result.ticks == FAULT_TICK + 1 == dev.reads
     assert dev.forces[FAULT_TICK - 1][2] > 0.05 and not np.any(dev.forces[-1])
-    check_recording(rec, dev, FAULT_TICK)
+    check_recording(rec, dev, FAULT_TICK + 1)
 
 
 @pytest.mark.parametrize("clock", ["realtime", "sim"])
