@@ -30,7 +30,10 @@ explode. The surface breaks (puncture) when ring w's mean deflection passes the 
 By default the servo does not sweep at all: it reads the static response these sweeps converge to,
 tabulated once per parameter set (:mod:`haptic_acu.netresponse`, ``solver.servo_net = "table"``).
 
-All kernels are pure, numba-compiled (``nogil``, ``cache``), over plain arrays, allocation-free.
+All kernels are pure, numba-compiled (``nogil``, ``cache``), allocation-free, and take named inputs:
+a net's arrays (:class:`NetArrays`), its lattice (:class:`Topology`), its constants (:class:`Springs`)
+and, to build one, the surface (:class:`Surface`); the servo passes views into its state
+(:func:`haptic_acu.needle.net_views`), :class:`Net` its own arrays.
 """
 from __future__ import annotations
 
