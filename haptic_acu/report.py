@@ -480,6 +480,17 @@ def _colour(k: int) -> str:
     return APPROACH_COLOUR if k < 0 else INSERTION_COLOURS[k % len(INSERTION_COLOURS)]
 
 
+def _insertion_handles(n_ins: int) -> list:
+    """Legend entries for the insertions' colours; a long session's repeat, said once."""
+    from matplotlib.lines import Line2D
+    out = [Line2D([], [], color=_colour(k), label=f"insertion {k + 1}" if n_ins > 1 else "insertion")
+           for k in range(min(n_ins, len(INSERTION_COLOURS)))]
+    if n_ins > len(INSERTION_COLOURS):
+        out.append(Line2D([], [], color="none", label=f"insertions {len(INSERTION_COLOURS) + 1}-{n_ins}: "
+                          "the colours repeat"))
+    return out
+
+
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
@@ -513,10 +524,8 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     f_lat = lateral_force_n(rows, tissue)
     t = rows[:, _C_T]
     events = summary["punctures"] if summary is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
-    if index is not None:
-        idx = np.asarray(index, dtype=np.int64)
-    else:
-        idx = insertion_index(rows) if rows.size else np.zeros(0, np.int64)
+    idx = (np.asarray(index, dtype=np.int64) if index is not None
+           else insertion_index(rows) if rows.size else np.zeros(0, np.int64))
     n_ins = int(idx.max()) + 1 if idx.size else 0
     offset_mm = np.linalg.norm(rows[:, _C_X:_C_X + 2], axis=1) * 1e3  # tip's distance from the acupoint's axis
     show_lat = bool(rows.size) and (float(f_lat.max()) > LATERAL_SHOWN_N
@@ -555,11 +564,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
             ax_lat.plot(t[sl], f_lat[sl], color=_colour(k), lw=1.0)
     if (idx < 0).any():
         handles.append(Line2D([], [], color=APPROACH_COLOUR, label="approach"))
-    for k in range(min(n_ins, len(INSERTION_COLOURS))):  # a long session: the colours repeat, said once
-        handles.append(Line2D([], [], color=_colour(k), label=f"insertion {k + 1}" if n_ins > 1 else "insertion"))
-    if n_ins > len(INSERTION_COLOURS):
-        handles.append(Line2D([], [], color="none", label=f"insertions {len(INSERTION_COLOURS) + 1}-{n_ins}: "
-                              "the colours repeat"))
+    handles += _insertion_handles(n_ins)
     for ev in events:
         c = _EVENT_COLOURS[ev["layer"]]
         x, y = ev["tip_depth_mm"], ev["peak_force_n"]
