@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import devicemodel
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
@@ -211,6 +212,11 @@ class Session:
         self._ctl = None  # the compiled loop's control words while it runs
         self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
+        # A live session of the scripted device records what an OMNI would have rendered on its path
+        # (haptic_acu.devicemodel: the stylus model with an OMNI's limits); the replay and the
+        # keyboard (no force output) record none.
+        self.device_model = (devicemodel.new(self.servo_dt)
+                             if clock == "realtime" and device.info.name == "scripted" else None)
 
     @property
     def missed(self) -> int:
@@ -225,6 +231,8 @@ class Session:
     def warm_up(self) -> None:
         """Compile every kernel both loops call, warm the sinks, before any loop starts."""
         self.model.warm_up()
+        if self.device_model is not None:
+            devicemodel.warm_up()
         buf = np.zeros((1, NCOL))
         m = self.model
         write_sample(buf, 0, 0.0, 0, m.inp, m.state, m.out.diag, 0.0)
@@ -258,7 +266,8 @@ class Session:
 
         rtloop.warm_up()
         m = self.model
-        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
+        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64),
+                           devicemodel.new(self.servo_dt, on=False))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
         call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
@@ -286,6 +295,9 @@ class Session:
         m = self.model
         if state.reset:
             m.reset(keep_holes=False)
+        if self.device_model is not None:  # the modelled device's rendered force, for the row
+            m.inp.p[:] = state.position_m
+            devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
         force = m.step(state.position_m, state.velocity_m_s)
         if m.diag["fault"] != 0.0:
             self.device.set_force(self._zero)
@@ -557,6 +569,7 @@ class Session:
         period_ns = int(round(dt * 1e9))
         rows = Ring(self.ring.buf, self.ring.ctr)
         table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
+        dm = self.device_model if self.device_model is not None else devicemodel.new(dt, on=False)
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
@@ -571,7 +584,7 @@ class Session:
             self.sched_fifo = prev is not None
             try:
                 outcome["status"] = call_driver(
-                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
+                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64), dm), t0_ns, period_ns, k_limit,
                     rtloop.FeedRows(feed.p, feed.v), table)
             except BaseException as e:
                 outcome["error"] = e
@@ -720,9 +733,12 @@ class Session:
             self.tick = int(c["etick"])
             self._t_session = float(fctl[0]["t_session"])
             arrays.clear()  # (the table's addresses are dead from here)
-        if c["done"] == 2 and self.fault is None:
+        if c["done"] == ol.DONE_STATE and self.fault is None:
             self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
                             "force set to zero")
+        if c["done"] == ol.DONE_RENDER and self.fault is None:
+            self._set_fault(f"rendering layer: a non-finite position or tissue report at t={self._t_session:.3f} s "
+                            f"(tick {self.tick - 1}); force set to zero")
 
     def _run_device_clock(self) -> None:
         if self._omni_callback is not None:
@@ -739,7 +755,7 @@ class Session:
             err = (now - last[0]) - self.servo_dt
             last[0] = now
             account(self._timing, err, self.servo_dt, 1.0)
-            t = now - t0
+            t = state.t_s  # the device's own tick time (issue 15); the wall clock gives only the period error
             last[1] += 1
             if now - last[2] >= 0.5:
                 self.rates["servo_hz"] = last[1] / (now - last[2])
@@ -752,7 +768,7 @@ class Session:
             return self._servo_tick(t, state, err, command=False)
 
         try:
-            self.device.run_servo(step, self._stop)
+            self.device.run_servo(step, self._stop, render=(self.model.out.diag, self.model.inp))
         finally:
             self._stop.set()
             vis.join(timeout=2.0)

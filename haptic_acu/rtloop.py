@@ -34,6 +34,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from . import servostate as ss
+from .devicemodel import model_tick
 from .servotick import STALE, account, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
@@ -109,6 +110,7 @@ class Loop(NamedTuple):
     ctl: np.ndarray  # (1,) CTL, shared with Python
     fl: np.ndarray  # (1,) FL
     ts: np.ndarray  # int64[2]: the clock's timespec
+    dm: tuple  # devicemodel.DeviceModel: the rendered force of a modelled device (off: devicemodel.new(dt, False))
 
 
 class FeedRows(NamedTuple):
@@ -210,6 +212,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
+        model_tick(lp.dm, sv.inp, sv.out.diag)
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1
