@@ -17,6 +17,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   the machine's floor (a bare Python 1 kHz loop).
 * :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
   the compiled servo callback and with the Python one.
+* :func:`closed_loop_buzz`: the closed-loop buzz table (bench/closed_loop.py): per phase, loose and
+  firm grips, the rendering layer on the servo's own report (``--quick``: insertion and hold).
 * :func:`sh`: SH evaluation (three layer meshes at 64 x 128 directions, lmax 15) and fitting
   (10,000 samples, lmax 15) against pyshtools (``MakeGridPoint``, ``SHExpandLSQ``, orthonormal
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
@@ -67,6 +69,7 @@ class Sizes:
     cold_full_process: bool  # let the cold-start replays finish (process_total), or stop at the first tick
     scaling_ticks: int
     omni_s: float = 0.0  # the OMNI through the HD emulator, per servo callback (0: not measured)
+    closed_loop_quick: bool = False  # the closed-loop rows on the insertion and the hold only
     scaling_w: tuple = (4, 8, 12, 16)
     scaling_lmax: tuple = (5, 10, 15, 20)
     trajectory: str | None = None  # None: the bundled default
@@ -78,7 +81,8 @@ FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
              cold_runs=3, cold_full_process=True, scaling_ticks=3000, omni_s=10.0)
 QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, loop_plain_s=0.0, sh_repeats=5,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
-                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0)
+                            scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0,
+                            closed_loop_quick=True)
 
 # The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -424,6 +428,20 @@ _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; per
                            r"p99 (\d+) us, max (\d+) us; (\w+) servo loop")
 
 
+def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
+    """The closed-loop rows (issue 13, bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
+    and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
+    the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
+    puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
+    (no rendering layer) for comparison. ``--quick``: the insertion and the hold only."""
+    from . import closed_loop
+
+    quick = sizes.closed_loop_quick
+    _log(progress, "closed loop: stylus, hand and rendering layer, loose and firm grips"
+         + (" (insertion and hold)" if quick else ""))
+    return {"closed_loop": closed_loop.buzz_table(quick=quick)}
+
+
 def omni_loop(sizes: Sizes, progress=False) -> dict:
     """``haptic-acu run --device omni`` against the HD API emulator (tests/hd_emulator, built with
     the system C compiler), pressing the skin and letting go for ``sizes.omni_s``, with the compiled
@@ -744,6 +762,14 @@ def targets(res: dict) -> list[dict]:
         ("replay with .rrd (x real time)", _get(res, "replay_speed_x", "rrd"), ">=", 10.0),
         ("cold start to first tick (s)", _get(res, "cold_start_s", "first_tick"), "<=", 5.0),
     ]
+    cl = res.get("closed_loop") or {}
+    for grip in ("loose", "firm"):
+        m = (cl.get(grip) or {}).get("rendered")
+        rows.append((f"closed-loop buzz, {grip} grip, worst phase (N)",
+                     max(m["buzz_n"].values()) if m else None, "<=", 0.02))
+        rows.append((f"closed-loop puncture drop, {grip}, worst (frac)",
+                     max((p["min_within_20ms_n"] / p["before_n"] for p in m["punctures"] if p["before_n"] > 0),
+                         default=None) if m else None, "<=", 0.5))
     out = []
     for label, value, op, limit in rows:
         ok = None if value is None else (value <= limit if op == "<=" else value >= limit)
@@ -756,7 +782,7 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
                  "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
-                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes")
+                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes")
 
 
 def collect(sizes: Sizes, progress=False) -> dict:
@@ -776,7 +802,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("replay", lambda: replay(sizes, progress)),
               ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
               ("loop", lambda: loop(sizes, progress)),
-              ("omni_loop", lambda: omni_loop(sizes, progress))]
+              ("omni_loop", lambda: omni_loop(sizes, progress)),
+              ("closed_loop", lambda: closed_loop_buzz(sizes, progress))]
     for name, fn in pieces:
         t = time.perf_counter()
         part = fn()
@@ -800,6 +827,28 @@ def _fmt(x, digits=3):
     if x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
         return f"{x:.2e}"
     return f"{x:.{digits}g}"
+
+
+def closed_loop_lines(cl) -> list:
+    """The closed-loop buzz table: per grip, buzz per phase (N RMS above 40 Hz), then the punctures,
+    rendered vs simulated and the energy into the hand."""
+    if not cl:
+        return []
+    phases = list(next(iter(cl.values()))["rendered"]["buzz_n"])
+    lines = ["closed loop (45 g stylus, hand grip, rendering layer): buzz, N RMS above 40 Hz",
+             f"  {'':26s}" + "".join(f"{p:>12s}" for p in phases)]
+    for grip, rows in cl.items():
+        for label, m in rows.items():
+            lines.append(f"  {grip + ', ' + label:26s}" + "".join(f"{_fmt(m['buzz_n'].get(p)):>12s}" for p in phases))
+    for grip, rows in cl.items():
+        m = rows["rendered"]
+        pun = ", ".join(f"layer {p['layer']} {p['before_n']:.2f} -> {p['min_within_20ms_n']:.2f} N"
+                        for p in m["punctures"])
+        lag1 = m.get("render_minus_sim_lag1_max_n")
+        lines.append(f"  {grip}: punctures (before -> least within 20 ms) {pun}; |rendered - simulated| max "
+                     f"{_fmt(m['render_minus_sim_max_n'])} N (vs the tick before {_fmt(lag1)} N) while moving "
+                     f"smoothly; energy into the hand over the session {_fmt(m['energy_into_hand_j']['closed_session'] * 1e3)} mJ")
+    return lines
 
 
 def format_table(res: dict) -> str:
@@ -887,6 +936,7 @@ def format_table(res: dict) -> str:
                              + ("SCHED_FIFO" if r.get("emulator_sched_fifo") else "ordinary (SCHED_FIFO refused)"))
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
+    lines += closed_loop_lines(res.get("closed_loop"))
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:

@@ -93,6 +93,7 @@ _ERROR_NAMES = {
 
 _CALLBACK = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
 _ZERO3 = (ctypes.c_double * 3)()
+_ZERO_F = np.zeros(3)
 
 
 def hd_error_name(code: int) -> str:
@@ -610,8 +611,8 @@ class OmniDevice(Device):
         if not all(map(math.isfinite, f.tolist())):
             return self._abort(s, f"servo step returned a non-finite force {tuple(f.tolist())} N")
 
-        if rendering:
-            f = s.inp.fr
+        if rendering:  # the coupling's force; zero once the step has stopped the session (as the compiled tick)
+            f = _ZERO_F if (s.stop.is_set() or s.stop_requested) else s.inp.fr
         st = ol.guard_out(g, float(f[0]), float(f[1]), float(f[2]))
         if st != ol.S_RUNNING:
             c["status"] = st
