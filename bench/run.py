@@ -292,7 +292,8 @@ class _DentProbe:
             frame.dents[k]
 
 
-def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False, compiled_loop=True) -> dict:
+def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False, compiled_loop=True,
+                     pin_cores=False) -> dict:
     """A real-time Session on the scripted device playing ``trajectory`` looped for ``duration_s``;
     with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
     missing); ``compiled_loop=False``: the Python servo loop instead of the compiled one. Returns the
@@ -320,10 +321,11 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
         except ImportError as e:
             rerun = False
             note = f"rerun logging not available ({e}); the loop ran without it"
-    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled_loop)
+    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled_loop,
+                      pin_cores=pin_cores)
     session.warm_up()
     _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging"
-         + ("" if compiled_loop else ", Python servo loop"))
+         + ("" if compiled_loop else ", Python servo loop") + (", servo and logger pinned" if pin_cores else ""))
     with measure.StealSampler() as steal:
         result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
     fifo = bool(result.stats.get("sched_fifo"))
@@ -373,6 +375,12 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
                                         "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
                                         "fault": inproc["fault"], "steal": inproc["steal"]}
+        # the servo thread pinned to one core, the logging child to the other (haptic_acu.affinity)
+        with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+            pin = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, pin_cores=True)
+        out["loop_pinned"] = {"duration_s": sizes.loop_plain_s, "period_error_us": pin["period_error_us"],
+                              "ticks": int(pin["ticks"]), "missed_ticks": int(pin["missed_ticks"]),
+                              "pinned": bool(pin.get("pinned")), "fault": pin["fault"], "steal": pin["steal"]}
         # the design before rtloop.py, for comparison: the same session with the servo loop in Python
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
@@ -913,6 +921,14 @@ def format_table(res: dict) -> str:
         lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
                      + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
         steal_line(lip.get("steal"))
+    lpin = res.get("loop_pinned")
+    if lpin:
+        prow(f"  same, {lpin['duration_s']:.0f} s, servo thread and logging child pinned apart (us)",
+             lpin["period_error_us"])
+        lines.append(f"  {lpin['ticks']} ticks, {lpin['missed_ticks']} missed"
+                     + ("" if lpin["pinned"] else " (pinning refused: ran unpinned)")
+                     + (f"; STOPPED: {lpin['fault']}" if lpin["fault"] else ""))
+        steal_line(lpin.get("steal"))
     lps = res.get("loop_python_servo")
     if lps:
         prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])

@@ -627,7 +627,7 @@ class OmniDevice(Device):
         msg = hd.error("hdEndFrame")
         if msg:  # the frame is closed: run_servo disables force output
             return s.finish(fault=msg)
-        c["force_on"] = 1 if (fx != 0.0 or fy != 0.0 or fz != 0.0) else 0
+        c["force_on"] = ol.force_is_on(fx, fy, fz)
         return HD_CALLBACK_CONTINUE
 
     # ---- Device interface outside the servo loop ----------------------------------------------

@@ -63,7 +63,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import devicemodel
+from . import affinity, devicemodel
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
@@ -171,7 +171,8 @@ class Session:
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
-                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10):
+                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10,
+                 pin_cores: bool = False):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -190,6 +191,9 @@ class Session:
         if skip_after_ticks is not None and not (isinstance(skip_after_ticks, int) and skip_after_ticks >= 1):
             raise ValueError(f"skip_after_ticks must be a whole number >= 1 or None, got {skip_after_ticks!r}")
         self.skip_after_ticks = skip_after_ticks
+        # real time: the servo thread on one core, a logging child process on the others (affinity.py)
+        self.pin_cores = bool(pin_cores)
+        self.pinned = False
         self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
         self.tick = 0
         self.frame_index = 0
@@ -346,7 +350,7 @@ class Session:
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
                 "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"],
-                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind()}
+                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind(), "pinned": self.pinned}
 
     def _servo_kind(self) -> str:
         """How the servo tick ran: "simulated", "compiled" (no GIL: rtloop / omniloop) or "python"."""
@@ -487,6 +491,16 @@ class Session:
         sys.setswitchinterval(old_interval)
         gc.unfreeze()
 
+    def _pin_sinks(self):
+        """With ``pin_cores``: (servo core, other cores) from affinity.split, the sinks that run in a
+        child process (the rerun logger) pinned to the others; None when off or not possible."""
+        cores = affinity.split() if self.pin_cores and self.clock == "realtime" else None
+        if cores:
+            for s in self.sinks:
+                if hasattr(s, "pin"):
+                    s.pin(cores[1])
+        return cores
+
     def _try_fifo(self):
         """Ask for SCHED_FIFO for the calling thread only (Linux: pid 0 is this thread), with
         SCHED_RESET_ON_FORK so no child process inherits it. Returns the previous (policy, priority)
@@ -579,9 +593,13 @@ class Session:
         t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
         t0 = t0_ns * 1e-9
 
+        cores = self._pin_sinks()
+
         def servo():
             prev = self._try_fifo()
             self.sched_fifo = prev is not None
+            prev_cpus = affinity.pin_thread({cores[0]}) if cores else None
+            self.pinned = prev_cpus is not None
             try:
                 outcome["status"] = call_driver(
                     rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64), dm), t0_ns, period_ns, k_limit,
@@ -589,6 +607,7 @@ class Session:
             except BaseException as e:
                 outcome["error"] = e
             finally:
+                affinity.restore(prev_cpus)
                 self._restore_sched(prev)
                 self._stop.set()
 

@@ -200,6 +200,7 @@ def warm_guard() -> None:
     guard_in(o, inp)
     render_in(o, inp, np.zeros(1, ss.DIAG))
     guard_out(o, 0.0, 0.0, 0.0)
+    force_is_on(0.0, 0.0, 0.0)
 
 
 def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
@@ -489,6 +490,15 @@ def guard_out(o, fx, fy, fz):
     return S_RUNNING
 
 
+FORCE_ON_N = 1e-3  # a force the stall detector counts as loaded (the coupling leaves ~1e-17 N in free space)
+
+
+@nb.njit(nogil=True, cache=True)
+def force_is_on(dx, dy, dz):
+    """1 if the device force (N) is a load for the stall detector (above :data:`FORCE_ON_N`), else 0."""
+    return 1 if dx * dx + dy * dy + dz * dz > FORCE_ON_N * FORCE_ON_N else 0
+
+
 @nb.njit(nogil=True, cache=True)
 def command_force(o, fx, fy, fz):
     """The force out: :func:`guard_out`, then the force is set and the frame closed. Returns the
@@ -509,7 +519,7 @@ def command_force(o, fx, fy, fz):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_END, e)
-    ictl[0].force_on = 1 if (dx != 0.0 or dy != 0.0 or dz != 0.0) else 0
+    ictl[0].force_on = force_is_on(dx, dy, dz)
     return HD_CALLBACK_CONTINUE
 
 
