@@ -144,7 +144,20 @@ def test_closed_loop_session_through_the_emulated_omni(emulator, tmp_path, grip_
 
     rep, out = replay(tmp_path, rec)
     assert rep.returncode == 0, rep.stderr
-    assert (out / "summary.json").exists()
+    # the headless replay runs the tissue at the recorded proxy: the recorded simulated force again
+    # (the file's precision, and the ticks around a puncture left out)
+    import csv
+
+    with open(out / "samples.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    t_rep = np.array([float(r["t_s"]) for r in rows])
+    fz_rep = np.array([float(r["fz_n"]) for r in rows])
+    keep = np.ones(len(tr.t_s), bool)
+    for i in broke:
+        keep[max(0, i - 3):i + 3] = False
+    keep &= (tr.t_s >= t_rep[0]) & (tr.t_s <= t_rep[-1])
+    err = np.abs(np.interp(tr.t_s[keep], t_rep, fz_rep) - fs[keep, 2])
+    assert keep.sum() > 0.9 * len(tr.t_s) and err.max() <= 0.01 + 0.02 * np.abs(fs[keep, 2]).max(), err.max()
 
 
 BUZZ_BOUND_N = 0.05
