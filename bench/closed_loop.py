@@ -166,14 +166,57 @@ class NeedleAdapter:
                                 float(along), float(across), 0.0, 1.0 if m.diag["puncture"] >= 0 else 0.0)
 
 
+class DiagTissue:
+    """The servo's own report for the rendering layer (the DIAG ``r_*`` fields that
+    :func:`haptic_acu.needle.render_local` writes): exactly what the OMNI path and the scripted
+    device's model render from."""
+
+    def __init__(self, model: NeedleModel):
+        self.m = model
+
+    def naive(self, p, v):
+        return np.array(self.m.step(p, v), float)
+
+    def puncture(self):
+        return int(self.m.diag["puncture"])
+
+    def step(self, p, v):
+        f = np.array(self.m.step(p, v), float)
+        d = self.m.diag
+        return f, R.TissueLocal(np.array(d["r_force"]), np.array(d["r_axis"]), float(d["r_damping"]),
+                                float(d["r_k_along"]), float(d["r_k_across"]), float(d["r_friction"]),
+                                float(d["r_released"]))
+
+
 def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | None = None,
-        cfg=None, limits: R.DeviceLimits = OMNI_LIMITS) -> dict:
-    """The issue's session (:func:`session_path`) on today's tissue model; see :func:`closed_loop`."""
+        cfg=None, limits: R.DeviceLimits = OMNI_LIMITS, tissue: str = "adapter", until: str | None = None) -> dict:
+    """The issue's session (:func:`session_path`) on today's tissue model; see :func:`closed_loop`.
+    ``tissue``: "adapter" (:class:`NeedleAdapter`, reading the model from Python) or "diag"
+    (:class:`DiagTissue`, the servo's own report); ``until``: the last phase to run (None: all)."""
     cfg = cfg if cfg is not None else load_config()
     model = NeedleModel(cfg)
     H, phases = session_path(model)
+    if until is not None:
+        names = [p[0] for p in phases]
+        phases = phases[:names.index(until) + 1]
+        H = H[:phases[-1][2] + 1]
     model.reset(keep_holes=False)
-    return closed_loop(grip, H, phases, NeedleAdapter(model), mode, velocity, params, limits)
+    adapter = DiagTissue(model) if tissue == "diag" else NeedleAdapter(model)
+    return closed_loop(grip, H, phases, adapter, mode, velocity, params, limits)
+
+
+def buzz_table(quick: bool = False) -> dict:
+    """The bench's closed-loop rows: per grip, the rendered session on the servo's own report
+    (:class:`DiagTissue`) — buzz per phase, punctures, rendered vs simulated, energy into the hand —
+    and, in the full run, the naive path (the HD velocity, no rendering layer) beside it. ``quick``:
+    the insertion and the hold only."""
+    out = {}
+    for grip in (LOOSE, FIRM):
+        m = metrics(run(grip, "rendered", tissue="diag", until="hold" if quick else None))
+        out[grip.name] = {"rendered": m}
+        if not quick:
+            out[grip.name]["naive_hd_velocity"] = {"buzz_n": metrics(run(grip, "naive", "hd"))["buzz_n"]}
+    return out
 
 
 class FrictionTissue:

@@ -17,6 +17,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   the machine's floor (a bare Python 1 kHz loop).
 * :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
   the compiled servo callback and with the Python one.
+* :func:`closed_loop_buzz`: the closed-loop buzz table (bench/closed_loop.py): per phase, loose and
+  firm grips, the rendering layer on the servo's own report (``--quick``: insertion and hold).
 * :func:`sh`: SH evaluation (three layer meshes at 64 x 128 directions, lmax 15) and fitting
   (10,000 samples, lmax 15) against pyshtools (``MakeGridPoint``, ``SHExpandLSQ``, orthonormal
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
@@ -70,6 +72,7 @@ class Sizes:
     cold_full_process: bool  # let the cold-start replays finish (process_total), or stop at the first tick
     scaling_ticks: int
     omni_s: float = 0.0  # the OMNI through the HD emulator, per servo callback (0: not measured)
+    closed_loop_quick: bool = False  # the closed-loop rows on the insertion and the hold only
     scaling_w: tuple = (4, 8, 12, 16)
     scaling_lmax: tuple = (5, 10, 15, 20)
     trajectory: str | None = None  # None: the bundled default
@@ -86,7 +89,8 @@ FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
 QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0, loop_plain_s=0.0, sh_repeats=5,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
                             scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0,
-                            cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False)
+                            cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False,
+                            closed_loop_quick=True)
 
 # The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -296,7 +300,8 @@ class _DentProbe:
             frame.dents[k]
 
 
-def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False, compiled_loop=True) -> dict:
+def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=False, compiled_loop=True,
+                     pin_cores=False) -> dict:
     """A real-time Session on the scripted device playing ``trajectory`` looped for ``duration_s``;
     with ``rerun``, logging to a .rrd file in ``tmp`` (falls back to dents only if the sink is
     missing); ``compiled_loop=False``: the Python servo loop instead of the compiled one. Returns the
@@ -324,10 +329,11 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
         except ImportError as e:
             rerun = False
             note = f"rerun logging not available ({e}); the loop ran without it"
-    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled_loop)
+    session = Session(cfg, dev, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled_loop,
+                      pin_cores=pin_cores)
     session.warm_up()
     _log(progress, f"real-time loop, {duration_s:.0f} s, {'with' if rerun else 'without'} rerun logging"
-         + ("" if compiled_loop else ", Python servo loop"))
+         + ("" if compiled_loop else ", Python servo loop") + (", servo and logger pinned" if pin_cores else ""))
     with measure.StealSampler() as steal:
         result = session.run()  # the engine restores this thread's scheduling policy when the loop ends
     fifo = bool(result.stats.get("sched_fifo"))
@@ -377,6 +383,12 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
                                         "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
                                         "fault": inproc["fault"], "steal": inproc["steal"]}
+        # the servo thread pinned to one core, the logging child to the other (haptic_acu.affinity)
+        with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
+            pin = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, pin_cores=True)
+        out["loop_pinned"] = {"duration_s": sizes.loop_plain_s, "period_error_us": pin["period_error_us"],
+                              "ticks": int(pin["ticks"]), "missed_ticks": int(pin["missed_ticks"]),
+                              "pinned": bool(pin.get("pinned")), "fault": pin["fault"], "steal": pin["steal"]}
         # the design before rtloop.py, for comparison: the same session with the servo loop in Python
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
@@ -430,6 +442,20 @@ def machine_floor(duration_s: float, progress=False) -> dict:
 
 _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; period error p50 (\d+) us, "
                            r"p99 (\d+) us, max (\d+) us; (\w+) servo loop")
+
+
+def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
+    """The closed-loop rows (issue 13, bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
+    and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
+    the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
+    puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
+    (no rendering layer) for comparison. ``--quick``: the insertion and the hold only."""
+    from . import closed_loop
+
+    quick = sizes.closed_loop_quick
+    _log(progress, "closed loop: stylus, hand and rendering layer, loose and firm grips"
+         + (" (insertion and hold)" if quick else ""))
+    return {"closed_loop": closed_loop.buzz_table(quick=quick)}
 
 
 def omni_loop(sizes: Sizes, progress=False) -> dict:
@@ -801,6 +827,14 @@ def targets(res: dict) -> list[dict]:
         ("cold start to first tick (s)", _get(res, "cold_start_s", "first_tick"), "<=", 5.0),
         ("first make demo replay after install (s)", _get(res, "first_run_s", "after_install"), "<=", 10.0),
     ]
+    cl = res.get("closed_loop") or {}
+    for grip in ("loose", "firm"):
+        m = (cl.get(grip) or {}).get("rendered")
+        rows.append((f"closed-loop buzz, {grip} grip, worst phase (N)",
+                     max(m["buzz_n"].values()) if m else None, "<=", 0.02))
+        rows.append((f"closed-loop puncture drop, {grip}, worst (frac)",
+                     max((p["min_within_20ms_n"] / p["before_n"] for p in m["punctures"] if p["before_n"] > 0),
+                         default=None) if m else None, "<=", 0.5))
     out = []
     for label, value, op, limit in rows:
         ok = None if value is None else (value <= limit if op == "<=" else value >= limit)
@@ -813,7 +847,7 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
                  "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
-                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "targets", "notes",
+                 "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes",
                  "cohort", "first_run_s")
 
 
@@ -836,7 +870,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("first_run", lambda: first_run(sizes, progress)),  # its own empty caches
               ("cohort", lambda: cohort(sizes, progress)),
               ("loop", lambda: loop(sizes, progress)),
-              ("omni_loop", lambda: omni_loop(sizes, progress))]
+              ("omni_loop", lambda: omni_loop(sizes, progress)),
+              ("closed_loop", lambda: closed_loop_buzz(sizes, progress))]
     for name, fn in pieces:
         t = time.perf_counter()
         part = fn()
@@ -860,6 +895,28 @@ def _fmt(x, digits=3):
     if x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
         return f"{x:.2e}"
     return f"{x:.{digits}g}"
+
+
+def closed_loop_lines(cl) -> list:
+    """The closed-loop buzz table: per grip, buzz per phase (N RMS above 40 Hz), then the punctures,
+    rendered vs simulated and the energy into the hand."""
+    if not cl:
+        return []
+    phases = list(next(iter(cl.values()))["rendered"]["buzz_n"])
+    lines = ["closed loop (45 g stylus, hand grip, rendering layer): buzz, N RMS above 40 Hz",
+             f"  {'':26s}" + "".join(f"{p:>12s}" for p in phases)]
+    for grip, rows in cl.items():
+        for label, m in rows.items():
+            lines.append(f"  {grip + ', ' + label:26s}" + "".join(f"{_fmt(m['buzz_n'].get(p)):>12s}" for p in phases))
+    for grip, rows in cl.items():
+        m = rows["rendered"]
+        pun = ", ".join(f"layer {p['layer']} {p['before_n']:.2f} -> {p['min_within_20ms_n']:.2f} N"
+                        for p in m["punctures"])
+        lag1 = m.get("render_minus_sim_lag1_max_n")
+        lines.append(f"  {grip}: punctures (before -> least within 20 ms) {pun}; |rendered - simulated| max "
+                     f"{_fmt(m['render_minus_sim_max_n'])} N (vs the tick before {_fmt(lag1)} N) while moving "
+                     f"smoothly; energy into the hand over the session {_fmt(m['energy_into_hand_j']['closed_session'] * 1e3)} mJ")
+    return lines
 
 
 _TABLE_HEAD = f"{'':46s} {'p50':>9s} {'p99':>9s} {'p99.9':>9s} {'max':>9s}"
@@ -935,6 +992,14 @@ def _table_loops(res: dict, lines: list) -> None:
         lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
                      + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
         _steal_line(lines, lip.get("steal"))
+    lpin = res.get("loop_pinned")
+    if lpin:
+        prow(f"  same, {lpin['duration_s']:.0f} s, servo thread and logging child pinned apart (us)",
+             lpin["period_error_us"])
+        lines.append(f"  {lpin['ticks']} ticks, {lpin['missed_ticks']} missed"
+                     + ("" if lpin["pinned"] else " (pinning refused: ran unpinned)")
+                     + (f"; STOPPED: {lpin['fault']}" if lpin["fault"] else ""))
+        _steal_line(lines, lpin.get("steal"))
     lps = res.get("loop_python_servo")
     if lps:
         prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
@@ -958,6 +1023,7 @@ def _table_loops(res: dict, lines: list) -> None:
                              + ("SCHED_FIFO" if r.get("emulator_sched_fifo") else "ordinary (SCHED_FIFO refused)"))
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
+    lines += closed_loop_lines(res.get("closed_loop"))
 
 
 def _table_kernels(res: dict, lines: list) -> None:

@@ -91,9 +91,10 @@ class Device(abc.ABC):
     def set_force(self, force_n: np.ndarray) -> None:
         """Command a force (N, scene frame). The caller has already made it finite and clamped."""
 
-    def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop) -> None:
+    def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop, render=None) -> None:
         """For ``drives_clock`` devices: call ``step(state) -> force`` from the device's scheduler
-        at its rate until ``stop`` (a threading.Event) is set or the device faults."""
+        at its rate until ``stop`` (a threading.Event) is set or the device faults. ``render``: the
+        servo's (DIAG record array, TickIn) for a device with a rendering layer (devices/omni.py)."""
         raise NotImplementedError(f"{self.info.name} does not drive the clock")
 
     # -- what the engine also uses; each has a default, a device overrides what it can do ---------

@@ -12,13 +12,21 @@ Safety, on every tick:
 
 * every HD call is followed by ``hdGetError``; any error ends the session;
 * no force until the first valid state; then the force is ramped in linearly over ``ramp_s``;
+* with the device's nominal limits (HD_NOMINAL_MAX_FORCE, _CONTINUOUS_FORCE, _STIFFNESS, _DAMPING,
+  read at open) the rendering layer (haptic_acu.rendering, run by omniloop.render_in) stands between
+  the step and the device: the tissue step runs at a proxy tied to the stylus by a virtual coupling
+  within those limits, and the device gets the coupling's force;
 * the force is re-checked (non-finite -> zero and a fault) and clamped to
   ``info.force_limit_n`` = min(the configured limit, HD_NOMINAL_MAX_FORCE), in both frames;
-* a non-finite position, a position that stays bit-for-bit identical for ``stall_s`` while a
-  force is being commanded (a stalled device: a hand holding a stylus against a force is never that
-  still, but a stylus at rest in free space may be, so only the loaded case counts), and a callback
-  that the scheduler stops calling for ``watchdog_s`` (checked from run_servo's own thread) are
-  device faults.
+* a non-finite position, a stalled device and a callback that the scheduler stops calling for
+  ``watchdog_s`` (checked from run_servo's own thread) are device faults. A stalled device is a
+  position bit-for-bit identical while a force is commanded: with the rendering layer, for
+  ``stall_s`` while the commanded force has changed by more than 0.5 N since it froze (a hand,
+  even a firm one, moves the stylus several encoder steps under such a change: the force/position
+  relation), or for ``still_s`` (1 s) under any force (a hand holding a stylus still against a
+  steady force leaves the encoders still for a while, but its tremor moves them within a second);
+  without it (a ``step`` given no ``render``), for ``stall_s`` under any force. A stylus at rest in
+  free space (no force) may be still for ever.
 
 On a fault or an exception in ``step`` the callback commands zero force in that frame (when it is
 still running), then run_servo disables force output, unschedules the callback, stops the
@@ -60,7 +68,10 @@ HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_VELOCITY = 0x2051
 HD_CURRENT_TRANSFORM = 0x2052
 HD_DEVICE_MODEL_TYPE = 0x2501
+HD_NOMINAL_MAX_STIFFNESS = 0x2602
 HD_NOMINAL_MAX_FORCE = 0x2603
+HD_NOMINAL_MAX_CONTINUOUS_FORCE = 0x2604
+HD_NOMINAL_MAX_DAMPING = 0x2609
 HD_CURRENT_FORCE = 0x2700
 HD_FORCE_OUTPUT = 0x4000
 HD_INVALID_HANDLE = 0xFFFFFFFF
@@ -82,6 +93,7 @@ _ERROR_NAMES = {
 
 _CALLBACK = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)
 _ZERO3 = (ctypes.c_double * 3)()
+_ZERO_F = np.zeros(3)
 
 
 def hd_error_name(code: int) -> str:
@@ -174,6 +186,7 @@ class _Servo:
         self.force = (ctypes.c_double * 3)()
         self.velocity_from_device = True
         self.guard = None  # omniloop.OmniArrays: the guard's state, shared with the compiled callback's code
+        self.render = None  # (diag, inp) of the engine's servo: the rendering layer on (run_servo)
         self.inp = None  # servostate.TickIn: the guarded sample in the scene frame
         self.latest: DeviceState | None = None
 
@@ -193,17 +206,22 @@ class OmniDevice(Device):
 
     def __init__(self, workspace: Workspace, force_limit_n: float | None = None,
                  device_name: str = "Default Device", *, ramp_s: float = 0.2,
-                 stall_s: float = 0.1, watchdog_s: float = 0.1, filter_hz: float = 50.0):
+                 stall_s: float = 0.1, watchdog_s: float = 0.1, filter_hz: float = 50.0, render: bool = True,
+                 still_s: float = 1.0):
         if force_limit_n is not None and not (math.isfinite(force_limit_n) and force_limit_n > 0):
             raise UserError(f"OMNI force limit must be a positive number of newtons, got {force_limit_n!r}")
-        for name, v in (("ramp_s", ramp_s), ("stall_s", stall_s), ("watchdog_s", watchdog_s), ("filter_hz", filter_hz)):
+        for name, v in (("ramp_s", ramp_s), ("stall_s", stall_s), ("watchdog_s", watchdog_s), ("filter_hz", filter_hz),
+                        ("still_s", still_s)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be positive, got {v!r}")
         self.workspace = workspace
         self.device_name = device_name
+        self._render = bool(render)  # the rendering layer (haptic_acu.rendering) between the step and the device
+        self.limits = None  # rendering.DeviceLimits read at open (None: no rendering layer)
         self._config_limit = force_limit_n
         self._ramp_ticks = max(1, round(ramp_s * RATE_HZ))
         self._stall_ticks = max(2, round(stall_s * RATE_HZ))
+        self._still_ticks = max(self._stall_ticks, round(still_s * RATE_HZ))
         self._watchdog_s = watchdog_s
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * filter_hz / RATE_HZ)
         self.info = DeviceInfo("omni", "PHANTOM (not opened)", force_limit_n or DEFAULT_FORCE_LIMIT_N, RATE_HZ, True)
@@ -246,6 +264,7 @@ class OmniDevice(Device):
             if not (math.isfinite(nominal.value) and nominal.value > 0):
                 raise UserError(f"haptic device {self.device_name!r} reports a nominal maximum force of {nominal.value!r} N")
             limit = nominal.value if self._config_limit is None else min(self._config_limit, nominal.value)
+            self.limits = self._read_limits(hd, nominal.value) if self._render else None
             self.info = DeviceInfo("omni", (model or b"unknown PHANTOM").decode(errors="replace"), limit, RATE_HZ, True)
             hd.enable(HD_FORCE_OUTPUT)
             self._check_open("hdEnable(HD_FORCE_OUTPUT)")
@@ -256,6 +275,23 @@ class OmniDevice(Device):
             self._shutdown()
             raise
         _open_devices.add(self)
+
+    def _read_limits(self, hd, max_force: float):
+        """The device's nominal limits for the rendering layer (rendering.DeviceLimits, SI): the
+        continuous force, stiffness and damping the HD API reports (HD_NOMINAL_MAX_*)."""
+        from haptic_acu import rendering
+
+        vals = {}
+        for name, enum in (("continuous force", HD_NOMINAL_MAX_CONTINUOUS_FORCE),
+                           ("stiffness", HD_NOMINAL_MAX_STIFFNESS), ("damping", HD_NOMINAL_MAX_DAMPING)):
+            v = ctypes.c_double(float("nan"))
+            hd.get_doublev(enum, ctypes.byref(v))
+            self._check_open(f"hdGetDoublev(HD_NOMINAL_MAX_{name.upper().replace(' ', '_')})")
+            vals[name] = v.value
+        try:
+            return rendering.limits_from_hd(max_force, vals["continuous force"], vals["stiffness"], vals["damping"])
+        except ValueError as e:
+            raise UserError(f"haptic device {self.device_name!r} reports an unusable {e}") from None
 
     def _check_open(self, after: str) -> None:
         msg = self._hd.error(after)
@@ -311,8 +347,15 @@ class OmniDevice(Device):
 
     # ---- the servo loop -----------------------------------------------------------------------
 
-    def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop) -> None:
+    def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop, render=None) -> None:
         """Call ``step(state) -> force`` from the HD scheduler each tick until ``stop`` is set.
+
+        ``render`` (the engine's): ``(diag, inp)``, the servo's DIAG record array and TickIn. With
+        it (and the device's limits read at open) the rendering layer runs between the guard and
+        the step (omniloop.render_in, as in the compiled callback): ``state`` is the proxy, the
+        tissue's report is read from ``diag``, the device gets the coupling force (``step``'s
+        return is the simulated force, checked but not commanded), and the rendered force and its
+        status are written into ``inp.fr`` / ``inp.rstat`` for the step's sample row.
 
         Returns after a clean stop (the last frame commands zero force). Raises DeviceFault on a
         device fault, or re-raises an exception from ``step``, after zeroing the force and stopping
@@ -326,8 +369,12 @@ class OmniDevice(Device):
         from haptic_acu.servostate import TickIn
 
         servo = _Servo(step, stop, self._stall_ticks, self._ramp_ticks)
-        servo.guard = ol.make_arrays(self.workspace, self.servo_guard(), self.info.force_limit_n, RATE_HZ)
-        servo.inp = TickIn(np.zeros(3), np.zeros(3))
+        guard = self.servo_guard()
+        if render is None:
+            guard["limits"] = None
+        servo.guard = ol.make_arrays(self.workspace, guard, self.info.force_limit_n, RATE_HZ)
+        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1))
+        servo.render = render
         self._servo = servo
         handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)
 
@@ -351,7 +398,7 @@ class OmniDevice(Device):
     def servo_guard(self) -> dict:
         """The guard's parameters for the compiled callback (the same the Python callback uses)."""
         return {"handle": self._handle, "stall_ticks": self._stall_ticks, "ramp_ticks": self._ramp_ticks,
-                "velocity_alpha": self._alpha}
+                "velocity_alpha": self._alpha, "limits": self.limits, "still_ticks": self._still_ticks}
 
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
@@ -540,8 +587,17 @@ class OmniDevice(Device):
         if st != ol.S_RUNNING:
             c["status"] = st
             return self._abort(s, ol.fault_message(g.ictl, g.fctl, hd_error_name))
+        rendering = s.render is not None and g.rlim[0]["on"] != 0.0
+        if rendering:
+            from haptic_acu.rendering import FAULT
+
+            rst = ol.render_in(g, s.inp, s.render[0])
+            s.render[1].fr[:] = s.inp.fr
+            s.render[1].rstat[:] = s.inp.rstat
+            if rst & FAULT:
+                return self._abort(s, "rendering layer: a non-finite position or tissue report; force set to zero")
         state = DeviceState(
-            t_s=s.ticks / RATE_HZ,
+            t_s=s.ticks / RATE_HZ,  # the device's own tick time (issue 15), never the wall clock
             position_m=s.inp.p.copy(),
             velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),
@@ -555,6 +611,8 @@ class OmniDevice(Device):
         if not all(map(math.isfinite, f.tolist())):
             return self._abort(s, f"servo step returned a non-finite force {tuple(f.tolist())} N")
 
+        if rendering:  # the coupling's force; zero once the step has stopped the session (as the compiled tick)
+            f = _ZERO_F if (s.stop.is_set() or s.stop_requested) else s.inp.fr
         st = ol.guard_out(g, float(f[0]), float(f[1]), float(f[2]))
         if st != ol.S_RUNNING:
             c["status"] = st
@@ -569,7 +627,7 @@ class OmniDevice(Device):
         msg = hd.error("hdEndFrame")
         if msg:  # the frame is closed: run_servo disables force output
             return s.finish(fault=msg)
-        c["force_on"] = 1 if (fx != 0.0 or fy != 0.0 or fz != 0.0) else 0
+        c["force_on"] = ol.force_is_on(fx, fy, fz)
         return HD_CALLBACK_CONTINUE
 
     # ---- Device interface outside the servo loop ----------------------------------------------

@@ -65,6 +65,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import affinity, devicemodel
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
@@ -172,7 +173,8 @@ class Session:
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
-                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10):
+                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10,
+                 pin_cores: bool = False):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
         self.cfg = cfg
@@ -191,6 +193,9 @@ class Session:
         if skip_after_ticks is not None and not (isinstance(skip_after_ticks, int) and skip_after_ticks >= 1):
             raise ValueError(f"skip_after_ticks must be a whole number >= 1 or None, got {skip_after_ticks!r}")
         self.skip_after_ticks = skip_after_ticks
+        # real time: the servo thread on one core, a logging child process on the others (affinity.py)
+        self.pin_cores = bool(pin_cores)
+        self.pinned = False
         self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
         self.tick = 0
         self.frame_index = 0
@@ -216,6 +221,11 @@ class Session:
         self._ctl = None  # the compiled loop's control words while it runs
         self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
         self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
+        # A live session of the scripted device records what an OMNI would have rendered on its path
+        # (haptic_acu.devicemodel: the stylus model with an OMNI's limits); the replay and the
+        # keyboard (no force output) record none.
+        self.device_model = (devicemodel.new(self.servo_dt)
+                             if clock == "realtime" and device.info.name == "scripted" else None)
 
     @property
     def missed(self) -> int:
@@ -230,6 +240,8 @@ class Session:
     def warm_up(self) -> None:
         """Compile every kernel both loops call, warm the sinks, before any loop starts."""
         self.model.warm_up()
+        if self.device_model is not None:
+            devicemodel.warm_up()
         buf = np.zeros((1, NCOL))
         m = self.model
         if self.clock == "realtime" and self.compiled_loop:
@@ -280,7 +292,8 @@ class Session:
 
         rtloop.warm_up()
         m = self.model
-        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
+        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64),
+                           devicemodel.new(self.servo_dt, on=False))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
         call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
@@ -313,6 +326,8 @@ class Session:
             m.reset(keep_holes=False)
         m.inp.p[:] = state.position_m
         m.inp.v[:] = state.velocity_m_s
+        if self.device_model is not None:  # the modelled device's rendered force, for the row
+            devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
         ok = self._tick(t, self.tick, period_err, period)
         self.tick += 1
         if not ok:
@@ -353,7 +368,7 @@ class Session:
                 "frames": self.frame_index, "dropped_rows": self.ring.dropped,
                 "wall_s": wall_s, "period_error_us": percentiles_us(errs),
                 "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"],
-                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind()}
+                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind(), "pinned": self.pinned}
 
     def _servo_kind(self) -> str:
         """How the servo tick ran: "simulated", "compiled" (no GIL: rtloop / omniloop) or "python"."""
@@ -496,6 +511,16 @@ class Session:
         sys.setswitchinterval(old_interval)
         gc.unfreeze()
 
+    def _pin_sinks(self):
+        """With ``pin_cores``: (servo core, other cores) from affinity.split, the sinks that run in a
+        child process (the rerun logger) pinned to the others; None when off or not possible."""
+        cores = affinity.split() if self.pin_cores and self.clock == "realtime" else None
+        if cores:
+            for s in self.sinks:
+                if hasattr(s, "pin"):
+                    s.pin(cores[1])
+        return cores
+
     @contextmanager
     def _realtime_threads(self, watchdog: bool):
         """The frame of a Python driver on real time: :meth:`_rt_setup`, the visual thread from the
@@ -594,6 +619,7 @@ class Session:
         period_ns = int(round(dt * 1e9))
         rows = Ring(self.ring.buf, self.ring.ctr)
         table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
+        dm = self.device_model if self.device_model is not None else devicemodel.new(dt, on=False)
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
@@ -603,16 +629,21 @@ class Session:
         t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
         t0 = t0_ns * 1e-9
 
+        cores = self._pin_sinks()
+
         def servo():
             prev = self._try_fifo()
             self.sched_fifo = prev is not None
+            prev_cpus = affinity.pin_thread({cores[0]}) if cores else None
+            self.pinned = prev_cpus is not None
             try:
                 outcome["status"] = call_driver(
-                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
+                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64), dm), t0_ns, period_ns, k_limit,
                     feed.rows(), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:
+                affinity.restore(prev_cpus)
                 self._restore_sched(prev)
                 self._stop.set()
 
@@ -749,9 +780,12 @@ class Session:
             self.tick = int(c["etick"])
             self._t_session = float(fctl[0]["t_session"])
             arrays.clear()  # (the table's addresses are dead from here)
-        if c["done"] == 2 and self.fault is None:
+        if c["done"] == ol.DONE_STATE and self.fault is None:
             self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
                             "force set to zero")
+        if c["done"] == ol.DONE_RENDER and self.fault is None:
+            self._set_fault(f"rendering layer: a non-finite position or tissue report at t={self._t_session:.3f} s "
+                            f"(tick {self.tick - 1}); force set to zero")
 
     def _run_device_clock(self) -> None:
         """The device's scheduler drives the servo: the compiled callback, or a Python step
@@ -767,7 +801,7 @@ class Session:
                 now = time.perf_counter()
                 err = (now - last[0]) - dt
                 last[0] = now
-                t = now - t0
+                t = state.t_s  # the device's own tick time (issue 15); the wall clock gives only the period error
                 last[1] += 1
                 if now - last[2] >= 0.5:
                     self.rates["servo_hz"] = last[1] / (now - last[2])
@@ -779,7 +813,7 @@ class Session:
                 self._t_session = t
                 return self._servo_tick(t, state, err, dt, command=False)
 
-            self.device.run_servo(step, self._stop)
+            self.device.run_servo(step, self._stop, render=(self.model.out.diag, self.model.inp))
 
     # -- signals ------------------------------------------------------------------------------------
     def _install_signals(self):

@@ -619,6 +619,73 @@ def clamp(m, s, d):
     d.force[2] = fz
 
 
+# A swept (untabulated) net's stiffness along its axis for the rendering layer: an upper bound of
+# the nets' 1.5 N/mm (skin) and 2.2 N/mm (muscle) at the break (issue 13); an upper bound only slows
+# the proxy (rendering.TissueLocal).
+SWEPT_K_ALONG = 2500.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def pressed_slope(m, s, k, idx):
+    """The pressed net's stiffness along its axis (N/m) at the tip: the tabulated response's slope
+    over one column step ahead (the nets stiffen with depth, so ahead is the larger), or
+    :data:`SWEPT_K_ALONG` for a swept net."""
+    if m.tmeta[k].nr <= 0:
+        return SWEPT_K_ALONG
+    wk = s.work[0]
+    ax = s.axes[idx]
+    dz1 = wk.dz1
+    lat2 = (wk.r[0] + dz1 * ax[0]) ** 2 + (wk.r[1] + dz1 * ax[1]) ** 2 + (wk.r[2] + dz1 * ax[2]) ** 2
+    h = m.tmeta[k].h
+    f0 = lookup(m.tab, m.tmeta[k], lat2, dz1)[0]
+    f1 = lookup(m.tab, m.tmeta[k], lat2, dz1 + h)[0]
+    slope = (f1 - f0) / h
+    return slope if slope > 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def render_local(m, s, d):
+    """What a rendering layer linearises the tissue about (rendering.TissueLocal) into ``d.r_*``:
+    the force without its axial damping, the axis (the insertion axis inside the tissue, a pressed
+    net's axis before), the axial damping coefficient of the layers passed (Table 1), the stiffness
+    along it (a pressed net's table slope; the bone wall's) and across it (the lateral guidance),
+    the friction level (none yet) and a release flag (a puncture this tick)."""
+    sv = s.servo[0]
+    wk = s.work[0]
+    along = 0.0
+    across = 0.0
+    c_ax = 0.0
+    for c in range(3):
+        d.r_axis[c] = 0.0
+    front = wk.front
+    if front < N_LAYERS and sv.state[front] == PRESSING:
+        idx = 2 * front + sv.slot[front]
+        along = pressed_slope(m, s, front, idx)
+        for c in range(3):
+            d.r_axis[c] = s.axes[idx, c]
+    if sv.inserted != 0:
+        a = sv.axis
+        for c in range(3):
+            d.r_axis[c] = a[c]
+        for j in range(N_LAYERS):
+            if sv.state[j] == PUNCTURED:
+                h = s.radii[j] - wk.rho
+                thick = s.radii[j] - s.radii[j + 1]
+                h = 0.0 if h < 0.0 else (thick if h > thick else h)
+                c_ax += m.layer[j].damping * h
+        if m.params[0].lateral_on != 0:
+            across = m.params[0].k_lateral
+        if front >= N_LAYERS and s.radii[N_LAYERS] - wk.rho > -1e-3:
+            along = max(along, m.params[0].k_bone)
+    for c in range(3):
+        d.r_force[c] = d.force[c] - d.f_damp * d.r_axis[c]
+    d.r_damping = c_ax
+    d.r_k_along = along
+    d.r_k_across = across
+    d.r_friction = 0.0
+    d.r_released = 1.0 if d.puncture >= 0.0 else 0.0
+
+
 @nb.njit(cache=True, nogil=True)
 def step_kernel(inp, m, s, out):
     """One servo tick. ``inp``: :class:`~haptic_acu.servostate.TickIn` (tip position, m; velocity,
@@ -643,6 +710,7 @@ def step_kernel(inp, m, s, out):
     bone_wall(m, s, d)
     locate(s, d)
     clamp(m, s, d)
+    render_local(m, s, d)
 
 
 _STEP_C = None
@@ -713,7 +781,7 @@ class NeedleModel:
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,))
         self.state.axes[:, 2] = 1.0
-        self.inp = ss.zeros(TickIn, p=(3,), v=(3,))
+        self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,))
         self.out = ss.zeros(ss.Out)
         self.servo = ss.Servo(self.inp, self.model, self.state, self.out)  # what a tick reads and writes
         self.rec = self.state.servo[0]  # the servo record (a view: reads see the servo's writes)

@@ -50,6 +50,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from . import rendering as R
 from . import servostate as ss
 from .clamp import clamp_force
 from .cptr import address_of as data_address
@@ -76,15 +77,25 @@ CTL = np.dtype([("stop", "i8"), ("abort", "i8"), ("ticks", "i8"), ("in_tick", "i
 FST = np.dtype([("last", "f8", 3),  # last position (mm, device frame)
                 ("vfilt", "f8", 3),  # filtered velocity (mm/s)
                 ("detail", "f8", 3),  # values for a fault's message
-                ("t_session", "f8")])
+                ("t_session", "f8"),
+                ("f_frz", "f8", 3),  # the force commanded when the position froze (N, device frame)
+                ("df_frz", "f8")])  # the largest change of the commanded force since (N)
 # its parameters (prm[0])
 PRM = np.dtype([("handle", "f8"), ("stall", "f8"), ("ramp", "f8"), ("limit_n", "f8"), ("alpha", "f8"),
-                ("period_ns", "f8"), ("limit_t", "f8"), ("rate", "f8")])
+                ("period_ns", "f8"), ("limit_t", "f8"), ("rate", "f8"),
+                ("stall_df", "f8"),  # with a rendering layer: the force change that makes a frozen position a stall (N)
+                ("still", "f8")])  # with a rendering layer: ticks a position may stay frozen under a steady force
 # the workspace mapping (ws[0]): p_scene = (scale * R p_dev + offset) * 1e-3
 WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3)])
+# the rendering layer's limits and parameters (rlim[0]), in the scene frame (rendering.DeviceLimits,
+# CouplingParams); on = 0: no rendering layer (the device gets the simulated force)
+RLIM = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_max", "f8"), ("b_max", "f8"),
+                 ("k", "f8"), ("b", "f8"), ("enc", "f8"), ("tau", "f8"), ("ramp", "f8"), ("dt", "f8")])
 
 # statuses (CTL.status)
 S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN = range(9)
+# CTL.done: 1 the session's length reached, 2 a non-finite needle state, 3 a rendering fault
+DONE_LENGTH, DONE_STATE, DONE_RENDER = 1, 2, 3
 # where an HD error came from (CTL.where)
 WHERE = ("hdBeginFrame", "hdGetDoublev(HD_CURRENT_TRANSFORM)", "hdGetDoublev(HD_CURRENT_VELOCITY)",
          "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame")
@@ -107,29 +118,76 @@ class OmniArrays(NamedTuple):
     ws: np.ndarray  # (1,) WS
     prm: np.ndarray  # (1,) PRM
     ts: np.ndarray  # int64[2]: the clock's timespec
+    # the rendering layer (haptic_acu.rendering): limits, its CouplingState's arrays, TissueLocal's vectors
+    rlim: np.ndarray  # (1,) RLIM
+    rproxy: np.ndarray  # (3,)
+    rproxy_v: np.ndarray  # (3,)
+    rhist: np.ndarray  # (HIST, 3)
+    rdev_v: np.ndarray  # (3,)
+    rforce: np.ndarray  # (3,)
+    rdemand: np.ndarray  # (3,)
+    raux: np.ndarray  # (1,) rendering.AUX_DTYPE
+    rtf: np.ndarray  # (3,)
+    rta: np.ndarray  # (3,)
 
 
 ss.SPEC[OmniArrays] = dict(ictl=(CTL, 1), fctl=(FST, 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
-                           hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1))
+                           hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1), rlim=(RLIM, 1),
+                           rproxy=("f8", 1), rproxy_v=("f8", 1), rhist=("f8", 2), rdev_v=("f8", 1), rforce=("f8", 1),
+                           rdemand=("f8", 1), raux=(R.AUX_DTYPE, 1), rtf=("f8", 1), rta=("f8", 1))
 # The callback's table: a tick table (servotick.tick_table: header, Servo, Ring, Timing), then OmniArrays.
 _AT_OMNI = TICK_TABLE
 TABLE = _AT_OMNI + ss.table_size(OmniArrays)
 LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
 
 
+# A frozen position is a stalled device, with a rendering layer, once the commanded force has changed
+# by this much since it froze (and for the guard's stall window): a hand holding the stylus, even a
+# firm 2-5 N/mm grip, moves it 0.1-0.25 mm (2-4 encoder steps) under such a change, while a still
+# hand under a steady force leaves every encoder bit-for-bit still (see the README, Faults).
+STALL_DF_N = 0.5
+ENCODER_STEP_MM = 0.055  # the OMNI's encoder step (device frame): the velocity estimate's tolerance
+
+
+def render_limits(workspace, limits, dt_s: float) -> np.ndarray:
+    """The rendering layer's (1,) :data:`RLIM` record for the device ``limits``
+    (rendering.DeviceLimits, device frame; None: no rendering layer) seen in the scene frame: a
+    scene displacement is ``scale`` times the device's, so the stiffness and damping the device can
+    render are divided by it, and its encoder step multiplied; forces are not scaled."""
+    out = np.zeros(1, RLIM)
+    if limits is None:
+        return out
+    sc = float(workspace.scale)
+    scene = R.DeviceLimits(limits.max_force_n, limits.continuous_force_n, limits.stiffness_n_per_m / sc,
+                           limits.damping_n_s_per_m / sc)
+    p = R.default_params(scene, dt_s, ENCODER_STEP_MM * 1e-3 * sc)
+    out[0] = (1.0, *scene, p.stiffness_n_per_m, p.damping_n_s_per_m, p.encoder_step_m, p.continuous_tau_s,
+              p.ramp_per_s, p.dt_s)
+    return out
+
+
 def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, period_s: float = 1e-3,
                 limit_t: float = math.inf) -> OmniArrays:
     """The device side's arrays for one run: the workspace mapping, the guard's parameters
-    (``Device.servo_guard()``), the force limit, the rate, the servo period and the session length."""
+    (``Device.servo_guard()``; its ``limits``, rendering.DeviceLimits or None, turn the rendering
+    layer on), the force limit, the rate, the servo period and the session length."""
     ws = np.zeros(1, WS)
     ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm)
     prm = np.zeros(1, PRM)
     prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
-              period_s * 1e9, limit_t, rate_hz)
+              period_s * 1e9, limit_t, rate_hz, guard.get("stall_df_n", STALL_DF_N),
+              guard.get("still_ticks", guard["stall_ticks"]))
     ictl = np.zeros(1, CTL)
     ictl["vel_dev"] = 1
+    limits = guard.get("limits")
+    if limits is not None:  # the coupling never asks for more than the guard's force limit either
+        limits = limits._replace(max_force_n=min(limits.max_force_n, force_limit_n))
+    cs = R.new_state()
     return OmniArrays(ictl=ictl, fctl=np.zeros(1, FST), hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64))
+                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64),
+                      rlim=render_limits(workspace, limits, period_s), rproxy=cs.proxy, rproxy_v=cs.proxy_v,
+                      rhist=cs.history, rdev_v=cs.device_v, rforce=cs.force, rdemand=cs.demand, raux=cs.aux,
+                      rtf=np.zeros(3), rta=np.zeros(3))
 
 
 def warm_guard() -> None:
@@ -137,9 +195,13 @@ def warm_guard() -> None:
     from types import SimpleNamespace
 
     identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
-    o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0}, 1.0, 1000.0)
-    guard_in(o, ss.TickIn(np.zeros(3), np.zeros(3)))
+    o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0,
+                               "limits": R.DeviceLimits(3.3, 0.88, 1260.0, 3.0)}, 1.0, 1000.0)
+    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1))
+    guard_in(o, inp)
+    render_in(o, inp, np.zeros(1, ss.DIAG))
     guard_out(o, 0.0, 0.0, 0.0)
+    force_is_on(0.0, 0.0, 0.0)
 
 
 def address_table(omni: OmniArrays, servo, ring, timing) -> np.ndarray:
@@ -236,7 +298,7 @@ def read_stylus(o, inp):
     """The device part before the step: HD frame, stylus reads and their error checks, non-finite and
     frozen-position faults, filtered velocity when the device gives none, workspace mapping into
     ``inp``. Returns -1 to go on, else the callback's return code (the frame is closed)."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     pbuf = inp.p
     vbuf = inp.v
     h = int(prm[0].handle)
@@ -290,20 +352,23 @@ def engine_tick(o, sv, ring, timing):
     err = (now - ictl[0].last_ns) - period
     ictl[0].last_ns = now
     account(timing, err, period, 1e-9)
-    t = (now - ictl[0].t0_ns) * 1e-9
+    # the row's time is the device's own tick time (its tick count x the period); the wall clock
+    # only gives the period error (a scheduler catching up after a late tick runs ticks
+    # microseconds apart, each still 1 ms of stylus path: issue 15)
+    t = ictl[0].ticks * period * 1e-9
     fx = 0.0
     fy = 0.0
     fz = 0.0
     if t > prm[0].limit_t:
         ictl[0].stop = 1  # session length reached: zero now, the next tick finishes
-        ictl[0].done = 1
+        ictl[0].done = DONE_LENGTH
     else:
         fctl[0].t_session = t
         ok = servo_tick(sv, ring, t, ictl[0].etick, err * 1e-9)
         ictl[0].etick += 1
         if not ok:
             ictl[0].stop = 1  # the engine reports the non-finite state; zero force from here
-            ictl[0].done = 2
+            ictl[0].done = DONE_STATE
         else:
             f = sv.out.diag[0].force
             fx = f[0]
@@ -320,7 +385,7 @@ def guard_in(o, inp):
     status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
     low-pass of backward differences) and the position mapped into the scene, into ``inp``; returns
     S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
-    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     pbuf = inp.p
     vbuf = inp.v
     px = hdt[12]
@@ -333,8 +398,22 @@ def guard_in(o, inp):
         return S_POS_NAN
     same = (ictl[0].has_last != 0 and px == fctl[0].last[0] and py == fctl[0].last[1] and pz == fctl[0].last[2])
     if same and ictl[0].force_on != 0:
+        f = fctl[0]
+        if ictl[0].frozen == 0:
+            for c in range(3):
+                f.f_frz[c] = _hdf[c]
+            f.df_frz = 0.0
         ictl[0].frozen += 1
-        if ictl[0].frozen >= prm[0].stall:
+        dfx = _hdf[0] - f.f_frz[0]
+        dfy = _hdf[1] - f.f_frz[1]
+        dfz = _hdf[2] - f.f_frz[2]
+        df = math.sqrt(dfx * dfx + dfy * dfy + dfz * dfz)
+        if df > f.df_frz:
+            f.df_frz = df
+        # with a rendering layer a still hand under a steady force is no stall (the force/position
+        # relation) until the longer ``still`` window (a hand's tremor moves the encoders well within it)
+        loaded = o.rlim[0].on == 0.0 or f.df_frz > prm[0].stall_df
+        if (ictl[0].frozen >= prm[0].stall and loaded) or ictl[0].frozen >= prm[0].still:
             fctl[0].detail[0] = px
             fctl[0].detail[1] = py
             fctl[0].detail[2] = pz
@@ -378,7 +457,7 @@ def guard_out(o, fx, fy, fz):
     """The device's guard on the way out: force ramp-in, clamp in the scene and the device frame,
     finite check; the device force into ``o.hdf`` and S_RUNNING, or S_FORCE_NAN (values in
     ``fctl.detail``)."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     ramp = ictl[0].valid / prm[0].ramp
     if ramp > 1.0:
         ramp = 1.0
@@ -406,11 +485,20 @@ def guard_out(o, fx, fy, fz):
     return S_RUNNING
 
 
+FORCE_ON_N = 1e-3  # a force the stall detector counts as loaded (the coupling leaves ~1e-17 N in free space)
+
+
+@nb.njit(nogil=True, cache=True)
+def force_is_on(dx, dy, dz):
+    """1 if the device force (N) is a load for the stall detector (above :data:`FORCE_ON_N`), else 0."""
+    return 1 if dx * dx + dy * dy + dz * dz > FORCE_ON_N * FORCE_ON_N else 0
+
+
 @nb.njit(nogil=True, cache=True)
 def command_force(o, fx, fy, fz):
     """The force out: :func:`guard_out`, then the force is set and the frame closed. Returns the
     callback's return code."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     h = int(prm[0].handle)
     st = guard_out(o, fx, fy, fz)
     if st != S_RUNNING:
@@ -426,17 +514,61 @@ def command_force(o, fx, fy, fz):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_END, e)
-    ictl[0].force_on = 1 if (dx != 0.0 or dy != 0.0 or dz != 0.0) else 0
+    ictl[0].force_on = force_is_on(dx, dy, dz)
     return HD_CALLBACK_CONTINUE
 
 
 @nb.njit(nogil=True, cache=True)
+def render_in(o, inp, diag):
+    """The rendering layer between the guard and the step (the compiled callback and the OMNI's
+    Python callback alike): the device is at ``inp.p`` (guard_in's scene position); ``diag``
+    holds the previous tick's :data:`~haptic_acu.servostate.DIAG`, whose ``r_*`` fields are the
+    tissue's linearisation at the proxy (rendering.TissueLocal). :func:`rendering.render_step`
+    moves the proxy and computes the coupling force; ``inp.p``/``inp.v`` become the proxy's (the
+    tissue step runs there), ``inp.fr``/``inp.rstat`` the force for the device and its status bits.
+    Off (``rlim.on == 0``): ``inp`` is left as it is, ``fr`` and ``rstat`` zero."""
+    lim = o.rlim[0]
+    if lim.on == 0.0:
+        for c in range(3):
+            inp.fr[c] = 0.0
+        inp.rstat[0] = 0.0
+        return 0
+    d = diag[0]
+    for c in range(3):
+        o.rtf[c] = d.r_force[c]
+        o.rta[c] = d.r_axis[c]
+    tissue = R.TissueLocal(o.rtf, o.rta, d.r_damping, d.r_k_along, d.r_k_across, d.r_friction, d.r_released)
+    limits = R.DeviceLimits(lim.max_force, lim.cont_force, lim.k_max, lim.b_max)
+    params = R.CouplingParams(lim.k, lim.b, lim.enc, lim.tau, lim.ramp, lim.dt)
+    cs = R.CouplingState(o.rproxy, o.rproxy_v, o.rhist, o.rdev_v, o.rforce, o.rdemand, o.raux)
+    status = R.render_step(limits, params, cs, tissue, inp.p)
+    for c in range(3):
+        inp.p[c] = cs.proxy[c]
+        inp.v[c] = cs.proxy_v[c]
+        inp.fr[c] = cs.force[c]
+    inp.rstat[0] = status
+    return status
+
+
+@nb.njit(nogil=True, cache=True)
 def tick(o, sv, ring, timing):
-    """One HD scheduler tick: :func:`read_stylus`, :func:`engine_tick`, :func:`command_force`."""
+    """One HD scheduler tick: :func:`read_stylus`, :func:`render_in`, :func:`engine_tick`,
+    :func:`command_force` (the rendered force with a rendering layer, else the simulated one; zero
+    once the session stops or faults)."""
     rc = read_stylus(o, sv.inp)
     if rc >= 0:
         return rc
+    status = render_in(o, sv.inp, sv.out.diag)
+    if status & R.FAULT:
+        o.ictl[0].stop = 1  # a non-finite tissue report or position: zero from this tick
+        o.ictl[0].done = DONE_RENDER
     fx, fy, fz = engine_tick(o, sv, ring, timing)
+    if o.rlim[0].on != 0.0:
+        fx = fy = fz = 0.0
+        if o.ictl[0].stop == 0:
+            fx = sv.inp.fr[0]
+            fy = sv.inp.fr[1]
+            fz = sv.inp.fr[2]
     return command_force(o, fx, fy, fz)
 
 
@@ -488,8 +620,9 @@ def fault_message(ictl, fctl, hd_error_name) -> str | None:
         return f"device reported a non-finite position {d} mm"
     if st == S_STALL:
         where = ", ".join(f"{c:.3f}" for c in d)
+        extra = (f" and the force changed by {float(fctl[0]['df_frz']):.2f} N" if float(fctl[0]['df_frz']) > 0 else "")
         return (f"position frozen at ({where}) mm for {int(c['frozen'])} ms of servo ticks "
-                "while a force was applied: device stalled")
+                f"while a force was applied{extra}: device stalled")
     if st == S_VEL_NAN:
         return f"device reported a non-finite velocity {d} mm/s"
     if st == S_FORCE_NAN:

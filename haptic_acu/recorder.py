@@ -26,12 +26,15 @@ from .samples import COL
 from .trajectory import EVENT_COLUMN, EVENT_CODES, LAYER_CODES, STATE_CODES, TrajectoryWriter
 
 EXTRA = ("fx_n", "fy_n", "fz_n", "layer", "state_skin", "state_fat", "state_muscle", "depth_mm",
+         "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to the device (0 without one)
          EVENT_COLUMN)
 PLACES = {code: name for name, code in LAYER_CODES.items()}  # layer codes -1..3 -> names
 STATES = {code: name for name, code in STATE_CODES.items()}
 EVENTS = {code: name for name, code in EVENT_CODES.items()}
 _SRC = [COL["t_s"], COL["x_m"], COL["y_m"], COL["z_m"], COL["fx_n"], COL["fy_n"], COL["fz_n"], COL["layer"],
-        COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"]]
+        COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"], COL["fr_x_n"], COL["fr_y_n"],
+        COL["fr_z_n"]]
+_DEPTH = _SRC.index(COL["depth_m"])
 
 
 class RecordingError(Exception):
@@ -113,7 +116,7 @@ class RecorderSink:
         if self._w is None:
             self.open()
         out = rows[:, _SRC].copy()
-        out[:, -1] *= 1e3  # depth in mm
+        out[:, _DEPTH] *= 1e3  # depth in mm
         ticks = rows[:, COL["tick"]]
         # a recording must strictly increase in time (a device clock can repeat a timestamp): keep
         # the rows later than every row before them (not just the previous one, which may be dropped)

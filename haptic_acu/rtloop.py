@@ -35,6 +35,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from . import servostate as ss
+from .devicemodel import model_tick
 from .servotick import STALE, account, reset_servo, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
@@ -110,6 +111,7 @@ class Loop(NamedTuple):
     ctl: np.ndarray  # (1,) CTL, shared with Python
     fl: np.ndarray  # (1,) FL
     ts: np.ndarray  # int64[2]: the clock's timespec
+    dm: tuple  # devicemodel.DeviceModel: the rendered force of a modelled device (off: devicemodel.new(dt, False))
 
 
 _NO_RESETS = np.zeros(1, np.int8)
@@ -217,6 +219,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
             sv.inp.v[c] = feed.v[j, c]
         if feed.reset[j % feed.reset.shape[0]] != 0:
             reset_servo(sv)  # the recording's reset event: fresh tissue before this tick
+        model_tick(lp.dm, sv.inp, sv.out.diag)
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1

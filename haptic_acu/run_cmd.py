@@ -56,6 +56,8 @@ def register(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
+    p.add_argument("--pin-cores", action="store_true",
+                   help="pin the scripted device's servo thread to one core and the rerun logging child to the others")
     p.set_defaults(func=run)
 
 
@@ -135,7 +137,7 @@ def run(args) -> int:
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-                      compiled_loop=not args.python_servo)  # the compiled loop honours reset events
+                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores)  # the compiled loop honours resets
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()

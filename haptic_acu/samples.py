@@ -24,6 +24,8 @@ COLUMNS = (
     *(f"state_{name}" for name in LAYER_NAMES),
     "ringw_m", "dz1_m", "puncture", "fault", "clamped",
     "period_err_s",
+    "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to a device (0 without one: replay, keyboard)
+    "render_status",  # its status bits (haptic_acu.rendering: 1 clamped, 2 limiting, 4 fault)
 )
 COL = {name: i for i, name in enumerate(COLUMNS)}
 NCOL = len(COLUMNS)
@@ -40,6 +42,7 @@ _STATE = COL[f"state_{LAYER_NAMES[0]}"]
 _LAYER, _DEPTH, _DEPTH_SKIN, _FRONT = COL["layer"], COL["depth_m"], COL["depth_skin_m"], COL["front"]
 _RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["puncture"], COL["fault"], COL["clamped"]
 _PERIOD_ERR = COL["period_err_s"]
+_FR, _RSTAT = COL["fr_x_n"], COL["render_status"]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -72,6 +75,9 @@ def write_sample(buf, row, t, tick, inp, s, diag, period_err):
     r[_FAULT] = d.fault
     r[_CLAMPED] = d.clamped
     r[_PERIOD_ERR] = period_err
+    for k in range(3):
+        r[_FR + k] = inp.fr[k]
+    r[_RSTAT] = inp.rstat[0]
 
 
 class SampleRing:

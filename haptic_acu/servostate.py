@@ -100,6 +100,14 @@ DIAG = np.dtype([  # one tick's output
     ("depth_skin", "f8"),  # tip depth below the skin along the insertion (effective, m)
     ("clamped", "f8"),  # 1 if the safety clamp scaled the force this tick
     ("f_layer", "f8", N_LAYERS),  # force attributed to each layer (surface or damping), N
+    # what the rendering layer linearises about (rendering.TissueLocal; needle.render_local)
+    ("r_force", "f8", 3),  # the force's position-dependent part: without the axial damping (N)
+    ("r_axis", "f8", 3),  # the axis the next four act along (zeros: none)
+    ("r_damping", "f8"),  # axial damping coefficient (N*s/m)
+    ("r_k_along", "f8"),  # stiffness along the axis: a pressed net's table slope, the bone's (N/m)
+    ("r_k_across", "f8"),  # stiffness across it: the lateral guidance (N/m)
+    ("r_friction", "f8"),  # Coulomb friction level along the axis (N)
+    ("r_released", "f8"),  # 1 if a layer was punctured this tick
 ])
 
 
@@ -130,6 +138,8 @@ class State(NamedTuple):
 class TickIn(NamedTuple):
     p: np.ndarray  # tip position (m, scene frame)
     v: np.ndarray  # tip velocity (m/s)
+    fr: np.ndarray  # (3,) the force a rendering layer commands the device this tick (N; 0: none)
+    rstat: np.ndarray  # (1,) its status bits (rendering.CLAMPED / LIMITING / FAULT; 0: none)
 
 
 class Out(NamedTuple):
@@ -162,7 +172,7 @@ SPEC = {  # (dtype, ndim) of every field
                 nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1)),
-    TickIn: dict(p=("f8", 1), v=("f8", 1)),
+    TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),
     Timing: dict(errs=("f8", 1), count=(TIMING, 1)),

@@ -161,6 +161,13 @@ class ProcessSink:
         if self._conn.poll():
             self._check_error(self._conn.recv())
 
+    def pin(self, cores) -> bool:
+        """Pin the child process to ``cores`` (haptic_acu.affinity; started if it is not yet)."""
+        from .affinity import pin_process
+
+        self._ensure()
+        return pin_process(self._proc.pid, cores)
+
     def start(self, info: dict) -> None:
         self._ensure()
         light = {k: v for k, v in info.items() if k != "model"}

@@ -14,7 +14,8 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
 * each layer's state: ``-`` untouched, ``press`` pressing (a force net is active), ``punct`` punctured;
 * the last puncture and its peak |F| (N, the report's number: :class:`haptic_acu.report.SessionScan`);
 * warnings: ``ON BONE: withdraw`` with the tip on the bone, ``FORCE LIMIT`` while the commanded force
-  is clamped to the safety limit;
+  is clamped to the safety limit, ``CONTINUOUS FORCE LIMIT: easing off`` while the rendering layer's
+  continuous-force protection scales the device's force down (sample column ``render_status``);
 * the servo and visual rates the engine measured (``Frame.rates``, Hz);
 * the loop's health in words: ``loop ok``, or ``host late 0.3%, missed 12``: the share and count of
   servo ticks whose start was more than one servo period late (the sample column
@@ -52,6 +53,8 @@ SEP = " | "
 
 _C_X = COL["x_m"]
 _C_CLAMP = COL["clamped"]
+_C_RSTAT = COL["render_status"]
+_LIMITING = 2  # haptic_acu.rendering.LIMITING (not imported: the status line loads no numba kernels)
 _BONE = 3
 
 
@@ -102,6 +105,8 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
         fields.append((0, "ON BONE: withdraw"))
     if row[_C_CLAMP]:
         fields.append((0, "FORCE LIMIT"))
+    if int(row[_C_RSTAT]) & _LIMITING:  # the rendering layer's continuous-force protection
+        fields.append((0, "CONTINUOUS FORCE LIMIT: easing off"))
     fields.append((2, f"servo {rates.get('servo_hz', 0.0):.0f} Hz visual {rates.get('visual_hz', 0.0):.0f} Hz"))
     if missed is not None:
         fields.append((2, loop_health(missed, ticks if ticks is not None else 0)))

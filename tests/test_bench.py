@@ -282,12 +282,18 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     assert set(res["scaling"]["servo_tick_us"]) == {"3", "4"} and set(res["scaling"]["sh_eval_ms"]) == {"2", "4"}
     assert set(res["scaling"]["servo_tick_sweeps_us"]) == {"3", "4"}
     assert res["cohort"] is None and res["first_run_s"] is None  # not asked for (measured below)
-    assert len(res["targets"]) == 13 and all(t["pass"] in (True, False, None) for t in res["targets"])
+    assert len(res["targets"]) == 17 and all(t["pass"] in (True, False, None) for t in res["targets"])
     if res["pyshtools_eval_ms"] is not None:
         assert res["sh_agreement_m"]["fit_surface_max_abs"] < 1e-10
     table = run.format_table(res)
     assert "servo tick, press_skin_w10 (271 particles)" in table
     assert all(t["target"] in table for t in res["targets"])
+    # the closed-loop buzz table: both grips, the insertion and the hold (quick), every puncture a drop
+    for grip in ("loose", "firm"):
+        m = res["closed_loop"][grip]["rendered"]
+        assert set(m["buzz_n"]) == {"insert", "hold"} and all(0 <= v < 0.05 for v in m["buzz_n"].values())
+        assert m["punctures"] and all(p["min_within_20ms_n"] <= 0.5 * p["before_n"] for p in m["punctures"])
+    assert "closed loop (45 g stylus" in table and res["loop_pinned"]["ticks"] > 0
     out = tmp_path / "bench.json"
     run.write_json(res, out)
     assert set(json.loads(out.read_text())) == set(res)

@@ -271,3 +271,98 @@ def test_render_step_is_callable_from_a_compiled_tick():
         status = tick(LIM, PAR, state, f, Z.copy(), np.array([0.0, 2000.0, 2000.0, 0.0]), x)
     assert status == 0
     assert state.force[2] == pytest.approx(K * 2000.0 / (K + 2000.0) * 1e-3, rel=1e-6)
+
+
+# -- the servo's own report (DIAG r_* fields, needle.render_local) against independent evaluations ----
+@pytest.fixture(scope="module")
+def needle():
+    from haptic_acu.config import load_config
+    from haptic_acu.needle import NeedleModel
+
+    return NeedleModel(load_config())
+
+
+def _contact_z(m):
+    m.reset(keep_holes=False)
+    for z in np.arange(5e-3, -10e-3, -5e-6):
+        m.step(np.array([0.0, 0.0, z]), np.zeros(3))
+        if m.states[0] == 1:
+            return float(z)
+    raise AssertionError("no skin")
+
+
+def test_the_pressed_nets_reported_stiffness_is_the_slope_of_its_force(needle):
+    # the reported stiffness along the axis against a finite difference of the step's own force,
+    # stepping the tip statically 0.6 and 0.62 mm into the skin (a second evaluation, not the table)
+    m = needle
+    z0 = _contact_z(m)
+    out = []
+    for d in (0.6e-3, 0.62e-3):
+        m.reset(keep_holes=False)
+        for z in np.linspace(z0 + 1e-3, z0 - d, 400):
+            m.step(np.array([0.0, 0.0, z]), np.zeros(3))
+        out.append((float(np.linalg.norm(m.diag["force"])), float(m.diag["r_k_along"]), np.array(m.diag["r_axis"])))
+    assert m.states[0] == 1
+    slope = (out[1][0] - out[0][0]) / 0.02e-3
+    assert slope > 0
+    # the table's forward slope over one column step brackets the local slope from above (the nets stiffen)
+    assert 0.8 * slope <= out[0][1] <= 3.0 * slope + 50.0, (slope, out[0][1])
+    assert abs(abs(out[0][2][2]) - 1.0) < 0.05  # the net's axis: along z at the acupoint
+
+
+def test_inside_the_tissue_the_report_holds_table_1_damping_and_the_lateral_spring(needle):
+    m = needle
+    z0 = _contact_z(m)
+    m.reset(keep_holes=False)
+    v = np.array([0.0, 0.0, -0.01])
+    for z in np.arange(z0 + 1e-3, z0 - 8e-3, -1e-5):
+        m.step(np.array([0.0, 0.0, z]), v)
+    assert m.inserted
+    d = m.diag
+    a = np.array(m.axis)
+    v_ax = float(v @ a)
+    # Table 1 is linear in the axial speed: the damping force over the speed is the coefficient
+    assert d["r_damping"] > 0
+    assert abs(-float(d["f_damp"]) / v_ax - float(d["r_damping"])) <= 1e-9 * float(d["r_damping"])
+    np.testing.assert_allclose(np.array(d["r_force"]), np.array(d["force"]) - float(d["f_damp"]) * a, atol=1e-12)
+    np.testing.assert_allclose(np.array(d["r_axis"]), a)
+    assert float(d["r_k_across"]) == float(m.model.params[0]["k_lateral"])
+    assert float(d["r_released"]) == 0.0 and float(d["r_friction"]) == 0.0
+
+
+def test_a_puncture_is_reported_as_a_release(needle):
+    m = needle
+    m.reset(keep_holes=False)
+    released = []
+    for z in np.arange(5e-3, -6e-3, -1e-5):
+        m.step(np.array([0.0, 0.0, z]), np.array([0.0, 0.0, -0.01]))
+        released.append((float(m.diag["puncture"]), float(m.diag["r_released"])))
+    punct = [r for p, r in released if p >= 0]
+    assert punct and all(r == 1.0 for r in punct)
+    assert sum(r for _, r in released) == len(punct)
+
+
+def test_the_scripted_devices_model_renders_the_simulated_force_through_an_omnis_limits(needle):
+    # haptic_acu.devicemodel on a slow press into the skin: zero in the air, the simulated force
+    # within 0.1 N while the hand moves smoothly, never above the OMNI's 3.3 N
+    from haptic_acu import devicemodel
+
+    m = needle
+    z0 = _contact_z(m)
+    m.reset(keep_holes=False)
+    dm = devicemodel.new(DT)
+    v = np.array([0.0, 0.0, -0.005])
+    sim, ren = [], []
+    for z in np.arange(z0 + 2e-3, z0 - 1.2e-3, -5e-6):
+        m.inp.p[:] = (0.0, 0.0, z)
+        devicemodel.model_tick(dm, m.inp, m.out.diag)
+        sim.append(np.array(m.step(np.array([0.0, 0.0, z]), v)))
+        ren.append(m.inp.fr.copy())
+    sim, ren = np.array(sim), np.array(ren)
+    n = len(sim)
+    air = np.linalg.norm(sim, axis=1) == 0.0
+    assert np.abs(ren[air][:100]).max() < 1e-6
+    steady = slice(n // 2, n)
+    assert np.abs(sim[steady, 2]).max() > 0.1
+    assert np.abs(ren[steady] - sim[steady]).max() < 0.1
+    assert np.linalg.norm(ren, axis=1).max() <= 3.3

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from haptic_acu.devices.scripted import ScriptedDevice
-from haptic_acu import rtloop
+from haptic_acu import devicemodel, rtloop
 from haptic_acu.config import load_config
 from haptic_acu.engine import Session
 from haptic_acu.needle import NeedleModel
@@ -138,7 +138,7 @@ def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):
     errs = timing.errs
     ts = np.zeros(2, np.int64)
     rows = Ring(ring, rctr)
-    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(1, rtloop.FL), ts), rtloop.now_ns(ts),
+    status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(1, rtloop.FL), ts, devicemodel.new(1e-3, on=False)), rtloop.now_ns(ts),
                          period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v), tick_table(m.servo, rows, timing))
     assert status == rtloop.LIMIT
     rows = ring[:rctr[0]]

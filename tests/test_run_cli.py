@@ -169,6 +169,16 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
     # the comparison covered real forces (the fine-needle defaults: skin ~0.5 N, muscle ~0.7 N peaks)
     assert tr.extra["fz_n"].max() > 0.4
 
+    # the recording carries what a modelled OMNI would have rendered (haptic_acu.devicemodel): the
+    # simulated force through the coupling, within its 3.3 N, near the simulated one (within 0.15 N)
+    # away from the punctures, and zero before the needle touches the skin
+    fr = np.stack([tr.extra[c] for c in ("fr_x_n", "fr_y_n", "fr_z_n")], axis=1)
+    fs = np.stack([tr.extra[c] for c in ("fx_n", "fy_n", "fz_n")], axis=1)
+    assert np.linalg.norm(fr, axis=1).max() <= 3.3 and fr[:, 2].max() > 0.3
+    assert np.median(np.linalg.norm(fr - fs, axis=1)[keep]) < 0.05
+    first = int(np.argmax(np.linalg.norm(fs, axis=1) > 0))
+    assert first > 0 and np.abs(fr[:max(first - 50, 1)]).max() < 1e-6
+
 
 def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
     """`run` ends like `replay`: the punctures and the depth against the target on stdout, and

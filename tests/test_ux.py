@@ -190,6 +190,17 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
     assert "ON BONE" in narrow and "FORCE LIMIT" in narrow and "servo" not in narrow and len(narrow) <= 110
 
 
+def test_status_says_when_the_continuous_force_protection_eases_off():
+    from haptic_acu import rendering
+
+    r = _row(layer=2, states=(2, 2, 0), force=(0, 0, 0.9))
+    assert "CONTINUOUS FORCE LIMIT" not in format_status(1.0, r, RATES, 0)
+    r[COL["render_status"]] = rendering.LIMITING | rendering.CLAMPED
+    assert "CONTINUOUS FORCE LIMIT: easing off" in format_status(1.0, r, RATES, 0)
+    r[COL["render_status"]] = rendering.CLAMPED
+    assert "CONTINUOUS FORCE LIMIT" not in format_status(1.0, r, RATES, 0)
+
+
 def test_loop_health_in_words():
     assert loop_health(0, 1000) == "loop ok"
     assert loop_health(3, 1000) == "host late 0.3%, missed 3"

@@ -16,7 +16,7 @@ from pathlib import Path
 SOURCE = Path(__file__).resolve().parent / "hd_emulator.c"
 
 # Fault kinds understood by HD_EMU_FAULTS (and their emu_inject_fault codes).
-FAULT_CODES = {"device_fault": 0x0300, "comm_error": 0x0302, "freeze": -1, "nan": -2, "stop_calling": -3}
+FAULT_CODES = {"device_fault": 0x0300, "comm_error": 0x0302, "freeze": -1, "nan": -2, "stop_calling": -3, "late": -4}
 
 
 class EmulatorBuildError(RuntimeError):

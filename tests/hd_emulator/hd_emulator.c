@@ -23,7 +23,9 @@
  * the CLI, can be run against it), or the emu_* functions below for in-process control:
  *
  *   HD_EMU_PATH="t,x,y,z;t,x,y,z;..."   path knots: device time (s) and position (mm), t ascending
- *   HD_EMU_FAULTS="kind@t,kind@t"        kind: device_fault | comm_error | freeze | nan | stop_calling
+ *   HD_EMU_FAULTS="kind@t,kind@t"        kind: device_fault | comm_error | freeze | nan | stop_calling | late
+ *                                        (late: once, the scheduler wakes 30 ms late and then runs the
+ *                                        missed ticks back to back, as a real one catching up does)
  *   HD_EMU_NOMINAL_MAX_FORCE=3.3         N
  *   HD_EMU_NO_VELOCITY=1                 HD_CURRENT_VELOCITY is an invalid enum (HD_INVALID_ENUM)
  *   HD_EMU_INIT_ERROR=0x0302             hdInitDevice fails with this error code
@@ -157,6 +159,8 @@ enum {
 #define EMU_FREEZE (-1)
 #define EMU_NAN (-2)
 #define EMU_STOP_CALLING (-3)
+#define EMU_LATE (-4) /* once: the scheduler wakes LATE_S late, then catches up tick after tick */
+#define LATE_S 0.030
 
 /* log record kinds */
 #define LOG_FRAME 0          /* a committed frame: force is what was commanded */
@@ -469,6 +473,20 @@ static void *scheduler_main(void *arg)
         if (ts_diff(&now, &next) > 0.05) /* far behind (loaded machine): no catch-up burst */
             next = now;
         while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR) {
+        }
+        pthread_mutex_lock(&mu);
+        int late = 0;
+        for (int i = 0; i < E.n_faults; i++)
+            if (E.fault_kind[i] == EMU_LATE && E.tick + 1 >= E.fault_tick[i]) {
+                E.fault_kind[i] = 0; /* once */
+                late = 1;
+            }
+        pthread_mutex_unlock(&mu);
+        if (late) {
+            struct timespec until = next;
+            ts_add_ns(&until, (long)(LATE_S * 1e9));
+            while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &until, NULL) == EINTR) {
+            }
         }
 
         pthread_mutex_lock(&mu);
@@ -1080,7 +1098,7 @@ EXPORT int emu_set_path(const double *t, const double *xyz, int n)
 EXPORT int emu_inject_fault(int code, double at_s)
 {
     pthread_mutex_lock(&mu);
-    int ok = E.n_faults < MAX_FAULTS && code != 0 && code >= EMU_STOP_CALLING;
+    int ok = E.n_faults < MAX_FAULTS && code != 0 && code >= EMU_LATE;
     if (ok) {
         E.fault_kind[E.n_faults] = code;
         E.fault_tick[E.n_faults] = (long)ceil(at_s / DT - 1e-9);
@@ -1362,8 +1380,10 @@ static void parse_faults(const char *s)
             code = EMU_NAN;
         else if (!strcmp(tok, "stop_calling"))
             code = EMU_STOP_CALLING;
+        else if (!strcmp(tok, "late"))
+            code = EMU_LATE;
         else
-            die("HD_EMU_FAULTS", "kind is device_fault, comm_error, freeze, nan or stop_calling");
+            die("HD_EMU_FAULTS", "kind is device_fault, comm_error, freeze, nan, stop_calling or late");
         if (emu_inject_fault(code, t) != 0)
             die("HD_EMU_FAULTS", "too many faults");
     }
