@@ -327,7 +327,7 @@ class OmniDevice(Device):
 
         servo = _Servo(step, stop, self._stall_ticks, self._ramp_ticks)
         servo.guard = ol.make_arrays(self.workspace, self.servo_guard(), self.info.force_limit_n, RATE_HZ)
-        servo.inp = TickIn(np.zeros(3), np.zeros(3))
+        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.full(3, np.nan))
         self._servo = servo
         handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)
 

@@ -67,7 +67,7 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
-from .servotick import account, call_driver, run_ticks, tick_table
+from .servotick import account, axis_block, call_driver, run_ticks, tick_table
 from .samples import NCOL, SampleRing, write_sample
 from .springback import Springback
 
@@ -241,7 +241,8 @@ class Session:
         if self.clock == "sim":
             z = np.zeros((1, 3))
             rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
-            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, tick_table(m.servo, rows, self._timing))
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), 0,
+                        tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -261,8 +262,8 @@ class Session:
         loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
-        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
-                    tick_table(m.servo, rows, self._timing))
+        feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan))
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, feed, tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
         self._stop.set()
@@ -286,7 +287,7 @@ class Session:
         m = self.model
         if state.reset:
             m.reset(keep_holes=False)
-        force = m.step(state.position_m, state.velocity_m_s)
+        force = m.step(state.position_m, state.velocity_m_s, None if state.axis is None else -state.axis)
         if m.diag["fault"] != 0.0:
             self.device.set_force(self._zero)
             ring = self.ring
@@ -429,7 +430,8 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                n = self._run_ticks_resetting(P, V, T, k0, dev.reset_ticks(T), table)
+                A = axis_block(dev, T)
+                n = self._run_ticks_resetting(P, V, A, T, k0, dev.reset_ticks(T), table)
                 self.tick += n
                 self._t_session = float(T[n - 1])
                 if m.diag["fault"] != 0.0:
@@ -447,7 +449,7 @@ class Session:
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 
-    def _run_ticks_resetting(self, P, V, T, k0, cuts, table) -> int:
+    def _run_ticks_resetting(self, P, V, A, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
         ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
@@ -457,7 +459,7 @@ class Session:
             if j > 0:
                 self.model.reset(keep_holes=False)
             if b > a:
-                r = call_driver(run_ticks, P[a:b], V[a:b], T[a:b], k0 + a, table)
+                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], T[a:b], k0 + a, table)
                 n += r
                 if r < b - a:  # a fault
                     break
@@ -572,7 +574,7 @@ class Session:
             try:
                 outcome["status"] = call_driver(
                     rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
-                    rtloop.FeedRows(feed.p, feed.v), table)
+                    rtloop.FeedRows(feed.p, feed.v, feed.a), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:

@@ -268,6 +268,28 @@ def friction_reset(st):
 
 
 @nb.njit(cache=True, nogil=True)
+def stick_point(anchor, mode, k, decay, s, v, thr):
+    """One tick of the stick point on plain scalars: the anchor's arc length ``anchor`` (m) and its
+    ``mode`` (STUCK / SLIP_FWD / SLIP_BACK) for a needle at ``s`` moving at ``v``; spring ``k`` (N/m),
+    held force times ``decay`` per tick; ``thr`` as for :func:`stick_slip`. Returns (new anchor, new
+    mode, force on the needle along +s)."""
+    u = (anchor - s) * decay  # anchor - needle, relaxed toward the needle
+    f = k * u
+    fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
+    back = thr[1] if mode != SLIP_BACK else thr[3]
+    new_mode = mode
+    if f < -fwd:
+        u = -fwd / k
+        new_mode = SLIP_FWD
+    elif f > back:
+        u = back / k
+        new_mode = SLIP_BACK
+    elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
+        new_mode = STUCK
+    return s + u, new_mode, k * u
+
+
+@nb.njit(cache=True, nogil=True)
 def stick_slip(st, k, decay, s, v, thr):
     """One tick of the stick point (spring ``k`` N/m, held force times ``decay`` per tick) for a
     needle at arc length ``s`` moving at ``v`` (m/s). ``thr``: slip thresholds in N, a 4-tuple
@@ -276,27 +298,17 @@ def stick_slip(st, k, decay, s, v, thr):
     sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way faster than
     V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold) only when
     it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
-    both shrink the spring)."""
+    both shrink the spring). The state lives in ``st`` (:class:`FrictionState`); the arithmetic is
+    :func:`stick_point`'s."""
     anchor, mode_a, engaged = st.anchor, st.mode, st.engaged
     if engaged[0] == 0:
         anchor[0] = s
         engaged[0] = 1
         mode_a[0] = STUCK
-    u = (anchor[0] - s) * decay  # anchor - needle, relaxed toward the needle
-    mode = mode_a[0]
-    f = k * u
-    fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
-    back = thr[1] if mode != SLIP_BACK else thr[3]
-    if f < -fwd:
-        u = -fwd / k
-        mode_a[0] = SLIP_FWD
-    elif f > back:
-        u = back / k
-        mode_a[0] = SLIP_BACK
-    elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
-        mode_a[0] = STUCK
-    anchor[0] = s + u
-    return k * u
+    a, mo, f = stick_point(anchor[0], mode_a[0], k, decay, s, v, thr)
+    anchor[0] = a
+    mode_a[0] = mo
+    return f
 
 
 @nb.njit(cache=True, nogil=True)

@@ -34,7 +34,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from . import servostate as ss
-from .servotick import STALE, account, servo_tick, unpack_tick
+from .servotick import STALE, account, axis_block, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -114,6 +114,7 @@ class Loop(NamedTuple):
 class FeedRows(NamedTuple):
     p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
     v: np.ndarray  # (capacity, 3) velocities
+    a: np.ndarray  # (capacity, 3) needle axes (unit, handle to tip; NaN: the device does not know it)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -210,6 +211,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
+            sv.inp.axis[c] = feed.a[j, c]
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1
@@ -233,6 +235,7 @@ class Feed:
         self.dt = period_s
         self.p = np.zeros((capacity, 3))
         self.v = np.zeros((capacity, 3))
+        self.a = np.full((capacity, 3), np.nan)
         self.capacity = capacity
         self.lead = min(lead, capacity - chunk)
         self.chunk = chunk
@@ -255,6 +258,7 @@ class Feed:
             idx = np.arange(k0, k0 + n) % self.capacity
             self.p[idx] = P[:n]
             self.v[idx] = V[:n]
+            self.a[idx] = axis_block(self.device, T)[:n]
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 
