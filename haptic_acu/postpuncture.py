@@ -221,8 +221,7 @@ def table1_axial(m, s, d, v):
 
 @nb.njit(cache=True, nogil=True)
 def rich_axial(inp, m, s, d, v):
-    """Cutting + stick-point shaft friction + viscous friction along the axis (N along +s); records
-    what an advancing tip opens on this insertion's track."""
+    """Cutting + stick-point shaft friction + viscous friction along the axis (N along +s)."""
     sv = s.servo[0]
     wk = s.work[0]
     prm = m.params[0]
@@ -265,8 +264,6 @@ def rich_axial(inp, m, s, d, v):
                                   (st + cut, st, co + cut, co))
     sv.anchor = anchor
     sv.fmode = mode
-    if v > 0.0:
-        record_passage(tracks_of(s), sv.track, sv.bounds, s_tip, wk.front)
     thr = co + cut if mode == SLIP_FWD else st + cut
     f_cut = f * cut / thr if (f < 0.0 and thr > 0.0) else 0.0
     fv = -b * v
@@ -288,7 +285,8 @@ def rich_axial(inp, m, s, d, v):
 @nb.njit(cache=True, nogil=True, inline="always")
 def shaft_forces(inp, m, s, d):
     """The post-puncture force along the axis (Table 1 or cutting + friction), into ``work.f`` and
-    ``d.f_damp`` (N along +axis; its parts in ``f_cut``, ``f_friction``, ``f_viscous``)."""
+    ``d.f_damp`` (N along +axis; its parts in ``f_cut``, ``f_friction``, ``f_viscous``); records on
+    the track what an advancing tip opens."""
     sv = s.servo[0]
     a = sv.axis
     v = inp.v[0] * a[0] + inp.v[1] * a[1] + inp.v[2] * a[2]
@@ -298,6 +296,8 @@ def shaft_forces(inp, m, s, d):
     else:
         fa = rich_axial(inp, m, s, d, v)
     wk = s.work[0]
+    if v > 0.0:  # an advancing tip opens the layers it has broken down to where it is
+        record_passage(tracks_of(s), sv.track, sv.bounds, wk.s_p, wk.front)
     for c in range(3):
         wk.f[c] += fa * a[c]
     d.f_damp = fa
