@@ -48,6 +48,8 @@ N_LAYERS = 3
 MAX_TRACKS = 32
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
 V_BAND = 1e-4  # m/s, ours: Karnopp's stick band: slower than this a sliding needle sticks again
+UNCUT = 1e9  # m: a layer's cut range [lo, hi] is empty while lo = UNCUT, hi = -UNCUT (finite, so the
+# state stays finite everywhere: the servo's checks treat a non-finite value as a fault)
 
 
 class MechParams(NamedTuple):
@@ -77,8 +79,8 @@ class Tracks(NamedTuple):
 
     entry: np.ndarray  # (MAX_TRACKS, 3) m: skin entry point
     axis: np.ndarray  # (MAX_TRACKS, 3): unit vector into the tissue
-    cut_lo: np.ndarray  # (MAX_TRACKS, 3) m: cut range start per layer (+inf: none)
-    cut_hi: np.ndarray  # (MAX_TRACKS, 3) m: cut range end per layer (-inf: none)
+    cut_lo: np.ndarray  # (MAX_TRACKS, 3) m: cut range start per layer (UNCUT: none)
+    cut_hi: np.ndarray  # (MAX_TRACKS, 3) m: cut range end per layer (-UNCUT: none)
     count: np.ndarray  # (1,) int64: tracks ever begun (the ring buffer holds the last MAX_TRACKS)
 
 
@@ -100,7 +102,7 @@ def new_friction_state() -> FrictionState:
 
 def new_tracks() -> Tracks:
     return Tracks(np.zeros((MAX_TRACKS, 3)), np.tile([0.0, 0.0, -1.0], (MAX_TRACKS, 1)),
-                  np.full((MAX_TRACKS, N_LAYERS), np.inf), np.full((MAX_TRACKS, N_LAYERS), -np.inf),
+                  np.full((MAX_TRACKS, N_LAYERS), UNCUT), np.full((MAX_TRACKS, N_LAYERS), -UNCUT),
                   np.zeros(1, dtype=np.int64))
 
 
@@ -188,8 +190,8 @@ def begin_track(tracks, entry, axis, radius):
         te[j, c] = entry[c]
         ta[j, c] = axis[c]
     for k in range(N_LAYERS):
-        lo[j, k] = np.inf
-        hi[j, k] = -np.inf
+        lo[j, k] = UNCUT
+        hi[j, k] = -UNCUT
     count[0] += 1
     return j
 

@@ -61,7 +61,7 @@ from . import servostate as ss
 from . import shf
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
-from .mechanics import mech_params
+from .mechanics import UNCUT, mech_params
 from .netresponse import TM_NR, lay_field, lookup
 from .netresponse import pack as pack_tables
 from .netresponse import table_for
@@ -763,8 +763,8 @@ class NeedleModel:
             self.state.holes[:] = np.zeros(MAX_HOLES, ss.HOLE)
             self.state.tr_entry[:] = 0.0
             self.state.tr_axis[:] = [0.0, 0.0, -1.0]
-            self.state.tr_lo[:] = np.inf
-            self.state.tr_hi[:] = -np.inf
+            self.state.tr_lo[:] = UNCUT
+            self.state.tr_hi[:] = -UNCUT
             self.state.tr_count[:] = 0
         self.out.diag[:] = np.zeros(1, DIAG)
 
