@@ -230,3 +230,31 @@ def test_reinsertion_along_a_track_meets_friction_only(rich):
     np.testing.assert_allclose(d1[:n], d2)
     late = d2 > 0.017
     np.testing.assert_allclose(-f1[:n][late, 2] - -f2[late, 2], -cut[2], rtol=1e-9)
+
+
+def test_a_trajectory_s_axis_columns_reach_the_step(angled, tmp_path):
+    """A replay (the scripted device, the headless engine's compiled blocks) takes the needle's axis
+    from the file's axis_x,axis_y,axis_z: here 10 deg off the direction of travel, and recorded."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+    from haptic_acu.engine import Session
+
+    m = angled
+    m.reset(keep_holes=False)
+    travel = np.array([math.sin(math.radians(30)), 0.0, -math.cos(math.radians(30))])
+    given = np.array([math.sin(math.radians(40)), 0.0, -math.cos(math.radians(40))])
+    rows = ["t_s,x_mm,y_mm,z_mm,axis_x,axis_y,axis_z"]
+    for i in range(0, 2001, 5):
+        t = i * 1e-3
+        p = (-2e-3 + 5e-3 * t) * travel * 1e3
+        rows.append(f"{t:.3f},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{given[0]:.9f},{given[1]:.9f},{given[2]:.9f}")
+    path = tmp_path / "axis.csv"
+    path.write_text("\n".join(rows) + "\n")
+    dev = ScriptedDevice(path)
+    dev.open()
+    try:
+        result = Session(m.cfg, dev, clock="sim", model=m).run()
+    finally:
+        dev.close()
+    assert result.fault is None
+    assert m.inserted
+    np.testing.assert_allclose(m.axis, given, atol=1e-6)
