@@ -19,12 +19,17 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   past the last row); the tabulated shape is laid onto the net (one matrix product, ``laid_shape``)
   only for rendering, as in the compiled model: what a NumPy developer would write for that
   design; with ``"sweeps"`` the multicolour sweeps above run instead;
-* puncture at the ring-w mean deflection threshold, the compression offset, Table 1's damping of
-  the layers passed, the lateral constraint, the bone wall, the non-finite fault latch and the
-  force clamp, as in the compiled step.
+* puncture at the ring-w mean deflection threshold; the needle's axis (the device's, else the
+  direction of travel since the skin's first touch) and its entry and boundary crossings (a scan and
+  SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
+  needle length per broken layer, either Table 1's damping (``needle.mechanics = "table1"``) or
+  cutting at the crack front plus a stick-point Karnopp friction and viscous friction (docs/model.md
+  s9); the lateral constraint as stiff as the shaft is held, the bone wall, the non-finite fault
+  latch and the force clamp, as in the compiled step.
 
 Left out, because no benchmark path exercises them and they do not change what one pressing tick
-costs: holes (re-entry through an earlier puncture), the two net slots per layer and their hand-over
+costs: tracks (re-entry through an earlier pass; the one insertion's own cut range is the deepest
+point reached), the grasp multiplier (1), the two net slots per layer and their hand-over
 to springback, and the undeformed margin rings (springback only). One net per layer; a model is
 meant for one insertion from a fresh state.
 
@@ -36,6 +41,7 @@ import math
 
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
+from scipy.optimize import brentq
 from scipy.special import sph_harm_y
 
 UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2
@@ -151,6 +157,16 @@ class NumpyNeedle:
                 net=Net(hexnet, layer.spring_length_mm * 1e-3, layer.pretension)))
         self.damping = np.array([lay["d"] for lay in self.layers])
         nd = cfg.needle
+        dmm = nd.diameter_mm
+        self.table1 = nd.mechanics == "table1"
+        self.cut = np.array([la.cutting_n_per_mm_diameter * dmm for la in cfg.layers])
+        self.fc = np.array([la.coulomb_n_per_mm2 * dmm * 1e3 for la in cfg.layers])
+        self.fs = self.fc * np.array([la.stiction_ratio for la in cfg.layers])
+        self.b = np.array([la.viscous_n_s_per_m_per_mm2 * dmm * 1e3 for la in cfg.layers])
+        self.k_stick = nd.stick_stiffness_n_per_mm * 1e3
+        self.decay = math.exp(-1e-3 / nd.friction_relaxation_s) if nd.friction_relaxation_s > 0 else 1.0
+        self.needle_len = nd.length_mm * 1e-3
+        self.radius = 0.5e-3 * dmm
         self.lateral_on = bool(nd.lateral_constraint)
         self.k_lat = nd.lateral_stiffness_n_per_mm * 1e3
         self.k_bone = nd.bone_stiffness_n_per_mm * 1e3
@@ -182,6 +198,9 @@ class NumpyNeedle:
         self.offset = 0.0
         self.axis = np.array([0.0, 0.0, -1.0])
         self.entry = np.zeros(3)
+        self.touch = np.zeros(3)
+        self.bounds = np.zeros(4)
+        self.anchor, self.mode, self.engaged, self.deepest = 0.0, 0, False, 0.0
         self.force = np.zeros(3)
         self.layer = -1
         self.punctured_now = -1
@@ -192,6 +211,82 @@ class NumpyNeedle:
         """Every boundary's radius toward point ``q`` and |q - centre|."""
         th, ph, rho = directions(q, self.centre)
         return self.coeffs @ self.basis.rows(th, ph)[0], rho[0]
+
+    def gap(self, k, x):
+        """How far point ``x`` lies outside rest boundary k (radially)."""
+        r, rho = self.radii(x)
+        return rho - r[k]
+
+    def crossing(self, k, x0, a, t0, t1, step=2e-4):
+        """The first t from t0 toward t1 where the line x0 + t a crosses boundary k (None if none)."""
+        ts = np.arange(t0, t1, step if t1 > t0 else -step)
+        g = [self.gap(k, x0 + t * a) for t in ts]
+        for i in range(len(ts) - 1):
+            if g[i] == 0.0:
+                return float(ts[i])
+            if g[i] * g[i + 1] < 0.0:
+                return brentq(lambda t: self.gap(k, x0 + t * a), ts[i], ts[i + 1], xtol=1e-13, rtol=1e-12)
+        return None
+
+    def begin_insertion(self, p, axis, fallback):
+        """Axis, entry on the rest skin along it, and the deeper boundaries' arc lengths."""
+        if axis is not None and np.all(np.isfinite(axis)):
+            a = np.asarray(axis, float) / np.linalg.norm(axis)
+        elif np.linalg.norm(p - self.touch) > 2e-5:
+            a = (p - self.touch) / np.linalg.norm(p - self.touch)
+        else:
+            a = fallback
+        self.axis = a
+        back = float((p - self.touch) @ a)
+        t = self.crossing(0, p, a, -back + 2e-3, -back - 2e-3, step=1e-4)
+        self.entry = p + (t if t is not None else -back) * a
+        self.bounds[0] = 0.0
+        for k in range(1, 4):
+            prev = self.bounds[k - 1]
+            c = self.crossing(k, self.entry, a, prev, prev + 0.12) if prev < 1.0 else None
+            self.bounds[k] = c if c is not None and c >= prev else 1.0
+        self.inserted = True
+        self.engaged = False
+        self.deepest = float((p - self.entry) @ a)
+        self.hi = np.full(3, -np.inf)
+
+    def axial(self, s, v, front):
+        """The post-puncture force along the axis (N, + into the tissue) for a tip at arc length s."""
+        b = self.bounds
+        L = np.array([max(min(b[k + 1], s) - max(b[k], s - self.needle_len), 0.0) if k < front else 0.0
+                      for k in range(3)])
+        self.lengths = L
+        if self.table1:
+            return -float(self.damping @ L) * v
+        self.deepest = max(self.deepest, s)
+        kc = next((k for k in range(3) if s < b[k + 1]), 3) if s >= b[0] else -1
+        cut = 0.0
+        if 0 <= kc < front and self.cut[kc] > 0.0:
+            # uncut tissue one radius past the deepest point (within the layer) resists
+            probe = min(self.deepest + self.radius, b[kc + 1] - 1e-9)
+            if probe > self.hi[kc]:
+                reach = 1.0 - 0.5 * (self.deepest - s) * self.k_stick / self.cut[kc]
+                cut = self.cut[kc] * max(reach, 0.0)
+        st, co = float(self.fs @ L), float(self.fc @ L)
+        if not self.engaged:
+            self.anchor, self.mode, self.engaged = s, 0, True
+        f = self.k_stick * (self.anchor - s) * self.decay
+        fwd = co + cut if self.mode == 1 else st + cut
+        back = co if self.mode == -1 else st
+        if f < -fwd:
+            f, self.mode = -fwd, 1
+        elif f > back:
+            f, self.mode = back, -1
+        elif not ((self.mode == 1 and v > 1e-4) or (self.mode == -1 and v < -1e-4)):
+            self.mode = 0
+        self.anchor = s + f / self.k_stick
+        return f - float(self.b @ L) * v
+
+    def record(self, s, v, front):
+        """An advancing tip has opened each broken layer down to where it is."""
+        if v > 0.0:
+            for k in range(min(front, 3)):
+                self.hi[k] = max(self.hi[k], min(s, self.bounds[k + 1]))
 
     def surface_points(self, k, points):
         """Radial projections of ``points`` (n, 3) onto boundary k."""
@@ -302,8 +397,9 @@ class NumpyNeedle:
         return float(-((net.xf[o] - net.X0f[o]) @ net.axis).mean())
 
     # -- the servo step ---------------------------------------------------------------------------
-    def step(self, p, v, sweeps: int | None = None):
-        """One servo tick at tip ``p`` (m) moving at ``v`` (m/s): the force on the needle (N)."""
+    def step(self, p, v, sweeps: int | None = None, axis=None):
+        """One servo tick at tip ``p`` (m) moving at ``v`` (m/s), needle ``axis`` (None: unknown): the
+        force on the needle (N)."""
         p = np.asarray(p, dtype=float)
         v = np.asarray(v, dtype=float)
         self.punctured_now = -1
@@ -321,6 +417,7 @@ class NumpyNeedle:
             if s_p < -1e-6:  # back above the entry point: out of the tissue
                 self.inserted = False
                 self.offset = 0.0
+                self.engaged = False
                 self.states = [UNTOUCHED] * 3
             elif self.offset > s_p:
                 self.offset = max(s_p, 0.0)  # withdrawal: the skin tents up with the needle
@@ -333,6 +430,8 @@ class NumpyNeedle:
             lay = self.layers[k]
             net = lay["net"]
             if self.states[k] == UNTOUCHED and radii[k] >= rho:
+                if k == 0:
+                    self.touch = q.copy()
                 self.build(k, self.centre + (q - self.centre) * (radii[k] / rho))
                 self.states[k] = PRESSING
             if self.states[k] == PRESSING:
@@ -371,11 +470,10 @@ class NumpyNeedle:
                         self.states[k] = PUNCTURED
                         self.punctured_now = k
                         if k == 0:
-                            m = np.linalg.norm(r)
-                            self.axis = a = r / m if m > 1e-4 else -net.axis
-                            self.entry = net.X0f[0].copy()
-                            self.inserted = True
-                        comp = float(r @ a)
+                            self.begin_insertion(p, axis, -net.axis)
+                            a = self.axis
+                        dz1 = -float(r @ net.axis)
+                        comp = dz1 / max(-float(a @ net.axis), 0.2)  # the dent along the axis
                         if comp > 0.0:
                             self.offset += comp  # the tissue beneath stays compressed by the dent
                         q = p - self.offset * a
@@ -387,12 +485,12 @@ class NumpyNeedle:
                         f += fn * net.axis
                         self.surface_force = fn
         if self.inserted:
-            h = np.clip(radii[:3] - rho, 0.0, radii[:3] - radii[1:])
-            passed = np.array([s == PUNCTURED for s in self.states])
-            f += -float(np.sum(self.damping * h * passed)) * float(v @ a) * a
+            s = float((p - self.entry) @ a)
+            f += self.axial(s, float(v @ a), front) * a
+            self.record(s, float(v @ a), front)
             if self.lateral_on:
                 e = p - self.entry
-                f -= self.k_lat * (e - (e @ a) * a)
+                f -= self.k_lat * min(self.lengths.sum() / self.needle_len, 1.0) * (e - (e @ a) * a)
         if front >= 3 and radii[3] > rho:
             f += self.k_bone * (radii[3] - rho) * (q - self.centre) / rho
         layer = -1

@@ -161,7 +161,8 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
         timing = Timing(np.zeros(1), np.zeros(1, TIMING))
         table = tick_table(c.servo, rows, timing)  # rows and timing outlive it
         snap = _snapshot(c)
-        call_driver(run_ticks, P[:1], V[:1], T[:1], 0, table)  # load the compiled loop
+        A = np.full_like(P, np.nan)  # no device axis: the step takes the direction of travel
+        call_driver(run_ticks, P[:1], V[:1], A[:1], T[:1], 0, table)  # load the compiled loop
         _restore(c, snap)
     if "kernel" in models:
         k = models["kernel"]
@@ -190,7 +191,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
                 t0 = clock()
-                run_ticks(P[s:i + 1], V[s:i + 1], T[s:i + 1], s, table)
+                run_ticks(P[s:i + 1], V[s:i + 1], A[s:i + 1], T[s:i + 1], s, table)
                 times["compiled"].append((clock() - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path

@@ -373,7 +373,7 @@ class OmniDevice(Device):
         if render is None:
             guard["limits"] = None
         servo.guard = ol.make_arrays(self.workspace, guard, self.info.force_limit_n, RATE_HZ)
-        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1))
+        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
         servo.render = render
         self._servo = servo
         handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)

@@ -70,7 +70,7 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
-from .servotick import PythonTick, call_driver, run_ticks, tick_table
+from .servotick import PythonTick, axis_block, call_driver, run_ticks, tick_table
 from .samples import NCOL, SampleRing
 from .springback import Springback
 
@@ -258,7 +258,8 @@ class Session:
         if self.clock == "sim" and self.device.reads_ahead:
             z = np.zeros((1, 3))
             rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
-            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, tick_table(m.servo, rows, self._timing))
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), 0,
+                        tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -296,8 +297,8 @@ class Session:
                            devicemodel.new(self.servo_dt, on=False))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
-        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
-                    tick_table(m.servo, rows, self._timing))
+        feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan))
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, feed, tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
         self._stop.set()
@@ -326,6 +327,7 @@ class Session:
             m.reset(keep_holes=False)
         m.inp.p[:] = state.position_m
         m.inp.v[:] = state.velocity_m_s
+        m.inp.axis[:] = np.nan if state.axis is None else -state.axis  # DeviceState: tip -> handle
         if self.device_model is not None:  # the modelled device's rendered force, for the row
             devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
         ok = self._tick(t, self.tick, period_err, period)
@@ -473,7 +475,8 @@ class Session:
         if T.size:
             if self._sim_table is None:  # the ring's and the model's arrays outlive it
                 self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
-            n = self._run_ticks_resetting(P, V, T, k0, dev.reset_ticks(T), self._sim_table)
+            A = axis_block(dev, T)
+            n = self._run_ticks_resetting(P, V, A, T, k0, dev.reset_ticks(T), self._sim_table)
             self.tick += n
             self._t_session = float(T[n - 1])
             if self.model.diag["fault"] != 0.0:
@@ -483,7 +486,7 @@ class Session:
             dev.set_force(self._force)
         return T.size == k1 + 1 - k0
 
-    def _run_ticks_resetting(self, P, V, T, k0, cuts, table) -> int:
+    def _run_ticks_resetting(self, P, V, A, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
         ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
@@ -493,7 +496,7 @@ class Session:
             if j > 0:
                 self.model.reset(keep_holes=False)
             if b > a:
-                r = call_driver(run_ticks, P[a:b], V[a:b], T[a:b], k0 + a, table)
+                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], T[a:b], k0 + a, table)
                 n += r
                 if r < b - a:  # a fault
                     break

@@ -48,6 +48,8 @@ N_LAYERS = 3
 MAX_TRACKS = 32
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
 V_BAND = 1e-4  # m/s, ours: Karnopp's stick band: slower than this a sliding needle sticks again
+UNCUT = 1e9  # m: a layer's cut range [lo, hi] is empty while lo = UNCUT, hi = -UNCUT (finite, so the
+# state stays finite everywhere: the servo's checks treat a non-finite value as a fault)
 
 
 class MechParams(NamedTuple):
@@ -77,8 +79,8 @@ class Tracks(NamedTuple):
 
     entry: np.ndarray  # (MAX_TRACKS, 3) m: skin entry point
     axis: np.ndarray  # (MAX_TRACKS, 3): unit vector into the tissue
-    cut_lo: np.ndarray  # (MAX_TRACKS, 3) m: cut range start per layer (+inf: none)
-    cut_hi: np.ndarray  # (MAX_TRACKS, 3) m: cut range end per layer (-inf: none)
+    cut_lo: np.ndarray  # (MAX_TRACKS, 3) m: cut range start per layer (UNCUT: none)
+    cut_hi: np.ndarray  # (MAX_TRACKS, 3) m: cut range end per layer (-UNCUT: none)
     count: np.ndarray  # (1,) int64: tracks ever begun (the ring buffer holds the last MAX_TRACKS)
 
 
@@ -100,7 +102,7 @@ def new_friction_state() -> FrictionState:
 
 def new_tracks() -> Tracks:
     return Tracks(np.zeros((MAX_TRACKS, 3)), np.tile([0.0, 0.0, -1.0], (MAX_TRACKS, 1)),
-                  np.full((MAX_TRACKS, N_LAYERS), np.inf), np.full((MAX_TRACKS, N_LAYERS), -np.inf),
+                  np.full((MAX_TRACKS, N_LAYERS), UNCUT), np.full((MAX_TRACKS, N_LAYERS), -UNCUT),
                   np.zeros(1, dtype=np.int64))
 
 
@@ -188,8 +190,8 @@ def begin_track(tracks, entry, axis, radius):
         te[j, c] = entry[c]
         ta[j, c] = axis[c]
     for k in range(N_LAYERS):
-        lo[j, k] = np.inf
-        hi[j, k] = -np.inf
+        lo[j, k] = UNCUT
+        hi[j, k] = -UNCUT
     count[0] += 1
     return j
 
@@ -268,6 +270,28 @@ def friction_reset(st):
 
 
 @nb.njit(cache=True, nogil=True)
+def stick_point(anchor, mode, k, decay, s, v, thr):
+    """One tick of the stick point on plain scalars: the anchor's arc length ``anchor`` (m) and its
+    ``mode`` (STUCK / SLIP_FWD / SLIP_BACK) for a needle at ``s`` moving at ``v``; spring ``k`` (N/m),
+    held force times ``decay`` per tick; ``thr`` as for :func:`stick_slip`. Returns (new anchor, new
+    mode, force on the needle along +s)."""
+    u = (anchor - s) * decay  # anchor - needle, relaxed toward the needle
+    f = k * u
+    fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
+    back = thr[1] if mode != SLIP_BACK else thr[3]
+    new_mode = mode
+    if f < -fwd:
+        u = -fwd / k
+        new_mode = SLIP_FWD
+    elif f > back:
+        u = back / k
+        new_mode = SLIP_BACK
+    elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
+        new_mode = STUCK
+    return s + u, new_mode, k * u
+
+
+@nb.njit(cache=True, nogil=True)
 def stick_slip(st, k, decay, s, v, thr):
     """One tick of the stick point (spring ``k`` N/m, held force times ``decay`` per tick) for a
     needle at arc length ``s`` moving at ``v`` (m/s). ``thr``: slip thresholds in N, a 4-tuple
@@ -276,27 +300,17 @@ def stick_slip(st, k, decay, s, v, thr):
     sliding needle stays sliding (Coulomb threshold) while it keeps moving the same way faster than
     V_BAND, even if a threshold rose (fresh tissue ahead): it sticks (breakaway threshold) only when
     it stops or turns. Passive: the anchor only moves toward the needle (relaxation and slip
-    both shrink the spring)."""
+    both shrink the spring). The state lives in ``st`` (:class:`FrictionState`); the arithmetic is
+    :func:`stick_point`'s."""
     anchor, mode_a, engaged = st.anchor, st.mode, st.engaged
     if engaged[0] == 0:
         anchor[0] = s
         engaged[0] = 1
         mode_a[0] = STUCK
-    u = (anchor[0] - s) * decay  # anchor - needle, relaxed toward the needle
-    mode = mode_a[0]
-    f = k * u
-    fwd = thr[0] if mode != SLIP_FWD else thr[2]  # pushing forward: the spring pulls back (f < 0)
-    back = thr[1] if mode != SLIP_BACK else thr[3]
-    if f < -fwd:
-        u = -fwd / k
-        mode_a[0] = SLIP_FWD
-    elif f > back:
-        u = back / k
-        mode_a[0] = SLIP_BACK
-    elif not ((mode == SLIP_FWD and v > V_BAND) or (mode == SLIP_BACK and v < -V_BAND)):
-        mode_a[0] = STUCK
-    anchor[0] = s + u
-    return k * u
+    a, mo, f = stick_point(anchor[0], mode_a[0], k, decay, s, v, thr)
+    anchor[0] = a
+    mode_a[0] = mo
+    return f
 
 
 @nb.njit(cache=True, nogil=True)

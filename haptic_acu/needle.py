@@ -4,7 +4,7 @@ One servo tick is one call of :func:`step_kernel` (numba, ``nogil``, allocation-
 sequence of named phases, each a small kernel of its own:
 
     check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
-    sweep_net] -> puncture or surface_force -> passed_layer_damping -> lateral_guidance ->
+    sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
     bone_wall -> locate -> clamp
 
 Every phase takes the NamedTuples of :mod:`haptic_acu.servostate` (``inp``: TickIn, ``m``: Model,
@@ -14,14 +14,12 @@ thin Python object that owns the arrays.
 
 States per layer and insertion site: UNTOUCHED -> PRESSING (a force net is active) -> PUNCTURED.
 The needle presses at most one layer at a time, the first one not yet punctured (the "front").
-Force on the needle (and so on the hand), Table 1:
-
-    pressing layer k:  F_k (net reaction along its normal) + damping of the layers above
-    inside layer k:    -(sum_{j<k} d_j h_j + d_k h) v_axial a        (a: insertion axis, into tissue)
-
-with h_j the thickness of a passed layer and h the depth into the current one, d read per mm of
-needle in the layer (docs/model.md). Damping needs v along the axis and opposes it (it pulls
-back on withdrawal).
+Force on the needle (and so on the hand): the pressed layer's net reaction along its normal, plus,
+once the skin is broken, the axial force of the layers the shaft is in (:mod:`haptic_acu.postpuncture`:
+``needle.mechanics = "rich"``: cutting at the tip into uncut tissue + stick-point Karnopp shaft
+friction + viscous friction, each per layer in proportion to the needle length in it;
+``"table1"``: the paper's ``-(sum_k d_k h_k) v_axial a``), with h_k the physical needle length in
+layer k, measured along the needle's axis from the rest boundaries (docs/model.md s3, s9).
 
 Compression. When layer k breaks the tip is its dent depth below that layer's rest surface, and the
 tissue beneath has been pushed down with it. The model keeps that compression as an offset ``o``
@@ -29,13 +27,19 @@ along the insertion axis: collision and depths use the tip lifted by ``o``. On w
 exceeds the tip's depth below the entry point, so the skin is dragged back up with the needle (it
 tents) and the needle leaves the tissue exactly when it is back at the entry point.
 
-Holes. Every puncture records a hole (point on that layer's surface, layer, axis). When the tip
-later touches a layer within ``hole_radius`` of one of its holes it goes straight in (no surface
-force, no net); elsewhere it meets a new net. The hole list persists across insertions.
+Axis and entry. When the skin breaks, the needle's axis is the device's (``TickIn.axis``) where it
+knows it, else the direction of travel since the tip first crossed the rest skin surface; the entry
+is where that line crosses the rest skin surface (:func:`haptic_acu.postpuncture.begin_insertion`).
+
+Tracks and holes. Every insertion extends a track (entry, axis, per layer the arc-length range cut;
+mechanics.py). A layer touched where a track opened it (half the needle's cross-section or more)
+is entered straight (no surface force, no net); elsewhere the tip meets a new net. Every puncture
+also records a hole (point, layer, axis) for display. Both persist across insertions.
 
 Lateral constraint. Once the skin is pierced the tip is pulled back to the insertion line through
-the entry point along the axis by a spring (``lateral_stiffness``), as a needle in tissue cannot
-slide sideways. Bone: a penalty wall at the muscle/bone boundary.
+the entry point along the axis by a spring as stiff as the shaft is held (``lateral_stiffness``
+times the inserted fraction of the needle), as a needle in tissue cannot slide sideways. Bone: a
+penalty wall at the muscle/bone boundary.
 
 Safety. A non-finite tip position or velocity gives zero force and latches a fault; the output is
 always finite and its magnitude never exceeds ``force_limit``.
@@ -60,9 +64,11 @@ from .cptr import address_of as _address_of
 from .cptr import i64p as _i64p
 from .forcenet import (NetArrays, NetParams, Springs, Surface, Topology, build_net, force_on, lattice,
                        n_particles, relax, ring_w_mean_deflection, sync_curved)
+from .mechanics import UNCUT, mech_params
 from .netresponse import lay_field, lookup
 from .netresponse import pack as pack_tables
 from .netresponse import table_for
+from .postpuncture import begin_insertion, find_track, shaft_forces
 from .servostate import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
 from .tissue import Tissue, boundary_radii
@@ -201,9 +207,11 @@ def track_entry(inp, s):
         wk.s_p = s_p
         if s_p < -1e-6:
             sv.inserted = 0
+            sv.engaged = 0
             o = 0.0
             for k in range(N_LAYERS):
                 sv.state[k] = UNTOUCHED
+                sv.lengths[k] = 0.0
         elif o > s_p:
             o = max(s_p, 0.0)
     sv.offset = o
@@ -246,22 +254,6 @@ def contact_point(m, s, k):
 
 
 @nb.njit(cache=True, nogil=True)
-def find_hole(m, s, k):
-    """The first hole of layer ``k`` within the hole radius of the contact point, or -1."""
-    wk = s.work[0]
-    hr = m.params[0].hole_radius
-    hr2 = hr * hr
-    for h in range(min(s.servo[0].nholes, MAX_HOLES)):
-        hole = s.holes[h]
-        if int(hole.layer) == k:
-            pt = hole.point
-            d2 = (pt[0] - wk.cpt[0]) ** 2 + (pt[1] - wk.cpt[1]) ** 2 + (pt[2] - wk.cpt[2]) ** 2
-            if d2 <= hr2:
-                return h
-    return -1
-
-
-@nb.njit(cache=True, nogil=True)
 def take_slot(s, k):
     """The slot to build layer k's new net in: the one in use if the servo owns it, else a free
     one, else (both in springback) the older one."""
@@ -288,19 +280,21 @@ def build_slot(m, s, k, idx):
 
 
 @nb.njit(cache=True, nogil=True)
-def touch(m, s, k):
-    """First touch of layer ``k``: through one of its holes (straight in, PUNCTURED; a skin hole sets
-    the entry point and axis) or onto a new net (PRESSING). Returns the layer's new state."""
+def touch(inp, m, s, k):
+    """First touch of layer ``k``: where an earlier pass opened it (a track, ``find_track``: straight
+    in, PUNCTURED; through the skin that begins the insertion along the track) or onto a new net
+    (PRESSING). The skin's first touch is kept (``servo.touch``: the direction of travel from there
+    gives the axis). Returns the layer's new state."""
     sv = s.servo[0]
     contact_point(m, s, k)
-    h = find_hole(m, s, k)
+    if k == 0:
+        for c in range(3):
+            sv.touch[c] = s.work[0].q[c]
+    h = find_track(m, s, k)
     if h >= 0:
         sv.state[k] = PUNCTURED
         if k == 0:
-            sv.inserted = 1
-            for c in range(3):
-                sv.entry[c] = s.holes[h].point[c]
-                sv.axis[c] = s.holes[h].axis[c]
+            begin_insertion(inp, m, s, h)
         return PUNCTURED
     sl = take_slot(s, k)
     sv.slot[k] = sl
@@ -405,20 +399,12 @@ def puncture(inp, m, s, d, k, idx, use_table):
     sync_curved(net)
     sv.owner[k, idx % 2] = VISUAL_OWNS
     d.puncture = k
-    rx, ry, rz = wk.r[0], wk.r[1], wk.r[2]
     if k == 0:
-        # The insertion axis: from the contact point to the tip at the break.
-        mag = math.sqrt(rx * rx + ry * ry + rz * rz)
-        if mag > 1e-4:
-            a0, a1, a2 = rx / mag, ry / mag, rz / mag
-        else:
-            a0, a1, a2 = -ax[0], -ax[1], -ax[2]
-        sv.axis[0] = a0
-        sv.axis[1] = a1
-        sv.axis[2] = a2
+        # The insertion axis (the device's, else the direction of travel since the first touch,
+        # else the net's inward normal), its entry on the rest skin surface, the track.
         for c in range(3):
-            sv.entry[c] = X0f[0, c]
-        sv.inserted = 1
+            sv.axis[c] = -ax[c]
+        begin_insertion(inp, m, s, -1)
     a = sv.axis
     hole = s.holes[sv.nholes % MAX_HOLES]
     for c in range(3):
@@ -426,7 +412,12 @@ def puncture(inp, m, s, d, k, idx, use_table):
         hole.axis[c] = a[c]
     hole.layer = k
     sv.nholes += 1
-    comp = rx * a[0] + ry * a[1] + rz * a[2]
+    # The tissue beneath stays pushed down by the dent (wk.dz1 along the net's normal): along the
+    # axis that is dz1 / cos(axis, inward normal).
+    cosn = -(a[0] * ax[0] + a[1] * ax[1] + a[2] * ax[2])
+    if cosn < 0.2:
+        cosn = 0.2
+    comp = wk.dz1 / cosn
     if comp > 0.0:
         sv.offset += comp
     lift_tip(inp, s)
@@ -493,42 +484,25 @@ def front_contact(inp, m, s, d):
     k = s.work[0].front
     st = s.servo[0].state[k]
     if st == UNTOUCHED and s.radii[k] - s.work[0].rho >= 0.0:
-        st = touch(m, s, k)
+        st = touch(inp, m, s, k)
     if st == PRESSING:
         press(inp, m, s, d, k)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def passed_layer_damping(inp, m, s, d):
-    """Table 1: ``-(sum_j d_j h_j) v_axial a`` over the punctured layers, h_j the needle's length in
-    layer j; each layer's share into ``d.f_layer``."""
+def lateral_stiffness(m, s):
+    """The lateral guidance's stiffness: ``k_lateral`` times the needle length in the tissue over the
+    needle's length (every layer the shaft crosses holds it; ``k_lateral`` with the whole shaft in)."""
     sv = s.servo[0]
-    wk = s.work[0]
-    a = sv.axis
-    v = inp.v
-    radii = s.radii
-    v_ax = v[0] * a[0] + v[1] * a[1] + v[2] * a[2]
-    total_d = 0.0
-    for j in range(N_LAYERS):
-        if sv.state[j] == PUNCTURED:
-            h = radii[j] - wk.rho
-            thick = radii[j] - radii[j + 1]
-            if h < 0.0:
-                h = 0.0
-            if h > thick:
-                h = thick
-            cj = m.layer[j].damping * h
-            total_d += cj
-            d.f_layer[j] += -cj * v_ax
-    fd = -total_d * v_ax
-    for c in range(3):
-        wk.f[c] += fd * a[c]
-    d.f_damp = fd
+    held = sv.lengths[0] + sv.lengths[1] + sv.lengths[2]
+    return m.params[0].k_lateral * min(held / m.params[0].needle_length, 1.0)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def lateral_guidance(inp, m, s, d):
-    """A spring pulling the tip back to the insertion line through the entry point."""
+    """A spring pulling the tip back to the insertion line through the entry point, as stiff as the
+    shaft is held: ``k_lateral`` times the needle length in the tissue over the needle's length
+    (every layer the shaft crosses holds it; ``k_lateral`` with the whole shaft in)."""
     sv = s.servo[0]
     wk = s.work[0]
     a = sv.axis
@@ -540,7 +514,7 @@ def lateral_guidance(inp, m, s, d):
     lx = ex - t * a[0]
     ly = ey - t * a[1]
     lz = ez - t * a[2]
-    kl = m.params[0].k_lateral
+    kl = lateral_stiffness(m, s)
     wk.f[0] -= kl * lx
     wk.f[1] -= kl * ly
     wk.f[2] -= kl * lz
@@ -549,14 +523,14 @@ def lateral_guidance(inp, m, s, d):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def post_puncture(inp, m, s, d):
-    """Forces of a needle inside the tissue: damping of the layers passed, lateral guidance, and
-    the depth below the skin."""
-    sv = s.servo[0]
+    """Forces of a needle inside the tissue: along the axis (Table 1, or cutting and shaft friction:
+    ``postpuncture.shaft_forces``), lateral guidance, and the depth below the skin (physical: along
+    the axis from the entry on the rest skin surface)."""
     wk = s.work[0]
-    passed_layer_damping(inp, m, s, d)
+    shaft_forces(inp, m, s, d)
     if m.params[0].lateral_on != 0:
         lateral_guidance(inp, m, s, d)
-    dep = wk.s_p - sv.offset
+    dep = wk.s_p
     d.depth_skin = dep if dep > 0.0 else 0.0
 
 
@@ -646,15 +620,16 @@ def pressed_slope(m, s, k, idx):
 @nb.njit(cache=True, nogil=True, inline="always")
 def render_local(m, s, d):
     """What a rendering layer linearises the tissue about (rendering.TissueLocal) into ``d.r_*``:
-    the force without its axial damping, the axis (the insertion axis inside the tissue, a pressed
-    net's axis before), the axial damping coefficient of the layers passed (Table 1), the stiffness
-    along it (a pressed net's table slope; the bone wall's) and across it (the lateral guidance),
-    the friction level (none yet) and a release flag (a puncture this tick)."""
+    the force without the shaft's friction and viscous parts (the cutting at the tip stays: it
+    follows the tip's position), the axis (the insertion axis inside the tissue, a pressed net's
+    axis before), the axial viscous coefficient (``d.axial_damping``: Table 1's sum in the paper's
+    mode), the stiffness along it (a pressed net's table slope; the bone wall's) and across it (the
+    lateral guidance, as the post-puncture phase scaled it), the shaft friction's breakaway level
+    and a release flag (a puncture this tick)."""
     sv = s.servo[0]
     wk = s.work[0]
     along = 0.0
     across = 0.0
-    c_ax = 0.0
     for c in range(3):
         d.r_axis[c] = 0.0
     front = wk.front
@@ -667,22 +642,17 @@ def render_local(m, s, d):
         a = sv.axis
         for c in range(3):
             d.r_axis[c] = a[c]
-        for j in range(N_LAYERS):
-            if sv.state[j] == PUNCTURED:
-                h = s.radii[j] - wk.rho
-                thick = s.radii[j] - s.radii[j + 1]
-                h = 0.0 if h < 0.0 else (thick if h > thick else h)
-                c_ax += m.layer[j].damping * h
         if m.params[0].lateral_on != 0:
-            across = m.params[0].k_lateral
+            across = lateral_stiffness(m, s)
         if front >= N_LAYERS and s.radii[N_LAYERS] - wk.rho > -1e-3:
             along = max(along, m.params[0].k_bone)
+    shaft = d.f_damp - d.f_cut  # friction + viscous along +axis (Table 1's damping in the paper's mode)
     for c in range(3):
-        d.r_force[c] = d.force[c] - d.f_damp * d.r_axis[c]
-    d.r_damping = c_ax
+        d.r_force[c] = d.force[c] - shaft * d.r_axis[c]
+    d.r_damping = d.axial_damping
     d.r_k_along = along
     d.r_k_across = across
-    d.r_friction = 0.0
+    d.r_friction = d.breakaway
     d.r_released = 1.0 if d.puncture >= 0.0 else 0.0
 
 
@@ -778,10 +748,13 @@ class NeedleModel:
                            ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
                            plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
                            tab=tab, tmeta=tmeta)
+        tr = (ss.MAX_TRACKS, 3)
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
-                              holes=(MAX_HOLES,), radii=(N_LAYERS + 1,))
+                              holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
+                              tr_hi=tr)
         self.state.axes[:, 2] = 1.0
-        self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,))
+        self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,))
+        self.inp.axis[:] = np.nan
         self.out = ss.zeros(ss.Out)
         self.servo = ss.Servo(self.inp, self.model, self.state, self.out)  # what a tick reads and writes
         self.rec = self.state.servo[0]  # the servo record (a view: reads see the servo's writes)
@@ -795,18 +768,22 @@ class NeedleModel:
     @staticmethod
     def _layer_params(cfg) -> np.ndarray:
         lp = np.zeros(N_LAYERS, ss.LAYER)
+        mp = mech_params(cfg.layers, cfg.needle)
         for k, layer in enumerate(cfg.layers):
             prm = NetParams.from_layer(layer)
             lp[k] = (prm.k_virtual, prm.k_surface, prm.spacing_m, prm.pretension, prm.threshold_m, prm.w,
-                     layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3)
+                     layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3,
+                     mp.cut[k], mp.fs[k], mp.fc[k], mp.b[k])
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:
         nd = cfg.needle
+        mp = mech_params(cfg.layers, nd)
         prm = np.zeros(1, ss.PARAMS)
         prm[0] = (self.lmax, nd.hole_radius_mm * 1e-3, 1 if nd.lateral_constraint else 0,
                   nd.lateral_stiffness_n_per_mm * 1e3, nd.bone_stiffness_n_per_mm * 1e3, cfg.safety.force_limit_n,
-                  cfg.solver.sweeps_per_tick)
+                  cfg.solver.sweeps_per_tick, ss.TABLE1 if nd.mechanics == "table1" else ss.RICH,
+                  mp.radius, mp.length, mp.k_stick, mp.decay)
         return prm
 
     def _layout(self):
@@ -851,10 +828,16 @@ class NeedleModel:
         nh = self.rec["nholes"]
         self.state.servo[:] = np.zeros(1, ss.SERVO)
         self.rec["axis"][2] = -1.0
+        self.rec["grasp"][:] = 1.0
         if keep_holes:
             self.rec["nholes"] = nh
         else:
             self.state.holes[:] = np.zeros(MAX_HOLES, ss.HOLE)
+            self.state.tr_entry[:] = 0.0
+            self.state.tr_axis[:] = [0.0, 0.0, -1.0]
+            self.state.tr_lo[:] = UNCUT
+            self.state.tr_hi[:] = -UNCUT
+            self.state.tr_count[:] = 0
         self.out.diag[:] = np.zeros(1, DIAG)
 
     def kernel_args(self) -> tuple:
@@ -871,11 +854,13 @@ class NeedleModel:
             a[...] = b
         self.out.diag[...] = diag
 
-    def step(self, p, v) -> np.ndarray:
-        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s): the force (N).
-        Calls :func:`step_kernel` through its C entry point (:func:`step_entry`)."""
+    def step(self, p, v, axis=None) -> np.ndarray:
+        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s), needle ``axis`` (unit,
+        handle to tip; None: unknown): the force (N). Calls :func:`step_kernel` through its C entry
+        point (:func:`step_entry`)."""
         self.inp.p[:] = p
         self.inp.v[:] = v
+        self.inp.axis[:] = np.nan if axis is None else axis
         if self._step_c is None:
             self._bind_step()
         else:

@@ -197,7 +197,7 @@ def warm_guard() -> None:
     identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
     o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0,
                                "limits": R.DeviceLimits(3.3, 0.88, 1260.0, 3.0)}, 1.0, 1000.0)
-    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1))
+    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
     guard_in(o, inp)
     render_in(o, inp, np.zeros(1, ss.DIAG))
     guard_out(o, 0.0, 0.0, 0.0)
@@ -449,6 +449,7 @@ def guard_in(o, inp):
         pbuf[r] = (ws[0].scale * (ws[0].R[r, 0] * px + ws[0].R[r, 1] * py + ws[0].R[r, 2] * pz)
                    + ws[0].offset[r]) * 1e-3
         vbuf[r] = sc * (ws[0].R[r, 0] * vx + ws[0].R[r, 1] * vy + ws[0].R[r, 2] * vz)
+        inp.axis[r] = math.nan  # the stylus orientation is not read here yet: the step uses the travel
     return S_RUNNING
 
 

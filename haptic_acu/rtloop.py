@@ -36,7 +36,7 @@ from numba.extending import intrinsic
 
 from . import servostate as ss
 from .devicemodel import model_tick
-from .servotick import STALE, account, reset_servo, servo_tick, unpack_tick
+from .servotick import STALE, account, axis_block, reset_servo, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -120,6 +120,7 @@ _NO_RESETS = np.zeros(1, np.int8)
 class FeedRows(NamedTuple):
     p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
     v: np.ndarray  # (capacity, 3) velocities
+    a: np.ndarray  # (capacity, 3) needle axes (unit, handle to tip; NaN: the device does not know it)
     reset: np.ndarray = _NO_RESETS  # (capacity,) int8: 1 = fresh tissue before tick k (a reset event)
 
 
@@ -217,6 +218,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
+            sv.inp.axis[c] = feed.a[j, c]
         if feed.reset[j % feed.reset.shape[0]] != 0:
             reset_servo(sv)  # the recording's reset event: fresh tissue before this tick
         model_tick(lp.dm, sv.inp, sv.out.diag)
@@ -245,6 +247,7 @@ class Feed:
         self.v = np.zeros((capacity, 3))
         self.reset = np.zeros(capacity, np.int8)  # the device's reset events (Device.reset_ticks)
         self.events = bool(getattr(device, "has_events", False))
+        self.a = np.full((capacity, 3), np.nan)
         self.capacity = capacity
         self.lead = min(lead, capacity - chunk)
         self.chunk = chunk
@@ -274,6 +277,7 @@ class Feed:
                 log = getattr(self.device, "events", None)  # (tick, name) for a recording, as read_at does
                 if log is not None:
                     log.extend((k0 + c, "reset") for c in cuts)
+            self.a[idx] = axis_block(self.device, T)[:n]
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 
@@ -291,7 +295,7 @@ class Feed:
 
     def rows(self) -> FeedRows:
         """The arrays the compiled loop reads."""
-        return FeedRows(self.p, self.v, self.reset)
+        return FeedRows(self.p, self.v, self.a, self.reset)
 
     def join(self, timeout: float = 2.0) -> None:
         if self._thread is not None:

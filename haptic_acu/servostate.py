@@ -10,7 +10,8 @@ Four NamedTuples of arrays, each field declared in one place with its dtype and 
 * :class:`State`  (mutable, written only by the servo step): ``servo`` (one record: layer states,
   slots, owners, generations, offset, axis, entry, fault, tick...), the nets' particles, the holes,
   the boundary radii at the tip and ``work`` (the step's scratch record);
-* :class:`TickIn` (one tick's input from the device): tip position and velocity;
+* :class:`TickIn` (one tick's input from the device): tip position and velocity, needle axis (NaN:
+  unknown);
 * :class:`Out` (the tick's output): ``diag``, one :data:`DIAG` record: the force on the needle and
   its diagnostics.
 
@@ -43,6 +44,8 @@ STATE_NAMES = ("untouched", "pressing", "punctured")
 N_SLOTS = 2  # net buffers per layer
 FREE, SERVO_OWNS, VISUAL_OWNS = 0, 1, 2  # owner of a (layer, slot) net buffer
 MAX_HOLES = 64
+MAX_TRACKS = 32  # insertion tracks remembered (mechanics.py's track memory; the oldest is overwritten)
+RICH, TABLE1 = 0, 1  # PARAMS.mechanics: cutting + Karnopp friction, or the paper's Table 1
 
 # ---- record dtypes --------------------------------------------------------------------------------------
 LAYER = np.dtype([  # per layer (Model.layer[k])
@@ -51,10 +54,17 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
     ("w", "i8"),  # rings of the force net
     ("damping", "f8"),  # N s/m per m of needle in the layer
     ("thickness", "f8"),
+    ("cut", "f8"),  # N: cutting force at the tip advancing into uncut tissue (this needle's diameter)
+    ("fs", "f8"), ("fc", "f8"),  # N/m: breakaway and Coulomb shaft friction per m of needle in the layer
+    ("visc", "f8"),  # N*s/m per m of needle: viscous shaft friction
 ])
 PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("lmax", "i8"), ("hole_radius", "f8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
     ("force_limit", "f8"), ("sweeps", "i8"),
+    ("mechanics", "i8"),  # RICH or TABLE1
+    ("needle_radius", "f8"), ("needle_length", "f8"),  # m
+    ("k_stick", "f8"),  # N/m: the friction's stick-point spring
+    ("decay", "f8"),  # the stick force's relaxation per tick (1: none)
 ])
 LAYOUT = np.dtype([  # where each (layer, slot) net lives in State.pos / State.rest (idx = 2*layer + slot)
     ("xf", "i8", N_LAYERS * N_SLOTS), ("X0f", "i8", N_LAYERS * N_SLOTS), ("X0", "i8", N_LAYERS * N_SLOTS),
@@ -73,6 +83,13 @@ SERVO = np.dtype([  # the servo's mutable scalars (State.servo[0])
     ("axis", "f8", 3),  # insertion axis (into the tissue)
     ("entry", "f8", 3),  # entry point on the skin
     ("slot_q", "f8", (N_LAYERS * N_SLOTS, 3)),  # the (lifted) tip holding N1 of a tabulated net
+    ("touch", "f8", 3),  # where the tip first crossed the rest skin surface (direction of travel)
+    ("bounds", "f8", N_LAYERS + 1),  # arc lengths along the axis from the entry of the rest boundaries
+    ("track", "i8"),  # this insertion's track (State.tr_*)
+    ("anchor", "f8"), ("fmode", "i8"), ("engaged", "i8"),  # the friction's stick point (mechanics.py)
+    ("deepest", "f8"),  # the deepest arc length this insertion has reached (its crack front, m)
+    ("grasp", "f8", N_LAYERS),  # per-layer multiplier of stiction and Coulomb friction (twirl writes; 1.0)
+    ("lengths", "f8", N_LAYERS),  # needle length in each layer (m, physical; 0 while not inserted)
 ])
 HOLE = np.dtype([("point", "f8", 3), ("layer", "f8"), ("axis", "f8", 3)])
 WORK = np.dtype([  # the step's scratch: values one phase hands the next within a tick
@@ -88,7 +105,7 @@ WORK = np.dtype([  # the step's scratch: values one phase hands the next within 
 DIAG = np.dtype([  # one tick's output
     ("force", "f8", 3),  # the force on the needle (N)
     ("f_surface", "f8"),  # magnitude of the pressed layer's surface force (N)
-    ("f_damp", "f8"),  # axial damping force (N, signed along -axis)
+    ("f_damp", "f8"),  # axial post-puncture force (N along +axis): cutting + friction + viscous (table1: damping)
     ("f_lateral", "f8"), ("f_bone", "f8"),
     ("layer", "f8"),  # layer the tip is in: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone
     ("depth", "f8"),  # depth into that layer (m)
@@ -108,6 +125,9 @@ DIAG = np.dtype([  # one tick's output
     ("r_k_across", "f8"),  # stiffness across it: the lateral guidance (N/m)
     ("r_friction", "f8"),  # Coulomb friction level along the axis (N)
     ("r_released", "f8"),  # 1 if a layer was punctured this tick
+    ("f_cut", "f8"), ("f_friction", "f8"), ("f_viscous", "f8"),  # f_damp split (N along +axis)
+    ("axial_damping", "f8"),  # N*s/m: the axial viscous coefficient (Table 1: sum d_k h_k)
+    ("breakaway", "f8"),  # N: the shaft friction's current breakaway level (sum grasp_k fs_k L_k)
 ])
 
 
@@ -133,6 +153,11 @@ class State(NamedTuple):
     holes: np.ndarray  # (MAX_HOLES,) HOLE
     radii: np.ndarray  # (N_LAYERS + 1,): boundary radii toward the tip
     work: np.ndarray  # (1,) WORK
+    tr_entry: np.ndarray  # (MAX_TRACKS, 3) track memory (mechanics.Tracks): skin entry points
+    tr_axis: np.ndarray  # (MAX_TRACKS, 3) their axes (into the tissue)
+    tr_lo: np.ndarray  # (MAX_TRACKS, N_LAYERS) arc-length range already cut per layer: start
+    tr_hi: np.ndarray  # (MAX_TRACKS, N_LAYERS) end
+    tr_count: np.ndarray  # (1,) int64: tracks ever begun
 
 
 class TickIn(NamedTuple):
@@ -140,6 +165,7 @@ class TickIn(NamedTuple):
     v: np.ndarray  # tip velocity (m/s)
     fr: np.ndarray  # (3,) the force a rendering layer commands the device this tick (N; 0: none)
     rstat: np.ndarray  # (1,) its status bits (rendering.CLAMPED / LIMITING / FAULT; 0: none)
+    axis: np.ndarray  # needle axis, unit, handle to tip (scene frame); NaN where the device does not know it
 
 
 class Out(NamedTuple):
@@ -171,8 +197,9 @@ SPEC = {  # (dtype, ndim) of every field
     Model: dict(coeffs=("f8", 2), centre=("f8", 1), layer=(LAYER, 1), params=(PARAMS, 1), layout=(LAYOUT, 1),
                 nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
-                work=(WORK, 1)),
-    TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1)),
+                work=(WORK, 1), tr_entry=("f8", 2), tr_axis=("f8", 2), tr_lo=("f8", 2), tr_hi=("f8", 2),
+                tr_count=("i8", 1)),
+    TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1), axis=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),
     Timing: dict(errs=("f8", 1), count=(TIMING, 1)),

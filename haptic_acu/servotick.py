@@ -21,6 +21,7 @@ from numba.extending import intrinsic, register_jitable
 
 from . import servostate as ss
 from .cptr import address_of, i64p
+from .mechanics import UNCUT
 from .needle import step_servo
 from .samples import write_sample
 
@@ -49,6 +50,16 @@ def call_driver(driver, *args):
         driver.recompile()
         r = driver(*args)
     return r
+
+
+def axis_block(device, T) -> np.ndarray:
+    """The needle axis (n, 3), unit, handle to tip, at times ``T`` from a device that knows it
+    (``pose_block``: a trajectory's axis columns); NaN rows where it does not."""
+    pose = getattr(device, "pose_block", None)
+    axis = pose(T)[0] if pose is not None else None
+    if axis is None:
+        return np.full((len(T), 3), np.nan)
+    return np.ascontiguousarray(axis, dtype=np.float64)
 
 
 @register_jitable
@@ -91,13 +102,21 @@ def reset_servo(sv):
     s = sv.state
     ss.clear(s.servo)
     s.servo[0].axis[2] = -1.0
+    for k in range(s.servo[0].grasp.shape[0]):
+        s.servo[0].grasp[k] = 1.0
     ss.clear(s.holes)
+    s.tr_entry[:] = 0.0
+    s.tr_axis[:] = 0.0
+    s.tr_axis[:, 2] = -1.0
+    s.tr_lo[:] = UNCUT
+    s.tr_hi[:] = -UNCUT
+    s.tr_count[:] = 0
     ss.clear(sv.out.diag)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def servo_tick(sv, ring, t, tick, err_s):
-    """One tick on ``sv.inp`` (the caller has written the position and velocity): the step, its
+    """One tick on ``sv.inp`` (the caller has written the position, velocity and axis): the step, its
     sample row (time ``t``, index ``tick``, period error ``err_s``) written and published. Returns
     False if the state is not finite (the fault is latched: the force is zero from here)."""
     step_servo(sv)
@@ -109,11 +128,11 @@ def servo_tick(sv, ring, t, tick, err_s):
 
 
 @nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, T, tick0, table):
-    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V`` at
-    times ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip
-    per tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
-    :func:`call_driver`)."""
+def run_ticks(P, V, A, T, tick0, table):
+    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V``,
+    needle axes ``A`` (unit, handle to tip; NaN rows: unknown) at times ``T``) on the servo and ring
+    of ``table`` (:func:`tick_table`), without a Python round trip per tick. Stops after a faulting
+    tick; returns the number of ticks run (:data:`STALE`: see :func:`call_driver`)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE
     sv, ring, _ = unpack_tick(table)
@@ -121,6 +140,7 @@ def run_ticks(P, V, T, tick0, table):
         for c in range(3):
             sv.inp.p[c] = P[i, c]
             sv.inp.v[c] = V[i, c]
+            sv.inp.axis[c] = A[i, c]
         if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
             return i + 1
     return T.shape[0]

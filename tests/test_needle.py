@@ -2,13 +2,16 @@
 numbers: a 200 mm sphere, layers 1/5/20 mm thick, damping 3/1/2 N*s/m per mm (physics_helpers).
 
 The tip is driven kinematically along -z through the acupoint (the sphere's top), so every boundary is
-crossed radially and every depth is a plain difference of z. Expected forces are computed here from
-the known thicknesses, depths and velocity, with the compression offset taken from the recorded tip
-positions at the punctures (MODEL.md section 3; needle.py's "Compression"):
+crossed radially and every depth is a plain difference of z. The model runs in the paper's mode
+(``needle.mechanics = "table1"``; the default's cutting and friction are tested against their closed
+forms in test_insertion_mechanics.py). Expected forces are computed here from the known thicknesses,
+the tip's physical depth below the rest skin surface and the velocity (docs/model.md section 3). The
+surfaces still being pressed are met with the tissue beneath compressed by the dents, an offset
+taken from the recorded tip positions at the punctures (needle.py's "Compression"):
 
-    after skin puncture at tip depth s0:  effective depth = s - s0
-    after fat puncture at s1:              effective depth = s - (s1 - h_s)
-    after muscle puncture at s2:           effective depth = s - (s2 - h_s - h_f)
+    after skin puncture at tip depth s0:  lifted depth = s - s0
+    after fat puncture at s1:              lifted depth = s - (s1 - h_s)
+    after muscle puncture at s2:           lifted depth = s - (s2 - h_s - h_f)
 """
 import dataclasses
 import math
@@ -27,7 +30,7 @@ DOWN = np.array([0.0, 0.0, -SPEED])
 
 @pytest.fixture(scope="module")
 def cfg():
-    return sphere_config()
+    return replace(sphere_config(), "needle", mechanics="table1")
 
 
 @pytest.fixture(scope="module")
@@ -126,23 +129,21 @@ def test_pressing_skin_is_the_net_alone(cfg, insertion):
 
 @pytest.mark.parametrize("layer", [0, 1, 2])
 def test_inside_a_layer_the_force_is_table1_damping(cfg, insertion, layer):
-    """In skin d_s h v; in fat (d_f h + d_s h_s) v; in muscle (d_s h_s + d_f h_f + d_m h) v."""
-    idx = puncture_ticks(insertion)
-    o = offsets(cfg, [depth(insertion[i]) for i in idx])[layer]
+    """In skin d_s h v; in fat (d_f h + d_s h_s) v; in muscle (d_s h_s + d_f h_f + d_m h) v, with h
+    the physical depth into the layer (clipped to its thickness: the layer beneath still pressed)."""
     states = tuple(PUNCTURED if j <= layer else UNTOUCHED for j in range(3))
     ticks = phase(insertion, states)
     assert len(ticks) > 50
     tops, thick = layer_tops_m(cfg)
     d = damping_m(cfg)
     for t in ticks:
-        eff = depth(t) - o
-        h = eff - tops[layer]
-        assert -1e-9 <= h <= thick[layer] + 1e-9
+        h = min(depth(t) - tops[layer], thick[layer])
+        assert h >= -1e-9
         expected = (sum(d[j] * thick[j] for j in range(layer)) + d[layer] * h) * SPEED
-        assert t.force[2] == pytest.approx(expected, rel=1e-9, abs=1e-12), (depth(t), eff)
+        assert t.force[2] == pytest.approx(expected, rel=1e-7, abs=1e-12), depth(t)
         assert t.force[0] == 0 and t.force[1] == 0
-        assert t.force[2] == pytest.approx(table1_damping(cfg, eff, [True] * (layer + 1) + [False] * (2 - layer), SPEED),
-                                           rel=1e-9, abs=1e-12)
+        assert t.force[2] == pytest.approx(table1_damping(cfg, depth(t), [True] * (layer + 1) + [False] * (2 - layer),
+                                                          SPEED), rel=1e-7, abs=1e-12)
 
 
 @pytest.mark.parametrize("layer", [1, 2])
@@ -151,12 +152,12 @@ def test_pressing_a_deeper_layer_adds_the_damping_above(cfg, insertion, layer):
     states = tuple(PUNCTURED if j < layer else PRESSING if j == layer else UNTOUCHED for j in range(3))
     ticks = phase(insertion, states)
     assert len(ticks) > 50
-    _, thick = layer_tops_m(cfg)
-    above = sum(damping_m(cfg)[j] * thick[j] for j in range(layer)) * SPEED
+    flags = [j < layer for j in range(3)]
     for t in ticks:
         surface = t.diag["f_surface"]
         assert surface >= 0
-        assert t.force[2] == pytest.approx(surface + above, rel=1e-9, abs=1e-12)
+        above = table1_damping(cfg, depth(t), flags, SPEED)  # the layers broken, physical lengths
+        assert t.force[2] == pytest.approx(surface + above, rel=1e-7, abs=1e-12)
     # the net dominates before the break (the fine-needle fat: 0.19 N against 0.03 N of skin damping)
     assert max(t.diag["f_surface"] for t in ticks) > 5 * above
 
@@ -203,7 +204,7 @@ def test_surface_force_is_the_static_net_reaction(cfg, tissue, layer, servo_net,
     assert f_static[2] > 0.03  # loaded (the fine-needle skin and fat nets: 0.08 and 0.05 N at 0.4 mm)
     np.testing.assert_allclose(f_hold, f_static, rtol=0, atol=rel_tol * f_static[2])
     f_moving = model.step(p, DOWN).copy()
-    above = sum(damping_m(cfg)[j] * thick[j] for j in range(layer)) * SPEED
+    above = table1_damping(cfg, -p[2], [j < layer for j in range(3)], SPEED)
     assert f_moving[2] - f_hold[2] == pytest.approx(above, rel=1e-6, abs=1e-9)
 
 
@@ -217,9 +218,8 @@ def test_damping_opposes_motion_and_ends_as_the_tip_leaves_each_layer(cfg, tissu
         if model.diag["puncture"] >= 0:
             s_punct.append(-p[2])
     assert model.states == (PUNCTURED,) * 3
-    o = offsets(cfg, s_punct)[2]
     p = pts[-1]
-    expected = table1_damping(cfg, -p[2] - o, [True] * 3, SPEED)
+    expected = table1_damping(cfg, -p[2], [True] * 3, SPEED)
     assert expected > 0.1
     assert model.step(p, DOWN)[2] == pytest.approx(expected, rel=1e-9)  # resists the thrust
     assert model.step(p, -DOWN)[2] == pytest.approx(-expected, rel=1e-9)  # pulls back on withdrawal
@@ -230,11 +230,11 @@ def test_damping_opposes_motion_and_ends_as_the_tip_leaves_each_layer(cfg, tissu
     seen = set()
     for q in up:
         f = model.step(q, vu).copy()
-        eff = -q[2] - o
-        if eff >= 0:  # still inside at the compressed depth
-            expected = -table1_damping(cfg, eff, [True] * 3, SPEED)
-            seen.add(int(np.searchsorted(tops, eff, side="right")) - 1)
-        else:  # the last o of travel: the skin tents up with the needle, nothing passes through it
+        s = -q[2]
+        if s >= 0:  # still inside (physical depth below the rest skin)
+            expected = -table1_damping(cfg, s, [True] * 3, SPEED)
+            seen.add(int(np.searchsorted(tops, s, side="right")) - 1)
+        else:
             expected = 0.0
         assert f[2] == pytest.approx(expected, rel=1e-9, abs=1e-12), (q[2], eff)
         assert f[0] == 0 and f[1] == 0
@@ -291,9 +291,11 @@ def into_fat(cfg, tissue):
 
 
 def test_lateral_constraint_restores_toward_the_insertion_line(cfg, tissue):
-    k_lat = cfg.needle.lateral_stiffness_n_per_mm * 1e3
     model, p = into_fat(cfg, tissue)
     assert np.allclose(model.axis, [0.0, 0.0, -1.0]) and np.allclose(model.entry, 0.0, atol=1e-12)
+    tops, thick = layer_tops_m(cfg)
+    held = sum(min(max(-p[2] - tops[j], 0.0), thick[j]) for j in range(2))  # skin and fat hold the shaft
+    k_lat = cfg.needle.lateral_stiffness_n_per_mm * 1e3 * held / (cfg.needle.length_mm * 1e-3)
     rng = np.random.default_rng(5)
     for dist in (0.2e-3, 1e-3, 2e-3):
         phi = rng.uniform(0, 2 * math.pi)

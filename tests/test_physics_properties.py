@@ -102,6 +102,8 @@ def test_force_is_finite_limited_and_zero_outside(base, skin, fat, muscle, needl
         assert np.all(np.isfinite(f)), (p, v)
         assert math.sqrt(float(f @ f)) <= limit + 1e-12
         for name, a in arrays:
+            if a is model.inp.axis:  # NaN: the needle's axis unknown to this device (TickIn.axis)
+                continue
             assert np.all(np.isfinite(a)), name
         outside = np.linalg.norm(p - tissue.centre) > R_SKIN
         if outside and PRESSING not in model.states and not model.inserted:
@@ -124,5 +126,5 @@ def test_a_non_finite_input_anywhere_latches_zero_force(base, seed, at, which, b
         if i >= at:
             assert model.fault and np.array_equal(f, np.zeros(3))
             for name, a in arrays:  # the model's copy of this tick's input is not its state
-                is_input = any(np.array_equal(a, x, equal_nan=True) for x in (p, v))
+                is_input = a is model.inp.axis or any(np.array_equal(a, x, equal_nan=True) for x in (p, v))
                 assert is_input or np.all(np.isfinite(a)), name

@@ -1,8 +1,8 @@
 """The servo's named data (haptic_acu.servostate) and the step's phases (haptic_acu.needle) on their own.
 
 The address tables are checked against NumPy (what compiled code unpacks is the arrays themselves);
-the phases against closed forms: Table 1 damping over the passed layers, the lateral spring's
-perpendicular pull, the safety clamp's scaling and fault latch, on a state written by hand.
+the phases against closed forms: Table 1 damping over the layers the needle is in (physical lengths
+along the axis), the lateral spring's perpendicular pull in proportion to the needle length held, the safety clamp's scaling and fault latch, on a state written by hand.
 """
 import math
 
@@ -10,7 +10,7 @@ import numba as nb
 import numpy as np
 import pytest
 
-from haptic_acu import needle
+from haptic_acu import needle, postpuncture
 from haptic_acu import servostate as ss
 from haptic_acu.needle import NeedleModel
 from physics_helpers import sphere_config, sphere_tissue
@@ -43,7 +43,7 @@ def test_an_address_table_unpacks_to_the_same_arrays(model):
 
 
 def test_an_address_table_names_the_field_it_refuses():
-    bad = ss.TickIn(np.zeros(3, np.float32), np.zeros(3), np.zeros(3), np.zeros(1))
+    bad = ss.TickIn(np.zeros(3, np.float32), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
     with pytest.raises(TypeError, match=r"TickIn\.p"):
         ss.address_table(bad)
 
@@ -63,7 +63,7 @@ def test_the_step_entry_refuses_a_table_for_another_layout(model):
 
 @nb.njit
 def _damping_phase(inp, m, s, out):
-    needle.passed_layer_damping(inp, m, s, out[0])
+    postpuncture.shaft_forces(inp, m, s, out[0])
 
 
 @nb.njit
@@ -87,22 +87,27 @@ def fresh(model):
     rec["inserted"] = 1
     rec["axis"][:] = [0.0, 0.0, -1.0]
     rec["entry"][:] = [0.0, 0.0, 0.0]
+    rec["bounds"][:] = [0.0, 0.001, 0.006, 0.026]  # the layers along -z
+    model.state.work[0]["front"] = 3
     yield model
     model.restore_state(snap)
 
 
-@pytest.mark.parametrize("rho", [0.0995, 0.097, 0.085, 0.070])
-def test_damping_of_the_passed_layers_is_table_1(fresh, rho):
+@pytest.mark.parametrize("depth", [0.0005, 0.003, 0.015, 0.030])
+def test_damping_of_the_layers_held_is_table_1(fresh, depth):
     m = fresh
-    radii = np.array([0.100, 0.099, 0.094, 0.074])
-    m.state.radii[:] = radii
-    m.state.work[0]["rho"] = rho
+    m.model.params["mechanics"] = ss.TABLE1
+    bounds = m.rec["bounds"].copy()
+    m.state.work[0]["s_p"] = depth
     v = np.array([0.001, 0.0, -0.02])  # 20 mm/s into the tissue, a little sideways
     m.inp.v[:] = v
     out = np.zeros(1, ss.DIAG)
-    _damping_phase(m.inp, m.model, m.state, out)
+    try:
+        _damping_phase(m.inp, m.model, m.state, out)
+    finally:
+        m.model.params["mechanics"] = ss.RICH
     d = m.model.layer["damping"]
-    h = [min(max(radii[j] - rho, 0.0), radii[j] - radii[j + 1]) for j in range(3)]
+    h = [min(max(depth - bounds[j], 0.0), bounds[j + 1] - bounds[j]) for j in range(3)]
     v_ax = 0.02
     want = -sum(d[j] * h[j] for j in range(3)) * v_ax
     assert out[0]["f_damp"] == pytest.approx(want, rel=1e-12)
@@ -113,9 +118,10 @@ def test_damping_of_the_passed_layers_is_table_1(fresh, rho):
 def test_lateral_guidance_pulls_back_to_the_insertion_line(fresh):
     m = fresh
     m.inp.p[:] = [0.002, -0.001, -0.010]  # 10 mm deep, (2, -1) mm off the line
+    m.rec["lengths"][:] = [0.001, 0.005, 0.004]  # the shaft held over 10 mm
     out = np.zeros(1, ss.DIAG)
     _lateral_phase(m.inp, m.model, m.state, out)
-    k = m.model.params[0]["k_lateral"]
+    k = m.model.params[0]["k_lateral"] * 0.010 / m.model.params[0]["needle_length"]
     np.testing.assert_allclose(m.state.work[0]["f"], [-k * 0.002, k * 0.001, 0.0], rtol=1e-12, atol=1e-15)
     assert out[0]["f_lateral"] == pytest.approx(k * math.hypot(0.002, 0.001), rel=1e-12)
 
