@@ -154,10 +154,12 @@ def test_a_loop_late_by_more_than_its_threshold_skips_ahead_and_counts_what_it_s
     # tick: with the threshold at 2 periods, every late tick jumps to the present.
     missed, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, 2)
     gaps = np.diff(ticks)
-    assert ticks[0] == 0 and np.all(gaps >= 1) and gaps.max() > 1
+    # the first tick may itself be skipped: on a loaded host the loop can start more than 200 ns late
+    assert ticks[0] >= 0 and np.all(gaps >= 1) and gaps.max() > 1
     assert ticks[-1] < 3000 and len(ticks) < 3000  # ticks were skipped, none past the limit
     assert np.all(late[1:] <= 2 + 1e-9)  # after a skip a tick is never more than the threshold late
-    skipped = int((gaps - 1).sum()) + (3000 - 1 - ticks[-1])  # between rows, and after the last up to the limit
+    # skipped: before the first row, between rows, and after the last up to the limit
+    skipped = int(ticks[0]) + int((gaps - 1).sum()) + (3000 - 1 - ticks[-1])
     # every skipped tick of the session is missed (none past its end), and so is every tick run
     # more than a period late
     assert missed == skipped + int((late > 1).sum())
