@@ -148,6 +148,12 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     return total.reshape(np.shape(theta))
 
 
+def roll_of_block(device, T: np.ndarray) -> np.ndarray:
+    """The device's needle roll (rad, contiguous) at the ticks ``T``: zeros when it gives none."""
+    r = device.roll_block(T)
+    return np.zeros(T.size) if r is None else np.ascontiguousarray(r, dtype=np.float64)
+
+
 def percentiles_us(values_s: np.ndarray) -> dict:
     if values_s.size == 0:
         return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
@@ -179,6 +185,7 @@ class Session:
         self.clock = clock
         self.duration_s = duration_s
         self.model = model if model is not None else NeedleModel(cfg)
+        self.model.model.params[0]["dt"] = 1.0 / servo_hz  # the twirl's relaxation runs on this clock
         self.springback = Springback.from_config(self.model, cfg)
         self.servo_dt = 1.0 / servo_hz
         self.frame_dt = 1.0 / visual_hz
@@ -241,7 +248,8 @@ class Session:
         if self.clock == "sim":
             z = np.zeros((1, 3))
             rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
-            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), 0, tick_table(m.servo, rows, self._timing))
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), np.zeros(1), 0,
+                        tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
         # springback kernels: run once on a scratch copy of slot 0
@@ -261,7 +269,7 @@ class Session:
         loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
-        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3))),
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1)),
                     tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
@@ -286,7 +294,7 @@ class Session:
         m = self.model
         if state.reset:
             m.reset(keep_holes=False)
-        force = m.step(state.position_m, state.velocity_m_s)
+        force = m.step(state.position_m, state.velocity_m_s, state.roll_rad)
         if m.diag["fault"] != 0.0:
             self.device.set_force(self._zero)
             ring = self.ring
@@ -429,7 +437,8 @@ class Session:
                 cut = int(np.argmax(done))
                 T, P, V = T[:cut], P[:cut], V[:cut]
             if T.size:
-                n = self._run_ticks_resetting(P, V, T, k0, dev.reset_ticks(T), table)
+                R = roll_of_block(dev, T)
+                n = self._run_ticks_resetting(P, V, R, T, k0, dev.reset_ticks(T), table)
                 self.tick += n
                 self._t_session = float(T[n - 1])
                 if m.diag["fault"] != 0.0:
@@ -447,7 +456,7 @@ class Session:
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 
-    def _run_ticks_resetting(self, P, V, T, k0, cuts, table) -> int:
+    def _run_ticks_resetting(self, P, V, R, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
         ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
@@ -457,7 +466,7 @@ class Session:
             if j > 0:
                 self.model.reset(keep_holes=False)
             if b > a:
-                r = call_driver(run_ticks, P[a:b], V[a:b], T[a:b], k0 + a, table)
+                r = call_driver(run_ticks, P[a:b], V[a:b], R[a:b], T[a:b], k0 + a, table)
                 n += r
                 if r < b - a:  # a fault
                     break
@@ -572,7 +581,7 @@ class Session:
             try:
                 outcome["status"] = call_driver(
                     rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64)), t0_ns, period_ns, k_limit,
-                    rtloop.FeedRows(feed.p, feed.v), table)
+                    rtloop.FeedRows(feed.p, feed.v, feed.r), table)
             except BaseException as e:
                 outcome["error"] = e
             finally:

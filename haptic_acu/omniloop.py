@@ -62,6 +62,7 @@ HD_INVALID_ENUM = 0x0100
 HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_VELOCITY = 0x2051
 HD_CURRENT_TRANSFORM = 0x2052
+HD_CURRENT_GIMBAL_ANGLES = 0x2150  # the third is the stylus roll (rad, wrapping at +-pi)
 HD_CURRENT_FORCE = 0x2700
 HD_CALLBACK_DONE = 0
 HD_CALLBACK_CONTINUE = 1
@@ -75,6 +76,7 @@ CTL = np.dtype([("stop", "i8"), ("abort", "i8"), ("ticks", "i8"), ("in_tick", "i
 FST = np.dtype([("last", "f8", 3),  # last position (mm, device frame)
                 ("vfilt", "f8", 3),  # filtered velocity (mm/s)
                 ("detail", "f8", 3),  # values for a fault's message
+                ("roll_raw", "f8"),  # the last stylus roll read (rad, wrapped)
                 ("t_session", "f8")])
 # its parameters (prm[0])
 PRM = np.dtype([("handle", "f8"), ("stall", "f8"), ("ramp", "f8"), ("limit_n", "f8"), ("alpha", "f8"),
@@ -83,11 +85,12 @@ PRM = np.dtype([("handle", "f8"), ("stall", "f8"), ("ramp", "f8"), ("limit_n", "
 WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3)])
 
 # statuses (CTL.status)
-S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN = range(9)
+S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN, S_ROLL_NAN = range(10)
 # where an HD error came from (CTL.where)
 WHERE = ("hdBeginFrame", "hdGetDoublev(HD_CURRENT_TRANSFORM)", "hdGetDoublev(HD_CURRENT_VELOCITY)",
-         "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame")
-W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END = range(6)
+         "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame",
+         "hdGetDoublev(HD_CURRENT_GIMBAL_ANGLES)")
+W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END, W_GIMBAL = range(7)
 
 
 def supported() -> bool:
@@ -106,10 +109,11 @@ class OmniArrays(NamedTuple):
     ws: np.ndarray  # (1,) WS
     prm: np.ndarray  # (1,) PRM
     ts: np.ndarray  # int64[2]: the clock's timespec
+    hdg: np.ndarray  # (3,) the gimbal angles (rad; the third is the stylus roll)
 
 
 ss.SPEC[OmniArrays] = dict(ictl=(CTL, 1), fctl=(FST, 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
-                           hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1))
+                           hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1), hdg=("f8", 1))
 # The callback's table: a tick table (servotick.tick_table: header, Servo, Ring, Timing), then OmniArrays.
 _AT_OMNI = TICK_TABLE
 TABLE = _AT_OMNI + ss.table_size(OmniArrays)
@@ -128,7 +132,7 @@ def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, pe
     ictl = np.zeros(1, CTL)
     ictl["vel_dev"] = 1
     return OmniArrays(ictl=ictl, fctl=np.zeros(1, FST), hdt=np.zeros(16), hdv=np.zeros(3), hdf=np.zeros(3),
-                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64))
+                      hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64), hdg=np.zeros(3))
 
 
 def warm_guard() -> None:
@@ -137,7 +141,7 @@ def warm_guard() -> None:
 
     identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
     o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0}, 1.0, 1000.0)
-    guard_in(o, ss.TickIn(np.zeros(3), np.zeros(3)))
+    guard_in(o, ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(1)))
     guard_out(o, 0.0, 0.0, 0.0)
 
 
@@ -235,7 +239,7 @@ def read_stylus(o, inp):
     """The device part before the step: HD frame, stylus reads and their error checks, non-finite and
     frozen-position faults, filtered velocity when the device gives none, workspace mapping into
     ``inp``. Returns -1 to go on, else the callback's return code (the frame is closed)."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts, hdg = o
     pbuf = inp.p
     vbuf = inp.v
     h = int(prm[0].handle)
@@ -272,6 +276,10 @@ def read_stylus(o, inp):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_BUTTONS, e)
+    hd_get_doublev(HD_CURRENT_GIMBAL_ANGLES, hdg.ctypes.data)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_GIMBAL, e)
     st = guard_in(o, inp)
     if st != S_RUNNING:
         return abort(ictl, h, hdf, st)
@@ -312,14 +320,35 @@ def engine_tick(o, sv, ring, timing):
 
 
 
+@nb.njit(nogil=True, cache=True, inline="always")
+def stylus_roll(o, inp):
+    """The stylus roll (third gimbal angle, ``o.hdg[2]``, wrapping at +-pi) unwrapped 1:1 into
+    ``inp.roll`` (rad, cumulative; 0 at the first sample; each tick's change taken the shortest way
+    round). False (a fault, the value in ``fctl.detail``) if it is not finite."""
+    g = o.hdg[2]
+    fctl = o.fctl
+    if not math.isfinite(g):
+        fctl[0].detail[0] = g
+        return False
+    if o.ictl[0].has_last == 0:
+        inp.roll[0] = 0.0
+    else:
+        d = g - fctl[0].roll_raw
+        d -= 2.0 * math.pi * math.floor(d / (2.0 * math.pi) + 0.5)
+        inp.roll[0] += d
+    fctl[0].roll_raw = g
+    return True
+
+
 @nb.njit(nogil=True, cache=True)
 def guard_in(o, inp):
     """The device's guard on a stylus sample (``o.hdt``; ``o.hdv`` if ``ictl.vel_dev``): a non-finite
     position, a position frozen while a force is on (stall), a non-finite velocity are faults (their
     status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
-    low-pass of backward differences) and the position mapped into the scene, into ``inp``; returns
+    low-pass of backward differences) and the position mapped into the scene, into ``inp``, the stylus
+    roll unwrapped into ``inp.roll`` (:func:`stylus_roll`; a non-finite roll is S_ROLL_NAN); returns
     S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
-    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts, _hdg = o
     pbuf = inp.p
     vbuf = inp.v
     px = hdt[12]
@@ -359,6 +388,8 @@ def guard_in(o, inp):
         vx = fctl[0].vfilt[0]
         vy = fctl[0].vfilt[1]
         vz = fctl[0].vfilt[2]
+    if not stylus_roll(o, inp):
+        return S_ROLL_NAN
     fctl[0].last[0] = px
     fctl[0].last[1] = py
     fctl[0].last[2] = pz
@@ -377,7 +408,7 @@ def guard_out(o, fx, fy, fz):
     """The device's guard on the way out: force ramp-in, clamp in the scene and the device frame,
     finite check; the device force into ``o.hdf`` and S_RUNNING, or S_FORCE_NAN (values in
     ``fctl.detail``)."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts, _hdg = o
     ramp = ictl[0].valid / prm[0].ramp
     if ramp > 1.0:
         ramp = 1.0
@@ -415,7 +446,7 @@ def guard_out(o, fx, fy, fz):
 def command_force(o, fx, fy, fz):
     """The force out: :func:`guard_out`, then the force is set and the frame closed. Returns the
     callback's return code."""
-    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o
+    ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts, _hdg = o
     h = int(prm[0].handle)
     st = guard_out(o, fx, fy, fz)
     if st != S_RUNNING:
@@ -499,4 +530,6 @@ def fault_message(ictl, fctl, hd_error_name) -> str | None:
         return f"device reported a non-finite velocity {d} mm/s"
     if st == S_FORCE_NAN:
         return f"force mapped to a non-finite device force {d} N"
+    if st == S_ROLL_NAN:
+        return f"device reported a non-finite stylus roll {d[0]} rad"
     return f"servo callback ended with status {st}"

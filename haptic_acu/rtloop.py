@@ -114,6 +114,7 @@ class Loop(NamedTuple):
 class FeedRows(NamedTuple):
     p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
     v: np.ndarray  # (capacity, 3) velocities
+    r: np.ndarray  # (capacity,) needle rolls (rad)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -210,6 +211,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
+        sv.inp.roll[0] = feed.r[j]
         ok = servo_tick(sv, ring, k * dt, k, late * 1e-9)
         record_force(lp.fl, ctl, sv.out.diag)
         k += 1
@@ -220,6 +222,12 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
             break
     ctl[0].status = status
     return status
+
+
+def device_roll(device, T):
+    """The device's roll at the ticks ``T`` (rad), or None (a device without ``roll_block``: none)."""
+    f = getattr(device, "roll_block", None)
+    return None if f is None else f(T)
 
 
 class Feed:
@@ -233,6 +241,7 @@ class Feed:
         self.dt = period_s
         self.p = np.zeros((capacity, 3))
         self.v = np.zeros((capacity, 3))
+        self.r = np.zeros(capacity)  # the needle's roll (rad), if the device gives one
         self.capacity = capacity
         self.lead = min(lead, capacity - chunk)
         self.chunk = chunk
@@ -255,6 +264,9 @@ class Feed:
             idx = np.arange(k0, k0 + n) % self.capacity
             self.p[idx] = P[:n]
             self.v[idx] = V[:n]
+            R = device_roll(self.device, T)
+            if R is not None:
+                self.r[idx] = R[:n]
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 

@@ -24,6 +24,7 @@ COLUMNS = (
     *(f"state_{name}" for name in LAYER_NAMES),
     "ringw_m", "dz1_m", "puncture", "fault", "clamped",
     "period_err_s",
+    "roll_deg", "torque_nmm",  # the needle's roll (cumulative) and the twist torque about its axis
 )
 COL = {name: i for i, name in enumerate(COLUMNS)}
 NCOL = len(COLUMNS)
@@ -40,6 +41,8 @@ _STATE = COL[f"state_{LAYER_NAMES[0]}"]
 _LAYER, _DEPTH, _DEPTH_SKIN, _FRONT = COL["layer"], COL["depth_m"], COL["depth_skin_m"], COL["front"]
 _RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["puncture"], COL["fault"], COL["clamped"]
 _PERIOD_ERR = COL["period_err_s"]
+_ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
+_DEG = 180.0 / 3.141592653589793
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -72,6 +75,8 @@ def write_sample(buf, row, t, tick, inp, s, diag, period_err):
     r[_FAULT] = d.fault
     r[_CLAMPED] = d.clamped
     r[_PERIOD_ERR] = period_err
+    r[_ROLL] = inp.roll[0] * _DEG
+    r[_TORQUE] = d.torque * 1e3
 
 
 class SampleRing:

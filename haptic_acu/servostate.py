@@ -10,7 +10,7 @@ Four NamedTuples of arrays, each field declared in one place with its dtype and 
 * :class:`State`  (mutable, written only by the servo step): ``servo`` (one record: layer states,
   slots, owners, generations, offset, axis, entry, fault, tick...), the nets' particles, the holes,
   the boundary radii at the tip and ``work`` (the step's scratch record);
-* :class:`TickIn` (one tick's input from the device): tip position and velocity;
+* :class:`TickIn` (one tick's input from the device): tip position and velocity, needle roll;
 * :class:`Out` (the tick's output): ``diag``, one :data:`DIAG` record: the force on the needle and
   its diagnostics.
 
@@ -54,6 +54,11 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
 PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("lmax", "i8"), ("hole_radius", "f8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
     ("force_limit", "f8"), ("sweeps", "i8"),
+    ("dt", "f8"),  # the servo period (s)
+    # twirling (twirl.TwirlParams, per layer; docs/model.md "Twirling and needle grasp")
+    ("k_twist", "f8", N_LAYERS), ("twist_slip", "f8", N_LAYERS), ("twist_tau", "f8", N_LAYERS),
+    ("engage_rad", "f8", N_LAYERS), ("engage_tau", "f8", N_LAYERS), ("grasp_coil", "f8", N_LAYERS),
+    ("grasp_engage", "f8", N_LAYERS), ("play_rad", "f8"),
 ])
 LAYOUT = np.dtype([  # where each (layer, slot) net lives in State.pos / State.rest (idx = 2*layer + slot)
     ("xf", "i8", N_LAYERS * N_SLOTS), ("X0f", "i8", N_LAYERS * N_SLOTS), ("X0", "i8", N_LAYERS * N_SLOTS),
@@ -72,6 +77,11 @@ SERVO = np.dtype([  # the servo's mutable scalars (State.servo[0])
     ("axis", "f8", 3),  # insertion axis (into the tissue)
     ("entry", "f8", 3),  # entry point on the skin
     ("slot_q", "f8", (N_LAYERS * N_SLOTS, 3)),  # the (lifted) tip holding N1 of a tabulated net
+    ("grasp", "f8", N_LAYERS),  # needle grasp: factor (>= 1) on each layer's shaft friction (twirl.py)
+    # the tissue wound around the shaft (twirl.WindState): twist (rad), engagement, the length the
+    # winding was last computed for (m), torque per layer (N*m), the roll after the play (rad)
+    ("twist", "f8", N_LAYERS), ("engage", "f8", N_LAYERS), ("wind_len", "f8", N_LAYERS),
+    ("torque_layer", "f8", N_LAYERS), ("roll_play", "f8", (1,)), ("wind_primed", "i8", (1,)),
 ])
 HOLE = np.dtype([("point", "f8", 3), ("layer", "f8"), ("axis", "f8", 3)])
 WORK = np.dtype([  # the step's scratch: values one phase hands the next within a tick
@@ -83,6 +93,7 @@ WORK = np.dtype([  # the step's scratch: values one phase hands the next within 
     ("r", "f8", 3),  # tip relative to N1's rest position
     ("dz1", "f8"), ("s_p", "f8"),
     ("wr", "f8", MAX_RINGS), ("cnt", "f8", MAX_RINGS),
+    ("lengths", "f8", N_LAYERS),  # needle length in each layer (m)
 ])
 DIAG = np.dtype([  # one tick's output
     ("force", "f8", 3),  # the force on the needle (N)
@@ -99,6 +110,7 @@ DIAG = np.dtype([  # one tick's output
     ("depth_skin", "f8"),  # tip depth below the skin along the insertion (effective, m)
     ("clamped", "f8"),  # 1 if the safety clamp scaled the force this tick
     ("f_layer", "f8", N_LAYERS),  # force attributed to each layer (surface or damping), N
+    ("torque", "f8"),  # twist torque about the needle axis (N*m, + clockwise seen from the handle)
 ])
 
 
@@ -129,6 +141,7 @@ class State(NamedTuple):
 class TickIn(NamedTuple):
     p: np.ndarray  # tip position (m, scene frame)
     v: np.ndarray  # tip velocity (m/s)
+    roll: np.ndarray  # (1,) the needle's roll about its axis (rad, cumulative, + clockwise seen from the handle)
 
 
 class Out(NamedTuple):
@@ -161,7 +174,7 @@ SPEC = {  # (dtype, ndim) of every field
                 nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=("f8", 2)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1)),
-    TickIn: dict(p=("f8", 1), v=("f8", 1)),
+    TickIn: dict(p=("f8", 1), v=("f8", 1), roll=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),
     Timing: dict(errs=("f8", 1), count=(TIMING, 1)),

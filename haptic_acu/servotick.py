@@ -80,7 +80,7 @@ def account(timing, err, period, to_s):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def servo_tick(sv, ring, t, tick, err_s):
-    """One tick on ``sv.inp`` (the caller has written the position and velocity): the step, its
+    """One tick on ``sv.inp`` (the caller has written the position, velocity and roll): the step, its
     sample row (time ``t``, index ``tick``, period error ``err_s``) written and published. Returns
     False if the state is not finite (the fault is latched: the force is zero from here)."""
     step_servo(sv)
@@ -92,10 +92,10 @@ def servo_tick(sv, ring, t, tick, err_s):
 
 
 @nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, T, tick0, table):
-    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V`` at
-    times ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip
-    per tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
+def run_ticks(P, V, R, T, tick0, table):
+    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V``,
+    needle rolls ``R`` (rad) at times ``T``) on the servo and ring of ``table`` (:func:`tick_table`),
+    without a Python round trip per tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
     :func:`call_driver`)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE
@@ -104,6 +104,7 @@ def run_ticks(P, V, T, tick0, table):
         for c in range(3):
             sv.inp.p[c] = P[i, c]
             sv.inp.v[c] = V[i, c]
+        sv.inp.roll[0] = R[i]
         if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
             return i + 1
     return T.shape[0]
