@@ -52,11 +52,14 @@ from .base import Device, DeviceInfo, DeviceState
 
 class ScriptedDevice(Device):
     """Replays ``path``. ``force_limit_n`` defaults to a large value: nothing here can be hurt;
-    pass the config's ``safety.force_limit_n`` to make the engine clamp as for a real device."""
+    pass the config's ``safety.force_limit_n`` to make the engine clamp as for a real device.
+    ``roll=False`` plays the file without its ``roll_deg`` (no rotation; every other input the same:
+    the reference of the technique metrics' grasp felt)."""
 
     def __init__(self, path, max_hand_speed_m_per_s: float = DEFAULT_MAX_HAND_SPEED_M_PER_S,
-                 realtime: bool = False, force_limit_n: float = 1000.0):
+                 realtime: bool = False, force_limit_n: float = 1000.0, roll: bool = True):
         self.path = Path(path)
+        self.roll = bool(roll)  # False: the file's roll_deg is ignored (the same replay without rotation)
         # reads and checks the header now: a missing or malformed file fails at construction
         self._reader = TrajectoryReader(self.path, max_hand_speed_m_per_s)
         self.realtime = bool(realtime)
@@ -106,7 +109,7 @@ class ScriptedDevice(Device):
             ax, roll = c.pose_block(np.array([float(t_s)]))
             if ax is not None:
                 extra["axis"] = -ax[0]  # DeviceState: tip -> handle
-            if roll is not None:
+            if roll is not None and self.roll:
                 extra["roll_rad"] = math.radians(float(roll[0]))
         if c.reset_times and any(self._last_read_t < r <= t_s for r in c.reset_times[-4:]):
             extra["reset"] = True
@@ -136,7 +139,7 @@ class ScriptedDevice(Device):
 
     def roll_block(self, t_s: np.ndarray):
         """The roll (rad, cumulative) at the times ``t_s``, or None if the file has no ``roll_deg``."""
-        if not self._reader.has_roll:
+        if not (self._reader.has_roll and self.roll):
             return None
         return np.radians(self.pose_block(t_s)[1])
 
@@ -176,6 +179,11 @@ class ScriptedDevice(Device):
         if self.realtime:
             return 0.0 if self._wall0 is None else time.perf_counter() - self._wall0
         return self._clock
+
+    @property
+    def has_roll(self) -> bool:
+        """The file has a ``roll_deg`` column (and it is played)."""
+        return self._reader.has_roll and self.roll
 
     @property
     def has_events(self) -> bool:

@@ -269,8 +269,11 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         summary["trajectory"] = trajectory.name
         try:
             from .metrics import session_metrics
+            reference = None
+            if device.has_roll and not realtime:  # the grasp felt: the same replay without rotation
+                reference = replay_rows(trajectory, cfg, roll=False)
             summary["metrics"] = session_metrics(summary_sink.rows(), cfg, summary_sink.tissue,
-                                                 punctures=summary["punctures"])
+                                                 punctures=summary["punctures"], reference_rows=reference)
         except ImportError:
             pass
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
@@ -287,6 +290,22 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     summary["_wall_s"] = wall
     summary["_stats"] = result.stats
     return summary
+
+
+def replay_rows(trajectory, cfg, roll: bool = True):
+    """The sample rows of a headless replay of ``trajectory`` (nothing written); ``roll=False``
+    without its ``roll_deg`` (the technique metrics' reference: the same withdrawal without rotation).
+    None if that replay faults."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+
+    from .engine import Session
+    from .report import SummarySink
+
+    sink = SummarySink(cfg)
+    with ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                        force_limit_n=cfg.safety.force_limit_n, roll=roll) as device:
+        result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+    return None if result.fault else sink.rows()
 
 
 def trajectories_from(args_paths) -> list[Path]:

@@ -227,3 +227,59 @@ def test_bundled_twirls_replay_with_their_roll(cfg, name):
     # of the swing once the twist has built (correlation over the twirling ticks)
     r = rows[1:, COL["roll_deg"]][twirling]
     assert np.corrcoef(r - r.mean(), tq[1:][twirling])[0, 1] > 0.9
+
+
+# -- technique metrics in the summary -----------------------------------------------------------------------
+
+def _synthetic_rows(roll_deg, t):
+    """Sample rows of one insertion at the acupoint: skin punctured throughout, the tip 20 mm deep
+    along -z, rolled by ``roll_deg``; a torque column proportional to the roll."""
+    from haptic_acu.samples import NCOL
+    rows = np.zeros((len(t), NCOL))
+    rows[:, COL["t_s"]] = t
+    rows[:, COL["tick"]] = np.arange(len(t))
+    rows[:, COL["z_m"]] = -20e-3 * np.minimum(t / 1.0, 1.0)
+    rows[:, COL["depth_skin_m"]] = -rows[:, COL["z_m"]]
+    rows[:, COL["state_skin"]] = 2
+    rows[:, COL["roll_deg"]] = roll_deg
+    rows[:, COL["torque_nmm"]] = 1e-3 * roll_deg
+    return rows
+
+
+def test_session_metrics_report_the_twirl_of_each_insertion(cfg):
+    """A sinusoidal twirl of known amplitude and frequency in the sample rows: the per-insertion
+    technique metrics read them back (closed forms: amplitude A, swing 2A, frequency f, N cycles)."""
+    from haptic_acu.metrics import session_metrics
+    t = np.arange(0, 8.0, DT)
+    A, f = 45.0, 0.5
+    roll = np.where(t >= 2.0, A * np.sin(2 * np.pi * f * (t - 2.0)), 0.0)  # 3 cycles from t = 2 s
+    m = session_metrics(_synthetic_rows(roll, t), cfg)
+    tw = m["per_insertion"][0]["technique"]["twirl"]
+    assert tw["cycles"] == 3
+    assert tw["amplitude_deg"] == pytest.approx(A, abs=0.01) and tw["swing_deg"] == pytest.approx(2 * A, abs=0.02)
+    assert tw["frequency_hz"] == pytest.approx(f, rel=1e-3)
+    assert tw["peak_torque_nmm"] == pytest.approx(1e-3 * A, rel=1e-3)
+    cl = m["per_insertion"][0]["technique"]["classification"]
+    assert cl["twirl_vote"] == "reinforcing" and cl["inputs"]["swing_deg"] == pytest.approx(90.0, abs=0.02)
+    assert m["per_insertion"][0]["technique"]["grasp_felt"] is None  # no reference replay given
+
+
+@pytest.mark.parametrize("name, label", [("twirl_reinforcing", "reinforcing"), ("twirl_reducing", "reducing"),
+                                         ("twirl_even", "even")])
+def test_replay_summary_has_technique_metrics_and_the_grasp_felt(cfg, tmp_path, name, label):
+    from haptic_acu.replay import replay_one
+    s = replay_one(REPO / "trajectories" / f"{name}.csv", tmp_path / "out", rrd=False, progress=False, cfg=cfg)
+    ins = s["metrics"]["per_insertion"]
+    assert len(ins) == 1
+    tech = ins[0]["technique"]
+    assert tech["classification"]["label"] == label
+    assert tech["twirl"]["cycles"] >= 4 and tech["twirl"]["peak_torque_nmm"] > 0.05
+    g = tech["grasp_felt"]  # the same replay without rotation is the reference
+    assert g is not None and g["peak_ratio"] is not None and g["peak_ratio"] >= 1.0 - 1e-9
+    import json
+    on_disk = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert on_disk["metrics"]["per_insertion"][0]["technique"]["classification"]["label"] == label
+    import csv
+    with open(tmp_path / "out" / "samples.csv") as fh:
+        header = next(csv.reader(fh))
+    assert "roll_deg" in header and "torque_nmm" in header
