@@ -283,3 +283,22 @@ def test_replay_summary_has_technique_metrics_and_the_grasp_felt(cfg, tmp_path, 
     with open(tmp_path / "out" / "samples.csv") as fh:
         header = next(csv.reader(fh))
     assert "roll_deg" in header and "torque_nmm" in header
+
+
+def test_cohort_insertion_table_has_the_technique_columns(cfg):
+    from haptic_acu.cohort import INSERTION_COLUMNS, insertion_table
+    from haptic_acu.replay import replay_rows
+    path = REPO / "trajectories" / "twirl_reducing.csv"
+    rows, ref = replay_rows(path, cfg), replay_rows(path, cfg, roll=False)
+    assert np.all(ref[:, COL["roll_deg"]] == 0.0) and np.all(ref[:, COL["torque_nmm"]] == 0.0)
+    _, ins = insertion_table(rows, cfg, None, ref)
+    names = {c.name for c in INSERTION_COLUMNS}
+    assert {"twirl_cycles", "twirl_amplitude_deg", "twirl_frequency_hz", "twirl_net_rotation_deg",
+            "twirl_peak_torque_nmm", "thrust_to_lift", "grasp_felt_ratio", "technique"} <= names
+    (row,) = ins
+    assert row["technique"] == "reducing"
+    # the file's own twirl: 10 twirls of 270 deg at 2.5 Hz (trajectories/make_twirl.py)
+    assert row["twirl_cycles"] == 10
+    assert row["twirl_amplitude_deg"] == pytest.approx(135.0, rel=0.02)
+    assert row["twirl_frequency_hz"] == pytest.approx(2.5, rel=0.02)
+    assert row["grasp_felt_ratio"] >= 1.0 - 1e-9
