@@ -302,3 +302,27 @@ def test_cohort_insertion_table_has_the_technique_columns(cfg):
     assert row["twirl_amplitude_deg"] == pytest.approx(135.0, rel=0.02)
     assert row["twirl_frequency_hz"] == pytest.approx(2.5, rel=0.02)
     assert row["grasp_felt_ratio"] >= 1.0 - 1e-9
+
+
+def test_a_recording_replays_with_its_twirling(cfg, tmp_path):
+    """A session recorded (RecorderSink) writes roll_deg; replaying the recording gives the same
+    roll and the same torque, tick for tick."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+    from haptic_acu.engine import Session
+    from haptic_acu.recorder import EXTRA, RecorderSink
+    from haptic_acu.replay import replay_rows
+    from haptic_acu import trajectory
+
+    src = REPO / "trajectories" / "twirl_even.csv"
+    rec = tmp_path / "rec.csv"
+    with ScriptedDevice(src) as dev:
+        assert Session(cfg, dev, [RecorderSink(rec)], clock="sim", dents=False).run().fault is None
+    assert "roll_deg" in EXTRA
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    a = replay_rows(src, cfg)
+    b = replay_rows(rec, cfg)
+    n = min(len(a), len(b), len(tr.t_s))
+    assert n > 0.9 * len(a)
+    np.testing.assert_allclose(tr.extra["roll_deg"][:n], a[:n, COL["roll_deg"]], atol=1e-4)
+    np.testing.assert_allclose(b[:n, COL["roll_deg"]], a[:n, COL["roll_deg"]], atol=1e-4)
+    np.testing.assert_allclose(b[:n, COL["torque_nmm"]], a[:n, COL["torque_nmm"]], rtol=1e-3, atol=1e-5)
