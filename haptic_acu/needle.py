@@ -585,8 +585,8 @@ def layer_lengths(s):
 def twirl_phase(inp, m, s, d):
     """The tissue wound around the shaft by the needle's roll (:func:`haptic_acu.twirl.wind_step`,
     per layer with the needle's length in it): the torque about the axis into ``d.torque``, each
-    layer's grasp factor on its shaft friction into ``servo.grasp`` (docs/model.md, "Twirling and
-    needle grasp"). Runs every tick: with the needle out every layer is unwound (grasp 1)."""
+    layer's grasp factor on its shaft friction into ``servo.grasp`` (docs/model.md section 11). Runs
+    every tick: with the needle out every layer is unwound (grasp 1)."""
     sv = s.servo[0]
     pr = m.params[0]
     layer_lengths(s)

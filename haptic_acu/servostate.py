@@ -55,7 +55,7 @@ PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("lmax", "i8"), ("hole_radius", "f8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
     ("force_limit", "f8"), ("sweeps", "i8"),
     ("dt", "f8"),  # the servo period (s)
-    # twirling (twirl.TwirlParams, per layer; docs/model.md "Twirling and needle grasp")
+    # twirling (twirl.TwirlParams, per layer; docs/model.md section 11)
     ("k_twist", "f8", N_LAYERS), ("twist_slip", "f8", N_LAYERS), ("twist_tau", "f8", N_LAYERS),
     ("engage_rad", "f8", N_LAYERS), ("engage_tau", "f8", N_LAYERS), ("grasp_coil", "f8", N_LAYERS),
     ("grasp_engage", "f8", N_LAYERS), ("play_rad", "f8"),
