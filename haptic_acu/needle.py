@@ -55,6 +55,8 @@ import numpy as np
 
 from . import servostate as ss
 from . import shf
+from .cptr import address_of, i64p  # module globals, not closure cells: a cfunc's cache key pickles its
+# closure, and an intrinsic pickles differently in every process (the step's cache missed every run)
 from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
                        ring_w_mean_deflection, sync_curved)
 from .netresponse import TM_NR, lay_field, lookup
@@ -702,8 +704,6 @@ def step_entry():
     global _STEP_C
     if _STEP_C is None:
         from numba import types
-
-        from .cptr import address_of, i64p
 
         key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
         words = ss.HEADER + ss.SERVO_TABLE

@@ -92,8 +92,8 @@ def test_overwrite_replaces_and_the_recording_is_plain_csv(tmp_path):
     g = np.genfromtxt(rec, delimiter=",", names=True, dtype=None, encoding="utf-8")
     assert g.dtype.names[:4] == ("t_s", "x_mm", "y_mm", "z_mm") and len(g) == len(rows)
     for bundled in sorted((ROOT / "trajectories").glob("*.csv")):  # header on line 1 there too
-        assert np.genfromtxt(bundled, delimiter=",", names=True).dtype.names == ("t_s", "x_mm", "y_mm",
-                                                                                  "z_mm")
+        assert np.genfromtxt(bundled, delimiter=",", names=True).dtype.names[:4] == ("t_s", "x_mm", "y_mm",
+                                                                                      "z_mm")  # (twirls: roll_deg)
     tr = T.load(rec, extra_columns=("layer", "state_skin"))  # names read back as their codes
     assert set(tr.extra["state_skin"]) == {0.0, 1.0, 2.0}
 
