@@ -28,6 +28,7 @@ The bench never fails on a number, only on a crash: targets are reported as pass
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -804,23 +805,41 @@ def _fmt(x, digits=3):
     return f"{x:.{digits}g}"
 
 
-def format_table(res: dict) -> str:
-    """The human-readable table: percentiles per row, then the targets with pass / miss."""
-    lines = []
+_TABLE_HEAD = f"{'':46s} {'p50':>9s} {'p99':>9s} {'p99.9':>9s} {'max':>9s}"
+
+
+def _prow(lines: list, label: str, p) -> None:
+    """One percentile row (p50, p99, p99.9, max), or a dash where not measured."""
+    if p is None:
+        lines.append(f"{label:46s} {'-':>9s}")
+    else:
+        lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
+
+
+def _steal_line(lines: list, st) -> None:
+    """The host's stolen-CPU line under a loop row (nothing if not measured)."""
+    if not st or not st.get("available") or "steal_share" not in st:
+        return
+    q = st.get("quiet_period_error_us")
+    line = (f"  host: {100 * st['steal_share']:.1f}% of CPU time stolen by the hypervisor; in the "
+            f"{st['quiet_windows']} of {st['windows']} windows of 0.25 s with none stolen: "
+            f"{st['quiet_missed']} missed in {st['quiet_ticks']} ticks")
+    if q:
+        line += f", p99 {_fmt(q['p99'])} us, p99.9 {_fmt(q['p999'])} us"
+    line += f"; elsewhere {st['other_missed']} missed in {st['other_ticks']}"
+    lines.append(line)
+
+
+def _table_servo(res: dict, lines: list) -> None:
+    """The machine line, then the servo tick's rows per net size and the net tables' builds."""
+    prow = functools.partial(_prow, lines)
     m = res["machine"]
     lines.append(f"haptic-acu bench ({'quick' if res.get('quick') else 'full'}) on {m['cpu']}, "
                  f"{m['cores_available']} cores, python {m['python']}, numpy {m['numpy']}, numba {m['numba']}, "
                  f"{m['date']}; load average {m['load_average_start']} -> {m.get('load_average_end')}")
-    head = f"{'':46s} {'p50':>9s} {'p99':>9s} {'p99.9':>9s} {'max':>9s}"
-
-    def prow(label, p):
-        if p is None:
-            lines.append(f"{label:46s} {'-':>9s}")
-        else:
-            lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
 
     lines.append("")
-    lines.append(head)
+    lines.append(_TABLE_HEAD)
     for name in res["servo_tick_us"]:
         lines.append(f"servo tick, {name} ({res['servo_particles'][name]} particles)")
         prow("  model.step (us)", res["servo_tick_us"][name])
@@ -835,48 +854,41 @@ def format_table(res: dict) -> str:
     for name, t in res.get("net_table_build", {}).items():
         lines.append(f"net table {name} (w={t['rings']}): solved in {_fmt(t['build_s'])} s, {t['rows']} rows x "
                      f"{t['columns']} columns, {_fmt(t['megabytes'])} MB (cached after the first session)")
+
+
+def _table_loops(res: dict, lines: list) -> None:
+    """The real-time loops' period errors (compiled, without rerun, Python servo, floor, OMNI)."""
+    prow = functools.partial(_prow, lines)
     lp = res["loop"]
     prow(f"loop period error, {lp['duration_s']:.0f} s real time (us)", res["loop_period_error_us"])
     lines.append(f"  {res['ticks']} ticks, {res['missed_ticks']} missed, {lp['frames']} frames "
                  f"({_fmt(lp['visual_hz'])} Hz), rerun .rrd: {'yes' if lp['rerun_rrd'] else 'NO'}, "
                  f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}"
                  + (f"; STOPPED: {lp['fault']}" if lp["fault"] else ""))
-    def steal_line(st):
-        if not st or not st.get("available") or "steal_share" not in st:
-            return
-        q = st.get("quiet_period_error_us")
-        line = (f"  host: {100 * st['steal_share']:.1f}% of CPU time stolen by the hypervisor; in the "
-                f"{st['quiet_windows']} of {st['windows']} windows of 0.25 s with none stolen: "
-                f"{st['quiet_missed']} missed in {st['quiet_ticks']} ticks")
-        if q:
-            line += f", p99 {_fmt(q['p99'])} us, p99.9 {_fmt(q['p999'])} us"
-        line += f"; elsewhere {st['other_missed']} missed in {st['other_ticks']}"
-        lines.append(line)
-
-    steal_line(res.get("loop_steal"))
+    _steal_line(lines, res.get("loop_steal"))
     lnr = res.get("loop_no_rerun")
     if lnr:
         prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
         lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
                      + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
-        steal_line(lnr.get("steal"))
+        _steal_line(lines, lnr.get("steal"))
     lip = res.get("loop_rerun_in_process")
     if lip:
         prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
         lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
                      + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
-        steal_line(lip.get("steal"))
+        _steal_line(lines, lip.get("steal"))
     lps = res.get("loop_python_servo")
     if lps:
         prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
         lines.append(f"  {lps['ticks']} ticks, {lps['missed_ticks']} missed"
                      + (f"; STOPPED: {lps['fault']}" if lps["fault"] else ""))
-        steal_line(lps.get("steal"))
+        _steal_line(lines, lps.get("steal"))
     mf = res.get("machine_floor")
     if mf:
         prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
         lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
-        steal_line(mf.get("steal"))
+        _steal_line(lines, mf.get("steal"))
     om = res.get("omni_loop")
     if om:
         for servo in ("compiled", "python"):
@@ -889,6 +901,11 @@ def format_table(res: dict) -> str:
                              + ("SCHED_FIFO" if r.get("emulator_sched_fifo") else "ordinary (SCHED_FIFO refused)"))
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
+
+
+def _table_kernels(res: dict, lines: list) -> None:
+    """SH evaluation and fit (and pyshtools), springback, replay speed, cold start, scaling."""
+    prow = functools.partial(_prow, lines)
     g = res["sh_grid"]
     prow(f"SH eval, {res['sh_surfaces']} surfaces at {g[0]}x{g[1]}, lmax {res['sh_lmax']} (ms)", res["shf_eval_ms"])
     if res["pyshtools_eval_ms"] is None:
@@ -919,6 +936,10 @@ def format_table(res: dict) -> str:
             f"w={w} {_fmt(p['p50'])} / {_fmt(p['p99'])}" for w, p in sc["servo_tick_sweeps_us"].items()))
     lines.append("scaling, SH eval of one surface p50 (ms; us per point): " + ", ".join(
         f"lmax {l} {_fmt(p['p50'])} ({_fmt(sc['sh_eval_point_us'][l])})" for l, p in sc["sh_eval_ms"].items()))
+
+
+def _table_targets(res: dict, lines: list) -> None:
+    """The targets with pass / miss, then the notes."""
     lines.append("")
     lines.append(f"{'target':46s} {'measured':>10s} {'':>3s} {'limit':>8s}  result")
     for t in res["targets"]:
@@ -927,6 +948,13 @@ def format_table(res: dict) -> str:
     for n in res["notes"]:
         lines.append(f"note: {n}")
     lines.append("Timings on a shared machine are noisy; the bench reports, it does not judge.")
+
+
+def format_table(res: dict) -> str:
+    """The human-readable table: percentiles per row, then the targets with pass / miss."""
+    lines = []
+    for part in (_table_servo, _table_loops, _table_kernels, _table_targets):
+        part(res, lines)
     return "\n".join(lines)
 
 

@@ -117,16 +117,16 @@ def find_break(path, x, f) -> int:
 def solve_centred_column(w, spacing_m, kv, ks, pretension, depth_max_m, rows_per_spacing, tol_m):
     """N1's reaction (N) and ring w's mean deflection (m) at c = i h on the net's axis: the servo
     table's centred column (:func:`haptic_acu.netresponse.solve_column`)."""
-    from .forcenet import NetParams
-    from .netresponse import _flat_net, solve_column
+    from .forcenet import NetParams, Topology
+    from .netresponse import Column, ColumnOut, _flat_net, flat_column_net, solve_column
 
     p = NetParams(int(w), spacing_m, kv, ks, pretension, 1.0)
     lat, n, X0f, rest = _flat_net(p)
     h = spacing_m / rows_per_spacing
     nc = int(math.ceil(depth_max_m / h)) + 2
     F, R = np.empty(nc), np.empty(nc)
-    solve_column(np.empty((n, 3)), X0f, rest, lat.nbr, lat.ring, n, int(w), np.array([0.0, 0.0, 1.0]), kv, ks,
-                 spacing_m, 0.0, 0.0, h, nc, tol_m, 20000, F, R, np.empty((0, n, 3)))
+    solve_column(flat_column_net(X0f, rest), Topology(lat.nbr, lat.ring, lat.plane), p.springs(),
+                 Column(0.0, 0.0, h, nc, tol_m, 20000), ColumnOut(F, R, np.empty((0, n, 3))))
     return np.arange(nc) * h, F, R
 
 

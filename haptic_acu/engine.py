@@ -3,18 +3,19 @@
 Servo tick: :func:`haptic_acu.servotick.servo_tick` (the compiled step of
 :mod:`haptic_acu.needle` on the model's :class:`~haptic_acu.servostate.Servo`, the tick's sample row
 into the lock-free :class:`~haptic_acu.samples.SampleRing`, published), with the period error kept by
-:func:`haptic_acu.servotick.account`. The drivers that differ only in who keeps the clock:
+:func:`haptic_acu.servotick.account`. Three drivers, which differ in who keeps the clock:
 
-* simulated clock: :meth:`Session._run_sim_blocks` (:func:`~haptic_acu.servotick.run_ticks`, a
-  visual frame's ticks per call) or, for a device without ``read_block``, :meth:`Session._run_sim`;
-* our timer: :func:`haptic_acu.rtloop.servo_loop` (compiled, no GIL) or the Python loop
-  (:meth:`Session._servo_loop_body`, devices that cannot be read ahead);
-* the device's clock (the OMNI): its compiled callback (:mod:`haptic_acu.omniloop`) or the Python
-  callback (:meth:`Session._run_device_clock`).
+* simulated clock (:meth:`Session._run_sim`): a visual frame's ticks per block, read ahead and run
+  by :func:`~haptic_acu.servotick.run_ticks` in one compiled call, or (a device without
+  ``read_block``) read and ticked one by one;
+* our timer (:meth:`Session._run_realtime`): :func:`haptic_acu.rtloop.servo_loop` (compiled, no GIL)
+  for a device read ahead, else a Python loop on the same deadlines (:meth:`Session._timer_loop`);
+* the device's clock (:meth:`Session._run_device_clock`, the OMNI): its compiled callback
+  (:mod:`haptic_acu.omniloop`) or a Python callback.
 
-The Python paths step through :meth:`Session._servo_tick` (the step's C entry point, then the same
-``write_sample``). No logging, no allocation beyond a few Python floats, no lock, no JIT in a tick
-(everything is compiled in :meth:`Session.warm_up`).
+Where the loop is Python, each tick is :meth:`Session._servo_tick`: the same ``servo_tick`` through
+its C entry point (:class:`haptic_acu.servotick.PythonTick`). No logging, no allocation beyond a
+few Python floats, no lock, no JIT in a tick (everything is compiled in :meth:`Session.warm_up`).
 
 Visual frame (:meth:`Session._visual_frame`): drain the ring, run springback on handed-over nets,
 evaluate each layer's dent on the patch grid around the acupoint, and hand a :class:`Frame` to
@@ -59,6 +60,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,8 +69,8 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
-from .servotick import account, call_driver, run_ticks, tick_table
-from .samples import NCOL, SampleRing, write_sample
+from .servotick import PythonTick, call_driver, run_ticks, tick_table
+from .samples import NCOL, SampleRing
 from .springback import Springback
 
 
@@ -206,6 +208,9 @@ class Session:
         self._timing = Timing(np.zeros(1 << 20), np.zeros(1, TIMING))
         self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
         self._zero = np.zeros(3)
+        self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
+        self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
+        self._sim_table = None  # run_ticks' table (simulated time, a device read ahead)
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -234,8 +239,6 @@ class Session:
         self.model.warm_up()
         buf = np.zeros((1, NCOL))
         m = self.model
-        write_sample(buf, 0, 0.0, 0, m.inp, m.state, m.out.diag, 0.0)
-        account(Timing(np.zeros(1), np.zeros(1, TIMING)), 0.0, 1.0, 1.0)  # the Python loops' accounting
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
         self._omni_callback = None
@@ -245,7 +248,9 @@ class Session:
             lib = self.device.servo_library()
             if lib is not None:  # compiled (or loaded from the cache) here, before any loop
                 self._omni_callback = omniloop.build_callback(lib)
-        if self.clock == "sim":
+        if self._python_ticks():
+            self._warm_python_tick()
+        if self.clock == "sim" and self.device.reads_ahead:
             z = np.zeros((1, 3))
             rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
             call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, np.zeros(1), np.zeros(1), 0,
@@ -259,6 +264,23 @@ class Session:
             if hasattr(s, "warm_up"):
                 s.warm_up()
         self._warm = True
+
+    def _python_ticks(self) -> bool:
+        """Whether this session's driver is a Python loop or callback (see the module docstring)."""
+        if self.clock == "sim":
+            return not self.device.reads_ahead
+        if self.device.info.drives_clock:
+            return self._omni_callback is None
+        return not self.compiled_loop
+
+    def _warm_python_tick(self) -> None:
+        """Load the servo tick's C entry point, check it on a scratch ring, bind it to the session's."""
+        m = self.model
+        scratch = PythonTick(m.servo, Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64)),
+                             Timing(np.zeros(1), np.zeros(1, TIMING)))
+        scratch(0.0, 0, 0.0, 1.0)  # a tick at the reset input (raises if its cache is stale)
+        m.reset(keep_holes=False)
+        self._tick = PythonTick(m.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
 
     def _warm_compiled_loop(self) -> None:
         """Load the compiled servo loop with a run that stops before its first tick."""
@@ -288,28 +310,26 @@ class Session:
             pass
 
     # -- the two loop bodies (shared by every clock) --------------------------------------------
-    def _servo_tick(self, t: float, state, period_err: float = 0.0, command: bool = True) -> np.ndarray:
-        """One servo tick; returns the force. ``command=False`` (a device that drives the clock):
-        the caller commands the returned force, so ``device.set_force`` is not called."""
+    def _servo_tick(self, t: float, state, period_err: float = 0.0, period: float = 0.0,
+                    command: bool = True) -> np.ndarray:
+        """One servo tick from a Python driver (:func:`haptic_acu.servotick.servo_tick`; its period
+        error ``period_err`` accounted against ``period`` when that is positive); returns the force.
+        ``command=False`` (a device that drives the clock): the caller commands the returned force,
+        so ``device.set_force`` is not called."""
         m = self.model
         if state.reset:
             m.reset(keep_holes=False)
-        force = m.step(state.position_m, state.velocity_m_s, state.roll_rad)
-        if m.diag["fault"] != 0.0:
-            self.device.set_force(self._zero)
-            ring = self.ring
-            write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
-            ring.commit()
-            self.tick += 1
+        m.inp.p[:] = state.position_m
+        m.inp.v[:] = state.velocity_m_s
+        m.inp.roll[0] = state.roll_rad
+        ok = self._tick(t, self.tick, period_err, period)
+        self.tick += 1
+        if not ok:
             self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
             return self._zero
         if command:
-            self.device.set_force(force)
-        ring = self.ring
-        write_sample(ring.buf, ring.next_row(), t, self.tick, m.inp, m.state, m.out.diag, period_err)
-        ring.commit()
-        self.tick += 1
-        return force
+            self.device.set_force(self._force)
+        return self._force
 
     def _visual_frame(self, t: float) -> None:
         rows = self.ring.drain()
@@ -383,44 +403,28 @@ class Session:
             try:
                 self._final_frame()
             finally:
-                result = SessionResult(self.tick, self._t_session, self.fault,
-                                       self._stats(time.perf_counter() - wall0))
-                for s in self.sinks:
-                    if hasattr(s, "close"):
-                        s.close(result)
+                result = self._close_sinks(wall0)
+        return result
+
+    def _close_sinks(self, wall0: float) -> SessionResult:
+        """Close every sink (each one, even after another failed). A sink that cannot finish its
+        file (a full disk) is a fault of the session if none was reported yet, never an exception."""
+        result = SessionResult(self.tick, self._t_session, self.fault, self._stats(time.perf_counter() - wall0))
+        for s in self.sinks:
+            if hasattr(s, "close"):
+                try:
+                    s.close(result)
+                except Exception as e:
+                    if self.fault is None:
+                        self._set_fault(f"closing the outputs: {e}")
+        if result.fault != self.fault:
+            result = SessionResult(result.ticks, result.duration_s, self.fault, result.stats)
         return result
 
     def _run_sim(self) -> None:
-        if self.device.reads_ahead:
-            return self._run_sim_blocks()
-        dev = self.device
+        """Simulated time: ticks at exactly ``servo_dt``, a visual frame whenever session time
+        crosses a multiple of ``frame_dt``; each frame's ticks run as one block (:meth:`_sim_block`)."""
         dt = self.servo_dt
-        next_frame = self.frame_dt
-        limit = self.duration_s if self.duration_s is not None else math.inf
-        t0 = time.perf_counter()
-        while not self._stop.is_set():
-            t = self.tick * dt
-            if t > limit + 1e-12:
-                break
-            state = dev.read_at(t)
-            if state.done:
-                break
-            self._servo_tick(t, state)
-            self._t_session = t
-            if t + 1e-12 >= next_frame:
-                wall = time.perf_counter() - t0
-                self.rates = {"servo_hz": self.tick / wall if wall > 0 else 0.0, "visual_hz": self.frame_index / wall if wall > 0 else 0.0}
-                self._visual_frame(t)
-                next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
-
-    def _run_sim_blocks(self) -> None:
-        """Simulated time, one visual frame's ticks per compiled call (see :func:`run_ticks`)."""
-        dev = self.device
-        dt = self.servo_dt
-        m = self.model
-        ring = self.ring
-        rows = Ring(ring.buf, ring.ctr)
-        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
         next_frame = self.frame_dt
@@ -430,23 +434,7 @@ class Session:
                 break
             k1 = max(k0, math.ceil((next_frame - 1e-12) / dt))  # the tick that reaches the frame time
             k_lim = math.floor((limit + 1e-12) / dt) if limit != math.inf else k1
-            k1 = min(k1, k_lim)
-            T = np.arange(k0, k1 + 1) * dt
-            P, V, done = dev.read_block(T)
-            if done.any():
-                cut = int(np.argmax(done))
-                T, P, V = T[:cut], P[:cut], V[:cut]
-            if T.size:
-                R = roll_of_block(dev, T)
-                n = self._run_ticks_resetting(P, V, R, T, k0, dev.reset_ticks(T), table)
-                self.tick += n
-                self._t_session = float(T[n - 1])
-                if m.diag["fault"] != 0.0:
-                    self.device.set_force(self._zero)
-                    self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); force set to zero")
-                    break
-                self.device.set_force(m.diag["force"])
-            if T.size < k1 + 1 - k0:  # the trajectory ended
+            if not self._sim_block(k0, min(k1, k_lim)):  # the device ended, a fault, or stopped
                 break
             t = self._t_session
             if t + 1e-12 >= next_frame:
@@ -455,6 +443,40 @@ class Session:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": self.frame_index / wall}
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+
+    def _sim_block(self, k0: int, k1: int) -> bool:
+        """Ticks ``k0..k1`` on simulated time; False if they did not all run (end, fault, stop). A
+        device read ahead: one :func:`run_ticks` call per block (split at reset events); otherwise a
+        read and a :meth:`_servo_tick` per tick."""
+        dt = self.servo_dt
+        dev = self.device
+        if not dev.reads_ahead:
+            for k in range(k0, k1 + 1):
+                t = k * dt
+                state = dev.read_at(t)
+                if state.done or self._stop.is_set():
+                    return False
+                self._servo_tick(t, state)
+                self._t_session = t
+            return not self._stop.is_set()
+        T = np.arange(k0, k1 + 1) * dt
+        P, V, done = dev.read_block(T)
+        if done.any():
+            cut = int(np.argmax(done))
+            T, P, V = T[:cut], P[:cut], V[:cut]
+        if T.size:
+            if self._sim_table is None:  # the ring's and the model's arrays outlive it
+                self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
+            R = roll_of_block(dev, T)
+            n = self._run_ticks_resetting(P, V, R, T, k0, dev.reset_ticks(T), self._sim_table)
+            self.tick += n
+            self._t_session = float(T[n - 1])
+            if self.model.diag["fault"] != 0.0:
+                self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); "
+                                "force set to zero")
+                return False
+            dev.set_force(self._force)
+        return T.size == k1 + 1 - k0
 
     def _run_ticks_resetting(self, P, V, R, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
@@ -483,6 +505,22 @@ class Session:
     def _rt_teardown(self, old_interval):
         sys.setswitchinterval(old_interval)
         gc.unfreeze()
+
+    @contextmanager
+    def _realtime_threads(self, watchdog: bool):
+        """The frame of a Python driver on real time: :meth:`_rt_setup`, the visual thread from the
+        ``t0`` this yields (``time.perf_counter()``), and on the way out the session stopped, the
+        visual thread joined and the set-up undone."""
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        vis = threading.Thread(target=self._visual_loop, args=(t0, watchdog), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        try:
+            yield t0
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
 
     def _try_fifo(self):
         """Ask for SCHED_FIFO for the calling thread only (Linux: pid 0 is this thread), with
@@ -628,29 +666,22 @@ class Session:
                               "(the feeder fell 1 s behind the servo loop)")
 
     def _run_realtime(self) -> None:
+        """Our timer drives the servo: the compiled loop for a device read ahead, else
+        :meth:`_timer_loop` on this thread (SCHED_FIFO where allowed, restored after)."""
         if self.compiled_loop:
             return self._run_realtime_compiled()
-        old = self._rt_setup()
-        t0 = time.perf_counter()
-        self.t0_perf = t0
-        vis = threading.Thread(target=self._visual_loop, args=(t0, True), name="haptic-acu-visual", daemon=True)
-        vis.start()
-        try:
-            self._servo_loop(t0)
-        finally:
-            self._stop.set()
-            vis.join(timeout=2.0)
-            self._rt_teardown(old)
+        with self._realtime_threads(watchdog=True) as t0:
+            self.t0_perf = t0
+            prev = self._try_fifo()
+            self.sched_fifo = prev is not None
+            try:
+                self._timer_loop(t0)
+            finally:
+                self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
 
-    def _servo_loop(self, t0: float) -> None:
-        prev = self._try_fifo()
-        self.sched_fifo = prev is not None
-        try:
-            self._servo_loop_body(t0)
-        finally:
-            self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
-
-    def _servo_loop_body(self, t0: float) -> None:
+    def _timer_loop(self, t0: float) -> None:
+        """Tick k at ``t0 + k * servo_dt`` (sleep, then spin), read the device then :meth:`_servo_tick`;
+        a device time stuck while a force is commanded is a fault."""
         dev = self.device
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
@@ -659,7 +690,7 @@ class Session:
         k = 0
         count_start = perf()
         count_ticks = 0
-        force = self.model.diag["force"]  # the force the previous tick commanded (a view)
+        force = self._force  # the force the previous tick commanded (a view)
         dev_t, dev_t_since = math.nan, 0.0
         anchor = t0  # tick k's deadline is anchor + k * dt
         while not self._stop.is_set():
@@ -672,7 +703,6 @@ class Session:
                 pass
             start = perf()
             err = start - deadline
-            account(self._timing, err, dt, 1.0)
             t = start - t0
             if t > limit:
                 break
@@ -685,7 +715,7 @@ class Session:
                 raise DeviceFault(f"{dev.info.name}: device time stuck at {dev_t:.3f} s for "
                                   f"{1e3 * (t - dev_t_since):.0f} ms while a force was commanded: "
                                   "device stopped updating")
-            self._servo_tick(t, state, err)
+            self._servo_tick(t, state, err, dt)
             self._t_session = t
             k += 1
             if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor the deadlines instead of
@@ -734,38 +764,32 @@ class Session:
                             "force set to zero")
 
     def _run_device_clock(self) -> None:
+        """The device's scheduler drives the servo: the compiled callback, or a Python step
+        (:meth:`_servo_tick`) called through :meth:`devices.base.Device.run_servo`."""
         if self._omni_callback is not None:
             return self._run_device_clock_compiled()
-        old = self._rt_setup()
-        t0 = time.perf_counter()
-        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
-        vis.start()
-        last = [t0, 0, t0]  # previous tick time, ticks in the rate window, window start
+        dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
+        with self._realtime_threads(watchdog=False) as t0:
+            last = [t0, 0, t0]  # previous tick time, ticks in the rate window, window start
 
-        def step(state):
-            now = time.perf_counter()
-            err = (now - last[0]) - self.servo_dt
-            last[0] = now
-            account(self._timing, err, self.servo_dt, 1.0)
-            t = now - t0
-            last[1] += 1
-            if now - last[2] >= 0.5:
-                self.rates["servo_hz"] = last[1] / (now - last[2])
-                last[1] = 0
-                last[2] = now
-            if t > limit or state.done:
-                self._stop.set()
-                return self._zero
-            self._t_session = t
-            return self._servo_tick(t, state, err, command=False)
+            def step(state):
+                now = time.perf_counter()
+                err = (now - last[0]) - dt
+                last[0] = now
+                t = now - t0
+                last[1] += 1
+                if now - last[2] >= 0.5:
+                    self.rates["servo_hz"] = last[1] / (now - last[2])
+                    last[1] = 0
+                    last[2] = now
+                if t > limit or state.done:
+                    self._stop.set()
+                    return self._zero
+                self._t_session = t
+                return self._servo_tick(t, state, err, dt, command=False)
 
-        try:
             self.device.run_servo(step, self._stop)
-        finally:
-            self._stop.set()
-            vis.join(timeout=2.0)
-            self._rt_teardown(old)
 
     # -- signals ------------------------------------------------------------------------------------
     def _install_signals(self):

@@ -30,12 +30,16 @@ explode. The surface breaks (puncture) when ring w's mean deflection passes the 
 By default the servo does not sweep at all: it reads the static response these sweeps converge to,
 tabulated once per parameter set (:mod:`haptic_acu.netresponse`, ``solver.servo_net = "table"``).
 
-All kernels are pure, numba-compiled (``nogil``, ``cache``), over plain arrays, allocation-free.
+All kernels are pure, numba-compiled (``nogil``, ``cache``), allocation-free, and take named inputs:
+a net's arrays (:class:`NetArrays`), its lattice (:class:`Topology`), its constants (:class:`Springs`)
+and, to build one, the surface (:class:`Surface`); the servo passes views into its state
+(:func:`haptic_acu.needle.net_views`), :class:`Net` its own arrays.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -83,6 +87,43 @@ def lattice(w: int) -> Lattice:
     return Lattice(w, ring, plane, nbr)
 
 
+class NetArrays(NamedTuple):
+    """One net's arrays as the kernels take them (views; the first three have the force net's n rows)."""
+
+    xf: np.ndarray  # (n, 3) particles on the flat reference lattice (the mechanics)
+    X0f: np.ndarray  # (n, 3) their rest positions
+    X0: np.ndarray  # (n_all, 3) rest positions on the curved SH surface (force net + margin)
+    x: np.ndarray  # (n_all, 3) current positions on the curved surface
+    rest_len: np.ndarray  # (n, 6) rest length of the spring to each neighbour (0: none)
+    axis: np.ndarray  # (3,) outward normal at N1: the virtual springs' direction
+
+
+class Topology(NamedTuple):
+    """A lattice's arrays as the kernels take them (:class:`Lattice`, rows of force net + margin)."""
+
+    nbr: np.ndarray  # (n_all, 6) neighbour indices, -1 where absent
+    ring: np.ndarray  # (n_all,) ring number, 1-based
+    plane: np.ndarray  # (n_all, 2) position in units of L in the tangent plane
+
+
+class Springs(NamedTuple):
+    """One layer's net constants as the kernels take them (SI)."""
+
+    w: int  # rings
+    kv: float  # K, the virtual springs (N/m)
+    ks: float  # ks, the surface springs (N/m)
+    spacing: float  # L (m)
+    pretension: float  # rest length = (1 - pretension) * L
+
+
+class Surface(NamedTuple):
+    """A radial SH surface as :func:`build_net` projects onto it."""
+
+    coeffs: np.ndarray  # SH coefficients of the surface
+    lmax: int
+    centre: np.ndarray  # (3,)
+
+
 @dataclass
 class NetParams:
     """One layer's net parameters in SI."""
@@ -93,6 +134,10 @@ class NetParams:
     k_surface: float  # ks, N/m
     pretension: float  # rest length = (1 - pretension) * L
     threshold_m: float  # ring-w mean deflection at puncture
+
+    def springs(self) -> Springs:
+        return Springs(int(self.w), float(self.k_virtual), float(self.k_surface), float(self.spacing_m),
+                       float(self.pretension))
 
     @classmethod
     def from_layer(cls, layer) -> "NetParams":
@@ -134,17 +179,21 @@ class Net:
         return cls(params, lattice(params.w + margin_rings), n_particles(params.w))
 
     # -- convenience wrappers over the kernels (tests, tools; the servo calls the kernels) --------
+    def arrays(self) -> NetArrays:
+        return NetArrays(self.xf, self.X0f, self.X0, self.x, self.rest_len, self.axis)
+
+    def topology(self) -> Topology:
+        return Topology(self.lat.nbr, self.lat.ring, self.lat.plane)
+
     def build(self, coeffs, lmax, centre, contact, normal) -> None:
-        build_net(coeffs, lmax, centre, np.asarray(contact, float), np.asarray(normal, float),
-                  self.params.spacing_m, self.lat.plane, self.lat.nbr, self.n, self.params.pretension,
-                  self.X0, self.x, self.X0f, self.xf, self.rest_len, self.axis)
+        build_net(Surface(coeffs, int(lmax), centre), self.arrays(), self.topology(), self.params.springs(),
+                  np.asarray(contact, float), np.asarray(normal, float))
 
     def relax(self, sweeps: int, first: int = 0) -> float:
-        p = self.params
         big = 0.0
+        net, topo, springs = self.arrays(), self.topology(), self.params.springs()
         for s in range(sweeps):
-            big = relax(self.xf, self.X0f, self.rest_len, self.lat.nbr, self.lat.ring, self.n, p.w,
-                        self.axis, p.k_virtual, p.k_surface, p.spacing_m, (first + s) % 2)
+            big = relax(net, topo, springs, (first + s) % 2)
         return big
 
     def solve(self, tip, sweeps: int = 0, tol_m: float = 1e-10, max_sweeps: int = 20000) -> int:
@@ -165,13 +214,12 @@ class Net:
 
     def sync(self) -> None:
         """Carry the flat-lattice displacements onto the curved surface (``x``)."""
-        sync_curved(self.x, self.X0, self.xf, self.X0f, self.n)
+        sync_curved(self.arrays())
 
     def reaction(self) -> np.ndarray:
         """The net's force on the needle at N1 (N, 3D)."""
         out = np.zeros(3)
-        force_on(0, self.xf, self.X0f, self.rest_len, self.lat.nbr, self.axis,
-                 self.params.k_virtual, self.params.k_surface, out)
+        force_on(0, self.arrays(), self.topology(), self.params.springs(), out)
         return out
 
     def deflection(self) -> np.ndarray:
@@ -213,10 +261,14 @@ def tangent_frame(axis):
 
 
 @nb.njit(cache=True, nogil=True)
-def build_net(coeffs, lmax, centre, contact, normal, spacing, plane, nbr, n, pretension,
-              X0, x, X0f, xf, rest_len, axis):
-    """Lay the lattice around ``contact`` with outward ``normal``: the flat reference lattice in the
-    tangent plane, and its radial projection onto the SH surface. Allocation-free."""
+def build_net(surf, net, topo, springs, contact, normal):
+    """Lay the lattice ``topo`` around ``contact`` with outward ``normal``: the flat reference lattice
+    in the tangent plane, and its radial projection onto the SH surface ``surf`` (:class:`Surface`),
+    into ``net`` (:class:`NetArrays`). Allocation-free."""
+    X0, x, X0f, xf, rest_len, axis = net.X0, net.x, net.X0f, net.xf, net.rest_len, net.axis
+    coeffs, lmax, centre = surf.coeffs, surf.lmax, surf.centre
+    plane, nbr, n = topo.plane, topo.nbr, xf.shape[0]
+    spacing, pretension = springs.spacing, springs.pretension
     nn = math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
     for k in range(3):
         axis[k] = normal[k] / nn
@@ -252,16 +304,19 @@ def build_net(coeffs, lmax, centre, contact, normal, spacing, plane, nbr, n, pre
 
 
 @nb.njit(cache=True, nogil=True)
-def sync_curved(x, X0, xf, X0f, n):
-    """x_i = X0_i + (xf_i - X0f_i) for the force-net particles."""
-    for i in range(n):
+def sync_curved(net):
+    """x_i = X0_i + (xf_i - X0f_i) for the force-net particles of ``net`` (:class:`NetArrays`)."""
+    x, X0, xf, X0f = net.x, net.X0, net.xf, net.X0f
+    for i in range(xf.shape[0]):
         for k in range(3):
             x[i, k] = X0[i, k] + xf[i, k] - X0f[i, k]
 
 
 @nb.njit(cache=True, nogil=True)
-def force_on(i, xf, X0f, rest_len, nbr, axis, kv, ks, out):
+def force_on(i, net, topo, springs, out):
     """Total net force on particle i (surface springs + virtual spring) into ``out[3]``."""
+    xf, X0f, rest_len, axis, nbr = net.xf, net.X0f, net.rest_len, net.axis, topo.nbr
+    kv, ks = springs.kv, springs.ks
     d = (xf[i, 0] - X0f[i, 0]) * axis[0] + (xf[i, 1] - X0f[i, 1]) * axis[1] + (xf[i, 2] - X0f[i, 2]) * axis[2]
     fx = -kv * d * axis[0]
     fy = -kv * d * axis[1]
@@ -285,7 +340,10 @@ def force_on(i, xf, X0f, rest_len, nbr, axis, kv, ks, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _relax_one(i, xf, X0f, rest_len, nbr, ring_i, w, axis, kv, ks, max_step):
+def _relax_one(i, net, topo, springs, max_step):
+    """One particle's Newton step (its largest component limited to ``max_step``); returns its size."""
+    xf, X0f, rest_len, axis, nbr = net.xf, net.X0f, net.rest_len, net.axis, topo.nbr
+    kv, ks = springs.kv, springs.ks
     n = xf.shape[0]
     ax0 = axis[0]
     ax1 = axis[1]
@@ -324,7 +382,7 @@ def _relax_one(i, xf, X0f, rest_len, nbr, ring_i, w, axis, kv, ks, max_step):
             h11 += geo + c * dy * dy
             h12 += c * dy * dz
             h22 += geo + c * dz * dz
-    if ring_i == w:
+    if topo.ring[i] == springs.w:
         # Outer ring: held laterally, free along the axis: a 1D Newton step along n.
         hn = (ax0 * (h00 * ax0 + h01 * ax1 + h02 * ax2) + ax1 * (h01 * ax0 + h11 * ax1 + h12 * ax2)
               + ax2 * (h02 * ax0 + h12 * ax1 + h22 * ax2))
@@ -366,24 +424,27 @@ def _relax_one(i, xf, X0f, rest_len, nbr, ring_i, w, axis, kv, ks, max_step):
 
 
 @nb.njit(cache=True, nogil=True)
-def relax(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, backward):
-    """One Gauss-Seidel-Newton sweep over particles 1..n-1 (outward, or inward if ``backward``).
+def relax(net, topo, springs, backward):
+    """One Gauss-Seidel-Newton sweep over particles 1..n-1 of ``net`` (:class:`NetArrays`; lattice
+    ``topo``, constants ``springs``), outward, or inward if ``backward``.
 
     N1 (particle 0) is not moved: the caller holds it at the needle tip. Returns the largest step (m).
     """
-    max_step = 0.25 * spacing
+    n = net.xf.shape[0]
+    max_step = 0.25 * springs.spacing
     biggest = 0.0
     for s in range(1, n):
         i = n - s if backward else s
-        m = _relax_one(i, xf, X0f, rest_len, nbr, ring[i], w, axis, kv, ks, max_step)
+        m = _relax_one(i, net, topo, springs, max_step)
         if m > biggest:
             biggest = m
     return biggest
 
 
 @nb.njit(cache=True, nogil=True)
-def ring_w_mean_deflection(xf, X0f, ring, n, w, axis):
-    """Mean dZ = -(x - X0) . n over ring w (m)."""
+def ring_w_mean_deflection(net, topo, w):
+    """Mean dZ = -(x - X0) . n over ring w of ``net`` (m)."""
+    xf, X0f, axis, ring, n = net.xf, net.X0f, net.axis, topo.ring, net.xf.shape[0]
     total = 0.0
     count = 0
     for i in range(n):

@@ -55,11 +55,11 @@ import numpy as np
 
 from . import servostate as ss
 from . import shf
-from .cptr import address_of, i64p  # module globals, not closure cells: a cfunc's cache key pickles its
-# closure, and an intrinsic pickles differently in every process (the step's cache missed every run)
-from .forcenet import (NetParams, build_net, force_on, lattice, n_particles, relax,
-                       ring_w_mean_deflection, sync_curved)
-from .netresponse import TM_NR, lay_field, lookup
+from .cptr import address_of as _address_of
+from .cptr import i64p as _i64p
+from .forcenet import (NetArrays, NetParams, Springs, Surface, Topology, build_net, force_on, lattice,
+                       n_particles, relax, ring_w_mean_deflection, sync_curved)
+from .netresponse import lay_field, lookup
 from .netresponse import pack as pack_tables
 from .netresponse import table_for
 from .servostate import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
@@ -136,9 +136,9 @@ def net_views(m, s, idx):
     lay = m.layout[0]
     n = n_particles_of(m, idx // 2)
     n_all = lay.n_all[idx // 2]
-    return (s.pos[lay.xf[idx]:lay.xf[idx] + n], s.pos[lay.X0f[idx]:lay.X0f[idx] + n],
-            s.pos[lay.X0[idx]:lay.X0[idx] + n_all], s.pos[lay.x[idx]:lay.x[idx] + n_all],
-            s.rest[lay.rest[idx]:lay.rest[idx] + n], s.axes[idx])
+    return NetArrays(s.pos[lay.xf[idx]:lay.xf[idx] + n], s.pos[lay.X0f[idx]:lay.X0f[idx] + n],
+                     s.pos[lay.X0[idx]:lay.X0[idx] + n_all], s.pos[lay.x[idx]:lay.x[idx] + n_all],
+                     s.rest[lay.rest[idx]:lay.rest[idx] + n], s.axes[idx])
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -147,7 +147,14 @@ def lattice_views(m, k):
     lay = m.layout[0]
     t0 = lay.topo[k]
     t1 = t0 + lay.n_all[k]
-    return m.nbr[t0:t1], m.ring[t0:t1], m.plane[t0:t1]
+    return Topology(m.nbr[t0:t1], m.ring[t0:t1], m.plane[t0:t1])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def springs_of(m, k):
+    """Layer ``k``'s net constants as the force-net kernels take them."""
+    lay = m.layer[k]
+    return Springs(lay.w, lay.k_virtual, lay.k_surface, lay.spacing, lay.pretension)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -280,12 +287,9 @@ def build_slot(m, s, k, idx):
     """Build slot ``idx``'s net of layer ``k`` at the contact point ``work.cpt`` (normal computed here)."""
     wk = s.work[0]
     lmax = m.params[0].lmax
-    lay = m.layer[k]
-    nbrk, ringk, planek = lattice_views(m, k)
-    xf, X0f, X0, x, rl, ax = net_views(m, s, idx)
     surface_normal(m.coeffs[k], lmax, m.centre, wk.cpt, wk.nrm)
-    build_net(m.coeffs[k], lmax, m.centre, wk.cpt, wk.nrm, lay.spacing, planek, nbrk, n_particles_of(m, k),
-              lay.pretension, X0, x, X0f, xf, rl, ax)
+    build_net(Surface(m.coeffs[k], lmax, m.centre), net_views(m, s, idx), lattice_views(m, k), springs_of(m, k),
+              wk.cpt, wk.nrm)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -377,16 +381,15 @@ def sweep_net(m, s, k, idx, sweeps):
     """N1 on the tip, ``sweeps`` relaxation sweeps of the net; returns its ring-w deflection."""
     sv = s.servo[0]
     wk = s.work[0]
-    lay = m.layer[k]
-    n = n_particles_of(m, k)
-    nbrk, ringk, _ = lattice_views(m, k)
-    xf, X0f, _X0, _x, rl, ax = net_views(m, s, idx)
+    net = net_views(m, s, idx)
+    topo = lattice_views(m, k)
+    springs = springs_of(m, k)
     for c in range(3):
-        xf[0, c] = wk.q[c]
+        net.xf[0, c] = wk.q[c]
     for it in range(sweeps):
-        relax(xf, X0f, rl, nbrk, ringk, n, lay.w, ax, lay.k_virtual, lay.k_surface, lay.spacing, sv.sweep[k] % 2)
+        relax(net, topo, springs, sv.sweep[k] % 2)
         sv.sweep[k] += 1
-    return ring_w_mean_deflection(xf, X0f, ringk, n, lay.w, ax)
+    return ring_w_mean_deflection(net, topo, springs.w)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -397,13 +400,14 @@ def puncture(inp, m, s, d, k, idx, use_table):
     sv = s.servo[0]
     wk = s.work[0]
     n = n_particles_of(m, k)
-    xf, X0f, X0, x, rl, ax = net_views(m, s, idx)
+    net = net_views(m, s, idx)
+    xf, X0f, ax = net.xf, net.X0f, net.axis
     sv.state[k] = PUNCTURED
     if use_table:
         lay_field(m.tab, m.tmeta[k], wk.dz1, n, X0f, ax, xf)
         for c in range(3):
             xf[0, c] = wk.q[c]
-    sync_curved(x, X0, xf, X0f, n)
+    sync_curved(net)
     sv.owner[k, idx % 2] = VISUAL_OWNS
     d.puncture = k
     rx, ry, rz = wk.r[0], wk.r[1], wk.r[2]
@@ -442,10 +446,8 @@ def surface_force(m, s, d, k, idx, use_table, fn_table):
     if use_table:
         fn = fn_table
     else:
-        lay = m.layer[k]
-        xf, X0f, _X0, _x, rl, ax = net_views(m, s, idx)
-        nbrk = lattice_views(m, k)[0]
-        force_on(0, xf, X0f, rl, nbrk, ax, lay.k_virtual, lay.k_surface, wk.fo)
+        ax = s.axes[idx]
+        force_on(0, net_views(m, s, idx), lattice_views(m, k), springs_of(m, k), wk.fo)
         fn = wk.fo[0] * ax[0] + wk.fo[1] * ax[1] + wk.fo[2] * ax[2]
     if fn < 0.0:
         fn = 0.0
@@ -472,7 +474,7 @@ def press(inp, m, s, d, k):
         sv.owner[k, idx % 2] = FREE
         return
     sweeps = m.params[0].sweeps
-    use_table = m.tmeta[k, TM_NR] > 0.0
+    use_table = m.tmeta[k].nr > 0
     if lat2 > (0.5 * m.layer[k].spacing) ** 2:
         recentre(m, s, k, idx, use_table)
         sweeps *= 2
@@ -703,14 +705,15 @@ def step_entry():
     unboxes every array, which is most of a tick called from Python."""
     global _STEP_C
     if _STEP_C is None:
-        from numba import types
-
         key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
         words = ss.HEADER + ss.SERVO_TABLE
 
-        @nb.cfunc(types.void(types.voidptr), nopython=True, cache=True)
+        # Only plain values in the closure: numba's cache key hashes the closure's contents, and a
+        # numba type or intrinsic there pickles differently in every process (a cache miss and a
+        # recompile on every run). The helpers are module globals.
+        @nb.cfunc(nb.types.void(nb.types.voidptr), nopython=True, cache=True)
         def step_c(data):
-            t = nb.carray(i64p(address_of(data)), words)
+            t = nb.carray(_i64p(_address_of(data)), words)
             if ss.accept(t, key):
                 step_servo(ss.unpack_servo(t, ss.HEADER))
 

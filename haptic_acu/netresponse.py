@@ -39,11 +39,13 @@ import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 
-from .forcenet import NetParams, force_on, lattice, n_particles, relax, ring_w_mean_deflection, tangent_frame
+from .forcenet import (NetArrays, NetParams, Topology, force_on, lattice, n_particles, relax, ring_w_mean_deflection,
+                       tangent_frame)
 
 VERSION = 1  # bump when the table's content or layout changes (invalidates the cache)
 ROWS_PER_SPACING = 400  # h = L / 400: linear interpolation in c is then exact to ~1e-6 relative
@@ -54,18 +56,45 @@ ROW_MARGIN = 1.05  # rows run 5% past the centred puncture depth
 MAX_ROWS = 20000
 MAX_SWEEPS_PER_ROW = 20000
 
-# meta columns (tmeta[k, :]); a layer with TM_NR == 0 has no table (the servo sweeps instead)
-TM_F, TM_R, TM_D, TM_NR, TM_NC, TM_H, TM_RHO2 = range(7)
-TM_SIZE = 7
+# One layer's table in the packed array (Model.tmeta[k]); a layer with nr == 0 has no table (the servo
+# sweeps its net instead).
+TMETA = np.dtype([
+    ("f", "i8"), ("r", "i8"), ("d", "i8"),  # where F, R and D start in the packed array
+    ("nr", "i8"), ("nc", "i8"),  # columns (lateral offsets) and rows (depths)
+    ("h", "f8"),  # row spacing in depth (m)
+    ("rho2", "f8"),  # the last column's squared lateral offset (m^2)
+])
+
+
+class Column(NamedTuple):
+    """One column of a table to solve: the lateral offset and the rows."""
+
+    lat_x: float  # N1's lateral offset from its rest point (m, flat frame)
+    lat_y: float
+    h: float  # row spacing in depth (m)
+    nc: int  # rows
+    tol: float  # static tolerance: sweeps stop when the largest step is below it (m)
+    max_sweeps: int  # per row
+
+
+class ColumnOut(NamedTuple):
+    """Where a solved column goes."""
+
+    f: np.ndarray  # (nc,) N1's reaction along the axis (N)
+    r: np.ndarray  # (nc,) ring w's mean deflection (m)
+    field: np.ndarray  # (nc, n, 3) displacement field, or (0, n, 3) for none
 
 
 @nb.njit(cache=True, nogil=True)
-def solve_column(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, lat_x, lat_y, h, nc, tol,
-                 max_sweeps, out_f, out_r, field):
-    """Static solutions for N1 at ``X0f[0] + (lat_x, lat_y, -c)`` for ``c = i * h``, i < ``nc``,
+def solve_column(net, topo, springs, col, out):
+    """Static solutions of the flat ``net`` (:class:`~haptic_acu.forcenet.NetArrays`, its ``xf`` the
+    work array) for N1 at ``X0f[0] + (col.lat_x, col.lat_y, -c)``, ``c = i * col.h``, i < ``col.nc``,
     continued row by row (each row's start is extrapolated from the last two). Writes N1's reaction
-    along the axis and ring w's mean deflection; if ``field`` has rows, the displacement field too.
-    ``axis`` must be +z (the flat reference frame). Returns the total number of sweeps."""
+    along the axis and ring w's mean deflection into ``out`` (:class:`ColumnOut`); if ``out.field``
+    has rows, the displacement field too. The net's axis must be +z (the flat reference frame).
+    Returns the total number of sweeps."""
+    xf, X0f, field = net.xf, net.X0f, out.field
+    n = xf.shape[0]
     prev = np.empty((n, 3))
     fo = np.empty(3)
     for i in range(n):
@@ -73,8 +102,8 @@ def solve_column(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, lat_
             xf[i, c] = X0f[i, c]
             prev[i, c] = X0f[i, c]
     total = 0
-    for row in range(nc):
-        cdep = row * h
+    for row in range(col.nc):
+        cdep = row * col.h
         if row >= 2:
             for i in range(n):
                 for c in range(3):
@@ -85,17 +114,17 @@ def solve_column(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, lat_
             for i in range(n):
                 for c in range(3):
                     prev[i, c] = xf[i, c]
-        xf[0, 0] = X0f[0, 0] + lat_x
-        xf[0, 1] = X0f[0, 1] + lat_y
+        xf[0, 0] = X0f[0, 0] + col.lat_x
+        xf[0, 1] = X0f[0, 1] + col.lat_y
         xf[0, 2] = X0f[0, 2] - cdep
-        for s in range(max_sweeps):
-            big = relax(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, total % 2)
+        for s in range(col.max_sweeps):
+            big = relax(net, topo, springs, total % 2)
             total += 1
-            if big < tol:
+            if big < col.tol:
                 break
-        force_on(0, xf, X0f, rest_len, nbr, axis, kv, ks, fo)
-        out_f[row] = fo[2]
-        out_r[row] = ring_w_mean_deflection(xf, X0f, ring, n, w, axis)
+        force_on(0, net, topo, springs, fo)
+        out.f[row] = fo[2]
+        out.r[row] = ring_w_mean_deflection(net, topo, springs.w)
         if field.shape[0] > 0:
             for i in range(n):
                 for c in range(3):
@@ -105,12 +134,12 @@ def solve_column(xf, X0f, rest_len, nbr, ring, n, w, axis, kv, ks, spacing, lat_
 
 @nb.njit(cache=True, nogil=True)
 def lookup(tab, meta, rho2, c):
-    """Bilinear read of one layer's table at lateral offset^2 ``rho2`` and depth ``c`` (m):
-    returns (reaction along the axis (N), ring-w mean deflection (m))."""
-    nr = int(meta[TM_NR])
-    nc = int(meta[TM_NC])
-    h = meta[TM_H]
-    s = rho2 / meta[TM_RHO2] * (nr - 1)
+    """Bilinear read of one layer's table (``meta``: its :data:`TMETA` record) at lateral offset^2
+    ``rho2`` and depth ``c`` (m): returns (reaction along the axis (N), ring-w mean deflection (m))."""
+    nr = meta.nr
+    nc = meta.nc
+    h = meta.h
+    s = rho2 / meta.rho2 * (nr - 1)
     if s < 0.0:
         s = 0.0
     j = int(s)
@@ -124,8 +153,8 @@ def lookup(tab, meta, rho2, c):
     if i > nc - 2:
         i = nc - 2  # past the last row: the last interval extrapolated
     tc = x - i
-    of = int(meta[TM_F])
-    orr = int(meta[TM_R])
+    of = meta.f
+    orr = meta.r
     a = of + j * nc + i
     b = a + nc
     f = ((1.0 - ts) * ((1.0 - tc) * tab[a] + tc * tab[a + 1])
@@ -140,10 +169,10 @@ def lookup(tab, meta, rho2, c):
 @nb.njit(cache=True, nogil=True)
 def lay_field(tab, meta, c, n, X0f, axis, xf):
     """The centred equilibrium displacement at depth ``c`` laid onto a net: ``xf = X0f + D(c)`` in
-    the net's frame (e1, e2 from ``axis``: :func:`haptic_acu.forcenet.tangent_frame`).
-    N1 (particle 0) is left to the caller."""
-    nc = int(meta[TM_NC])
-    x = c / meta[TM_H]
+    the net's frame (e1, e2 from ``axis``: :func:`haptic_acu.forcenet.tangent_frame`); ``meta``: the
+    layer's :data:`TMETA` record. N1 (particle 0) is left to the caller."""
+    nc = meta.nc
+    x = c / meta.h
     if x < 0.0:
         x = 0.0
     i = int(x)
@@ -152,7 +181,7 @@ def lay_field(tab, meta, c, n, X0f, axis, xf):
         x = nc - 1.0  # the field is not extrapolated
     tc = x - i
     e1x, e1y, e1z, e2x, e2y, e2z = tangent_frame(axis)
-    od = int(meta[TM_D])
+    od = meta.d
     stride = n * 3
     a = od + i * stride
     b = a + stride
@@ -184,12 +213,15 @@ class ResponseTable:
     def shape(self) -> tuple[int, int]:
         return self.F.shape
 
-    def packed(self) -> tuple[np.ndarray, np.ndarray]:
-        """(tab, meta) as the kernels read them, for this table alone."""
-        tab = np.concatenate([self.F.ravel(), self.R.ravel(), self.D.ravel()])
+    def packed(self):
+        """(tab, meta) as the kernels read them, for this table alone (``meta``: a :data:`TMETA` record)."""
+        tab, meta = pack([self], 1)
+        return tab, meta[0]
+
+    def meta(self, offset: int = 0) -> tuple:
+        """Its :data:`TMETA` row, its arrays starting at ``offset`` in the packed array."""
         nr, nc = self.F.shape
-        meta = np.array([0.0, nr * nc, 2 * nr * nc, nr, nc, self.h, self.rho_max ** 2])
-        return tab, meta
+        return (offset, offset + nr * nc, offset + 2 * nr * nc, nr, nc, self.h, self.rho_max ** 2)
 
 
 def table_key(p: NetParams, tol_m: float) -> str:
@@ -218,17 +250,26 @@ def _flat_net(p: NetParams):
     return lat, n, X0f, np.ascontiguousarray(rest)
 
 
-def _rows_needed(p: NetParams, lat, n, X0f, rest, axis, tol_m) -> int:
+def flat_column_net(X0f, rest) -> NetArrays:
+    """A fresh work net on the flat lattice (axis +z) for :func:`solve_column` (it has no curved
+    surface: ``X0``/``x`` are empty)."""
+    n = X0f.shape[0]
+    none = np.empty((0, 3))
+    return NetArrays(np.empty((n, 3)), X0f, none, none, rest, np.array([0.0, 0.0, 1.0]))
+
+
+def _rows_needed(p: NetParams, lat, n, X0f, rest, tol_m) -> int:
     """Rows of the centred column until the threshold (or F_CAP_N) is passed, plus the margin."""
     h = p.spacing_m / ROWS_PER_SPACING
     chunk = 256
     f = np.empty(MAX_ROWS)
     r = np.empty(MAX_ROWS)
     nc = chunk
+    topo = Topology(lat.nbr, lat.ring, lat.plane)
     while True:
-        xf = np.empty((n, 3))
-        solve_column(xf, X0f, rest, lat.nbr, lat.ring, n, p.w, axis, p.k_virtual, p.k_surface, p.spacing_m,
-                     0.0, 0.0, h, nc, tol_m, MAX_SWEEPS_PER_ROW, f[:nc], r[:nc], np.empty((0, n, 3)))
+        solve_column(flat_column_net(X0f, rest), topo, p.springs(),
+                     Column(0.0, 0.0, h, nc, tol_m, MAX_SWEEPS_PER_ROW),
+                     ColumnOut(f[:nc], r[:nc], np.empty((0, n, 3))))
         past = np.nonzero((r[:nc] > p.threshold_m) | (f[:nc] > F_CAP_N))[0]
         if past.size:
             return int(min(MAX_ROWS, max(8, math.ceil(past[0] * ROW_MARGIN) + 2)))
@@ -243,21 +284,21 @@ def build(p: NetParams, tol_m: float) -> ResponseTable:
 
     t0 = time.perf_counter()
     lat, n, X0f, rest = _flat_net(p)
-    axis = np.array([0.0, 0.0, 1.0])
-    nc = _rows_needed(p, lat, n, X0f, rest, axis, tol_m)
+    nc = _rows_needed(p, lat, n, X0f, rest, tol_m)
     h = p.spacing_m / ROWS_PER_SPACING
     rho_max = 0.5 * p.spacing_m
     F = np.empty((COLUMNS, nc))
     R = np.empty((COLUMNS, nc))
     D = np.empty((nc, n, 3))
 
+    topo = Topology(lat.nbr, lat.ring, lat.plane)
+
     def column(j):
         rho = rho_max * math.sqrt(j / (COLUMNS - 1))
-        xf = np.empty((n, 3))
         field = D if j == 0 else np.empty((0, n, 3))
-        return solve_column(xf, X0f, rest, lat.nbr, lat.ring, n, p.w, axis, p.k_virtual, p.k_surface,
-                            p.spacing_m, rho * math.cos(PSI), rho * math.sin(PSI), h, nc, tol_m,
-                            MAX_SWEEPS_PER_ROW, F[j], R[j], field)
+        return solve_column(flat_column_net(X0f, rest), topo, p.springs(),
+                            Column(rho * math.cos(PSI), rho * math.sin(PSI), h, nc, tol_m, MAX_SWEEPS_PER_ROW),
+                            ColumnOut(F[j], R[j], field))
 
     with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as ex:
         sweeps = sum(ex.map(column, range(COLUMNS)))
@@ -305,16 +346,16 @@ def _save(path: Path, t: ResponseTable) -> None:
 
 
 def pack(tables: list[ResponseTable | None], n_layers: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every layer's table in one flat array plus the (n_layers, TM_SIZE) meta the servo reads.
-    A ``None`` layer gets TM_NR = 0 (no table: the servo sweeps its net)."""
+    """Every layer's table in one flat array plus the (n_layers,) :data:`TMETA` records the servo
+    reads. A ``None`` layer gets ``nr = 0`` (no table: the servo sweeps its net)."""
     parts = []
-    meta = np.zeros((n_layers, TM_SIZE))
+    meta = np.zeros(n_layers, TMETA)
     off = 0
     for k, t in enumerate(tables):
         if t is None:
             continue
         nr, nc = t.F.shape
-        meta[k] = [off, off + nr * nc, off + 2 * nr * nc, nr, nc, t.h, t.rho_max ** 2]
+        meta[k] = t.meta(off)
         parts += [t.F.ravel(), t.R.ravel(), t.D.ravel()]
         off += 2 * nr * nc + t.D.size
     tab = np.ascontiguousarray(np.concatenate(parts)) if parts else np.zeros(1)

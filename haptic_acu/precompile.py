@@ -5,7 +5,8 @@ installed sources; the force-net response tables are solved once per parameter s
 ``HAPTIC_ACU_CACHE``. ``make`` runs this module right after installing, so the first ``make demo``
 loads everything from the caches. It replays the bundled default insertion headless into a temporary
 folder (the servo step, springback, the rerun dents, the CSV formatter, the tissue fit and tables)
-and warms the real-time servo loop of ``haptic-acu run`` (compiled, never started). Nothing is left
+and warms the real-time servo loop of ``haptic-acu run`` (compiled, never started) and the servo
+tick's C entry point the Python drivers call. Nothing is left
 behind but the caches. After a plain ``pip install`` the first command does the same work.
 """
 from __future__ import annotations
@@ -33,6 +34,9 @@ def main() -> int:
         dev = ScriptedDevice(DEFAULT_TRAJECTORY, cfg.scene.max_hand_speed_m_per_s, realtime=True,
                              force_limit_n=cfg.safety.force_limit_n)
         Session(cfg, dev, [], clock="realtime").warm_up()
+        from .servotick import tick_entry
+
+        tick_entry()  # the servo tick of the Python drivers (keyboard, the OMNI's Python callback)
     print(f"haptic-acu: caches ready in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     return 0
 

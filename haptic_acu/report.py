@@ -603,16 +603,22 @@ class SamplesCsvSink:
 
     def _write_pending(self) -> None:
         if self._pending:
-            self.write_rows(np.concatenate(self._pending))
-            self._f.flush()
+            rows = np.concatenate(self._pending)
             self._pending = []
             self._n_pending = 0
+            try:
+                self.write_rows(rows)
+                self._f.flush()
+            except OSError as e:
+                raise OSError(e.errno, f"{self.path}: cannot write: {e.strerror or e}") from None
 
     def close(self, result=None) -> None:
         if self._f is not None:
-            self._write_pending()
-            self._f.close()
-            self._f = None
+            try:
+                self._write_pending()
+            finally:
+                self._f.close()
+                self._f = None
 
     def write_rows(self, rows: np.ndarray) -> None:
         k = len(rows)

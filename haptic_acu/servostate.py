@@ -33,6 +33,7 @@ from numba.np import numpy_support
 from numba.np.arrayobj import make_array, populate_array
 
 from .config import LAYER_NAMES, MAX_RINGS
+from .netresponse import TMETA
 
 # ---- the model's vocabulary ---------------------------------------------------------------------------
 PLACE_NAMES = ("outside", "skin", "fat", "muscle", "bone")  # where the tip is: PLACE_NAMES[DIAG.layer + 1]
@@ -125,7 +126,7 @@ class Model(NamedTuple):
     ring: np.ndarray  # (int64)
     plane: np.ndarray
     tab: np.ndarray  # tabulated net responses (netresponse.pack)
-    tmeta: np.ndarray
+    tmeta: np.ndarray  # (N_LAYERS,) netresponse.TMETA: where each layer's table lies in ``tab``
 
 
 class State(NamedTuple):
@@ -171,7 +172,7 @@ class Servo(NamedTuple):
 
 SPEC = {  # (dtype, ndim) of every field
     Model: dict(coeffs=("f8", 2), centre=("f8", 1), layer=(LAYER, 1), params=(PARAMS, 1), layout=(LAYOUT, 1),
-                nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=("f8", 2)),
+                nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1)),
     TickIn: dict(p=("f8", 1), v=("f8", 1), roll=("f8", 1)),

@@ -1,14 +1,18 @@
 """One servo tick, written once: the step, the period-error statistics, the sample row, publishing.
 
 Every driver of the servo calls :func:`servo_tick`: the headless replay (:func:`run_ticks`, on
-simulated time), the compiled real-time loop (:func:`haptic_acu.rtloop.servo_loop`, on our timer)
-and the OMNI's compiled callback (:mod:`haptic_acu.omniloop`, on the device's clock). A tick's
-lateness goes through :func:`account` in each driver's own units. The arguments are the NamedTuples
+simulated time), the compiled real-time loop (:func:`haptic_acu.rtloop.servo_loop`, on our timer),
+the OMNI's compiled callback (:mod:`haptic_acu.omniloop`, on the device's clock), and the engine's
+drivers written in Python (a device that cannot be read ahead, on simulated time or our timer; the
+OMNI's Python callback) through its C entry point (:class:`PythonTick`: one ctypes call per tick).
+A tick's lateness goes through :func:`account` in each driver's own units. The arguments are the NamedTuples
 of :mod:`haptic_acu.servostate`: ``sv`` (Servo: input, model, state, output), ``ring`` (Ring: the
 sample rows and their published count), ``timing`` (Timing: period errors, their count, missed);
 a compiled driver gets all three in one address table (:func:`tick_table`).
 """
 from __future__ import annotations
+
+import ctypes
 
 import numba as nb
 import numpy as np
@@ -16,6 +20,7 @@ from numba import types
 from numba.extending import intrinsic, register_jitable
 
 from . import servostate as ss
+from .cptr import address_of, i64p
 from .needle import step_servo
 from .samples import write_sample
 
@@ -108,3 +113,54 @@ def run_ticks(P, V, R, T, tick0, table):
         if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
             return i + 1
     return T.shape[0]
+
+
+_TICK_C = None
+
+
+def tick_entry():
+    """:func:`servo_tick` (with :func:`account` of its period error in seconds) as a C function
+    ``int64_t tick(int64_t *table, double t, int64_t index, double err_s, double period_s)`` on a
+    :func:`tick_table`, a cached numba cfunc: 1 if the state is finite after the tick, 0 if it
+    faulted, :data:`STALE` (nothing touched) for a table of another layout. ``period_s <= 0``: the
+    error is not accounted (simulated time)."""
+    global _TICK_C
+    if _TICK_C is None:
+        key = ss.LAYOUT_KEY  # in the closure: a new layout is a new cache entry
+        words = TICK_TABLE
+
+        @nb.cfunc(types.int64(types.voidptr, types.float64, types.int64, types.float64, types.float64),
+                  nopython=True, cache=True)
+        def tick_c(data, t, index, err_s, period_s):
+            table = nb.carray(i64p(address_of(data)), words)
+            if not ss.accept(table, key):
+                return STALE
+            sv, ring, timing = unpack_tick(table)
+            if period_s > 0.0:
+                account(timing, err_s, period_s, 1.0)
+            return 1 if servo_tick(sv, ring, t, index, err_s) else 0
+
+        fn = ctypes.CFUNCTYPE(ctypes.c_int64, ctypes.c_void_p, ctypes.c_double, ctypes.c_int64, ctypes.c_double,
+                              ctypes.c_double)(tick_c.address)
+        _TICK_C = fn, tick_c
+    return _TICK_C[0]
+
+
+class PythonTick:
+    """:func:`servo_tick` called from Python (the engine's Python drivers): ``tick(t, index, err_s,
+    period_s) -> bool`` (False: the state faulted) through :func:`tick_entry` on one
+    :func:`tick_table` made here. The arrays of ``servo``, ``ring`` and ``timing`` must outlive it and
+    are never reallocated (it keeps references to them)."""
+
+    def __init__(self, servo, ring, timing):
+        self._arrays = (servo, ring, timing)
+        self.table = tick_table(servo, ring, timing)
+        self._arg = ctypes.c_void_p(self.table.ctypes.data)
+        self._fn = tick_entry()
+
+    def __call__(self, t: float, index: int, err_s: float = 0.0, period_s: float = 0.0) -> bool:
+        r = self._fn(self._arg, t, index, err_s, period_s)
+        if r == STALE:
+            raise RuntimeError("haptic_acu.servotick: the compiled servo tick was built for another state layout "
+                               "(stale numba cache): remove haptic_acu/__pycache__/*.nbi and *.nbc")
+        return r == 1

@@ -275,10 +275,12 @@ def test_exception_in_the_servo_step(cfg, tissue, tmp_path, clock):
     rec = tmp_path / "rec.csv"
     result = session(cfg, tissue, dev, [RecorderSink(rec), counter], clock=clock).run()
     check_stopped(result, dev, counter, "RuntimeError: test actuator refused")
-    # set_force of tick 300 raised before its row was written: ticks 0..299 are the session.
-    assert result.ticks == FAULT_TICK == dev.reads - 1
+    # The tick writes its row, then its driver commands the force (as the compiled drivers do):
+    # set_force of tick 300 raised after its row was written, so ticks 0..300 are the session and
+    # no read after it was used.
+    assert result.ticks == FAULT_TICK + 1 == dev.reads
     assert dev.forces[FAULT_TICK - 1][2] > 0.05 and not np.any(dev.forces[-1])
-    check_recording(rec, dev, FAULT_TICK)
+    check_recording(rec, dev, FAULT_TICK + 1)
 
 
 @pytest.mark.parametrize("clock", ["realtime", "sim"])
@@ -364,6 +366,32 @@ def test_headless_replay_is_deterministic(cfg, tissue, tmp_path):
     # and the replay ran the whole file: 1 ms ticks from 0 to its last sample
     info = trajectory.validate(DEFAULT_TRAJ)
     assert outs[0][0] == math.floor(info.t_last_s * 1000 + 1e-6)
+
+
+class ReadAtOnly(ScriptedDevice):
+    """The scripted device without read-ahead: the engine must read and tick it one tick at a time
+    (the Python driver, through the servo tick's C entry point)."""
+
+    reads_ahead = False
+
+
+def test_ticks_one_by_one_from_python_equal_the_compiled_blocks(cfg, tissue, tmp_path):
+    """The same trajectory on simulated time, read ahead (run_ticks, compiled blocks) and read tick by
+    tick (the Python driver): identical sample rows, so both call the one servo tick."""
+    report = pytest.importorskip("haptic_acu.report")
+    out = []
+    for cls in (ScriptedDevice, ReadAtOnly):
+        dev = cls(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        path = tmp_path / f"{cls.__name__}.csv"
+        s = session(cfg, tissue, dev, [report.SamplesCsvSink(path)], clock="sim", duration_s=3.0)
+        result = s.run()
+        dev.close()
+        assert result.fault is None and result.stats["servo_loop"] == "simulated"
+        out.append((result.ticks, path.read_bytes(), dev.force_commands > 0))
+    assert out[0][0] == out[1][0] == 3001
+    assert out[0][1] == out[1][1] and b",muscle," in out[0][1]  # 3 s: past all three punctures
+    assert out[1][2]  # the driver ticking one by one commands the force tick by tick
 
 
 def test_recorder_keeps_only_rows_later_than_all_before_them(tmp_path):

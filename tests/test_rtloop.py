@@ -56,6 +56,21 @@ class Rows:
         return np.vstack(self.blocks) if self.blocks else np.zeros((0, len(COL)))
 
 
+class StopAfter(Rows):
+    """Rows, and ``session.stop()`` called (from the visual thread) once ``n`` rows have arrived."""
+
+    def __init__(self, n):
+        super().__init__()
+        self.n, self.session, self.stopped_at, self.stopper = n, None, None, None
+
+    def on_frame(self, frame):
+        super().on_frame(frame)
+        seen = sum(b.shape[0] for b in self.blocks)
+        if self.stopped_at is None and seen >= self.n:
+            self.stopped_at, self.stopper = seen, threading.current_thread()
+            self.session.stop()
+
+
 def run(cfg, tissue, device, clock, duration_s, **kw):
     # Never skip ticks after a stall unless a test asks to: a loaded host may stall the loop for
     # 10+ ms, and these tests check which ticks run and what they compute, not when.
@@ -156,17 +171,20 @@ def test_a_loop_that_never_skips_runs_every_tick_however_late(cfg, tissue):
 
 
 def test_stop_from_another_thread_ends_at_once_with_zero_force_and_every_row(cfg, tissue):
+    # The stop comes from the visual thread once the loop has run (a timer started before run()
+    # could fire before the first tick on a loaded host).
     dev = ScriptedDevice(DEFAULT_TRAJ, realtime=True)
     dev.open()
-    sink = Rows()
+    sink = StopAfter(300)
     s = Session(cfg, dev, [sink], clock="realtime", duration_s=10.0, model=NeedleModel(cfg, tissue),
                 realtime_priority=False)
+    sink.session = s
     s.warm_up()
-    threading.Timer(0.6, s.stop).start()
     result = s.run()
     dev.close()
     rows = sink.rows
-    assert result.fault is None and 100 < result.ticks < 9000
+    assert sink.stopped_at >= 300 and sink.stopper is not threading.main_thread()
+    assert result.fault is None and 300 <= result.ticks < 9000
     ticks = rows[:, COL["tick"]]
     assert ticks[0] == 0 and np.all(np.diff(ticks) >= 1)  # every tick run is there once, in order
     assert len(ticks) == result.ticks  # up to the last one
