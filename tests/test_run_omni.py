@@ -255,7 +255,7 @@ def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, worksp
     env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", "1.6",
-                           "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else []),
+                           "--record", str(rec), "--no-status", "--out", str(tmp_path / "out")] + (["--python-servo"] if servo == "python" else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
