@@ -141,6 +141,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
     P = np.ascontiguousarray(sc.P[:n])
     V = np.ascontiguousarray(sc.V[:n])
     n = P.shape[0]
+    R = np.ascontiguousarray(sc.R[:n])  # the needle's roll: every scenario twirls
     T = np.arange(n) * scenarios.DT
     models = {}
     for way in ("step", "kernel", "compiled"):
@@ -162,12 +163,12 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
         table = tick_table(c.servo, rows, timing)  # rows and timing outlive it
         snap = _snapshot(c)
         A = np.full_like(P, np.nan)  # no device axis: the step takes the direction of travel
-        call_driver(run_ticks, P[:1], V[:1], A[:1], T[:1], 0, table)  # load the compiled loop
+        call_driver(run_ticks, P[:1], V[:1], A[:1], R[:1], T[:1], 0, table)  # load the compiled loop
         _restore(c, snap)
     if "kernel" in models:
         k = models["kernel"]
         k_args = k.kernel_args()
-        kp, kv = k.inp.p, k.inp.v
+        kp, kv, kr = k.inp.p, k.inp.v, k.inp.roll
         empty_kernel(*k_args)
     times = {w: [] for w in ("step", "kernel", "dispatch", "compiled")}
     clock = time.perf_counter_ns
@@ -176,11 +177,12 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
             if "step" in models:
                 m = models["step"]
                 t0 = clock()
-                m.step(P[i], V[i])
+                m.step(P[i], V[i], R[i])
                 times["step"].append(clock() - t0)
             if "kernel" in models:
                 kp[:] = P[i]
                 kv[:] = V[i]
+                kr[0] = R[i]
                 t0 = clock()
                 step_kernel(*k_args)
                 t1 = clock()
@@ -191,7 +193,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
                 t0 = clock()
-                run_ticks(P[s:i + 1], V[s:i + 1], A[s:i + 1], T[s:i + 1], s, table)
+                run_ticks(P[s:i + 1], V[s:i + 1], A[s:i + 1], R[s:i + 1], T[s:i + 1], s, table)
                 times["compiled"].append((clock() - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path

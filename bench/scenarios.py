@@ -62,6 +62,12 @@ def model_for(cfg) -> NeedleModel:
     return NeedleModel(cfg, tissue_for(cfg))
 
 
+def twirl_roll(n: int, swing_deg: float = 180.0, freq_hz: float = 1.5) -> np.ndarray:
+    """``n`` ticks of a sinusoidal twirl (rad) of ``swing_deg`` at ``freq_hz``."""
+    t = np.arange(n) * DT
+    return np.radians(0.5 * swing_deg) * np.sin(2.0 * np.pi * freq_hz * t)
+
+
 def straight(z0: float, z1: float, speed: float) -> tuple[np.ndarray, np.ndarray]:
     """Tip along the z axis from z0 to z1 (m) at ``speed`` (m/s), one row per tick."""
     n = max(1, int(round(abs(z1 - z0) / (speed * DT))))
@@ -92,6 +98,12 @@ class Scenario:
     P: np.ndarray
     V: np.ndarray
     layer: int  # the layer pressed (or -1: inside, no net)
+
+    @property
+    def R(self) -> np.ndarray:
+        """The needle's roll (rad) on the measured ticks: a twirl of 180 deg swing at 1.5 Hz (the
+        bundled even twirl), so every servo-tick figure includes the twirl phase winding tissue."""
+        return twirl_roll(self.P.shape[0])
 
     @property
     def w(self) -> int:

@@ -36,6 +36,7 @@ class DeviceState:
     velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     buttons: int = 0
     axis: np.ndarray | None = None  # unit vector from tip toward the handle, if the device knows it
+    roll_rad: float = 0.0  # the needle's roll about its axis (rad, cumulative, + clockwise seen from the handle)
     done: bool = False  # the source has ended (end of a trajectory, quit key)
     reset: bool = False  # the user asked for a fresh tissue (holes and nets cleared) this tick
 
@@ -110,6 +111,11 @@ class Device(abc.ABC):
         """(positions (n, 3) m, velocities (n, 3) m/s, done flags (n,)) at increasing times ``t_s``;
         only for a device with :attr:`reads_ahead`."""
         raise NotImplementedError(f"{self.info.name} cannot be read ahead")
+
+    def roll_block(self, t_s: np.ndarray) -> np.ndarray | None:
+        """The needle's roll (rad, cumulative) at the ticks ``t_s`` (just read by :meth:`read_block`),
+        or None when the device gives none (no rotation). Default: None."""
+        return None
 
     def reset_ticks(self, t_s: np.ndarray) -> list[int]:
         """Indices of the ticks ``t_s`` (just read by :meth:`read_block`) before which the tissue is

@@ -12,12 +12,19 @@ insertion axis -z (the acupoint is the skin's +z pole at the scene origin). Keys
 ``u`` / ``n``         lateral step of 0.5 mm in +y / -y
 ``+`` (``=``)         axial speed x2 (at most 40 mm/s)
 ``-`` (``_``)         axial speed /2 (at least 1 mm/s); the default is 5 mm/s
+``]`` / ``[``         twirl: roll the needle clockwise / counter-clockwise (seen from the handle) at
+                      the set twirl rate while the key is held (see below)
+``t``                 twirl rate: the next of 90, 180, 360, 720 deg/s (the default 180)
 ``r``                 fresh tissue (``DeviceState.reset`` for one read) and the needle back at the start
 ``q`` / Ctrl-C        quit (``DeviceState.done``)
 ====================  ===========================================================================
 
 Terminals send no key-up events, so a press starts a motion and ``space`` stops it; the opposite
-key reverses it. The tip stays within 60 mm below and 30 mm above the acupoint and 25 mm off the
+key reverses it. A twirl key is "held" by the terminal's auto-repeat: each ``[`` / ``]`` keeps the
+needle rolling that way for :data:`TWIRL_HOLD_S` (0.6 s, longer than the usual 0.5 s auto-repeat
+delay), so holding the key rolls it steadily and a tap rolls it by rate x 0.6 s; the other twirl key
+reverses at once, ``space`` stops it. The roll is cumulative (``DeviceState.roll_rad``, rad, positive
+clockwise seen from the handle) and back to 0 on ``r``. The tip stays within 60 mm below and 30 mm above the acupoint and 25 mm off the
 axis: the axial motion stops at those limits and lateral steps past them are ignored.
 
 Terminal handling: :meth:`KeyboardDevice.open` puts the tty in cbreak mode (no line buffering, no
@@ -68,10 +75,13 @@ SPEED_MAX_M_S = 40e-3
 DEPTH_LIMIT_M = 60e-3  # below the acupoint (the default tissue's bone is at 48.2 mm)
 HEIGHT_LIMIT_M = 30e-3  # above the acupoint
 LATERAL_LIMIT_M = 25e-3  # off the axis, in x and in y
+TWIRL_RATES_DEG_S = (90.0, 180.0, 360.0, 720.0)  # the ``t`` key cycles through these (2 turns/s at most)
+TWIRL_RATE_DEFAULT_DEG_S = 180.0
+TWIRL_HOLD_S = 0.6  # a twirl key rolls the needle this long (auto-repeat extends it while held)
 ESC_TIMEOUT_S = 0.05  # a lone ESC not followed by more bytes within this is dropped
 
 HELP = ("keyboard: i/k or Up/Down insert/withdraw, space stop, h/l or Left/Right x -/+0.5 mm, "
-        "u/n y +/-0.5 mm, +/- speed, r reset, q quit")
+        "u/n y +/-0.5 mm, +/- speed, ]/[ twirl cw/ccw, t twirl rate, r reset, q quit")
 NOT_A_TTY = "the keyboard device needs a terminal (a tty); use --device scripted for files"
 
 # single bytes -> command
@@ -79,6 +89,7 @@ _KEYS = {
     b"i": "insert", b"k": "withdraw", b" ": "stop",
     b"h": "x-", b"l": "x+", b"u": "y+", b"n": "y-",
     b"+": "faster", b"=": "faster", b"-": "slower", b"_": "slower",
+    b"]": "twirl+", b"[": "twirl-", b"t": "twirl_rate",
     b"r": "reset", b"q": "quit", b"\x03": "quit",
 }
 # final byte of an ESC [ ... or ESC O ... sequence -> command
@@ -177,6 +188,10 @@ class KeyboardDevice(Device):
         self._axial = 0  # +1 inserting (-z), -1 withdrawing, 0 stopped
         self.speed_m_s = SPEED_DEFAULT_M_S
         self._lateral_left = np.zeros(2)  # lateral displacement still to move (m)
+        self._roll = 0.0  # rad, cumulative, + clockwise seen from the handle
+        self._twirl = 0  # +1 clockwise, -1 counter-clockwise, 0 still
+        self._twirl_until = 0.0  # device time the current twirl key's hold ends
+        self.twirl_rate_deg_s = TWIRL_RATE_DEFAULT_DEG_S
         self._t = 0.0
         self._last_wall: float | None = None
         self._done = False
@@ -253,7 +268,7 @@ class KeyboardDevice(Device):
             self.events.append((self._reads, "reset"))
         self._reads += 1
         return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=self._velocity(),
-                           axis=np.array(AXIS), done=self._done, reset=reset)
+                           axis=np.array(AXIS), done=self._done, reset=reset, roll_rad=self._roll)
 
     def set_force(self, force_n) -> None:
         self.last_force_n = np.array(force_n, dtype=np.float64).reshape(3)
@@ -275,6 +290,11 @@ class KeyboardDevice(Device):
     def _integrate(self, dt: float) -> None:
         if dt <= 0.0:
             return
+        if self._twirl:
+            turn = min(dt, max(self._twirl_until - self._t, 0.0))  # the hold ends within this step
+            self._roll += self._twirl * math.radians(self.twirl_rate_deg_s) * turn
+            if self._t + dt >= self._twirl_until:
+                self._twirl = 0
         if self._axial:
             z = self._p[2] - self._axial * self.speed_m_s * dt
             lo, hi = -DEPTH_LIMIT_M, HEIGHT_LIMIT_M
@@ -301,6 +321,13 @@ class KeyboardDevice(Device):
             self._axial = -1 if self._p[2] < HEIGHT_LIMIT_M else 0
         elif cmd == "stop":
             self._axial = 0
+            self._twirl = 0
+        elif cmd in ("twirl+", "twirl-"):
+            self._twirl = 1 if cmd == "twirl+" else -1
+            self._twirl_until = self._t + TWIRL_HOLD_S
+        elif cmd == "twirl_rate":
+            i = TWIRL_RATES_DEG_S.index(self.twirl_rate_deg_s) if self.twirl_rate_deg_s in TWIRL_RATES_DEG_S else -1
+            self.twirl_rate_deg_s = TWIRL_RATES_DEG_S[(i + 1) % len(TWIRL_RATES_DEG_S)]
         elif cmd in ("x-", "x+", "y-", "y+"):
             k = 0 if cmd[0] == "x" else 1
             step = LATERAL_STEP_M if cmd[1] == "+" else -LATERAL_STEP_M
@@ -314,10 +341,13 @@ class KeyboardDevice(Device):
         elif cmd == "reset":
             self._p[:] = np.array(START_MM) * 1e-3
             self._axial = 0
+            self._roll = 0.0
+            self._twirl = 0
             self._lateral_left[:] = 0.0
         elif cmd == "quit":
             self._done = True
             self._axial = 0
+            self._twirl = 0
             self._lateral_left[:] = 0.0
 
     # -- the key reader thread ------------------------------------------------------------------

@@ -4,7 +4,8 @@ The device drives the clock: :meth:`OmniDevice.run_servo` schedules one asynchro
 the HD scheduler's maximum priority, and the scheduler calls it once per servo tick (1 kHz). Each
 tick the callback opens an HD frame, reads the stylus (position = translation of
 HD_CURRENT_TRANSFORM, column-major, mm; velocity = HD_CURRENT_VELOCITY, mm/s, or a low-pass
-filtered difference of positions if the device does not report it; buttons), maps it to the scene
+filtered difference of positions if the device does not report it; buttons; the stylus roll = the
+third of HD_CURRENT_GIMBAL_ANGLES, unwrapped 1:1 into ``DeviceState.roll_rad``), maps it to the scene
 frame (m, m/s) with the :class:`~devices.base.Workspace`, calls the engine's ``step(state)``,
 and commands the returned force (N, scene frame -> device frame) before closing the frame.
 
@@ -67,6 +68,7 @@ HD_INVALID_ENUM = 0x0100
 HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_VELOCITY = 0x2051
 HD_CURRENT_TRANSFORM = 0x2052
+HD_CURRENT_GIMBAL_ANGLES = 0x2150  # the third is the stylus roll
 HD_DEVICE_MODEL_TYPE = 0x2501
 HD_NOMINAL_MAX_STIFFNESS = 0x2602
 HD_NOMINAL_MAX_FORCE = 0x2603
@@ -184,6 +186,7 @@ class _Servo:
         self.velocity = (ctypes.c_double * 3)()
         self.buttons = ctypes.c_int(0)
         self.force = (ctypes.c_double * 3)()
+        self.gimbal = (ctypes.c_double * 3)()
         self.velocity_from_device = True
         self.guard = None  # omniloop.OmniArrays: the guard's state, shared with the compiled callback's code
         self.render = None  # (diag, inp) of the engine's servo: the rendering layer on (run_servo)
@@ -373,7 +376,7 @@ class OmniDevice(Device):
         if render is None:
             guard["limits"] = None
         servo.guard = ol.make_arrays(self.workspace, guard, self.info.force_limit_n, RATE_HZ)
-        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
+        servo.inp = TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan), np.zeros(1))
         servo.render = render
         self._servo = servo
         handle = self._schedule(servo, _CALLBACK(lambda data: self._tick(servo)), None)
@@ -574,6 +577,10 @@ class OmniDevice(Device):
         msg = hd.error("hdGetIntegerv(HD_CURRENT_BUTTONS)")
         if msg:
             return self._abort(s, msg)
+        hd.get_doublev(HD_CURRENT_GIMBAL_ANGLES, s.gimbal)
+        msg = hd.error("hdGetDoublev(HD_CURRENT_GIMBAL_ANGLES)")
+        if msg:
+            return self._abort(s, msg)
 
         # the guard the compiled callback runs too (omniloop.guard_in / guard_out)
         from haptic_acu import omniloop as ol
@@ -582,6 +589,7 @@ class OmniDevice(Device):
         c = g.ictl[0]
         g.hdt[12:15] = pos
         g.hdv[:] = s.velocity[:3]
+        g.hdg[:] = s.gimbal[:3]
         c["vel_dev"] = 1 if s.velocity_from_device else 0
         st = ol.guard_in(g, s.inp)
         if st != ol.S_RUNNING:
@@ -601,6 +609,7 @@ class OmniDevice(Device):
             position_m=s.inp.p.copy(),
             velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),
+            roll_rad=float(s.inp.roll[0]),
         )
         s.latest = state
         f = np.asarray(s.step(state), dtype=float)

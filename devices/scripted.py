@@ -23,9 +23,10 @@ Clocking (``drives_clock`` is False: the engine keeps the clock):
 Optional columns (see :mod:`haptic_acu.trajectory`): a ``reset`` event gives ``DeviceState.reset``
 on the first read at or after it (``read_at``) and is listed by :meth:`ScriptedDevice.reset_ticks`
 for a block of ticks (the headless engine resets the model there); the needle axis
-(``axis_x,axis_y,axis_z``) fills ``DeviceState.axis``; :meth:`ScriptedDevice.pose_block` gives axis
-and roll for a block of ticks (``None`` when the file has no such columns). The servo step does not
-use axis or roll yet.
+(``axis_x,axis_y,axis_z``) fills ``DeviceState.axis``; ``roll_deg`` fills ``DeviceState.roll_rad``
+(and :meth:`ScriptedDevice.roll_block` for a block of ticks: the servo's twirl);
+:meth:`ScriptedDevice.pose_block` gives axis and roll for a block of ticks (``None`` when the file
+has no such columns).
 
 ``seek(t_s)`` sets the clock (a backward seek re-reads the file from its start). ``set_force``
 commands nothing (there is no motor): it keeps the last force, the count of commands and the
@@ -51,11 +52,14 @@ from .base import Device, DeviceInfo, DeviceState
 
 class ScriptedDevice(Device):
     """Replays ``path``. ``force_limit_n`` defaults to a large value: nothing here can be hurt;
-    pass the config's ``safety.force_limit_n`` to make the engine clamp as for a real device."""
+    pass the config's ``safety.force_limit_n`` to make the engine clamp as for a real device.
+    ``roll=False`` plays the file without its ``roll_deg`` (no rotation; every other input the same:
+    the reference of the technique metrics' grasp felt)."""
 
     def __init__(self, path, max_hand_speed_m_per_s: float = DEFAULT_MAX_HAND_SPEED_M_PER_S,
-                 realtime: bool = False, force_limit_n: float = 1000.0):
+                 realtime: bool = False, force_limit_n: float = 1000.0, roll: bool = True):
         self.path = Path(path)
+        self.roll = bool(roll)  # False: the file's roll_deg is ignored (the same replay without rotation)
         # reads and checks the header now: a missing or malformed file fails at construction
         self._reader = TrajectoryReader(self.path, max_hand_speed_m_per_s)
         self.realtime = bool(realtime)
@@ -101,8 +105,12 @@ class ScriptedDevice(Device):
         c = self._cursor
         pos, vel, done = c.sample(t_s)
         extra = {}
-        if self._reader.has_axis:
-            extra["axis"] = -c.pose_block(np.array([float(t_s)]))[0][0]  # DeviceState: tip -> handle
+        if self._reader.has_axis or self._reader.has_roll:
+            ax, roll = c.pose_block(np.array([float(t_s)]))
+            if ax is not None:
+                extra["axis"] = -ax[0]  # DeviceState: tip -> handle
+            if roll is not None and self.roll:
+                extra["roll_rad"] = math.radians(float(roll[0]))
         if c.reset_times and any(self._last_read_t < r <= t_s for r in c.reset_times[-4:]):
             extra["reset"] = True
             self.events.append((self._reads, "reset"))  # for a recording: (servo tick, name)
@@ -128,6 +136,12 @@ class ScriptedDevice(Device):
         if self._cursor is None:
             raise RuntimeError("ScriptedDevice: call open() first")
         return self._cursor.pose_block(np.asarray(t_s, dtype=np.float64))
+
+    def roll_block(self, t_s: np.ndarray):
+        """The roll (rad, cumulative) at the times ``t_s``, or None if the file has no ``roll_deg``."""
+        if not (self._reader.has_roll and self.roll):
+            return None
+        return np.radians(self.pose_block(t_s)[1])
 
     def set_force(self, force_n) -> None:
         f = np.array(force_n, dtype=np.float64).reshape(3)
@@ -165,6 +179,11 @@ class ScriptedDevice(Device):
         if self.realtime:
             return 0.0 if self._wall0 is None else time.perf_counter() - self._wall0
         return self._clock
+
+    @property
+    def has_roll(self) -> bool:
+        """The file has a ``roll_deg`` column (and it is played)."""
+        return self._reader.has_roll and self.roll
 
     @property
     def has_events(self) -> bool:

@@ -42,7 +42,7 @@ import numpy as np
 from .errors import UserError
 
 # Bump when a metric's definition changes: every cached session is then replayed again.
-METRICS_VERSION = 2
+METRICS_VERSION = 3  # 3: the technique columns (twirling, grasp felt, reinforcing / reducing / even)
 REQUIRED = ("session", "trainee", "file")
 OPTIONAL = ("level", "date")
 STATE_DIR = ".cohort"
@@ -108,6 +108,14 @@ def _lt(key):
     return lambda c: c.m["lift_thrust"][key]
 
 
+def _tech(part, key):
+    """A technique metric (:mod:`haptic_acu.technique`, metrics.py ``technique``), None if absent."""
+    def get(c):
+        d = c.m["technique"][part]
+        return None if d is None else d[key]
+    return get
+
+
 # One entry per column of insertions.parquet after the manifest's columns and `insertion`. Add a
 # metric (e.g. twirling) by adding one Column here; sessions.parquet gets its mean automatically.
 INSERTION_COLUMNS: list[Column] = [
@@ -143,6 +151,20 @@ INSERTION_COLUMNS: list[Column] = [
     Column("lift_thrust_cycles", "", "lift-thrust cycles at depth", _lt("cycles"), "int64"),
     Column("lift_thrust_amplitude_mm", "mm", "mean lift-thrust stroke", _lt("mean_amplitude_mm")),
     Column("lift_thrust_frequency_hz", "Hz", "lift-thrust frequency", _lt("frequency_hz")),
+    Column("twirl_cycles", "", "twirling cycles (roll reversals with 5 deg hysteresis)", _tech("twirl", "cycles"), "int64"),
+    Column("twirl_amplitude_deg", "deg", "twirl amplitude: half the mean angle between roll reversals",
+           _tech("twirl", "amplitude_deg")),
+    Column("twirl_frequency_hz", "Hz", "twirling frequency", _tech("twirl", "frequency_hz")),
+    Column("twirl_net_rotation_deg", "deg", "roll at the insertion's end minus at its start",
+           _tech("twirl", "net_rotation_deg")),
+    Column("twirl_peak_torque_nmm", "N*mm", "largest twist torque about the needle axis",
+           _tech("twirl", "peak_torque_nmm")),
+    Column("thrust_to_lift", "1", "mean thrust resistance over mean lift resistance of the lift-thrust strokes",
+           _tech("lift_thrust_forces", "thrust_to_lift")),
+    Column("grasp_felt_ratio", "1", "needle grasp: peak withdrawal resistance over the same replay's without "
+           "rotation (1: no grasp)", _tech("grasp_felt", "peak_ratio")),
+    Column("technique", "", "\"reinforcing\", \"reducing\" or \"even\" (textbook rule, docs/model.md), empty "
+           "without twirling or lift-thrust", _tech("classification", "label"), "string"),
     Column("skin_punctured", "", "the insertion broke intact skin (false: re-entry through a hole)",
            lambda c: c.m["skin_punctured"], "bool"),
     Column("depth_verdict", "", "\"in range\", \"too shallow\" or \"too deep\"", lambda c: c.m["depth_verdict"], "string"),
@@ -346,14 +368,14 @@ def _num(v):
     return round(v, 9) + 0.0 if math.isfinite(v) else None
 
 
-def insertion_table(rows: np.ndarray, cfg, tissue=None) -> tuple[dict, list[dict]]:
+def insertion_table(rows: np.ndarray, cfg, tissue=None, reference_rows=None) -> tuple[dict, list[dict]]:
     """(session metrics, one dict per insertion with every :data:`INSERTION_COLUMNS` value) from a
-    session's sample rows."""
+    session's sample rows; ``reference_rows``: the same replay without rotation (the grasp felt)."""
     from .metrics import entry_tick, insertion_runs, session_metrics
     from .samples import COL
     from .skill_metrics import smooth_path
 
-    sm = session_metrics(rows, cfg, tissue)
+    sm = session_metrics(rows, cfg, tissue, reference_rows=reference_rows)
     t = rows[:, COL["t_s"]]
     p = rows[:, COL["x_m"]:COL["x_m"] + 3]
     ps = smooth_path(t, p)
@@ -423,7 +445,11 @@ def _replay(job: Job) -> dict:
         if result.duration_s < device.duration_s - 0.01:
             raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
         summary = sink.summary()
-        sm, insertions = insertion_table(sink.rows(), cfg, tissue)
+        reference = None
+        if device.has_roll:  # the grasp felt: the same replay without rotation
+            from .replay import replay_rows
+            reference = replay_rows(job.file, cfg, roll=False)
+        sm, insertions = insertion_table(sink.rows(), cfg, tissue, reference)
         if partial is not None:
             _session_files(partial, Path(job.session_dir), summary, sm, sink.rows(), tissue, job)
     finally:

@@ -151,6 +151,12 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     return total.reshape(np.shape(theta))
 
 
+def roll_of_block(device, T: np.ndarray) -> np.ndarray:
+    """The device's needle roll (rad, contiguous) at the ticks ``T``: zeros when it gives none."""
+    r = device.roll_block(T)
+    return np.zeros(T.size) if r is None else np.ascontiguousarray(r, dtype=np.float64)
+
+
 def percentiles_us(values_s: np.ndarray) -> dict:
     if values_s.size == 0:
         return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
@@ -183,6 +189,7 @@ class Session:
         self.clock = clock
         self.duration_s = duration_s
         self.model = model if model is not None else NeedleModel(cfg)
+        self.model.model.params[0]["dt"] = 1.0 / servo_hz  # the twirl's relaxation runs on this clock
         self.springback = Springback.from_config(self.model, cfg)
         self.servo_dt = 1.0 / servo_hz
         self.frame_dt = 1.0 / visual_hz
@@ -258,7 +265,7 @@ class Session:
         if self.clock == "sim" and self.device.reads_ahead:
             z = np.zeros((1, 3))
             rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
-            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), 0,
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1), 0,
                         tick_table(m.servo, rows, self._timing))
             self.model.reset(keep_holes=False)
         layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
@@ -297,7 +304,7 @@ class Session:
                            devicemodel.new(self.servo_dt, on=False))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
-        feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan))
+        feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan), np.zeros(1))
         call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, feed, tick_table(m.servo, rows, self._timing))
 
     def stop(self) -> None:
@@ -328,6 +335,7 @@ class Session:
         m.inp.p[:] = state.position_m
         m.inp.v[:] = state.velocity_m_s
         m.inp.axis[:] = np.nan if state.axis is None else -state.axis  # DeviceState: tip -> handle
+        m.inp.roll[0] = state.roll_rad
         if self.device_model is not None:  # the modelled device's rendered force, for the row
             devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
         ok = self._tick(t, self.tick, period_err, period)
@@ -476,7 +484,8 @@ class Session:
             if self._sim_table is None:  # the ring's and the model's arrays outlive it
                 self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
             A = axis_block(dev, T)
-            n = self._run_ticks_resetting(P, V, A, T, k0, dev.reset_ticks(T), self._sim_table)
+            R = roll_of_block(dev, T)
+            n = self._run_ticks_resetting(P, V, A, R, T, k0, dev.reset_ticks(T), self._sim_table)
             self.tick += n
             self._t_session = float(T[n - 1])
             if self.model.diag["fault"] != 0.0:
@@ -486,7 +495,7 @@ class Session:
             dev.set_force(self._force)
         return T.size == k1 + 1 - k0
 
-    def _run_ticks_resetting(self, P, V, A, T, k0, cuts, table) -> int:
+    def _run_ticks_resetting(self, P, V, A, R, T, k0, cuts, table) -> int:
         """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
         ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
@@ -496,7 +505,7 @@ class Session:
             if j > 0:
                 self.model.reset(keep_holes=False)
             if b > a:
-                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], T[a:b], k0 + a, table)
+                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], R[a:b], T[a:b], k0 + a, table)
                 n += r
                 if r < b - a:  # a fault
                     break

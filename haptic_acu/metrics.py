@@ -53,6 +53,15 @@ Per insertion:
 * ``lateral``: ticks of the run with ``f_lateral_n`` (the lateral-constraint force) above the comfort
   bound, their duration, and the run's largest lateral force.
 * ``time_in_tissue_s``: the run's duration (ticks times the tick period).
+* ``technique``: the manipulation (:func:`haptic_acu.technique.technique_metrics`, docs/model.md
+  "Technique metrics") over the run, on its continuous depth along the insertion direction (mm), the
+  roll (``roll_deg``), the twist torque (``torque_nmm``) and the axial force ``f_axial_n`` = -F . u
+  (u the insertion direction: positive pushing the needle out): ``twirl`` (cycles, swing and
+  amplitude in degrees, frequency in Hz, net and total rotation, mean speed, peak torque),
+  ``lift_thrust_forces`` (thrust and lift resistances and speeds, their ratio), ``grasp_felt`` (the
+  withdrawal's resistance against the same withdrawal without rotation: only when the caller passes
+  the rows of that replay, ``reference_rows``; else None) and ``classification`` (reinforcing /
+  reducing / even, with its inputs, thresholds and source).
 
 Session level: ``insertions`` (count), ``skin_punctures`` (insertions that broke intact skin),
 ``time_in_tissue_s`` and ``lateral`` summed over insertions. The tick period is the median interval
@@ -78,6 +87,7 @@ _PUNCT = COL["puncture"]
 _DEPTH = COL["depth_skin_m"]
 _LAT = COL["f_lateral_n"]
 _LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
+_ROLL, _TORQUE, _TICK = COL["roll_deg"], COL["torque_nmm"], COL["tick"]
 
 
 def _r(x, nd: int):
@@ -205,9 +215,37 @@ def _angle_deg(u: np.ndarray, n: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(u, n)), float(np.dot(u, n)))))
 
 
+def _technique(run: np.ndarray, depth_c: np.ndarray, u: np.ndarray, ref: np.ndarray | None) -> dict:
+    """The run's technique metrics (see the module docstring); ``ref``: the same rows replayed
+    without rotation, or None."""
+    from .technique import technique_metrics
+
+    f = run[:, _F:_F + 3]
+    table = {"t_s": run[:, _T], "depth_mm": depth_c * 1e3, "roll_deg": run[:, _ROLL],
+             "torque_nmm": run[:, _TORQUE], "f_axial_n": -(f @ u)}
+    reference = None
+    if ref is not None:
+        reference = {"f_axial_n": -(ref[:, _F:_F + 3] @ u)}
+    return technique_metrics(table, reference)
+
+
+def _reference_run(reference_rows, run: np.ndarray) -> np.ndarray | None:
+    """The reference replay's rows on the same ticks as ``run``, or None if it does not hold them."""
+    if reference_rows is None:
+        return None
+    ticks = run[:, _TICK].astype(np.int64)
+    ref_ticks = reference_rows[:, _TICK].astype(np.int64)
+    idx = np.searchsorted(ref_ticks, ticks)
+    if idx.size == 0 or idx[-1] >= len(ref_ticks) or not np.array_equal(ref_ticks[idx], ticks):
+        return None
+    return reference_rows[idx]
+
+
 def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target_mm, tissue=None,
-                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, punctures=(), tip_depth=None) -> dict:
-    """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured)."""
+                      lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, punctures=(), tip_depth=None,
+                      reference_rows=None) -> dict:
+    """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured);
+    ``reference_rows``: the session replayed without rotation (for the grasp felt), or None."""
     state = rows[:, _SKIN]
     e = entry_tick(state, first)
     run = rows[first:last + 1]
@@ -276,11 +314,12 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
     if tip_depth is not None:
         out["max_tip_depth_mm"] = _r(max(float(tip_depth[e:last + 1].max()), 0.0) * 1e3, 3)
     out["punctures"] = [p for p in punctures if t_entry <= p["t_s"] <= t_exit]
+    out["technique"] = _technique(run, dc, u, _reference_run(reference_rows, run))
     return out
 
 
 def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N,
-                    punctures=None) -> dict:
+                    punctures=None, reference_rows=None) -> dict:
     """Metrics of one session's rows ((n, NCOL) array, oldest first): see the module docstring.
 
     ``cfg``: the :class:`~haptic_acu.config.TissueConfig` (its ``scene.target_depth_mm``).
@@ -288,7 +327,9 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
     (default: -z, the normal at the acupoint). ``lateral_comfort_n``: the lateral-force comfort
     bound (N). ``punctures``: the summary's puncture list (:meth:`haptic_acu.report.SummarySink.summary`)
     if the caller has it; else found here with the same scan (needs ``tissue``). Without ``tissue``
-    there is no ``max_tip_depth_mm`` and no ``punctures`` per insertion."""
+    there is no ``max_tip_depth_mm`` and no ``punctures`` per insertion. ``reference_rows``: the same
+    session replayed without rotation (the trajectory's ``roll_deg`` dropped), for each insertion's
+    ``technique.grasp_felt``; None leaves it out."""
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (n, {NCOL}), got {rows.shape}")
@@ -300,8 +341,9 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
             punctures = puncture_records(SessionScan(tissue).feed(rows, depth=tip_depth))
     target = tuple(float(v) for v in cfg.scene.target_depth_mm)
     dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
-    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth)
-                  for a, b in insertion_runs(rows[:, _SKIN])]
+    ref = None if reference_rows is None else np.asarray(reference_rows, dtype=np.float64)
+    insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth,
+                                    ref) for a, b in insertion_runs(rows[:, _SKIN])]
     return _session_dict(insertions, int(np.count_nonzero(rows[:, _SKIN] == PUNCTURED)), dt, target,
                          lateral_comfort_n)
 
@@ -365,8 +407,10 @@ class SessionMetricsScan:
     ``entries``: each insertion's entry tick as a row index of the whole stream (for the figure's
     colours, :func:`haptic_acu.report.insertion_index`)."""
 
-    def __init__(self, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N):
+    def __init__(self, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, reference_rows=None):
         self.target = tuple(float(v) for v in cfg.scene.target_depth_mm)
+        # the same session replayed without rotation (session_metrics' reference_rows), or None
+        self.ref = None if reference_rows is None else np.asarray(reference_rows, dtype=np.float64)
         self.tissue = tissue
         self.comfort = float(lateral_comfort_n)
         self.rows_seen = 0
@@ -424,7 +468,7 @@ class SessionMetricsScan:
             if not self.entries or self.entries[-1] != e:
                 self.entries.append(e)
             if b < n - 1:
-                m = insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip)
+                m = insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip, self.ref)
                 self.insertions.append((m, b - a + 1))
         e = _open_start(st)
         self._win = [buf[e:].copy()] if e < n else []
@@ -441,7 +485,8 @@ class SessionMetricsScan:
             if self.tissue is not None:
                 from .report import tip_depth_m
                 tip = tip_depth_m(buf[:, _X:_X + 3], self.tissue)
-            pending = [(insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip), b - a + 1)
+            pending = [(insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip, self.ref),
+                        b - a + 1)
                        for a, b in insertion_runs(st)]
         dt = self.dt.median() if self.rows_seen >= 2 else 0.0
         insertions = []

@@ -5,7 +5,7 @@ sequence of named phases, each a small kernel of its own:
 
     check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
     sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
-    bone_wall -> locate -> clamp
+    twirl_phase (winding: torque, grasp) -> bone_wall -> locate -> clamp
 
 Every phase takes the NamedTuples of :mod:`haptic_acu.servostate` (``inp``: TickIn, ``m``: Model,
 ``s``: State, ``d``: the DIAG record) plus at most a layer or slot index; values one phase hands the
@@ -72,6 +72,10 @@ from .postpuncture import begin_insertion, find_track, shaft_forces
 from .servostate import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
 from .tissue import Tissue, boundary_radii
+from .twirl import TwirlParams, WindState, wind_step
+from .twirl import default_params as twirl_defaults
+
+SERVO_DT_S = 1e-3  # the servo period the model is built for (Session sets its own into params.dt)
 
 __all__ = ["NeedleModel", "step_kernel", "step_entry", "surface_normal", "UNTOUCHED", "PRESSING", "PUNCTURED",
            "STATE_NAMES", "N_LAYERS", "N_SLOTS", "MAX_HOLES"]
@@ -170,11 +174,13 @@ def n_particles_of(m, k):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def check_input(inp, s, d):
-    """A non-finite tip position or velocity latches the fault; False while it is latched (zero force)."""
+    """A non-finite tip position, velocity or roll latches the fault; False while it is latched (zero force)."""
     sv = s.servo[0]
     for c in range(3):
         if not (math.isfinite(inp.p[c]) and math.isfinite(inp.v[c])):
             sv.fault = 1
+    if not math.isfinite(inp.roll[0]):
+        sv.fault = 1
     if sv.fault != 0:
         d.fault = 1.0
         return False
@@ -535,6 +541,21 @@ def post_puncture(inp, m, s, d):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def twirl_phase(inp, m, s, d):
+    """The tissue wound around the shaft by the needle's roll (:func:`haptic_acu.twirl.wind_step`,
+    per layer with the needle's length in it, ``servo.lengths`` from the post-puncture phase): the
+    torque about the axis into ``d.torque``, each
+    layer's grasp factor on its shaft friction into ``servo.grasp`` (docs/model.md section 11). Runs
+    every tick: with the needle out every layer is unwound (grasp 1)."""
+    sv = s.servo[0]
+    pr = m.params[0]
+    ws = WindState(sv.twist, sv.engage, sv.wind_len, sv.torque_layer, sv.grasp, sv.roll_play, sv.wind_primed)
+    tp = TwirlParams(pr.k_twist, pr.twist_slip, pr.twist_tau, pr.engage_rad, pr.engage_tau, pr.grasp_coil,
+                     pr.grasp_engage, pr.play_rad)
+    d.torque = wind_step(ws, inp.roll[0], sv.lengths, pr.dt, tp)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def bone_wall(m, s, d):
     """A penalty wall at the muscle/bone boundary, once every layer is punctured."""
     wk = s.work[0]
@@ -677,6 +698,7 @@ def step_kernel(inp, m, s, out):
         front_contact(inp, m, s, d)
     if s.servo[0].inserted != 0:
         post_puncture(inp, m, s, d)
+    twirl_phase(inp, m, s, d)
     bone_wall(m, s, d)
     locate(s, d)
     clamp(m, s, d)
@@ -753,14 +775,14 @@ class NeedleModel:
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
                               tr_hi=tr)
         self.state.axes[:, 2] = 1.0
-        self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,))
+        self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan
         self.out = ss.zeros(ss.Out)
         self.servo = ss.Servo(self.inp, self.model, self.state, self.out)  # what a tick reads and writes
         self.rec = self.state.servo[0]  # the servo record (a view: reads see the servo's writes)
         self.diag = self.out.diag[0]  # the last tick's DIAG record (a view)
         self._force = self.out.diag["force"][0]  # its force (a view, made once: step() returns it)
-        self._p, self._v = self.inp.p, self.inp.v
+        self._p, self._v, self._roll = self.inp.p, self.inp.v, self.inp.roll
         self._slot_views()
         self._step_c = None  # step()'s C entry point, bound on first use
         self.reset(keep_holes=False)
@@ -780,10 +802,22 @@ class NeedleModel:
         nd = cfg.needle
         mp = mech_params(cfg.layers, nd)
         prm = np.zeros(1, ss.PARAMS)
-        prm[0] = (self.lmax, nd.hole_radius_mm * 1e-3, 1 if nd.lateral_constraint else 0,
-                  nd.lateral_stiffness_n_per_mm * 1e3, nd.bone_stiffness_n_per_mm * 1e3, cfg.safety.force_limit_n,
-                  cfg.solver.sweeps_per_tick, ss.TABLE1 if nd.mechanics == "table1" else ss.RICH,
-                  mp.radius, mp.length, mp.k_stick, mp.decay)
+        r = prm[0]
+        for name, value in (("lmax", self.lmax), ("hole_radius", nd.hole_radius_mm * 1e-3),
+                            ("lateral_on", 1 if nd.lateral_constraint else 0),
+                            ("k_lateral", nd.lateral_stiffness_n_per_mm * 1e3),
+                            ("k_bone", nd.bone_stiffness_n_per_mm * 1e3), ("force_limit", cfg.safety.force_limit_n),
+                            ("sweeps", cfg.solver.sweeps_per_tick),
+                            ("mechanics", ss.TABLE1 if nd.mechanics == "table1" else ss.RICH),
+                            ("needle_radius", mp.radius), ("needle_length", mp.length), ("k_stick", mp.k_stick),
+                            ("decay", mp.decay), ("dt", SERVO_DT_S)):
+            r[name] = value
+        tw = twirl_defaults(N_LAYERS)
+        for name, value in (("k_twist", tw.k_twist), ("twist_slip", tw.twist_slip_rad), ("twist_tau", tw.twist_tau_s),
+                            ("engage_rad", tw.engage_rad), ("engage_tau", tw.engage_tau_s),
+                            ("grasp_coil", tw.grasp_coil), ("grasp_engage", tw.grasp_engage),
+                            ("play_rad", tw.play_rad)):
+            r[name] = value
         return prm
 
     def _layout(self):
@@ -828,7 +862,7 @@ class NeedleModel:
         nh = self.rec["nholes"]
         self.state.servo[:] = np.zeros(1, ss.SERVO)
         self.rec["axis"][2] = -1.0
-        self.rec["grasp"][:] = 1.0
+        self.rec["grasp"][:] = 1.0  # nothing wound: the shaft friction as it is
         if keep_holes:
             self.rec["nholes"] = nh
         else:
@@ -854,13 +888,14 @@ class NeedleModel:
             a[...] = b
         self.out.diag[...] = diag
 
-    def step(self, p, v, axis=None) -> np.ndarray:
+    def step(self, p, v, axis=None, roll: float = 0.0) -> np.ndarray:
         """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s), needle ``axis`` (unit,
-        handle to tip; None: unknown): the force (N). Calls :func:`step_kernel` through its C entry
-        point (:func:`step_entry`)."""
+        handle to tip; None: unknown) and roll ``roll`` (rad, cumulative): the force (N). Calls
+        :func:`step_kernel` through its C entry point (:func:`step_entry`)."""
         self.inp.p[:] = p
         self.inp.v[:] = v
         self.inp.axis[:] = np.nan if axis is None else axis
+        self._roll[0] = roll
         if self._step_c is None:
             self._bind_step()
         else:

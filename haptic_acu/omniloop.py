@@ -64,6 +64,7 @@ HD_INVALID_ENUM = 0x0100
 HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_VELOCITY = 0x2051
 HD_CURRENT_TRANSFORM = 0x2052
+HD_CURRENT_GIMBAL_ANGLES = 0x2150  # the third is the stylus roll (rad, wrapping at +-pi)
 HD_CURRENT_FORCE = 0x2700
 HD_CALLBACK_DONE = 0
 HD_CALLBACK_CONTINUE = 1
@@ -77,6 +78,7 @@ CTL = np.dtype([("stop", "i8"), ("abort", "i8"), ("ticks", "i8"), ("in_tick", "i
 FST = np.dtype([("last", "f8", 3),  # last position (mm, device frame)
                 ("vfilt", "f8", 3),  # filtered velocity (mm/s)
                 ("detail", "f8", 3),  # values for a fault's message
+                ("roll_raw", "f8"),  # the last stylus roll read (rad, wrapped)
                 ("t_session", "f8"),
                 ("f_frz", "f8", 3),  # the force commanded when the position froze (N, device frame)
                 ("df_frz", "f8")])  # the largest change of the commanded force since (N)
@@ -93,13 +95,14 @@ RLIM = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_ma
                  ("k", "f8"), ("b", "f8"), ("enc", "f8"), ("tau", "f8"), ("ramp", "f8"), ("dt", "f8")])
 
 # statuses (CTL.status)
-S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN = range(9)
+S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN, S_ROLL_NAN = range(10)
 # CTL.done: 1 the session's length reached, 2 a non-finite needle state, 3 a rendering fault
 DONE_LENGTH, DONE_STATE, DONE_RENDER = 1, 2, 3
 # where an HD error came from (CTL.where)
 WHERE = ("hdBeginFrame", "hdGetDoublev(HD_CURRENT_TRANSFORM)", "hdGetDoublev(HD_CURRENT_VELOCITY)",
-         "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame")
-W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END = range(6)
+         "hdGetIntegerv(HD_CURRENT_BUTTONS)", "hdSetDoublev(HD_CURRENT_FORCE)", "hdEndFrame",
+         "hdGetDoublev(HD_CURRENT_GIMBAL_ANGLES)")
+W_BEGIN, W_TRANSFORM, W_VELOCITY, W_BUTTONS, W_SETFORCE, W_END, W_GIMBAL = range(7)
 
 
 def supported() -> bool:
@@ -129,12 +132,13 @@ class OmniArrays(NamedTuple):
     raux: np.ndarray  # (1,) rendering.AUX_DTYPE
     rtf: np.ndarray  # (3,)
     rta: np.ndarray  # (3,)
+    hdg: np.ndarray  # (3,) the gimbal angles (rad; the third is the stylus roll)
 
 
 ss.SPEC[OmniArrays] = dict(ictl=(CTL, 1), fctl=(FST, 1), hdt=("f8", 1), hdv=("f8", 1), hdf=("f8", 1),
                            hdb=("i4", 1), ws=(WS, 1), prm=(PRM, 1), ts=("i8", 1), rlim=(RLIM, 1),
                            rproxy=("f8", 1), rproxy_v=("f8", 1), rhist=("f8", 2), rdev_v=("f8", 1), rforce=("f8", 1),
-                           rdemand=("f8", 1), raux=(R.AUX_DTYPE, 1), rtf=("f8", 1), rta=("f8", 1))
+                           rdemand=("f8", 1), raux=(R.AUX_DTYPE, 1), rtf=("f8", 1), rta=("f8", 1), hdg=("f8", 1))
 # The callback's table: a tick table (servotick.tick_table: header, Servo, Ring, Timing), then OmniArrays.
 _AT_OMNI = TICK_TABLE
 TABLE = _AT_OMNI + ss.table_size(OmniArrays)
@@ -187,7 +191,7 @@ def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, pe
                       hdb=np.zeros(1, np.int32), ws=ws, prm=prm, ts=np.zeros(2, np.int64),
                       rlim=render_limits(workspace, limits, period_s), rproxy=cs.proxy, rproxy_v=cs.proxy_v,
                       rhist=cs.history, rdev_v=cs.device_v, rforce=cs.force, rdemand=cs.demand, raux=cs.aux,
-                      rtf=np.zeros(3), rta=np.zeros(3))
+                      rtf=np.zeros(3), rta=np.zeros(3), hdg=np.zeros(3))
 
 
 def warm_guard() -> None:
@@ -197,7 +201,7 @@ def warm_guard() -> None:
     identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
     o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0,
                                "limits": R.DeviceLimits(3.3, 0.88, 1260.0, 3.0)}, 1.0, 1000.0)
-    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
+    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan), np.zeros(1))
     guard_in(o, inp)
     render_in(o, inp, np.zeros(1, ss.DIAG))
     guard_out(o, 0.0, 0.0, 0.0)
@@ -299,6 +303,7 @@ def read_stylus(o, inp):
     frozen-position faults, filtered velocity when the device gives none, workspace mapping into
     ``inp``. Returns -1 to go on, else the callback's return code (the frame is closed)."""
     ictl, fctl, hdt, hdv, hdf, hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
+    hdg = o.hdg
     pbuf = inp.p
     vbuf = inp.v
     h = int(prm[0].handle)
@@ -335,6 +340,10 @@ def read_stylus(o, inp):
     e = hd_error()
     if (e & 0xFFFFFFFF) != HD_SUCCESS:
         return fail_hd(ictl, h, hdf, W_BUTTONS, e)
+    hd_get_doublev(HD_CURRENT_GIMBAL_ANGLES, hdg.ctypes.data)
+    e = hd_error()
+    if (e & 0xFFFFFFFF) != HD_SUCCESS:
+        return fail_hd(ictl, h, hdf, W_GIMBAL, e)
     st = guard_in(o, inp)
     if st != S_RUNNING:
         return abort(ictl, h, hdf, st)
@@ -378,12 +387,33 @@ def engine_tick(o, sv, ring, timing):
 
 
 
+@nb.njit(nogil=True, cache=True, inline="always")
+def stylus_roll(o, inp):
+    """The stylus roll (third gimbal angle, ``o.hdg[2]``, wrapping at +-pi) unwrapped 1:1 into
+    ``inp.roll`` (rad, cumulative; 0 at the first sample; each tick's change taken the shortest way
+    round). False (a fault, the value in ``fctl.detail``) if it is not finite."""
+    g = o.hdg[2]
+    fctl = o.fctl
+    if not math.isfinite(g):
+        fctl[0].detail[0] = g
+        return False
+    if o.ictl[0].has_last == 0:
+        inp.roll[0] = 0.0
+    else:
+        d = g - fctl[0].roll_raw
+        d -= 2.0 * math.pi * math.floor(d / (2.0 * math.pi) + 0.5)
+        inp.roll[0] += d
+    fctl[0].roll_raw = g
+    return True
+
+
 @nb.njit(nogil=True, cache=True)
 def guard_in(o, inp):
     """The device's guard on a stylus sample (``o.hdt``; ``o.hdv`` if ``ictl.vel_dev``): a non-finite
     position, a position frozen while a force is on (stall), a non-finite velocity are faults (their
     status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
-    low-pass of backward differences) and the position mapped into the scene, into ``inp``; returns
+    low-pass of backward differences) and the position mapped into the scene, into ``inp``, the stylus
+    roll unwrapped into ``inp.roll`` (:func:`stylus_roll`; a non-finite roll is S_ROLL_NAN); returns
     S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
     ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     pbuf = inp.p
@@ -439,6 +469,8 @@ def guard_in(o, inp):
         vx = fctl[0].vfilt[0]
         vy = fctl[0].vfilt[1]
         vz = fctl[0].vfilt[2]
+    if not stylus_roll(o, inp):
+        return S_ROLL_NAN
     fctl[0].last[0] = px
     fctl[0].last[1] = py
     fctl[0].last[2] = pz
@@ -628,4 +660,6 @@ def fault_message(ictl, fctl, hd_error_name) -> str | None:
         return f"device reported a non-finite velocity {d} mm/s"
     if st == S_FORCE_NAN:
         return f"force mapped to a non-finite device force {d} N"
+    if st == S_ROLL_NAN:
+        return f"device reported a non-finite stylus roll {d[0]} rad"
     return f"servo callback ended with status {st}"

@@ -4,7 +4,9 @@ The file is the format :class:`devices.scripted.ScriptedDevice` plays (``t_s,x_m
 header on line 1; the extra columns are ignored on replay), so any OMNI or keyboard session
 replays headless later. ``layer`` and the ``state_*`` columns are names (``outside``, ``skin``...,
 ``untouched``, ``pressing``, ``punctured``), as in ``samples.csv``; ``event`` names what happened
-on that tick (``reset``: the keyboard's ``r``, fresh tissue; the replay honours it). Rows are
+on that tick (``reset``: the keyboard's ``r``, fresh tissue; the replay honours it); ``roll_deg`` is
+the needle's roll (cumulative degrees, + clockwise seen from the handle: the OMNI's stylus roll, the
+keyboard's twirl keys), which the replay plays into the servo, so a session replays with its twirling. Rows are
 appended once per visual frame, unbuffered: a crash or Ctrl-C loses at most the last frame, and on a
 fault the engine's final flush writes every tick up to the fault.
 
@@ -23,17 +25,17 @@ import numpy as np
 
 from .errors import UserError
 from .samples import COL
-from .trajectory import EVENT_COLUMN, EVENT_CODES, LAYER_CODES, STATE_CODES, TrajectoryWriter
+from .trajectory import EVENT_COLUMN, EVENT_CODES, LAYER_CODES, ROLL_COLUMN, STATE_CODES, TrajectoryWriter
 
 EXTRA = ("fx_n", "fy_n", "fz_n", "layer", "state_skin", "state_fat", "state_muscle", "depth_mm",
          "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to the device (0 without one)
-         EVENT_COLUMN)
+         ROLL_COLUMN, EVENT_COLUMN)
 PLACES = {code: name for name, code in LAYER_CODES.items()}  # layer codes -1..3 -> names
 STATES = {code: name for name, code in STATE_CODES.items()}
 EVENTS = {code: name for name, code in EVENT_CODES.items()}
 _SRC = [COL["t_s"], COL["x_m"], COL["y_m"], COL["z_m"], COL["fx_n"], COL["fy_n"], COL["fz_n"], COL["layer"],
         COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"], COL["fr_x_n"], COL["fr_y_n"],
-        COL["fr_z_n"]]
+        COL["fr_z_n"], COL["roll_deg"]]
 _DEPTH = _SRC.index(COL["depth_m"])
 
 
@@ -81,7 +83,8 @@ class RecorderSink:
         try:
             self._w = TrajectoryWriter(self.path, extra_columns=EXTRA, open_mode="w" if self.overwrite else "x",
                                        formats={"layer": PLACES, "state_skin": STATES, "state_fat": STATES,
-                                                "state_muscle": STATES, EVENT_COLUMN: EVENTS},
+                                                "state_muscle": STATES, EVENT_COLUMN: EVENTS,
+                                                ROLL_COLUMN: "%.4f"},
                                        write_header=False)
         except FileExistsError:
             raise UserError(f"{self.path}: exists; choose another file or add --overwrite") from None

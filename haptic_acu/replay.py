@@ -230,7 +230,11 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     out = OutputFolder(out_dir)
     partial = out.claim()
     try:
-        summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: memory bounded by the work, not the file
+        reference = None
+        if device.has_roll and not realtime:  # the grasp felt: the same replay without rotation
+            reference = replay_rows(trajectory, cfg, roll=False)
+        # streamed: memory bounded by the work, not the file
+        summary_sink = SummarySink(cfg, keep_rows=False, reference_rows=reference)
         io = _IOErrors()
         sinks = [io.guard(SamplesCsvSink(partial / "samples.csv")), summary_sink]
         if rrd or spawn or connect:
@@ -284,6 +288,22 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     summary["_wall_s"] = wall
     summary["_stats"] = result.stats
     return summary
+
+
+def replay_rows(trajectory, cfg, roll: bool = True):
+    """The sample rows of a headless replay of ``trajectory`` (nothing written); ``roll=False``
+    without its ``roll_deg`` (the technique metrics' reference: the same withdrawal without rotation).
+    None if that replay faults."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+
+    from .engine import Session
+    from .report import SummarySink
+
+    sink = SummarySink(cfg)
+    with ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                        force_limit_n=cfg.safety.force_limit_n, roll=roll) as device:
+        result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+    return None if result.fault else sink.rows()
 
 
 def trajectories_from(args_paths) -> list[Path]:

@@ -176,8 +176,9 @@ class SummarySink:
 
     BATCH_ROWS = 2048
 
-    def __init__(self, cfg=None, keep_rows: bool = True):
+    def __init__(self, cfg=None, keep_rows: bool = True, reference_rows=None):
         self.keep_rows = keep_rows
+        self.reference_rows = reference_rows  # the technique metrics' replay without rotation
         self.scan: SessionScan | None = None
         self.metrics_scan = None  # without keep_rows: the metrics and the figure's rows, streamed
         self.figure: FigureRows | None = None
@@ -199,7 +200,8 @@ class SummarySink:
         self.scan = SessionScan(self.tissue)
         if not self.keep_rows:
             from .metrics import SessionMetricsScan
-            self.metrics_scan = SessionMetricsScan(self.config, self.tissue) if self.config is not None else None
+            self.metrics_scan = (SessionMetricsScan(self.config, self.tissue, reference_rows=self.reference_rows)
+                                 if self.config is not None else None)
             self.figure = FigureRows(self.tissue)
         self._blocks = []
         self._pending = []
@@ -674,6 +676,7 @@ _CSV_TAIL = (
     ("f_surface_n", "f_surface_n", 1.0, 5), ("f_damp_n", "f_damp_n", 1.0, 5),
     ("f_lateral_n", "f_lateral_n", 1.0, 5), ("f_bone_n", "f_bone_n", 1.0, 5),
     ("f_skin_n", "f_skin_n", 1.0, 5), ("f_fat_n", "f_fat_n", 1.0, 5), ("f_muscle_n", "f_muscle_n", 1.0, 5),
+    ("roll_deg", "roll_deg", 1.0, 4), ("torque_nmm", "torque_nmm", 1.0, 5),
 )
 CSV_FIELDS = ("tick",) + tuple(h for h, *_ in _CSV_NUMERIC) + (
     "layer", "state_skin", "state_fat", "state_muscle") + tuple(h for h, *_ in _CSV_TAIL) + (
@@ -688,7 +691,9 @@ class SamplesCsvSink:
     ``state_skin/fat/muscle`` (untouched/pressing/punctured); ``depth_mm`` depth into that layer;
     ``tip_depth_mm`` depth below the rest skin surface (:func:`tip_depth_m`, negative above);
     ``depth_skin_mm`` depth in the compressed tissue's frame (0 until the skin breaks); ``f_n`` = |F|;
-    the force parts (surface, damping, lateral, bone) and per-layer forces; ``puncture`` (the layer
+    the force parts (surface, damping, lateral, bone) and per-layer forces; ``roll_deg`` the needle's
+    roll (cumulative, + clockwise seen from the handle) and ``torque_nmm`` the twist torque about its
+    axis (N*mm, :mod:`haptic_acu.twirl`); ``puncture`` (the layer
     punctured on that tick, else empty); ``clamped`` and ``fault`` (0/1). Fixed decimals (t 1 us,
     lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
     """

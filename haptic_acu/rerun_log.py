@@ -9,6 +9,8 @@ Servo-rate series, one value per tick, sent once per visual frame as columns (``
     /force/split   force attributed to skin, fat, muscle; surface, damping, lateral, bone parts (N)
     /depth         tip depth below the rest skin surface (mm, haptic_acu.report.tip_depth_m),
                    depth into the current layer (mm)
+    /twirl/roll    the needle's roll (deg, cumulative, + clockwise seen from the handle)
+    /twirl/torque  the twist torque of the tissue wound around the shaft (N*mm, haptic_acu.twirl)
 
 Per visual frame (``log`` at ~60 Hz), all positions in metres in the scene frame (+z up, the
 acupoint at the origin):
@@ -18,6 +20,8 @@ acupoint at the origin):
                                   the dent from the live nets on haptic_acu.engine.PATCH_GRID
                                   (frame.dents); re-logged only when it changes
     /world/needle                 40 mm of needle from the tip back along the insertion axis
+    /world/twist                  a 6 mm bar across the needle's handle end that turns with its roll
+                                  (haptic_acu.twirl.twist_direction): the twirling, seen in 3D
     /world/force                  the force on the needle as an arrow at the tip (10 mm per N)
     /world/nets/<layer>/slot<s>   each live force net's particles and springs (the lattice's
                                   neighbour pairs, drawn as its straight rows); re-logged when moved
@@ -44,6 +48,7 @@ from .errors import UserError
 from .report import LAYERS, SessionScan, tip_depth_m
 from .samples import COL
 from .tissue import grid_triangles
+from .twirl import twist_direction
 from .servostate import FREE
 
 APP_ID = "haptic-acu"
@@ -72,7 +77,18 @@ SERIES = {
                     lambda r, d: r[:, _SPLIT_COLS]),
     "depth": (["tip below rest skin (mm)", "into current layer (mm)"], [(20, 20, 20), (120, 120, 120)],
               lambda r, d: np.column_stack([d * 1e3, r[:, COL["depth_m"]] * 1e3])),
+    "twirl/roll": (["roll (deg)"], [(31, 119, 180)], lambda r, d: r[:, COL["roll_deg"]:COL["roll_deg"] + 1]),
+    "twirl/torque": (["torque (N*mm)"], [(214, 39, 40)], lambda r, d: r[:, COL["torque_nmm"]:COL["torque_nmm"] + 1]),
 }
+TWIST_BAR_M = 0.006
+
+
+def twist_bar(tip, back, roll_deg: float) -> np.ndarray:
+    """The twist bar's two ends (2, 3): across the needle's handle end (``tip`` + 40 mm along
+    ``back``, the unit vector toward the handle), along :func:`haptic_acu.twirl.twist_direction`."""
+    handle = np.asarray(tip) + NEEDLE_LENGTH_M * np.asarray(back)
+    d = twist_direction(-np.asarray(back), np.radians(roll_deg)) * (0.5 * TWIST_BAR_M)
+    return np.stack([handle - d, handle + d])
 
 
 def blueprint() -> rrb.Blueprint:
@@ -84,9 +100,11 @@ def blueprint() -> rrb.Blueprint:
                 rrb.TimeSeriesView(name="force on the needle (N)", origin="/force/total"),
                 rrb.TimeSeriesView(name="force by layer and part (N)", origin="/force/split"),
                 rrb.TimeSeriesView(name="depth (mm)", origin="/depth"),
+                rrb.TimeSeriesView(name="roll (deg)", origin="/twirl/roll"),
+                rrb.TimeSeriesView(name="twist torque (N*mm)", origin="/twirl/torque"),
                 rrb.TimeSeriesView(name="loop rates (Hz)", origin="/rates"),
                 rrb.TextLogView(name="events", origin="/events"),
-                row_shares=[3, 2, 2, 1, 1],
+                row_shares=[3, 2, 2, 1, 1, 1, 1],
             ),
             column_shares=[3, 2],
         ),
@@ -312,6 +330,8 @@ class RerunSink:
                 static=True)
         rec.log("world/force", rr.Arrows3D.from_fields(radii=rr.Radius.ui_points(2.5), colors=[(220, 30, 30)]),
                 static=True)
+        rec.log("world/twist", rr.LineStrips3D.from_fields(radii=rr.Radius.ui_points(4.0), colors=[(31, 119, 180)]),
+                static=True)
         self._started = True
 
     def _send_series(self) -> None:
@@ -352,6 +372,7 @@ class RerunSink:
             tip = rows[-1, _C_X:_C_X + 3]
             back = -model.axis if model.inserted else np.array([0.0, 0.0, 1.0])
             rec.log("world/needle", rr.LineStrips3D.from_fields(strips=[[tip, tip + NEEDLE_LENGTH_M * back]]))
+            rec.log("world/twist", rr.LineStrips3D.from_fields(strips=[twist_bar(tip, back, rows[-1, COL["roll_deg"]])]))
             f = rows[-1, _C_F:_C_F + 3]
             rec.log("world/force", rr.Arrows3D.from_fields(origins=[tip], vectors=[f * FORCE_ARROW_M_PER_N]))
         rates = getattr(frame, "rates", None) or {}

@@ -121,6 +121,7 @@ class FeedRows(NamedTuple):
     p: np.ndarray  # (capacity, 3) positions of tick k at row k % capacity
     v: np.ndarray  # (capacity, 3) velocities
     a: np.ndarray  # (capacity, 3) needle axes (unit, handle to tip; NaN: the device does not know it)
+    r: np.ndarray  # (capacity,) needle rolls (rad)
     reset: np.ndarray = _NO_RESETS  # (capacity,) int8: 1 = fresh tissue before tick k (a reset event)
 
 
@@ -219,6 +220,7 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
             sv.inp.p[c] = feed.p[j, c]
             sv.inp.v[c] = feed.v[j, c]
             sv.inp.axis[c] = feed.a[j, c]
+        sv.inp.roll[0] = feed.r[j]
         if feed.reset[j % feed.reset.shape[0]] != 0:
             reset_servo(sv)  # the recording's reset event: fresh tissue before this tick
         model_tick(lp.dm, sv.inp, sv.out.diag)
@@ -232,6 +234,12 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
             break
     ctl[0].status = status
     return status
+
+
+def device_roll(device, T):
+    """The device's roll at the ticks ``T`` (rad), or None (a device without ``roll_block``: none)."""
+    f = getattr(device, "roll_block", None)
+    return None if f is None else f(T)
 
 
 class Feed:
@@ -248,6 +256,7 @@ class Feed:
         self.reset = np.zeros(capacity, np.int8)  # the device's reset events (Device.reset_ticks)
         self.events = bool(getattr(device, "has_events", False))
         self.a = np.full((capacity, 3), np.nan)
+        self.r = np.zeros(capacity)  # the needle's roll (rad), if the device gives one
         self.capacity = capacity
         self.lead = min(lead, capacity - chunk)
         self.chunk = chunk
@@ -278,6 +287,9 @@ class Feed:
                 if log is not None:
                     log.extend((k0 + c, "reset") for c in cuts)
             self.a[idx] = axis_block(self.device, T)[:n]
+            R = device_roll(self.device, T)
+            if R is not None:
+                self.r[idx] = R[:n]
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 
@@ -295,7 +307,7 @@ class Feed:
 
     def rows(self) -> FeedRows:
         """The arrays the compiled loop reads."""
-        return FeedRows(self.p, self.v, self.a, self.reset)
+        return FeedRows(self.p, self.v, self.a, self.r, self.reset)
 
     def join(self, timeout: float = 2.0) -> None:
         if self._thread is not None:

@@ -26,6 +26,7 @@ COLUMNS = (
     "period_err_s",
     "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to a device (0 without one: replay, keyboard)
     "render_status",  # its status bits (haptic_acu.rendering: 1 clamped, 2 limiting, 4 fault)
+    "roll_deg", "torque_nmm",  # the needle's roll (cumulative) and the twist torque about its axis
 )
 COL = {name: i for i, name in enumerate(COLUMNS)}
 NCOL = len(COLUMNS)
@@ -43,6 +44,8 @@ _LAYER, _DEPTH, _DEPTH_SKIN, _FRONT = COL["layer"], COL["depth_m"], COL["depth_s
 _RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["puncture"], COL["fault"], COL["clamped"]
 _PERIOD_ERR = COL["period_err_s"]
 _FR, _RSTAT = COL["fr_x_n"], COL["render_status"]
+_ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
+_DEG = 180.0 / 3.141592653589793
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -78,6 +81,8 @@ def write_sample(buf, row, t, tick, inp, s, diag, period_err):
     for k in range(3):
         r[_FR + k] = inp.fr[k]
     r[_RSTAT] = inp.rstat[0]
+    r[_ROLL] = inp.roll[0] * _DEG
+    r[_TORQUE] = d.torque * 1e3
 
 
 class SampleRing:

@@ -10,8 +10,8 @@ Four NamedTuples of arrays, each field declared in one place with its dtype and 
 * :class:`State`  (mutable, written only by the servo step): ``servo`` (one record: layer states,
   slots, owners, generations, offset, axis, entry, fault, tick...), the nets' particles, the holes,
   the boundary radii at the tip and ``work`` (the step's scratch record);
-* :class:`TickIn` (one tick's input from the device): tip position and velocity, needle axis (NaN:
-  unknown);
+* :class:`TickIn` (one tick's input from the device): tip position and velocity, the rendered force
+  and its status, needle axis (NaN: unknown), needle roll;
 * :class:`Out` (the tick's output): ``diag``, one :data:`DIAG` record: the force on the needle and
   its diagnostics.
 
@@ -65,6 +65,11 @@ PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("needle_radius", "f8"), ("needle_length", "f8"),  # m
     ("k_stick", "f8"),  # N/m: the friction's stick-point spring
     ("decay", "f8"),  # the stick force's relaxation per tick (1: none)
+    ("dt", "f8"),  # the servo period (s)
+    # twirling (twirl.TwirlParams, per layer; docs/model.md section 11)
+    ("k_twist", "f8", N_LAYERS), ("twist_slip", "f8", N_LAYERS), ("twist_tau", "f8", N_LAYERS),
+    ("engage_rad", "f8", N_LAYERS), ("engage_tau", "f8", N_LAYERS), ("grasp_coil", "f8", N_LAYERS),
+    ("grasp_engage", "f8", N_LAYERS), ("play_rad", "f8"),
 ])
 LAYOUT = np.dtype([  # where each (layer, slot) net lives in State.pos / State.rest (idx = 2*layer + slot)
     ("xf", "i8", N_LAYERS * N_SLOTS), ("X0f", "i8", N_LAYERS * N_SLOTS), ("X0", "i8", N_LAYERS * N_SLOTS),
@@ -90,6 +95,10 @@ SERVO = np.dtype([  # the servo's mutable scalars (State.servo[0])
     ("deepest", "f8"),  # the deepest arc length this insertion has reached (its crack front, m)
     ("grasp", "f8", N_LAYERS),  # per-layer multiplier of stiction and Coulomb friction (twirl writes; 1.0)
     ("lengths", "f8", N_LAYERS),  # needle length in each layer (m, physical; 0 while not inserted)
+    # the tissue wound around the shaft (twirl.WindState): twist (rad), engagement, the length the
+    # winding was last computed for (m), torque per layer (N*m), the roll after the play (rad)
+    ("twist", "f8", N_LAYERS), ("engage", "f8", N_LAYERS), ("wind_len", "f8", N_LAYERS),
+    ("torque_layer", "f8", N_LAYERS), ("roll_play", "f8", (1,)), ("wind_primed", "i8", (1,)),
 ])
 HOLE = np.dtype([("point", "f8", 3), ("layer", "f8"), ("axis", "f8", 3)])
 WORK = np.dtype([  # the step's scratch: values one phase hands the next within a tick
@@ -128,6 +137,7 @@ DIAG = np.dtype([  # one tick's output
     ("f_cut", "f8"), ("f_friction", "f8"), ("f_viscous", "f8"),  # f_damp split (N along +axis)
     ("axial_damping", "f8"),  # N*s/m: the axial viscous coefficient (Table 1: sum d_k h_k)
     ("breakaway", "f8"),  # N: the shaft friction's current breakaway level (sum grasp_k fs_k L_k)
+    ("torque", "f8"),  # twist torque about the needle axis (N*m, + clockwise seen from the handle)
 ])
 
 
@@ -166,6 +176,7 @@ class TickIn(NamedTuple):
     fr: np.ndarray  # (3,) the force a rendering layer commands the device this tick (N; 0: none)
     rstat: np.ndarray  # (1,) its status bits (rendering.CLAMPED / LIMITING / FAULT; 0: none)
     axis: np.ndarray  # needle axis, unit, handle to tip (scene frame); NaN where the device does not know it
+    roll: np.ndarray  # (1,) the needle's roll about its axis (rad, cumulative, + clockwise seen from the handle)
 
 
 class Out(NamedTuple):
@@ -199,7 +210,7 @@ SPEC = {  # (dtype, ndim) of every field
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1), tr_entry=("f8", 2), tr_axis=("f8", 2), tr_lo=("f8", 2), tr_hi=("f8", 2),
                 tr_count=("i8", 1)),
-    TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1), axis=("f8", 1)),
+    TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1), axis=("f8", 1), roll=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),
     Timing: dict(errs=("f8", 1), count=(TIMING, 1)),

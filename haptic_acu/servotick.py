@@ -116,7 +116,7 @@ def reset_servo(sv):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def servo_tick(sv, ring, t, tick, err_s):
-    """One tick on ``sv.inp`` (the caller has written the position, velocity and axis): the step, its
+    """One tick on ``sv.inp`` (the caller has written the position, velocity, axis and roll): the step, its
     sample row (time ``t``, index ``tick``, period error ``err_s``) written and published. Returns
     False if the state is not finite (the fault is latched: the force is zero from here)."""
     step_servo(sv)
@@ -128,11 +128,12 @@ def servo_tick(sv, ring, t, tick, err_s):
 
 
 @nb.njit(cache=True, nogil=True)
-def run_ticks(P, V, A, T, tick0, table):
+def run_ticks(P, V, A, R, T, tick0, table):
     """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V``,
-    needle axes ``A`` (unit, handle to tip; NaN rows: unknown) at times ``T``) on the servo and ring
-    of ``table`` (:func:`tick_table`), without a Python round trip per tick. Stops after a faulting
-    tick; returns the number of ticks run (:data:`STALE`: see :func:`call_driver`)."""
+    needle axes ``A`` (unit, handle to tip; NaN rows: unknown), needle rolls ``R`` (rad) at times
+    ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip per
+    tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
+    :func:`call_driver`)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE
     sv, ring, _ = unpack_tick(table)
@@ -141,6 +142,7 @@ def run_ticks(P, V, A, T, tick0, table):
             sv.inp.p[c] = P[i, c]
             sv.inp.v[c] = V[i, c]
             sv.inp.axis[c] = A[i, c]
+        sv.inp.roll[0] = R[i]
         if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
             return i + 1
     return T.shape[0]

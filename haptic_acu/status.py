@@ -3,7 +3,7 @@
 A sink (see :mod:`haptic_acu.engine`): every visual frame it takes the newest sample row and,
 at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrolling)::
 
-    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm below skin (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
+    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm below skin (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | roll +90 deg +0.041 N*mm | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
 
 * the session time (s) of the newest servo tick;
 * the tip's position relative to the acupoint (x, y in mm, the scene frame's origin);
@@ -11,6 +11,8 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
   the skin is pushed in, or the layer (``bone`` past the muscle) with the depth into that layer and
   below the skin along the needle (mm), against the config's ``scene.target_depth_mm``;
 * the force on the needle |F| (N) and the tip speed (mm/s), with the keyboard's set speed;
+* once the needle has been rolled: its roll (deg, cumulative, + clockwise seen from the handle) and
+  the twist torque of the tissue wound around the shaft (N*mm, :mod:`haptic_acu.twirl`);
 * each layer's state: ``-`` untouched, ``press`` pressing (a force net is active), ``punct`` punctured;
 * the last puncture and its peak |F| (N, the report's number: :class:`haptic_acu.report.SessionScan`);
 * warnings: ``ON BONE: withdraw`` with the tip on the bone, ``FORCE LIMIT`` while the commanded force
@@ -55,6 +57,7 @@ _C_X = COL["x_m"]
 _C_CLAMP = COL["clamped"]
 _C_RSTAT = COL["render_status"]
 _LIMITING = 2  # haptic_acu.rendering.LIMITING (not imported: the status line loads no numba kernels)
+_C_ROLL, _C_TORQUE = COL["roll_deg"], COL["torque_nmm"]
 _BONE = 3
 
 
@@ -95,8 +98,8 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     if speed_set_mm_s is not None:
         v += f" (set {speed_set_mm_s:g})"
     fields.append((5, v))
-    if "roll_rad" in COL:  # once the stylus roll is sampled
-        fields.append((5, f"roll {np.degrees(row[COL['roll_rad']]):.0f} deg"))
+    if row[_C_ROLL] != 0.0 or row[_C_TORQUE] != 0.0:  # once the needle has been rolled
+        fields.append((4, f"roll {row[_C_ROLL]:+.0f} deg {row[_C_TORQUE]:+.3f} N*mm"))
     fields.append((1, " ".join(f"{name}:{_STATE_SHORT[int(s)] if 0 <= int(s) < 3 else '?'}"
                                for name, s in zip(LAYER_NAMES, row[_C_STATE:_C_STATE + 3]))))
     if last_puncture is not None:

@@ -1,5 +1,5 @@
 """Technique metrics of needle manipulation: twirling, lift-thrust forces, the grasp felt, and the
-reinforcing / reducing / even classification (docs/model.md, "Technique metrics").
+reinforcing / reducing / even classification (docs/model.md section 11.3, "Technique metrics").
 
 Pure functions over a *sample table*: a mapping (dict of arrays, numpy structured array, ...)
 from column name to a 1-D array, one entry per sample, oldest first. Columns and units (those of

@@ -493,7 +493,9 @@ class _Checker:
                 bad_t = np.flatnonzero(~(dt > 0))
                 bad_v = np.flatnonzero(speed > self.vmax)
                 if self.roll_idx is not None:
-                    turn = np.abs(np.diff(vv[:, self.roll_idx])) / dt
+                    # over at least one servo tick: a device samples the roll once a tick, and a
+                    # recording's late ticks run back to back (rows much closer than a tick)
+                    turn = np.abs(np.diff(vv[:, self.roll_idx])) / np.maximum(dt, SERVO_TICK_S)
                     turn[anew] = 0.0
                     bad_r = np.flatnonzero(turn > MAX_ROLL_DEG_PER_S)
                 else:

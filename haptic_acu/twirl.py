@@ -1,5 +1,5 @@
 """Twirling: the needle's roll about its own axis, the tissue wound around the shaft, the torque
-it returns and the needle grasp it produces (docs/model.md, "Twirling and needle grasp").
+it returns and the needle grasp it produces (docs/model.md section 11, "Twirling, needle grasp and technique metrics").
 
 What is modelled. Rotating an inserted acupuncture needle winds the connective tissue around the
 shaft (Langevin et al. 2001, J Appl Physiol 91:2471; 2002, FASEB J 16:872). Two things follow:

@@ -27,7 +27,8 @@ from physics_helpers import sphere_config
 
 from haptic_acu.devices.base import Device, DeviceState
 from haptic_acu.devices.keyboard import (LATERAL_STEP_M, LATERAL_STEP_S, NOT_A_TTY, SPEED_DEFAULT_M_S, SPEED_MAX_M_S,
-                              SPEED_MIN_M_S, START_MM, KeyboardDevice, KeyParser)
+                              SPEED_MIN_M_S, START_MM, TWIRL_HOLD_S, TWIRL_RATE_DEFAULT_DEG_S, TWIRL_RATES_DEG_S,
+                              KeyboardDevice, KeyParser)
 from haptic_acu.engine import Frame, Session, SessionResult
 from haptic_acu.errors import UserError
 from haptic_acu.samples import COL, NCOL
@@ -301,6 +302,65 @@ def test_r_resets_the_tissue_once_and_returns_to_the_start(kb):
     assert all(np.array_equal(x.position_m, START) for x in after)  # motion was stopped too
 
 
+def _check_twirl(states, direction: float, rate_deg_s: float):
+    """Between consecutive reads the roll turns by direction * rate * (own elapsed time), the tip
+    stays put."""
+    t = np.array([s.t_s for s in states])
+    r = np.degrees([s.roll_rad for s in states])
+    np.testing.assert_allclose(np.diff(r), direction * rate_deg_s * np.diff(t), rtol=1e-9, atol=1e-9)
+    assert all(np.array_equal(s.position_m, states[0].position_m) for s in states)
+
+
+def test_twirl_keys_roll_the_needle_while_held(kb):
+    dev, master = kb
+    assert dev.read().roll_rad == 0.0
+    s = press(dev, master, b"]")
+    held = [s] + run_for(dev, 0.2)  # well inside the hold: turning clockwise at the default rate
+    assert held[-1].t_s - s.t_s < TWIRL_HOLD_S
+    _check_twirl(held, 1.0, TWIRL_RATE_DEFAULT_DEG_S)
+    # the other key reverses at once
+    s = press(dev, master, b"[")
+    back = [s] + run_for(dev, 0.1)
+    _check_twirl(back, -1.0, TWIRL_RATE_DEFAULT_DEG_S)
+    # let go (no auto-repeat): the roll stops TWIRL_HOLD_S after the last key, at rate x hold
+    rest = run_for(dev, TWIRL_HOLD_S + 0.1)
+    assert rest[-1].t_s - s.t_s > TWIRL_HOLD_S
+    # from the key's read on: the roll turned back exactly rate x hold (the hold ends within a read)
+    turned = np.degrees(s.roll_rad - rest[-1].roll_rad)
+    assert turned == pytest.approx(TWIRL_RATE_DEFAULT_DEG_S * TWIRL_HOLD_S, rel=1e-9)
+    assert rest[-1].roll_rad == rest[-2].roll_rad  # stopped
+    # auto-repeat holds it: keys arriving within the hold keep it turning
+    s0 = press(dev, master, b"]")
+    states = [s0]
+    for _ in range(4):
+        states += run_for(dev, 0.1)
+        states.append(press(dev, master, b"]"))
+    _check_twirl(states, 1.0, TWIRL_RATE_DEFAULT_DEG_S)
+    # space stops it
+    press(dev, master, b" ")
+    after = run_for(dev, 0.05)
+    assert len({x.roll_rad for x in after}) == 1
+
+
+def test_twirl_rate_key_cycles_and_reset_zeroes_the_roll(kb):
+    dev, master = kb
+    assert dev.twirl_rate_deg_s == TWIRL_RATE_DEFAULT_DEG_S
+    seen = []
+    for _ in range(len(TWIRL_RATES_DEG_S)):
+        press(dev, master, b"t")
+        seen.append(dev.twirl_rate_deg_s)
+    assert sorted(seen) == sorted(TWIRL_RATES_DEG_S) and seen[-1] == TWIRL_RATE_DEFAULT_DEG_S
+    press(dev, master, b"t")
+    rate = dev.twirl_rate_deg_s
+    assert rate != TWIRL_RATE_DEFAULT_DEG_S
+    s = press(dev, master, b"[")
+    _check_twirl([s] + run_for(dev, 0.1), -1.0, rate)
+    assert max(TWIRL_RATES_DEG_S) / 360.0 < 10.0  # within the hand-twirl limit a trajectory allows
+    s = press(dev, master, b"r")
+    assert s.reset and s.roll_rad == 0.0
+    assert all(x.roll_rad == 0.0 for x in run_for(dev, 0.05))
+
+
 def test_q_sets_done_and_keeps_it(kb):
     dev, master = kb
     press(dev, master, b"i")
@@ -334,7 +394,7 @@ def test_key_parser_split_sequences_and_unknown_keys():
     assert p.feed(b"\x1b[5~x\x1b[Hz") == []  # PageUp, an unmapped key, Home: ignored
     assert p.feed(b"\x1b") == []
     p.flush()  # a lone ESC (the reader flushes after 50 ms of silence)
-    assert p.feed(b"[A") == []  # ... so these are plain '[' and 'A', not an arrow
+    assert p.feed(b"[A") == ["twirl-"]  # ... so these are plain '[' (a twirl key) and 'A', not an arrow
     assert p.feed(b"\x1bi") == ["insert"]  # Alt-i
     assert p.feed("é".encode()) == []
 
@@ -349,8 +409,10 @@ def test_status_line_silent_when_not_a_terminal():
 
 
 def _row(t=0.0, layer=-1, depth_mm=0.0, depth_skin_mm=0.0, force=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0),
-         states=(0, 0, 0), period_err_s=0.0):
+         states=(0, 0, 0), period_err_s=0.0, roll_deg=0.0, torque_nmm=0.0):
     r = np.zeros(NCOL)
+    r[COL["roll_deg"]] = roll_deg
+    r[COL["torque_nmm"]] = torque_nmm
     r[COL["t_s"]] = t
     r[COL["layer"]] = layer
     r[COL["depth_m"]] = depth_mm * 1e-3
@@ -383,6 +445,10 @@ def test_status_line_content_missed_ticks_and_fault():
     line, fault = text.split("\n")[:2]
     assert line.startswith("\rt 0.05 s | x +0.0 y +0.0 mm | fat 1.25 mm | 2.50 mm below skin | |F| 0.50 N | v 5.0 mm/s | ")
     assert "skin:punct fat:press muscle:-" in line
+    assert "roll" not in line  # never rolled: no roll field
+    s2 = StatusLine(stream=io.StringIO(), force=True)
+    s2.on_frame(_frame([_row(t=1.0, layer=2, roll_deg=-123.4, torque_nmm=-0.2864, states=(2, 2, 2))]))
+    assert "| roll -123 deg -0.286 N*mm |" in s2.stream.getvalue()
     assert "servo 998 Hz visual 59 Hz" in line and line.endswith("host late 6.0%, missed 3")  # 3 of 50 ticks
     assert fault == "fault: device fault: cable pulled" and text.endswith("\n")
     # nothing drawn, nothing printed, when the stream is not a terminal

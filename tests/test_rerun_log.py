@@ -31,6 +31,7 @@ from haptic_acu.springback import Springback
 
 C = S.COL
 PRESSING, PUNCTURED = 1, 2
+TWIRL_RAD, TWIRL_HZ = np.radians(90.0), 2.0  # the session twirls the needle as it goes in
 
 
 def frame_dents(model, theta, phi):
@@ -62,7 +63,7 @@ def run_session(model, cfg, sink, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3, frame
     start = 0
     for i in range(n):
         p = np.array([0.0, 0.0, z0 - speed * dt * i])
-        model.step(p, v)
+        model.step(p, v, TWIRL_RAD * np.sin(2 * np.pi * TWIRL_HZ * i * dt))
         S.write_sample(rows, i, i * dt, i, model.inp, model.state, model.out.diag, 0.0)
         if i + 1 - start == frame_rows or i == n - 1:
             spring.frame()
@@ -127,6 +128,28 @@ def test_split_and_depth_series(recording):
     # Straight down the acupoint (the skin's +z pole at the origin): depth below the skin is -z.
     np.testing.assert_allclose(vals[:, 0], -rows[:, C["z_m"]] * 1e3, atol=1e-6)
     np.testing.assert_allclose(vals[:, 1], rows[:, C["depth_m"]] * 1e3, atol=1e-12)
+
+
+def test_twirl_series_and_the_twist_bar(recording):
+    rows = recording.rows
+    for entity, col in (("/twirl/roll", "roll_deg"), ("/twirl/torque", "torque_nmm")):
+        ticks, _, values = columns(recording.store, entity, "Scalars:scalars")
+        order = np.argsort(ticks, kind="stable")
+        assert list(ticks[order]) == list(range(len(rows)))
+        assert np.array_equal(np.array(values)[order][:, 0], rows[:, C[col]])
+    assert np.abs(rows[:, C["torque_nmm"]]).max() > 0.01  # the twirl wound tissue once inside
+    # the twist bar: across the needle's handle end, turned by the roll about the needle (-z down the
+    # acupoint: seen from the handle, +x turned clockwise by the roll goes toward -y)
+    ticks, _, strips = columns(recording.store, "/world/twist", "LineStrips3D:strips")
+    assert len(strips) > 10
+    for tick, strip in zip(ticks, strips):
+        a, b = np.array(strip[0][0]), np.array(strip[0][1])
+        tip = rows[tick, C["x_m"]:C["z_m"] + 1]
+        np.testing.assert_allclose(0.5 * (a + b), tip + [0.0, 0.0, 0.040], atol=1e-12)
+        d = (b - a) / np.linalg.norm(b - a)
+        r = np.radians(rows[tick, C["roll_deg"]])
+        np.testing.assert_allclose(d, [np.cos(r), -np.sin(r), 0.0], atol=1e-9)
+        assert np.linalg.norm(b - a) == pytest.approx(0.006)
 
 
 def test_puncture_events_are_text_log_entries_at_the_puncture_ticks(recording):

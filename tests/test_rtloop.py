@@ -139,7 +139,8 @@ def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):
     ts = np.zeros(2, np.int64)
     rows = Ring(ring, rctr)
     status = call_driver(rtloop.servo_loop, rtloop.Loop(ctl, np.zeros(1, rtloop.FL), ts, devicemodel.new(1e-3, on=False)), rtloop.now_ns(ts),
-                         period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v, np.full_like(feed_p, np.nan)), tick_table(m.servo, rows, timing))
+                         period_ns, k_limit, rtloop.FeedRows(feed_p, feed_v, np.full_like(feed_p, np.nan), np.zeros(len(feed_p))),
+                         tick_table(m.servo, rows, timing))
     assert status == rtloop.LIMIT
     rows = ring[:rctr[0]]
     ticks = rows[:, COL["tick"]].astype(int)

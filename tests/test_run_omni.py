@@ -240,3 +240,41 @@ def test_missing_openhaptics_is_one_line_and_status_2(tmp_path):
     assert msg.startswith("haptic-acu run: error:")
     assert "libHD.so" in msg and "OpenHaptics" in msg and "LD_LIBRARY_PATH" in msg  # what, and how to install
     assert "Traceback" not in proc.stderr and proc.stdout == ""
+
+
+@pytest.mark.parametrize("servo", ["compiled", "python"])
+def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, workspace, servo):
+    """The emulator's third gimbal angle (the stylus roll) is the session's roll, unwrapped 1:1 from
+    0 at the first tick: the recording's roll_deg follows the scripted gimbal knots at each frame's
+    device time (the emulator's log), across a wrap at +-pi (3.0 rad to -3.0 rad the short way)."""
+    z = device_z_of_scene_z(5.0, workspace)
+    path = [(0.0, 0.0, 0.0, z), (2.0, 0.0, 0.0, z)]
+    # roll: 0.5 -> 2.5 rad over 0.5 s, on to 3.13 and through the wrap between two ticks (+3.13 ->
+    # -3.13 is +0.023 rad the short way), on to -2.0 (a hand turning at under 1 turn/s throughout)
+    gimbal = [(0.0, 0.0, 0.4, 0.5), (0.5, 0.0, 0.4, 2.5), (0.9, 0.0, 0.4, 3.13), (0.9004, 0.0, 0.4, -3.13),
+              (1.4, 0.0, 0.4, -2.0)]
+    log = tmp_path / "forces.csv"
+    rec = tmp_path / "rec.csv"
+    env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal)
+    env["OPENBLAS_NUM_THREADS"] = "1"
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", "1.6",
+                           "--record", str(rec), "--no-status", "--out", str(tmp_path / "out")] + (["--python-servo"] if servo == "python" else []),
+                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr
+    rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
+    frames = rows[rows[:, 1] == FRAME]
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    n = len(tr.t_s)
+    assert n > 1000 and len(frames) >= n
+    t_dev = frames[:n, 0]
+    kt = np.array([k[0] for k in gimbal])
+    kc = np.array([k[3] for k in gimbal])
+    c = np.interp(t_dev, kt, kc)
+    wrapped = np.angle(np.exp(1j * np.diff(c)))  # each tick's change the short way round
+    expected = np.degrees(np.concatenate([[0.0], np.cumsum(wrapped)]))
+    np.testing.assert_allclose(tr.extra["roll_deg"], expected, atol=2e-4)  # the file's 1e-4 deg
+    # through the wrap without jumping back: the roll only ever grows, by the gimbal's unwrapped turn
+    assert t_dev[0] < 0.9 < t_dev[n - 1]
+    assert np.all(np.diff(tr.extra["roll_deg"]) > -2e-4)
+    c_end = np.interp(t_dev[n - 1], kt, kc) + (2 * np.pi if t_dev[n - 1] > 0.9004 else 0.0)
+    assert tr.extra["roll_deg"][-1] == pytest.approx(np.degrees(c_end - c[0]), abs=1e-3)

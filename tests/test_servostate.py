@@ -43,7 +43,7 @@ def test_an_address_table_unpacks_to_the_same_arrays(model):
 
 
 def test_an_address_table_names_the_field_it_refuses():
-    bad = ss.TickIn(np.zeros(3, np.float32), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
+    bad = ss.TickIn(np.zeros(3, np.float32), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan), np.zeros(1))
     with pytest.raises(TypeError, match=r"TickIn\.p"):
         ss.address_table(bad)
 
