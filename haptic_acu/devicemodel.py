@@ -99,5 +99,5 @@ def warm_up() -> None:
     from . import servostate as ss
 
     dm = new(1e-3)
-    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan))
+    inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan), np.zeros(1))
     model_tick(dm, inp, np.zeros(1, ss.DIAG))

@@ -888,9 +888,9 @@ class NeedleModel:
             a[...] = b
         self.out.diag[...] = diag
 
-    def step(self, p, v, axis=None, roll: float = 0.0) -> np.ndarray:
-        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s), needle ``axis`` (unit,
-        handle to tip; None: unknown) and roll ``roll`` (rad, cumulative): the force (N). Calls
+    def step(self, p, v, roll: float = 0.0, axis=None) -> np.ndarray:
+        """One servo tick at tip position ``p`` (m) and velocity ``v`` (m/s), needle roll ``roll``
+        (rad, cumulative) and ``axis`` (unit, handle to tip; None: unknown): the force (N). Calls
         :func:`step_kernel` through its C entry point (:func:`step_entry`)."""
         self.inp.p[:] = p
         self.inp.v[:] = v

@@ -60,7 +60,7 @@ def lengths_at(cfg, depth, held=3):
 
 
 def tick(m, p, v, axis=None):
-    f = m.step(p, v, axis).copy()
+    f = m.step(p, v, axis=axis).copy()
     return f, m.diag.copy()
 
 

@@ -57,7 +57,7 @@ def hold(model, z, rolls):
 
 
 def length_in_tissue(model) -> float:
-    return float(np.sum(model.state.work[0]["lengths"]))
+    return float(np.sum(model.rec["lengths"]))
 
 
 def test_roll_reaches_the_step_and_the_samples_columns(cfg):
@@ -125,7 +125,7 @@ def _protocol_grasp(cfg, proto):
     m = NeedleModel(cfg)
     z = insert(m, twirl.HAN_LENGTH_M)
     hold(m, z, twirl.protocol_roll(proto, DT))
-    lengths = m.state.work[0]["lengths"].copy()
+    lengths = m.rec["lengths"].copy()
     return m.rec["grasp"].copy(), lengths
 
 

@@ -1,0 +1,106 @@
+"""A live session's memory over a long run: ``haptic-acu run --device scripted`` with ``--record`` and
+``--rrd`` on the default insertion repeated for ``--minutes``, the resident memory of the session and
+of its rerun logging child sampled every ``--every`` seconds from /proc (issue 15's soak).
+
+    python tools/soak.py --minutes 10 [--every 10] [--out DIR]
+
+Prints one line per sample (elapsed s, main MB, child MB) and a closing line with each process's
+first and last figure and its growth per minute over the second half of the run (the first minutes
+include numba's and the SDK's warm-up). Linux only (/proc).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(c) for c in f.read().split()]
+    except OSError:
+        return []
+
+
+def tiled(src: Path, minutes: float, out: Path) -> None:
+    """``src`` repeated end to end (it starts and ends at the same point) for at least ``minutes``."""
+    lines = src.read_text().splitlines()
+    header, rows = lines[0], [ln.split(",") for ln in lines[1:] if ln and not ln.startswith("#")]
+    span = float(rows[-1][0]) + 0.005
+    with open(out, "w") as f:
+        f.write(header + "\n")
+        k = 0
+        while k * span < minutes * 60.0:
+            for r in rows:
+                f.write(f"{float(r[0]) + k * span:.6f}," + ",".join(r[1:]) + "\n")
+            k += 1
+
+
+def growth_per_min(samples: list[tuple[float, float]]) -> float:
+    half = [s for s in samples if s[0] >= samples[-1][0] / 2]
+    if len(half) < 2 or half[-1][0] == half[0][0]:
+        return float("nan")
+    return (half[-1][1] - half[0][1]) / (half[-1][0] - half[0][0]) * 60.0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--every", type=float, default=10.0)
+    ap.add_argument("--out", help="folder for the session's files (default: a temporary one)")
+    args = ap.parse_args()
+    work = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="haptic-acu-soak-"))
+    work.mkdir(parents=True, exist_ok=True)
+    traj = work / "soak.csv"
+    tiled(ROOT / "trajectories" / "default.csv", args.minutes, traj)
+    cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "scripted", "--trajectory", str(traj),
+           "--duration", str(args.minutes * 60.0), "--no-status", "--out", str(work / "session"),
+           "--rrd", str(work / "session.rrd")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    t0 = time.monotonic()
+    main_s, child_s = [], []
+    try:
+        while proc.poll() is None:
+            time.sleep(args.every)
+            t = time.monotonic() - t0
+            m = rss_mb(proc.pid)
+            kids = [c for c in children(proc.pid) if rss_mb(c) is not None]
+            c = max((rss_mb(k) or 0.0 for k in kids), default=None)
+            if m is not None:
+                main_s.append((t, m))
+            if c is not None:
+                child_s.append((t, c))
+            print(f"{t:7.1f} s  main {m if m is not None else float('nan'):7.1f} MB  "
+                  f"child {c if c is not None else float('nan'):7.1f} MB", flush=True)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, 15)
+        out, err = proc.communicate(timeout=60)
+    print(err.strip().splitlines()[0] if err.strip() else "", file=sys.stderr)
+    for name, s in (("main", main_s), ("child", child_s)):
+        if s:
+            print(f"{name}: {s[0][1]:.1f} MB at {s[0][0]:.0f} s -> {s[-1][1]:.1f} MB at {s[-1][0]:.0f} s; "
+                  f"second half {growth_per_min(s):+.2f} MB/min")
+    return proc.returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())
