@@ -157,7 +157,7 @@ def test_known_angle_offset_and_straight_path_through_a_replay(cohort):
     assert r["depth_verdict"] == "in range" and r["depth_error_mm"] == 0.0
     assert r["skin_punctured"] is True
     # in and out along one line: the path is at least twice the depth reached
-    assert r["path_length_mm"] >= 2 * r["depth_reached_mm"]
+    assert r["path_length_mm"] >= 2 * r["depth_reached_mm"] - 0.05  # (the path is of the smoothed positions)
 
 
 def test_report_learning_curves_and_levels(cohort):

@@ -103,13 +103,14 @@ def test_sliding_through_the_step_is_karnopp_in_slip(rich):
     np.testing.assert_allclose(m.rec["lengths"], lengths_at(cfg, depth[-1]), rtol=1e-9, atol=1e-12)
 
 
-def test_reversal_breaks_away_after_the_closed_form_travel_and_grasp_scales_friction(rich):
+def test_reversal_breaks_away_after_the_closed_form_travel(rich):
     cfg, m = rich
     cut, fs, fc, b = mech(cfg)
     k = m.model.params[0]["k_stick"]
-    for grasp in (1.0, 2.0):
+    # grasp 1: the twirl phase writes servo.grasp every tick from the winding (none here); how the
+    # grasp scales the friction is tested through the step in test_twirl_servo.py and test_twirl_friction.py
+    for grasp in (1.0,):
         m.reset(keep_holes=False)
-        m.rec["grasp"][:] = grasp
         depth, force, _ = insert(m, 0.015, speed=3e-3)
         L = lengths_at(cfg, depth[-1])
         f_slide = -(cut[2] + grasp * fc @ L)  # the spring's force while sliding forward (viscous apart)

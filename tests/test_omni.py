@@ -123,10 +123,12 @@ def test_press_forces_ramp_clamp_and_states(emulator, tmp_path):
     assert np.any(ramp * K * depth > LIMIT)  # the clamp did engage
     assert np.any(~inside)  # and the stylus did leave the skin
 
-    # Velocity: the path's slope (mm/s) in the scene frame (m/s); buttons passed through.
+    # Velocity: the path's slope (mm/s) in the scene frame (m/s); buttons passed through. The path
+    # is the emulator's: its slope at the emulator's time of that frame (a row's own stamp is the
+    # device's tick count, which a late scheduler tick puts behind the emulator's clock).
     checked = 0
-    for row in states:
-        v = velocity_on_path(PRESS, row[0])
+    for row, t_emu in zip(states, fr[:n, 0]):
+        v = velocity_on_path(PRESS, t_emu)
         if v is not None:
             np.testing.assert_allclose(row[4:7], vec_to_scene_m(v), rtol=0, atol=1e-9)
             checked += 1
