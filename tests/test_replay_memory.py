@@ -2,7 +2,7 @@
 and the figure are streamed (haptic_acu.report.SummarySink without keep_rows,
 haptic_acu.metrics.SessionMetricsScan, haptic_acu.report.FigureRows).
 
-Each replay runs in a child process whose peak RSS (``resource.getrusage``) is the measurement; a
+Each replay runs in a child process whose peak RSS (``VmHWM``) is the measurement; a
 trajectory four times longer must not raise it by more than a few MB (the whole-row summary grew by
 ~0.7 kB per tick: +330 MB between these two lengths)."""
 from __future__ import annotations
@@ -19,11 +19,15 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
+# The peak is the child's own VmHWM (the high-water mark of this process image), not
+# getrusage's ru_maxrss: Linux folds the parent's peak into ru_maxrss across exec, so a child
+# spawned from a pytest process that has grown to 900 MB would report 900 MB whatever it did.
 CHILD = """
-import json, resource, sys
+import json, sys
 from haptic_acu.replay import replay_one
 s = replay_one(sys.argv[1], sys.argv[2], rrd=False, progress=False)
-print(json.dumps({"maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+hwm = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:"))
+print(json.dumps({"maxrss_mb": hwm / 1024,
                   "ticks": s["ticks"], "punctures": len(s["punctures"]),
                   "insertions": s["metrics"]["insertions"]}))
 """
