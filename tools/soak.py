@@ -2,7 +2,12 @@
 ``--rrd`` on the default insertion repeated for ``--minutes``, the resident memory of the session and
 of its rerun logging child sampled every ``--every`` seconds from /proc (issue 15's soak).
 
-    python tools/soak.py --minutes 10 [--every 10] [--out DIR]
+    python tools/soak.py --minutes 10 [--every 10] [--out DIR] [--pin-cores]
+
+The session records (``<out>/session/recording.csv``) and logs to rerun (``session.rrd``) as a live
+trainee's session does; its own loop line (ticks, missed ticks, period error) is printed at the end
+beside the host's hypervisor steal over the run (/proc/stat), so the same run is the 10-minute
+zero-missed-tick measurement of issue 13 (``--pin-cores``: servo thread and logging child apart).
 
 Prints one line per sample (elapsed s, main MB, child MB) and a closing line with each process's
 first and last figure and its growth per minute over the second half of the run (the first minutes
@@ -54,6 +59,13 @@ def tiled(src: Path, minutes: float, out: Path) -> None:
             k += 1
 
 
+def steal_jiffies() -> tuple[int, int]:
+    """(steal, total) jiffies of all CPUs so far (/proc/stat's first line)."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    return v[7], sum(v)
+
+
 def growth_per_min(samples: list[tuple[float, float]]) -> float:
     half = [s for s in samples if s[0] >= samples[-1][0] / 2]
     if len(half) < 2 or half[-1][0] == half[0][0]:
@@ -66,6 +78,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--every", type=float, default=10.0)
     ap.add_argument("--out", help="folder for the session's files (default: a temporary one)")
+    ap.add_argument("--pin-cores", action="store_true", help="pass --pin-cores to the session")
     args = ap.parse_args()
     work = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="haptic-acu-soak-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -73,9 +86,10 @@ def main() -> int:
     tiled(ROOT / "trajectories" / "default.csv", args.minutes, traj)
     cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "scripted", "--trajectory", str(traj),
            "--duration", str(args.minutes * 60.0), "--no-status", "--out", str(work / "session"),
-           "--rrd", str(work / "session.rrd")]
+           "--rrd", str(work / "session.rrd")] + (["--pin-cores"] if args.pin_cores else [])
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     t0 = time.monotonic()
+    st0 = steal_jiffies()
     main_s, child_s = [], []
     try:
         while proc.poll() is None:
@@ -94,7 +108,12 @@ def main() -> int:
         if proc.poll() is None:
             os.killpg(proc.pid, 15)
         out, err = proc.communicate(timeout=60)
+    st1 = steal_jiffies()
     print(err.strip().splitlines()[0] if err.strip() else "", file=sys.stderr)
+    for line in out.splitlines():
+        if "tick" in line or "missed" in line:
+            print("session: " + line.strip())
+    print(f"host: hypervisor steal {100.0 * (st1[0] - st0[0]) / max(1, st1[1] - st0[1]):.2f}% of CPU time over the run")
     for name, s in (("main", main_s), ("child", child_s)):
         if s:
             print(f"{name}: {s[0][1]:.1f} MB at {s[0][0]:.0f} s -> {s[-1][1]:.1f} MB at {s[-1][0]:.0f} s; "
