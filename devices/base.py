@@ -48,10 +48,11 @@ class Workspace:
     offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     scale: float = 1.0
     rotation_z_deg: float = 0.0
+    roll_sign: float = 1.0  # +1: the OMNI's third gimbal angle grows with a clockwise roll seen from the handle
 
     @classmethod
     def from_config(cls, ws) -> "Workspace":
-        return cls(tuple(ws.offset_mm), float(ws.scale), float(ws.rotation_z_deg))
+        return cls(tuple(ws.offset_mm), float(ws.scale), float(ws.rotation_z_deg), float(ws.roll_sign))
 
     def rotation(self) -> np.ndarray:
         """The device-to-scene rotation (3 x 3)."""
@@ -91,6 +92,11 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def set_force(self, force_n: np.ndarray) -> None:
         """Command a force (N, scene frame). The caller has already made it finite and clamped."""
+
+    def pin_servo_thread(self, cores) -> bool:
+        """For a device whose own scheduler runs the servo (OMNI): pin that thread to ``cores``
+        (``run --pin-cores``). True if done; devices without such a thread return False."""
+        return False
 
     def run_servo(self, step: Callable[[DeviceState], np.ndarray], stop, render=None) -> None:
         """For ``drives_clock`` devices: call ``step(state) -> force`` from the device's scheduler

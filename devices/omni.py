@@ -43,6 +43,7 @@ from __future__ import annotations
 import atexit
 import ctypes
 import math
+import os
 import sys
 import threading
 import time
@@ -210,11 +211,11 @@ class OmniDevice(Device):
     def __init__(self, workspace: Workspace, force_limit_n: float | None = None,
                  device_name: str = "Default Device", *, ramp_s: float = 0.2,
                  stall_s: float = 0.1, watchdog_s: float = 0.1, filter_hz: float = 50.0, render: bool = True,
-                 still_s: float = 1.0):
+                 still_s: float | None = None, stylus_axis: bool = True):
         if force_limit_n is not None and not (math.isfinite(force_limit_n) and force_limit_n > 0):
             raise UserError(f"OMNI force limit must be a positive number of newtons, got {force_limit_n!r}")
         for name, v in (("ramp_s", ramp_s), ("stall_s", stall_s), ("watchdog_s", watchdog_s), ("filter_hz", filter_hz),
-                        ("still_s", still_s)):
+                        ("still_s", 1.0 if still_s is None else still_s)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be positive, got {v!r}")
         self.workspace = workspace
@@ -224,7 +225,9 @@ class OmniDevice(Device):
         self._config_limit = force_limit_n
         self._ramp_ticks = max(1, round(ramp_s * RATE_HZ))
         self._stall_ticks = max(2, round(stall_s * RATE_HZ))
-        self._still_ticks = max(self._stall_ticks, round(still_s * RATE_HZ))
+        # None (the default): a position frozen under a steady force is never a fault by itself
+        self._still_ticks = None if still_s is None else max(self._stall_ticks, round(still_s * RATE_HZ))
+        self.stylus_axis = bool(stylus_axis)  # the stylus orientation is the needle axis (else the travel)
         self._watchdog_s = watchdog_s
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * filter_hz / RATE_HZ)
         self.info = DeviceInfo("omni", "PHANTOM (not opened)", force_limit_n or DEFAULT_FORCE_LIMIT_N, RATE_HZ, True)
@@ -316,6 +319,28 @@ class OmniDevice(Device):
             self._zero_force_frame()
         self._shutdown()
 
+    def pin_servo_thread(self, cores) -> bool:
+        """Pin the HD scheduler's thread (the one that runs the servo callback) to ``cores``: a
+        one-shot synchronous call on the scheduler (hdScheduleSynchronous runs it on that thread and
+        waits) sets that thread's affinity (Linux: pid 0 in sched_setaffinity is the calling
+        thread). Call before the servo callback is scheduled. True if the thread took it."""
+        if self._handle is None or not self._scheduler_on or not hasattr(os, "sched_setaffinity"):
+            return False
+        done: list[bool] = []
+
+        def once(_data):
+            try:
+                os.sched_setaffinity(0, set(cores))
+                done.append(os.sched_getaffinity(0) == set(cores))
+            except OSError:
+                done.append(False)
+            return HD_CALLBACK_DONE
+
+        cb = _CALLBACK(once)
+        self._hd.schedule_sync(cb, None, HD_MAX_SCHEDULER_PRIORITY)
+        self._hd.get_error()  # a refused call leaves the thread as it was: reported by the False
+        return bool(done and done[0])
+
     def _zero_force_frame(self) -> None:
         """One synchronous frame commanding zero force (only while the scheduler is healthy)."""
         hd, h = self._hd, self._handle
@@ -401,7 +426,8 @@ class OmniDevice(Device):
     def servo_guard(self) -> dict:
         """The guard's parameters for the compiled callback (the same the Python callback uses)."""
         return {"handle": self._handle, "stall_ticks": self._stall_ticks, "ramp_ticks": self._ramp_ticks,
-                "velocity_alpha": self._alpha, "limits": self.limits, "still_ticks": self._still_ticks}
+                "velocity_alpha": self._alpha, "limits": self.limits, "still_ticks": self._still_ticks,
+                "stylus_axis": self.stylus_axis}
 
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
@@ -564,8 +590,7 @@ class OmniDevice(Device):
         msg = hd.error("hdGetDoublev(HD_CURRENT_TRANSFORM)")
         if msg:
             return self._abort(s, msg)
-        T = s.transform
-        pos = (T[12], T[13], T[14])  # column-major: the translation is the 4th column
+        T = s.transform  # column-major: the translation is the 4th column (T[12:15])
         if s.velocity_from_device:
             hd.get_doublev(HD_CURRENT_VELOCITY, s.velocity)
             code = hd.error_code()
@@ -587,7 +612,7 @@ class OmniDevice(Device):
 
         g = s.guard
         c = g.ictl[0]
-        g.hdt[12:15] = pos
+        g.hdt[:] = T[:16]  # the whole transform: its translation is the position, its third column the stylus
         g.hdv[:] = s.velocity[:3]
         g.hdg[:] = s.gimbal[:3]
         c["vel_dev"] = 1 if s.velocity_from_device else 0
@@ -610,6 +635,8 @@ class OmniDevice(Device):
             velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),
             roll_rad=float(s.inp.roll[0]),
+            # DeviceState.axis points from the tip toward the handle; guard_in's TickIn.axis the other way
+            axis=-s.inp.axis if np.all(np.isfinite(s.inp.axis)) else None,
         )
         s.latest = state
         f = np.asarray(s.step(state), dtype=float)

@@ -99,6 +99,7 @@ class WorkspaceParams:
     offset_mm: tuple[float, float, float]
     scale: float
     rotation_z_deg: float
+    roll_sign: float  # +1 or -1: the OMNI's third gimbal angle times this is the roll (+ clockwise from the handle)
 
 
 @dataclass(frozen=True)
@@ -248,6 +249,8 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
         _fail(path, "springback.eta_min", f"must be < 1, got {cfg.springback.eta_min}")
     if cfg.solver.servo_net not in ("table", "sweeps"):
         _fail(path, "solver.servo_net", f"must be \"table\" or \"sweeps\", got {cfg.solver.servo_net!r}")
+    if cfg.workspace.roll_sign not in (1.0, -1.0):
+        _fail(path, "workspace.roll_sign", f"must be 1 or -1, got {cfg.workspace.roll_sign}")
     lo, hi = cfg.scene.target_depth_mm
     if not 0 <= lo < hi:
         _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")

@@ -80,11 +80,7 @@ def model_tick(dm, inp, diag):
     for c in range(3):
         dm.hand[c] = inp.p[c]
     stylus.encoder(dm.plant[:3], q.enc, dm.xq)
-    d = diag[0]
-    for c in range(3):
-        dm.tf[c] = d.r_force[c]
-        dm.ta[c] = d.r_axis[c]
-    tissue = R.TissueLocal(dm.tf, dm.ta, d.r_damping, d.r_k_along, d.r_k_across, d.r_friction, d.r_released)
+    tissue = R.tissue_from_diag(diag[0], dm.tf, dm.ta)
     limits = R.DeviceLimits(q.max_force, q.cont_force, q.k_max, q.b_max)
     params = R.CouplingParams(q.k, q.b, q.enc, q.tau, q.ramp, q.dt)
     status = R.render_step(limits, params, cs, tissue, dm.xq)

@@ -533,6 +533,14 @@ class Session:
                     s.pin(cores[1])
         return cores
 
+    def _pin_device_servo(self) -> None:
+        """With ``pin_cores`` and a device whose own scheduler runs the servo (OMNI): that thread on
+        one core (``Device.pin_servo_thread``, before the servo callback starts), the logging child
+        on the others; ``self.pinned`` says whether the device's thread took it."""
+        cores = self._pin_sinks()
+        if cores:
+            self.pinned = bool(self.device.pin_servo_thread({cores[0]}))
+
     @contextmanager
     def _realtime_threads(self, watchdog: bool):
         """The frame of a Python driver on real time: :meth:`_rt_setup`, the visual thread from the
@@ -773,6 +781,7 @@ class Session:
         c = ictl[0]  # the control record (a view)
         arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
         table = ol.address_table(omni, m.servo, arrays[1], self._timing)
+        self._pin_device_servo()
         old = self._rt_setup()
         t0 = time.perf_counter()
         t0_ns = time.perf_counter_ns()
@@ -806,6 +815,7 @@ class Session:
             return self._run_device_clock_compiled()
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
+        self._pin_device_servo()
         with self._realtime_threads(watchdog=False) as t0:
             last = [t0, 0, t0]  # previous tick time, ticks in the rate window, window start
 

@@ -86,9 +86,11 @@ FST = np.dtype([("last", "f8", 3),  # last position (mm, device frame)
 PRM = np.dtype([("handle", "f8"), ("stall", "f8"), ("ramp", "f8"), ("limit_n", "f8"), ("alpha", "f8"),
                 ("period_ns", "f8"), ("limit_t", "f8"), ("rate", "f8"),
                 ("stall_df", "f8"),  # with a rendering layer: the force change that makes a frozen position a stall (N)
-                ("still", "f8")])  # with a rendering layer: ticks a position may stay frozen under a steady force
+                ("still", "f8"),  # ticks a position may stay frozen under a steady force (inf: for ever, the default)
+                ("axis_on", "f8")])  # 1: the stylus orientation is the needle axis (TickIn.axis); 0: NaN (travel)
 # the workspace mapping (ws[0]): p_scene = (scale * R p_dev + offset) * 1e-3
-WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3)])
+WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3),
+               ("roll_sign", "f8")])  # +1: the third gimbal angle grows clockwise seen from the handle
 # the rendering layer's limits and parameters (rlim[0]), in the scene frame (rendering.DeviceLimits,
 # CouplingParams); on = 0: no rendering layer (the device gets the simulated force)
 RLIM = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_max", "f8"), ("b_max", "f8"),
@@ -176,11 +178,12 @@ def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, pe
     (``Device.servo_guard()``; its ``limits``, rendering.DeviceLimits or None, turn the rendering
     layer on), the force limit, the rate, the servo period and the session length."""
     ws = np.zeros(1, WS)
-    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm)
+    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm, getattr(workspace, "roll_sign", 1.0))
     prm = np.zeros(1, PRM)
+    still = guard.get("still_ticks")
     prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
               period_s * 1e9, limit_t, rate_hz, guard.get("stall_df_n", STALL_DF_N),
-              guard.get("still_ticks", guard["stall_ticks"]))
+              math.inf if still is None else still, 1.0 if guard.get("stylus_axis", True) else 0.0)
     ictl = np.zeros(1, CTL)
     ictl["vel_dev"] = 1
     limits = guard.get("limits")
@@ -402,8 +405,40 @@ def stylus_roll(o, inp):
     else:
         d = g - fctl[0].roll_raw
         d -= 2.0 * math.pi * math.floor(d / (2.0 * math.pi) + 0.5)
-        inp.roll[0] += d
+        inp.roll[0] += o.ws[0].roll_sign * d  # the workspace's sign: + clockwise seen from the handle
     fctl[0].roll_raw = g
+    return True
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def stylus_axis(o, inp):
+    """The needle axis from the stylus orientation into ``inp.axis`` (unit, handle to tip, scene
+    frame). HD_CURRENT_TRANSFORM (``o.hdt``) is the end-effector's column-major 4x4 transform in the
+    device's base frame (OpenHaptics API reference, hdGet parameters); the stylus lies along the
+    end-effector frame's z axis, its tip toward -z (the frame's third column ``hdt[8:11]`` points from
+    the tip to the handle: see docs/model.md, "The needle axis from the OMNI"). The workspace's
+    rotation (not its scale or offset: a direction) takes it into the scene. NaN when switched off
+    (``prm.axis_on == 0``: the step then uses the direction of travel) or when the transform's
+    column is not finite or not near unit length (no orientation from the device)."""
+    ws = o.ws
+    hdt = o.hdt
+    dx = -hdt[8]
+    dy = -hdt[9]
+    dz = -hdt[10]
+    n2 = dx * dx + dy * dy + dz * dz
+    ok = o.prm[0].axis_on != 0.0 and math.isfinite(n2) and abs(n2 - 1.0) < 0.1
+    if not ok:
+        for r in range(3):
+            inp.axis[r] = math.nan
+        return False
+    R = ws[0].R
+    ax = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
+    ay = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+    az = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+    n = math.sqrt(ax * ax + ay * ay + az * az)
+    inp.axis[0] = ax / n
+    inp.axis[1] = ay / n
+    inp.axis[2] = az / n
     return True
 
 
@@ -413,8 +448,10 @@ def guard_in(o, inp):
     position, a position frozen while a force is on (stall), a non-finite velocity are faults (their
     status returned, the values in ``fctl.detail``); else the velocity (the device's, or a first-order
     low-pass of backward differences) and the position mapped into the scene, into ``inp``, the stylus
-    roll unwrapped into ``inp.roll`` (:func:`stylus_roll`; a non-finite roll is S_ROLL_NAN); returns
-    S_RUNNING. Used by the compiled callback and by the OMNI's Python callback alike."""
+    roll unwrapped into ``inp.roll`` (:func:`stylus_roll`; a non-finite roll is S_ROLL_NAN), the stylus
+    orientation as the needle axis into ``inp.axis`` (:func:`stylus_axis`; NaN, never a fault, when the
+    device gives none); returns S_RUNNING. Used by the compiled callback and by the OMNI's Python
+    callback alike."""
     ictl, fctl, hdt, hdv, _hdf, _hdb, ws, prm, _ts = o.ictl, o.fctl, o.hdt, o.hdv, o.hdf, o.hdb, o.ws, o.prm, o.ts
     pbuf = inp.p
     vbuf = inp.v
@@ -440,9 +477,11 @@ def guard_in(o, inp):
         df = math.sqrt(dfx * dfx + dfy * dfy + dfz * dfz)
         if df > f.df_frz:
             f.df_frz = df
-        # with a rendering layer a still hand under a steady force is no stall (the force/position
-        # relation) until the longer ``still`` window (a hand's tremor moves the encoders well within it)
-        loaded = o.rlim[0].on == 0.0 or f.df_frz > prm[0].stall_df
+        # the force/position relation: a force on a hand-held stylus that changes by more than
+        # ``stall_df`` moves it several encoder steps, so a position frozen through such a change is a
+        # stalled device; a still hand under a steady force is no fault, however long (issue 13: a
+        # trainee may hold perfectly still on the skin; the ``still`` window is off unless asked for)
+        loaded = f.df_frz > prm[0].stall_df
         if (ictl[0].frozen >= prm[0].stall and loaded) or ictl[0].frozen >= prm[0].still:
             fctl[0].detail[0] = px
             fctl[0].detail[1] = py
@@ -481,7 +520,7 @@ def guard_in(o, inp):
         pbuf[r] = (ws[0].scale * (ws[0].R[r, 0] * px + ws[0].R[r, 1] * py + ws[0].R[r, 2] * pz)
                    + ws[0].offset[r]) * 1e-3
         vbuf[r] = sc * (ws[0].R[r, 0] * vx + ws[0].R[r, 1] * vy + ws[0].R[r, 2] * vz)
-        inp.axis[r] = math.nan  # the stylus orientation is not read here yet: the step uses the travel
+    stylus_axis(o, inp)
     return S_RUNNING
 
 
@@ -566,11 +605,7 @@ def render_in(o, inp, diag):
             inp.fr[c] = 0.0
         inp.rstat[0] = 0.0
         return 0
-    d = diag[0]
-    for c in range(3):
-        o.rtf[c] = d.r_force[c]
-        o.rta[c] = d.r_axis[c]
-    tissue = R.TissueLocal(o.rtf, o.rta, d.r_damping, d.r_k_along, d.r_k_across, d.r_friction, d.r_released)
+    tissue = R.tissue_from_diag(diag[0], o.rtf, o.rta)
     limits = R.DeviceLimits(lim.max_force, lim.cont_force, lim.k_max, lim.b_max)
     params = R.CouplingParams(lim.k, lim.b, lim.enc, lim.tau, lim.ramp, lim.dt)
     cs = R.CouplingState(o.rproxy, o.rproxy_v, o.rhist, o.rdev_v, o.rforce, o.rdemand, o.raux)

@@ -145,6 +145,16 @@ def no_tissue() -> TissueLocal:
     return TissueLocal(np.zeros(3), np.zeros(3), 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def tissue_from_diag(d, force_buf, axis_buf):
+    """The :class:`TissueLocal` a servo's DIAG record ``d`` (its ``r_*`` fields: the tissue's
+    linearisation at the proxy) reports, its vectors copied into ``force_buf``/``axis_buf`` (3,)."""
+    for c in range(3):
+        force_buf[c] = d.r_force[c]
+        axis_buf[c] = d.r_axis[c]
+    return TissueLocal(force_buf, axis_buf, d.r_damping, d.r_k_along, d.r_k_across, d.r_friction, d.r_released)
+
+
 @nb.njit(cache=True, nogil=True)
 def foaw_velocity(history, n_hist, head, tol, dt, out):
     """End-fit first-order adaptive window velocity per axis. ``history`` is a ring of positions

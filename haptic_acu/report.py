@@ -677,6 +677,7 @@ _CSV_TAIL = (
     ("f_lateral_n", "f_lateral_n", 1.0, 5), ("f_bone_n", "f_bone_n", 1.0, 5),
     ("f_skin_n", "f_skin_n", 1.0, 5), ("f_fat_n", "f_fat_n", 1.0, 5), ("f_muscle_n", "f_muscle_n", 1.0, 5),
     ("roll_deg", "roll_deg", 1.0, 4), ("torque_nmm", "torque_nmm", 1.0, 5),
+    ("axis_x", "axis_x", 1.0, 6), ("axis_y", "axis_y", 1.0, 6), ("axis_z", "axis_z", 1.0, 6),
 )
 CSV_FIELDS = ("tick",) + tuple(h for h, *_ in _CSV_NUMERIC) + (
     "layer", "state_skin", "state_fat", "state_muscle") + tuple(h for h, *_ in _CSV_TAIL) + (
@@ -693,7 +694,9 @@ class SamplesCsvSink:
     ``depth_skin_mm`` depth in the compressed tissue's frame (0 until the skin breaks); ``f_n`` = |F|;
     the force parts (surface, damping, lateral, bone) and per-layer forces; ``roll_deg`` the needle's
     roll (cumulative, + clockwise seen from the handle) and ``torque_nmm`` the twist torque about its
-    axis (N*mm, :mod:`haptic_acu.twirl`); ``puncture`` (the layer
+    axis (N*mm, :mod:`haptic_acu.twirl`); ``axis_x, axis_y, axis_z`` the needle's axis (unit, handle
+    to tip: the insertion axis once the skin is broken, before that the device's, ``nan`` if it gives
+    none); ``puncture`` (the layer
     punctured on that tick, else empty); ``clamped`` and ``fault`` (0/1). Fixed decimals (t 1 us,
     lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
     """

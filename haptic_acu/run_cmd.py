@@ -57,7 +57,11 @@ def register(sub) -> None:
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
     p.add_argument("--pin-cores", action="store_true",
-                   help="pin the scripted device's servo thread to one core and the rerun logging child to the others")
+                   help="pin the servo thread (the scripted device's, or the OMNI's HD scheduler thread) to one "
+                        "core and the rerun logging child to the others")
+    p.add_argument("--travel-axis", action="store_true",
+                   help="OMNI: ignore the stylus orientation; the needle axis is the direction of travel at entry "
+                        "(as for a device that does not know it)")
     p.set_defaults(func=run)
 
 
@@ -73,12 +77,14 @@ def make_device(args, cfg):
         return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
     if args.trajectory:
         raise UserError(f"--trajectory is for --device scripted, not {args.device}")
+    if args.travel_axis and args.device != "omni":
+        raise UserError(f"--travel-axis is for --device omni, not {args.device}")
     if args.device == "keyboard":
         from haptic_acu.devices.keyboard import KeyboardDevice
         return KeyboardDevice(workspace=ws, force_limit_n=limit, stdin=sys.stdin, out=sys.stderr)
     from haptic_acu.devices.omni import OmniDevice, load_hd_library
     load_hd_library()  # a missing pyOpenHaptics / libHD.so fails now, before the simulator warms up
-    return OmniDevice(ws, force_limit_n=limit)
+    return OmniDevice(ws, force_limit_n=limit, stylus_axis=not args.travel_axis)
 
 
 def out_folder(args) -> Path:

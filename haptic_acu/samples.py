@@ -27,6 +27,10 @@ COLUMNS = (
     "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to a device (0 without one: replay, keyboard)
     "render_status",  # its status bits (haptic_acu.rendering: 1 clamped, 2 limiting, 4 fault)
     "roll_deg", "torque_nmm",  # the needle's roll (cumulative) and the twist torque about its axis
+    # the needle's axis (unit, handle to tip, scene frame): the insertion axis once the skin is broken,
+    # before that the axis the device gives (the OMNI's stylus, a trajectory's columns; NaN: none, the
+    # direction of travel will decide it at entry)
+    "axis_x", "axis_y", "axis_z",
 )
 COL = {name: i for i, name in enumerate(COLUMNS)}
 NCOL = len(COLUMNS)
@@ -45,6 +49,7 @@ _RINGW, _DZ1, _PUNCTURE, _FAULT, _CLAMPED = COL["ringw_m"], COL["dz1_m"], COL["p
 _PERIOD_ERR = COL["period_err_s"]
 _FR, _RSTAT = COL["fr_x_n"], COL["render_status"]
 _ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
+_AXIS = COL["axis_x"]
 _DEG = 180.0 / 3.141592653589793
 
 
@@ -83,6 +88,8 @@ def write_sample(buf, row, t, tick, inp, s, diag, period_err):
     r[_RSTAT] = inp.rstat[0]
     r[_ROLL] = inp.roll[0] * _DEG
     r[_TORQUE] = d.torque * 1e3
+    for k in range(3):
+        r[_AXIS + k] = sv.axis[k] if sv.inserted != 0 else inp.axis[k]
 
 
 class SampleRing:

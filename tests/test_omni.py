@@ -194,9 +194,13 @@ FAULTS = {
 
 @pytest.mark.parametrize("kind", sorted(FAULTS))
 def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tmp_path, kind):
+    # The force wobbles by 1 N at 5 Hz (falling from the fault on: 0.5 N less within 17 ms), so a
+    # frozen position is one through a changing force: the force/position relation calls it a stall
+    # once the stall window has passed.
     stall_s = 0.05
     res = run_session(emulator, tmp_path, {"workspace": WS, "force_limit_n": LIMIT, "spring_k_n_per_m": K,
-                                            "duration_s": 3.0, "options": {"stall_s": stall_s, "watchdog_s": 0.1}},
+                                            "wobble_n": 1.0, "duration_s": 3.0,
+                                            "options": {"stall_s": stall_s, "watchdog_s": 0.1}},
                       path=DEEP, faults=[(kind, FAULT_AT)])
     assert res["outcome"] == "DeviceFault", (res["outcome"], res["message"])
     msg = res["message"]
@@ -221,6 +225,60 @@ def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tm
     assert np.all(np.isfinite(states))  # the step never saw the NaN position
     assert res["read_after"].startswith("DeviceFault")
     assert res["close_twice"] == "ok"
+
+
+def test_a_position_frozen_under_a_steady_force_is_a_still_hand_not_a_fault(emulator, tmp_path):
+    # Issue 13: a trainee may hold perfectly still on the skin, every encoder bit-for-bit still under
+    # a steady force, for as long as they like. The position freezes at 0.3 s (the spring's force then
+    # steady, ~1.6 N) and stays frozen to the end, 1.5 s later: 30 stall windows, no fault.
+    stall_s = 0.05
+    res = run_session(emulator, tmp_path, {"workspace": WS, "force_limit_n": LIMIT, "spring_k_n_per_m": K,
+                                            "duration_s": 1.8, "options": {"stall_s": stall_s}},
+                      path=DEEP, faults=[("freeze", FAULT_AT)])
+    assert res["outcome"] == "returned", res["message"]
+    fr = frames(res)
+    n = len(res["states"])
+    frozen = fr[:n, 0] > FAULT_AT + 2e-3
+    assert frozen.sum() > 1400 and np.all(fr[:n][frozen, 2:5] == fr[n - 1, 2:5])  # bit-identical
+    assert np.all(np.abs(fr[:n][frozen, 7] - fr[n - 1, 7]) < 1e-12) and fr[n - 1, 7] > 1.0  # under a steady force
+    assert res["emulator_after_run_servo"]["output_force"] == [0.0, 0.0, 0.0]
+
+
+def test_the_stylus_orientation_is_the_state_s_axis_in_the_python_callback(emulator, tmp_path):
+    # The emulator's stylus held 30 deg off the device's -z, toward device +x, then a transform with a
+    # NaN rotation from 0.3 s: the state's axis (tip -> handle, scene frame) is the stylus direction
+    # turned by the workspace (device +x is scene +y), then None (the engine falls back to travel).
+    a = np.radians(30.0)
+    d_dev = np.array([np.sin(a), 0.0, -np.cos(a)])  # handle -> tip
+    res = run_session(emulator, tmp_path, {"workspace": WS, "duration_s": 0.5}, path=[(0.0, 0.0, 0.0, 30.0)],
+                      stylus_axis=[(0.0, *d_dev)], faults=[("nan_orientation", 0.3)])
+    assert res["outcome"] == "returned", res["message"]
+    states = np.array(res["states"], dtype=float)
+    fr = frames(res)
+    t_emu = fr[:len(states), 0]
+    before, after = t_emu < 0.3 - 1e-9, t_emu > 0.3 + 1e-9
+    expected = -vec_to_scene_m(d_dev) * 1e3  # DeviceState.axis points from the tip to the handle
+    np.testing.assert_allclose(states[before, 8:11], np.tile(expected, (before.sum(), 1)), rtol=0, atol=1e-12)
+    assert before.sum() > 250 and after.sum() > 150 and np.all(np.isnan(states[after, 8:11]))
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux CPU affinity and two usable cores")
+def test_pin_servo_thread_pins_the_hd_scheduler_thread(emulator, tmp_path):
+    # run --pin-cores: a synchronous call on the HD scheduler sets that thread's affinity before the
+    # servo callback runs; the emulator reports its scheduler thread's kernel id, and /proc says
+    # which cores that thread may run on.
+    core = max(os.sched_getaffinity(0))
+    res = run_session(emulator, tmp_path, {"workspace": WS, "duration_s": 0.2, "pin_cores": [core]},
+                      path=[(0.0, 0.0, 0.0, 30.0)])
+    assert res["outcome"] == "returned", res["message"]
+    assert res["pinned"] is True
+    th = res["sched_thread"]
+    assert th["tid"] == th["step_tid"]  # the step runs on the emulator's scheduler thread
+    assert th["cpus_allowed_list"] == str(core) and th["affinity"] == [core]
+    plain = run_session(emulator, tmp_path / "plain", {"workspace": WS, "duration_s": 0.1},
+                        path=[(0.0, 0.0, 0.0, 30.0)])
+    assert plain["outcome"] == "returned" and "pinned" not in plain
 
 
 def test_exception_in_step_zeroes_the_force_and_is_reraised_once(emulator, tmp_path):

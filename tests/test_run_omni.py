@@ -160,7 +160,7 @@ def test_omni_turned_scaled_workspace_through_the_cli(emulator, tmp_path, servo)
     start = text.index("[workspace]")
     cfg_path = tmp_path / "turned.toml"
     cfg_path.write_text(text[:start] + "[workspace]\noffset_mm = [1.5, 0.0, -20.0]\nscale = 1.5\n"
-                        "rotation_z_deg = 90.0\n")
+                        "rotation_z_deg = 90.0\nroll_sign = 1\n")
     workspace = (np.array([1.5, 0.0, -20.0]), 1.5, 90.0)
     proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), servo=servo, config=cfg_path)
     assert proc.returncode == 0, proc.stderr

@@ -16,7 +16,8 @@ from pathlib import Path
 SOURCE = Path(__file__).resolve().parent / "hd_emulator.c"
 
 # Fault kinds understood by HD_EMU_FAULTS (and their emu_inject_fault codes).
-FAULT_CODES = {"device_fault": 0x0300, "comm_error": 0x0302, "freeze": -1, "nan": -2, "stop_calling": -3, "late": -4}
+FAULT_CODES = {"device_fault": 0x0300, "comm_error": 0x0302, "freeze": -1, "nan": -2, "stop_calling": -3, "late": -4,
+               "nan_orientation": -5}
 
 
 class EmulatorBuildError(RuntimeError):
@@ -68,7 +69,7 @@ TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "
 
 def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velocity=True,
                  init_error=None, buttons=None, device_name=None, log=None, sched_fifo=None, base=None,
-                 stylus=None, nominal=None, gimbal=None, trace=None) -> dict:
+                 stylus=None, nominal=None, gimbal=None, trace=None, stylus_axis=None) -> dict:
     """An environment whose dynamic loader finds the emulator as ``libHD.so``.
 
     ``path``: knots ``(t_s, x_mm, y_mm, z_mm)`` of the stylus path in the device frame;
@@ -79,7 +80,9 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
     ``stylus``: the physical stylus mode, a dict with keys of :data:`STYLUS_VARS` (``mass_g`` needed;
     e.g. :data:`LOOSE_GRIP`): ``path`` is then the hand's path; ``nominal``: keys of
     :data:`NOMINAL_VARS` (HD_NOMINAL_MAX_*); ``gimbal``: knots ``(t_s, a, b, c)`` of the gimbal angles
-    (rad, c the stylus roll); ``trace``: a CSV file of the stylus physics per tick (:data:`TRACE_COLUMNS`).
+    (rad, c the stylus roll); ``trace``: a CSV file of the stylus physics per tick (:data:`TRACE_COLUMNS`);
+    ``stylus_axis``: knots ``(t_s, x, y, z)`` of the stylus direction, handle to tip (device frame), that
+    HD_CURRENT_TRANSFORM's rotation reports (turned about the stylus by the gimbal's roll).
     """
     env = dict(os.environ if base is None else base)
     for key in [k for k in env if k.startswith("HD_EMU_")]:
@@ -120,6 +123,8 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
         env["HD_EMU_GIMBAL"] = _path_spec(gimbal)
     if trace is not None:
         env["HD_EMU_TRACE"] = str(trace)
+    if stylus_axis is not None:
+        env["HD_EMU_STYLUS_AXIS"] = _path_spec(stylus_axis)
     return env
 
 

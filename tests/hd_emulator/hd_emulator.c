@@ -24,6 +24,7 @@
  *
  *   HD_EMU_PATH="t,x,y,z;t,x,y,z;..."   path knots: device time (s) and position (mm), t ascending
  *   HD_EMU_FAULTS="kind@t,kind@t"        kind: device_fault | comm_error | freeze | nan | stop_calling | late
+ *                                        | nan_orientation (HD_CURRENT_TRANSFORM's rotation part NaN from then on)
  *                                        (late: once, the scheduler wakes 30 ms late and then runs the
  *                                        missed ticks back to back, as a real one catching up does)
  *   HD_EMU_NOMINAL_MAX_FORCE=3.3         N
@@ -40,6 +41,12 @@
  *   HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE=0.88  N (HD_NOMINAL_MAX_CONTINUOUS_FORCE)
  *   HD_EMU_GIMBAL="t,a,b,c;..."          HD_CURRENT_GIMBAL_ANGLES (rad) against device time, piecewise
  *                                        linear; the third angle is the stylus roll (default all 0)
+ *   HD_EMU_STYLUS_AXIS="t,x,y,z;..."     the stylus direction from handle to tip (device frame, any length:
+ *                                        normalised) against device time, piecewise linear (default 0,0,-1).
+ *                                        HD_CURRENT_TRANSFORM's rotation is then the end-effector frame
+ *                                        whose -z axis is that direction (the smallest turn from the
+ *                                        identity, which holds the stylus along -z), turned about the stylus
+ *                                        by the third gimbal angle (+ clockwise seen from the handle)
  *
  * Physical stylus mode (on when HD_EMU_STYLUS_MASS_G is set): the stylus is a point mass pushed by
  * the committed force (what the motors output: zero when output is off, clamped to the nominal
@@ -77,7 +84,9 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/syscall.h>
 #include <time.h>
+#include <unistd.h>
 
 typedef unsigned int HHD;
 typedef unsigned int HDenum;
@@ -160,6 +169,7 @@ enum {
 #define EMU_NAN (-2)
 #define EMU_STOP_CALLING (-3)
 #define EMU_LATE (-4) /* once: the scheduler wakes LATE_S late, then catches up tick after tick */
+#define EMU_NAN_ORIENTATION (-5) /* the transform's rotation part is NaN (the position stays valid) */
 #define LATE_S 0.030
 
 /* log record kinds */
@@ -210,6 +220,9 @@ static struct {
     double nominal_max_stiffness, nominal_max_damping, nominal_max_continuous;
     double *gimbal_t, *gimbal_abc;
     int gimbal_n;
+    double *axis_t, *axis_xyz;
+    int axis_n;
+    long sched_tid; /* the scheduler thread's kernel thread id (0 before it runs) */
 
     /* physical stylus mode */
     int physical;
@@ -457,6 +470,9 @@ static void *scheduler_main(void *arg)
 {
     (void)arg;
     in_scheduler_thread = 1;
+    pthread_mutex_lock(&mu);
+    E.sched_tid = (long)syscall(SYS_gettid);
+    pthread_mutex_unlock(&mu);
     if (E.fifo_priority > 0) {
         struct sched_param sp = {.sched_priority = E.fifo_priority};
         int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
@@ -693,6 +709,45 @@ EXPORT void hdEndFrame(HHD h)
     pthread_mutex_unlock(&mu);
 }
 
+/* The end-effector's rotation into out[0..2], out[4..6], out[8..10] (its columns; mu held): the frame
+ * whose -z axis is the stylus direction d (HD_EMU_STYLUS_AXIS, handle to tip), reached from the identity
+ * by the smallest turn (Rodrigues, about e_z x z), then turned about the stylus by the roll (the third
+ * gimbal angle; clockwise seen from the handle is a right-handed turn about d, i.e. about -z). */
+static void stylus_rotation(double *out)
+{
+    double d[3] = {0.0, 0.0, -1.0}, g[3];
+    if (E.axis_n > 0)
+        knots_at(E.axis_t, E.axis_xyz, E.axis_n, E.tick * DT, d);
+    double n = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    double z[3] = {-d[0] / n, -d[1] / n, -d[2] / n};
+    double A[3][3];
+    if (z[2] > -1.0 + 1e-12) {
+        double v[3] = {-z[1], z[0], 0.0}, c = z[2], k = 1.0 / (1.0 + c);
+        double V[3][3] = {{0.0, -v[2], v[1]}, {v[2], 0.0, -v[0]}, {-v[1], v[0], 0.0}};
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++) {
+                double vv = 0.0;
+                for (int m = 0; m < 3; m++)
+                    vv += V[i][m] * V[m][j];
+                A[i][j] = (i == j ? 1.0 : 0.0) + V[i][j] + k * vv;
+            }
+    } else { /* d along +z: half a turn about x */
+        double F[3][3] = {{1.0, 0.0, 0.0}, {0.0, -1.0, 0.0}, {0.0, 0.0, -1.0}};
+        memcpy(A, F, sizeof A);
+    }
+    knots_at(E.gimbal_t, E.gimbal_abc, E.gimbal_n, E.tick * DT, g);
+    double a = -g[2], ca = cos(a), sa = sin(a); /* Rz(-roll) in the end-effector's own frame */
+    for (int i = 0; i < 3; i++) {
+        double x = A[i][0], y = A[i][1];
+        out[i] = ca * x + sa * y;     /* column 0: A (cos a, sin a, 0) */
+        out[4 + i] = -sa * x + ca * y; /* column 1: A (-sin a, cos a, 0) */
+        out[8 + i] = A[i][2];          /* column 2: z */
+    }
+    if (fault_active(EMU_NAN_ORIENTATION))
+        for (int i = 0; i < 3; i++)
+            out[i] = out[4 + i] = out[8 + i] = NAN;
+}
+
 static int get_values(HDenum what, double *out)
 {
     /* returns the number of values written, 0 for an unknown enum; mu held */
@@ -706,9 +761,10 @@ static int get_values(HDenum what, double *out)
             return 0;
         memcpy(out, E.vel, 3 * sizeof(double));
         return 3;
-    case HD_CURRENT_TRANSFORM: /* column-major 4x4; identity orientation */
+    case HD_CURRENT_TRANSFORM: /* column-major 4x4: the stylus orientation (stylus_rotation), the position */
         memset(out, 0, 16 * sizeof(double));
-        out[0] = out[5] = out[10] = out[15] = 1.0;
+        stylus_rotation(out);
+        out[15] = 1.0;
         memcpy(out + 12, E.pos, 3 * sizeof(double));
         return 16;
     case HD_CURRENT_JOINT_ANGLES:
@@ -1098,7 +1154,7 @@ EXPORT int emu_set_path(const double *t, const double *xyz, int n)
 EXPORT int emu_inject_fault(int code, double at_s)
 {
     pthread_mutex_lock(&mu);
-    int ok = E.n_faults < MAX_FAULTS && code != 0 && code >= EMU_LATE;
+    int ok = E.n_faults < MAX_FAULTS && code != 0 && code >= EMU_NAN_ORIENTATION;
     if (ok) {
         E.fault_kind[E.n_faults] = code;
         E.fault_tick[E.n_faults] = (long)ceil(at_s / DT - 1e-9);
@@ -1153,6 +1209,13 @@ EXPORT long emu_tick(void) { return E.tick; }
 EXPORT long emu_callbacks_called(void) { return E.callbacks_called; }
 EXPORT int emu_scheduler_running(void) { return E.running; }
 EXPORT int emu_initialized(void) { return E.initialized; }
+EXPORT long emu_scheduler_tid(void)
+{
+    pthread_mutex_lock(&mu);
+    long t = E.sched_tid;
+    pthread_mutex_unlock(&mu);
+    return t;
+}
 
 static void write_trace_locked(void)
 {
@@ -1382,8 +1445,10 @@ static void parse_faults(const char *s)
             code = EMU_STOP_CALLING;
         else if (!strcmp(tok, "late"))
             code = EMU_LATE;
+        else if (!strcmp(tok, "nan_orientation"))
+            code = EMU_NAN_ORIENTATION;
         else
-            die("HD_EMU_FAULTS", "kind is device_fault, comm_error, freeze, nan, stop_calling or late");
+            die("HD_EMU_FAULTS", "kind is device_fault, comm_error, freeze, nan, stop_calling, late or nan_orientation");
         if (emu_inject_fault(code, t) != 0)
             die("HD_EMU_FAULTS", "too many faults");
     }
@@ -1426,6 +1491,14 @@ __attribute__((constructor)) static void emu_init(void)
         E.nominal_max_continuous = env_number("HD_EMU_NOMINAL_MAX_CONTINUOUS_FORCE", 1e-9, 1e6, "expected a positive force in N");
     if (env_set("HD_EMU_GIMBAL"))
         parse_knots("HD_EMU_GIMBAL", getenv("HD_EMU_GIMBAL"), &E.gimbal_t, &E.gimbal_abc, &E.gimbal_n);
+    if (env_set("HD_EMU_STYLUS_AXIS")) {
+        parse_knots("HD_EMU_STYLUS_AXIS", getenv("HD_EMU_STYLUS_AXIS"), &E.axis_t, &E.axis_xyz, &E.axis_n);
+        for (int i = 0; i < E.axis_n; i++) {
+            const double *q = E.axis_xyz + 3 * i;
+            if (!(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] > 1e-12))
+                die("HD_EMU_STYLUS_AXIS", "a direction must not be zero");
+        }
+    }
     if (env_set("HD_EMU_STYLUS_MASS_G"))
         parse_physical();
     else if (env_set("HD_EMU_HAND_STIFFNESS") || env_set("HD_EMU_HAND_DAMPING") || env_set("HD_EMU_DEVICE_DAMPING") ||

@@ -6,9 +6,12 @@ Usage (in an environment from ``build.emulator_env``, so that ``libHD.so`` is th
 
 The scenario gives the workspace, the OmniDevice options and a stand-in for the physics:
 ``F = constant_n + k * max(0, -z) * (0, 0, 1)`` in the scene frame (a spring pushing the tip back
-out of the half-space z < 0), optionally raising ``StepBoom`` from ``raise_at_s``, returning a
-NaN force from ``nan_at_s`` or sleeping ``sleep_s`` once at ``sleep_at_s``. The session stops
-when the servo time reaches ``duration_s``.
+out of the half-space z < 0) plus ``wobble_n * sin(2 pi 5 t)`` along z, optionally raising
+``StepBoom`` from ``raise_at_s``, returning a NaN force from ``nan_at_s`` or sleeping ``sleep_s``
+once at ``sleep_at_s``. The session stops when the servo time reaches ``duration_s``. With
+``pin_cores`` (a list), ``OmniDevice.pin_servo_thread`` is called before the servo runs, and the
+step records the scheduler thread's kernel id (the emulator's) and its Cpus_allowed_list from
+/proc/self/task/<tid>/status.
 
 The result holds the outcome of run_servo, the scheduling policy of the thread the step ran on,
 every state handed to the step, the emulator's force
@@ -100,6 +103,12 @@ def main(scenario_path: str, result_path: str) -> int:
     raise_at = sc.get("raise_at_s")
     nan_at = sc.get("nan_at_s")
     sleep_at, slept = sc.get("sleep_at_s"), [False]
+    wobble = float(sc.get("wobble_n", 0.0))
+    pin = sc.get("pin_cores")
+    lib = ctypes.CDLL("libHD.so")
+    lib.emu_scheduler_tid.restype = ctypes.c_long
+    if pin is not None:
+        res["pinned"] = dev.pin_servo_thread(set(pin))
     duration = float(sc.get("duration_s", 1.0))
     stop = threading.Event()
     raised = {"done": False}
@@ -109,7 +118,15 @@ def main(scenario_path: str, result_path: str) -> int:
             res["step_thread_policy"] = os.sched_getscheduler(0)  # Linux: 0 is this thread (HD's scheduler)
         if raised["done"]:
             res["step_calls_after_raise"] += 1
-        res["states"].append([state.t_s, *state.position_m, *state.velocity_m_s, state.buttons])
+        if "sched_thread" not in res and pin is not None:
+            tid = int(lib.emu_scheduler_tid())
+            allowed = [ln.split(":", 1)[1].strip() for ln in Path(f"/proc/self/task/{tid}/status").read_text().splitlines()
+                       if ln.startswith("Cpus_allowed_list:")]
+            res["sched_thread"] = {"tid": tid, "step_tid": threading.get_native_id(), "cpus_allowed_list": allowed[0],
+                                   "affinity": sorted(os.sched_getaffinity(0))}
+        ax = state.axis if state.axis is not None else np.full(3, math.nan)
+        res["states"].append([state.t_s, *state.position_m, *state.velocity_m_s, state.buttons,
+                              *map(float, ax), state.roll_rad])  # axis NaN: none (JSON's NaN)
         if state.t_s >= duration:
             stop.set()
         if raise_at is not None and state.t_s >= raise_at:
@@ -120,7 +137,8 @@ def main(scenario_path: str, result_path: str) -> int:
             time.sleep(float(sc["sleep_s"]))  # a step far too slow for the servo (a JIT compile, say)
         if nan_at is not None and state.t_s >= nan_at:
             return np.array([math.nan, 0.0, 0.0])
-        return const + np.array([0.0, 0.0, k * max(0.0, -state.position_m[2])])
+        return const + np.array([0.0, 0.0, k * max(0.0, -state.position_m[2])
+                                 + wobble * math.sin(2.0 * math.pi * 5.0 * state.t_s)])
 
     t0 = time.monotonic()
     raises = 0
