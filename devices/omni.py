@@ -228,6 +228,7 @@ class OmniDevice(Device):
         # None (the default): a position frozen under a steady force is never a fault by itself
         self._still_ticks = None if still_s is None else max(self._stall_ticks, round(still_s * RATE_HZ))
         self.stylus_axis = bool(stylus_axis)  # the stylus orientation is the needle axis (else the travel)
+        self.gives_axis = self.stylus_axis  # a recording carries the axis (recorder.RecorderSink)
         self._watchdog_s = watchdog_s
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * filter_hz / RATE_HZ)
         self.info = DeviceInfo("omni", "PHANTOM (not opened)", force_limit_n or DEFAULT_FORCE_LIMIT_N, RATE_HZ, True)

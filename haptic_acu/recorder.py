@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import UserError
 from .samples import COL
-from .trajectory import EVENT_COLUMN, EVENT_CODES, LAYER_CODES, ROLL_COLUMN, STATE_CODES, TrajectoryWriter
+from .trajectory import AXIS_COLUMNS, EVENT_COLUMN, EVENT_CODES, LAYER_CODES, ROLL_COLUMN, STATE_CODES, TrajectoryWriter
 
 EXTRA = ("fx_n", "fy_n", "fz_n", "layer", "state_skin", "state_fat", "state_muscle", "depth_mm",
          "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to the device (0 without one)
@@ -37,6 +37,9 @@ _SRC = [COL["t_s"], COL["x_m"], COL["y_m"], COL["z_m"], COL["fx_n"], COL["fy_n"]
         COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"], COL["fr_x_n"], COL["fr_y_n"],
         COL["fr_z_n"], COL["roll_deg"]]
 _DEPTH = _SRC.index(COL["depth_m"])
+_SRC_AXIS = [COL["axis_x"], COL["axis_y"], COL["axis_z"]]
+# with a device that gives the needle axis (the OMNI's stylus): axis_x,axis_y,axis_z before the event
+EXTRA_AXIS = EXTRA[:-1] + AXIS_COLUMNS + EXTRA[-1:]
 
 
 class RecordingError(Exception):
@@ -66,6 +69,10 @@ class RecorderSink:
 
     def __init__(self, path, overwrite: bool = False, device=None):
         self.path = Path(path)
+        # a device that gives the needle axis (devices.omni: the stylus orientation) has it recorded
+        # (samples' axis_*: the insertion axis once inserted, else the device's, nan where it gave
+        # none), so the replay takes the same axis at each entry
+        self.axis = bool(getattr(device, "gives_axis", False))
         self.overwrite = bool(overwrite)
         self.device = device
         self._w: TrajectoryWriter | None = None
@@ -81,10 +88,12 @@ class RecorderSink:
         if self._w is not None:
             return
         try:
-            self._w = TrajectoryWriter(self.path, extra_columns=EXTRA, open_mode="w" if self.overwrite else "x",
+            axis_fmt = {c: "%.9f" for c in AXIS_COLUMNS} if self.axis else {}
+            self._w = TrajectoryWriter(self.path, extra_columns=EXTRA_AXIS if self.axis else EXTRA,
+                                       open_mode="w" if self.overwrite else "x",
                                        formats={"layer": PLACES, "state_skin": STATES, "state_fat": STATES,
                                                 "state_muscle": STATES, EVENT_COLUMN: EVENTS,
-                                                ROLL_COLUMN: "%.4f"},
+                                                ROLL_COLUMN: "%.4f", **axis_fmt},
                                        write_header=False)
         except FileExistsError:
             raise UserError(f"{self.path}: exists; choose another file or add --overwrite") from None
@@ -127,6 +136,10 @@ class RecorderSink:
         before = np.fmax.accumulate(np.concatenate([[self._last_t], t[:-1]]))
         keep = (t > before) & np.all(np.isfinite(out[:, :4]), axis=1)
         out[:, 4:] = np.nan_to_num(out[:, 4:])
+        if self.axis:  # nan (all three) where the device gave no axis: the replay's travel then
+            ax = rows[:, _SRC_AXIS]
+            ax[~np.isfinite(ax).all(axis=1)] = np.nan
+            out = np.column_stack([out, ax])
         ev = self._events(ticks)
         if not keep.all() and ev.any():  # an event on a dropped row moves to the next kept row
             idx = np.flatnonzero(keep)

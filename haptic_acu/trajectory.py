@@ -20,7 +20,9 @@ Optional columns, parsed and validated whenever present and exposed on :class:`B
 :meth:`TrajectoryCursor.pose_block` and by the scripted device:
 
 * ``axis_x,axis_y,axis_z``: the needle axis, a unit vector from the handle to the tip, scene
-  frame (all three or none; refused if its length is off 1 by more than 1%);
+  frame (all three or none; refused if its length is off 1 by more than 1%). A row may give all
+  three as ``nan``: no axis at that moment (a recording of a device that gave none then), and the
+  direction of travel decides the axis as for a file without the columns;
 * ``roll_deg``: cumulative roll of the needle, degrees, positive clockwise seen from the handle
   (refused if faster than 10 turns per second);
 * ``event``: empty, or ``reset`` (the hand lifted and put back with fresh tissue: the keyboard's
@@ -442,12 +444,16 @@ class _Checker:
 
     def _row_problems(self, vals: np.ndarray, events) -> list:
         problems = []  # (row, priority, message)
-        bad = np.flatnonzero(~np.isfinite(vals).all(axis=1))
+        finite = np.isfinite(vals)
+        if self.axis_idx is not None:  # a row with no axis (all three nan) is allowed
+            finite[:, self.axis_idx] |= np.isnan(vals[:, self.axis_idx]).all(axis=1)[:, None]
+        bad = np.flatnonzero(~finite.all(axis=1))
         if len(bad):
             r = int(bad[0])
-            j = int(np.flatnonzero(~np.isfinite(vals[r]))[0])
+            j = int(np.flatnonzero(~finite[r])[0])
             problems.append((r, 0, f"column {self.names[j]} is {float(vals[r, j])!r}; values must "
-                                   "be finite"))
+                                   "be finite" + (" (an axis may be nan on all three columns)"
+                                                  if self.axis_idx is not None and j in self.axis_idx else "")))
         with np.errstate(invalid="ignore"):
             far = np.abs(vals[:, 1:4]) > MAX_COORD_MM
         bad = np.flatnonzero(far.any(axis=1))
@@ -459,7 +465,7 @@ class _Checker:
         if self.axis_idx is not None:
             with np.errstate(invalid="ignore"):
                 n = np.linalg.norm(vals[:, self.axis_idx], axis=1)
-                bad = np.flatnonzero(np.abs(n - 1.0) > AXIS_UNIT_TOLERANCE)
+                bad = np.flatnonzero((np.abs(n - 1.0) > AXIS_UNIT_TOLERANCE) & ~np.isnan(n))
             if len(bad):
                 r = int(bad[0])
                 problems.append((r, 0, f"the needle axis (axis_x,axis_y,axis_z) has length "
@@ -884,8 +890,12 @@ class TrajectoryWriter:
             return
         if self._f.closed:
             raise ValueError(f"{self.path}: writer is closed")
-        if not np.isfinite(a).all():
-            r = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        finite = np.isfinite(a)
+        ax = [self.columns.index(c) for c in AXIS_COLUMNS if c in self.columns]
+        if len(ax) == 3:  # no axis on a row: all three nan (the reader's convention)
+            finite[:, ax] |= np.isnan(a[:, ax]).all(axis=1)[:, None]
+        if not finite.all():
+            r = int(np.flatnonzero(~finite.all(axis=1))[0])
             raise ValueError(f"{self.path}: refusing to write non-finite values (row {r} of the block)")
         t = a[:, 0]
         if not (t[0] > self._last_t and np.all(np.diff(t) > 0)):

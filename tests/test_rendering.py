@@ -273,6 +273,38 @@ def test_render_step_is_callable_from_a_compiled_tick():
     assert state.force[2] == pytest.approx(K * 2000.0 / (K + 2000.0) * 1e-3, rel=1e-6)
 
 
+def test_tissue_from_diag_reads_the_diag_records_report():
+    # the OMNI's compiled tick and the scripted device's model both turn the DIAG record's r_* fields
+    # into a TissueLocal through this one helper: every field lands in its place, the vectors copied
+    import numba as nb
+
+    from haptic_acu.servostate import DIAG
+
+    rng = np.random.default_rng(7)
+    diag = np.zeros(1, DIAG)
+    d = diag[0]
+    d["r_force"] = rng.normal(size=3)
+    d["r_axis"] = rng.normal(size=3)
+    for name in ("r_damping", "r_k_along", "r_k_across", "r_friction", "r_released"):
+        d[name] = rng.uniform(0.1, 10.0)
+
+    @nb.njit(nogil=True)
+    def read(diag, fb, ab):
+        t = R.tissue_from_diag(diag[0], fb, ab)
+        return (t.force[0], t.force[1], t.force[2], t.axis[0], t.axis[1], t.axis[2], t.damping,
+                t.stiffness_along, t.stiffness_across, t.friction, t.released)
+
+    fb, ab = np.zeros(3), np.zeros(3)
+    got = read(diag, fb, ab)
+    want = (*d["r_force"], *d["r_axis"], d["r_damping"], d["r_k_along"], d["r_k_across"], d["r_friction"],
+            d["r_released"])
+    assert got == tuple(float(x) for x in want)
+    np.testing.assert_array_equal(fb, d["r_force"])
+    np.testing.assert_array_equal(ab, d["r_axis"])
+    d["r_force"] = 0.0  # a copy, not a view of the record
+    assert np.any(fb != 0.0)
+
+
 # -- the servo's own report (DIAG r_* fields, needle.render_local) against independent evaluations ----
 @pytest.fixture(scope="module")
 def needle():

@@ -175,7 +175,7 @@ FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin
 
 
 @pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("comm_error", "HD_COMM_ERROR"),
-                                           ("nan", "non-finite position"), ("freeze", "position frozen")])
+                                           ("nan", "non-finite position")])
 @pytest.mark.parametrize("servo", ["compiled", "python"])
 def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message, servo):
     path = press_path(workspace)
@@ -199,15 +199,31 @@ def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, k
     # The rows carry the device's tick time: the recording reaches the fault.
     t_last = float(frames[len(tr.t_s) - 1, 0])  # the emulator's device time of the last row
     tick = 1e-3
-    if kind != "freeze":  # the tick at FAULT_AT reports the error (or NaN): the one before is the last
-        assert FAULT_AT - 3 * tick <= t_last <= FAULT_AT
-    else:  # the position froze at FAULT_AT under a steady force: a still hand for the rendering
-        # layer's guard until its 1 s window ends (see devices/omni.py), every tick recorded
-        assert abs(t_last - (FAULT_AT + 1.0)) <= 3 * tick
-        z_dev = frames[:n, 4]
-        frozen = z_dev == z_dev[-1]
-        run = int(np.argmin(frozen[::-1])) if not frozen.all() else len(frozen)  # trailing frozen rows
-        assert 998 <= run <= 1002
+    # the tick at FAULT_AT reports the error (or NaN): the one before is the last
+    assert FAULT_AT - 3 * tick <= t_last <= FAULT_AT
+
+
+@pytest.mark.parametrize("servo", ["compiled", "python"])
+def test_omni_frozen_under_a_steady_force_is_a_still_hand_through_the_cli(emulator, tmp_path, workspace, servo):
+    # The encoders freeze at FAULT_AT while the stylus presses the skin with the device's whole
+    # (0.15 N) force: bit-identical positions under a force that no longer changes, which is what a
+    # trainee holding perfectly still produces too. The guard tells a stalled device by the
+    # force/position relation (a force changing by 0.5 N with the position frozen: tests/test_omni.py)
+    # and by the HD API's own errors and the scheduler watchdog (above); a steady force on a frozen
+    # position is no fault (README, Faults): the session runs to its end, every tick recorded, the
+    # force within the device's limit, the last frame zero.
+    proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), faults=[("freeze", FAULT_AT)],
+                                duration=3.0, servo=servo)
+    assert proc.returncode == 0, proc.stderr
+    assert f"{servo} servo loop" in proc.stderr and "stopped:" not in proc.stderr
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    n = len(tr.t_s)
+    assert tr.t_s[-1] > 2.9
+    check_rows_match_frames(tr, frames, workspace)
+    frozen = frames[:n, 0] > FAULT_AT + 2e-3
+    assert frozen.sum() > 1800 and np.all(frames[:n][frozen, 2:5] == frames[n - 1, 2:5])
+    assert np.linalg.norm(frames[:, 5:8], axis=1).max() <= NOMINAL_MAX_N * (1 + 1e-12)
+    assert np.all(frames[-1, 5:8] == 0.0)
 
 
 def test_omni_scheduler_that_stops_calling_is_a_fault_through_the_cli(emulator, tmp_path, workspace):
