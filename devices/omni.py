@@ -21,13 +21,17 @@ Safety, on every tick:
   ``info.force_limit_n`` = min(the configured limit, HD_NOMINAL_MAX_FORCE), in both frames;
 * a non-finite position, a stalled device and a callback that the scheduler stops calling for
   ``watchdog_s`` (checked from run_servo's own thread) are device faults. A stalled device is a
-  position bit-for-bit identical while a force is commanded: with the rendering layer, for
-  ``stall_s`` while the commanded force has changed by more than 0.5 N since it froze (a hand,
-  even a firm one, moves the stylus several encoder steps under such a change: the force/position
-  relation), or for ``still_s`` (1 s) under any force (a hand holding a stylus still against a
-  steady force leaves the encoders still for a while, but its tremor moves them within a second);
-  without it (a ``step`` given no ``render``), for ``stall_s`` under any force. A stylus at rest in
-  free space (no force) may be still for ever.
+  position bit-for-bit identical for ``stall_s`` while the commanded force has changed by more than
+  0.5 N since it froze (a hand, even a firm one, moves the stylus several encoder steps under such a
+  change: the force/position relation). A position frozen under a steady force is a still hand, never
+  a fault by itself (a trainee may hold perfectly still on the skin; README, Faults), unless
+  ``still_s`` asks for a limit. A stylus at rest in free space (no force) may be still for ever.
+
+The stylus orientation (HD_CURRENT_TRANSFORM's rotation: the stylus along the end-effector's -z,
+handle to tip) is the needle's axis (``DeviceState.axis``, and ``TickIn.axis`` in the compiled
+callback), unless ``stylus_axis=False``; a transform without a finite orientation gives none. The
+roll's sign is the workspace's (``Workspace.roll_sign``). :meth:`OmniDevice.pin_servo_thread` pins
+the HD scheduler's thread (``run --pin-cores``).
 
 On a fault or an exception in ``step`` the callback commands zero force in that frame (when it is
 still running), then run_servo disables force output, unschedules the callback, stops the

@@ -127,7 +127,7 @@ def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp
                      f"lateral force max {np.nanmax(s['f_lateral_n']):.4f} N")
     assert err.max() < 2.0
     before = ~inserted
-    assert np.all(angle_deg(s["axis"][before], OBLIQUE) < 1e-6)  # the stylus's own, every tick before entry
+    assert np.all(angle_deg(s["axis"][before], OBLIQUE) < 1e-3)  # the stylus's own, every tick before entry
     assert np.all(s["clamped"] == 0)
     assert np.nanmax(s["f_lateral_n"]) < 0.25
     tr = trajectory.load(rec, extra_columns=EXTRA)
@@ -223,3 +223,20 @@ def test_bad_roll_sign_or_travel_axis_off_the_omni_is_one_line_and_status_2(tmp_
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and names in lines[0] and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("servo", ["compiled", "python"])
+def test_the_stylus_axis_wins_over_the_travel_in_both_callbacks(emulator, tmp_path, servo):
+    # The same kinematic run as above with the stylus's orientation used: the needle enters along the
+    # held stylus (20 deg off the line of travel), through the compiled callback and the Python one.
+    travel = np.array([0.0, 0.0, -1.0])
+    held = np.array([np.sin(np.radians(20.0)), 0.0, -np.cos(np.radians(20.0))])
+    path, duration = line_path(travel, -4.0, 8.0, 10.0, 0.3)
+    proc, frames, rec, out = run_cli(emulator, tmp_path, path, duration, stylus_axis=[(0.0, *to_device_dir(held))],
+                                     extra_args=["--python-servo"] if servo == "python" else [])
+    assert proc.returncode == 0, proc.stderr
+    assert f"{servo} servo loop" in proc.stderr
+    s = samples(out)
+    inserted = s["state_skin"] == "punctured"
+    assert inserted.sum() > 300
+    assert np.all(angle_deg(s["axis"], held) < 1e-3)  # the stylus's before entry, the insertion axis after
