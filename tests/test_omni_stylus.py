@@ -214,8 +214,9 @@ def test_a_still_hand_on_the_skin_for_5_s_is_no_fault(emulator, tmp_path):
     assert longest > 4500
 
 
-@pytest.mark.parametrize("args, names", [(["--device", "omni", "--set", "workspace.roll_sign=2"], "workspace.roll_sign"),
-                                         (["--device", "keyboard", "--travel-axis"], "--travel-axis")])
+@pytest.mark.parametrize("args, names", [
+    (["--device", "omni", "--set", "workspace.roll_sign=2"], "workspace.roll_sign"),
+    (["--device", "keyboard", "--travel-axis"], "--travel-axis")])
 def test_bad_roll_sign_or_travel_axis_off_the_omni_is_one_line_and_status_2(tmp_path, args, names):
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", *args, "--duration", "1", "--out",
                            str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)

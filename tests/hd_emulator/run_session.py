@@ -120,8 +120,8 @@ def main(scenario_path: str, result_path: str) -> int:
             res["step_calls_after_raise"] += 1
         if "sched_thread" not in res and pin is not None:
             tid = int(lib.emu_scheduler_tid())
-            allowed = [ln.split(":", 1)[1].strip() for ln in Path(f"/proc/self/task/{tid}/status").read_text().splitlines()
-                       if ln.startswith("Cpus_allowed_list:")]
+            status = Path(f"/proc/self/task/{tid}/status").read_text().splitlines()
+            allowed = [ln.split(":", 1)[1].strip() for ln in status if ln.startswith("Cpus_allowed_list:")]
             res["sched_thread"] = {"tid": tid, "step_tid": threading.get_native_id(), "cpus_allowed_list": allowed[0],
                                    "affinity": sorted(os.sched_getaffinity(0))}
         ax = state.axis if state.axis is not None else np.full(3, math.nan)
