@@ -146,3 +146,37 @@ def test_bad_rupture_value_is_one_line_naming_the_key(item):
     with pytest.raises(UserError) as e:
         load_config(None, overrides=[item])
     assert "\n" not in str(e.value) and item.split("=")[0] in str(e.value)
+
+
+@pytest.mark.parametrize("speed_mm_s", [3.0, 30.0])
+def test_compiled_step_matches_the_numpy_reference_off_the_reference_speed(speed_mm_s):
+    """bench/numpy_reference.py (an independent NumPy implementation, its own speed factor) and the
+    compiled step, straight in at a speed where the factor is not 1: the same punctures on the same
+    ticks and the same forces to rounding."""
+    from haptic_acu.bench import scenarios
+    from haptic_acu.bench.numpy_reference import NumpyNeedle
+
+    cfg = load_config(None)
+    model = scenarios.model_for(cfg)
+    ref = NumpyNeedle(cfg, model.tissue)
+    P, V = scenarios.straight(1e-3, -16e-3, speed_mm_s * 1e-3)
+    punct_c, punct_r, worst = [], [], 0.0
+    for i, (p, v) in enumerate(zip(P, V)):
+        fc = model.step(p, v).copy()
+        fr = ref.step(p, v).copy()
+        if model.diag["puncture"] >= 0:
+            punct_c.append((int(model.diag["puncture"]), i))
+        if ref.punctured_now >= 0:
+            punct_r.append((ref.punctured_now, i))
+        worst = max(worst, float(np.abs(fc - fr).max()))
+    assert [k for k, _ in punct_c] == [0, 1, 2]
+    assert punct_r == punct_c
+    assert worst < 1e-9
+    # and the breaks moved from the speed-free model's (the factor is not 1 here)
+    free = scenarios.model_for(load_config(None, overrides=OFF))
+    ticks = []
+    for i, (p, v) in enumerate(zip(P, V)):
+        free.step(p, v)
+        if free.diag["puncture"] >= 0:
+            ticks.append(i)
+    assert ticks != [i for _, i in punct_c]
