@@ -62,6 +62,7 @@ class ScriptedDevice(Device):
         self.roll = bool(roll)  # False: the file's roll_deg is ignored (the same replay without rotation)
         # reads and checks the header now: a missing or malformed file fails at construction
         self._reader = TrajectoryReader(self.path, max_hand_speed_m_per_s)
+        self.gives_axis = bool(self._reader.has_axis)  # a recording of this session carries the file's axis
         self.realtime = bool(realtime)
         self.info = DeviceInfo(name="scripted", model=f"trajectory file {self.path.name}",
                                force_limit_n=float(force_limit_n), rate_hz=1000.0, drives_clock=False)
