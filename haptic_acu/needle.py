@@ -362,12 +362,6 @@ def recentre(m, s, k, idx, use_table):
                 xf[i, c] = X0f[i, c] - dz * ax[c]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _radius_along(coeffs_k, lmax, ux, uy, uz, tx, ty, tz, h):
-    """A radial SH surface's radius in the direction ``u + h t``."""
-    return shf.eval_direction(coeffs_k, lmax, ux + h * tx, uy + h * ty, uz + h * tz)
-
-
 @nb.njit(cache=True, nogil=True)
 def depth_gradient(m, s, k):
     """The tip's depth below layer ``k``'s rest surface, d(q) = r_k(u) - |q - c| (radial, about the
@@ -399,10 +393,10 @@ def depth_gradient(m, s, k):
     t2z = ux * t1y - uy * t1x
     h = 1e-4
     two_a = 2.0 * math.atan(h)  # u +- h t are +-atan(h) from u along the great circle through t
-    g1 = (_radius_along(ck, lmax, ux, uy, uz, t1x, t1y, t1z, h)
-          - _radius_along(ck, lmax, ux, uy, uz, t1x, t1y, t1z, -h)) / two_a
-    g2 = (_radius_along(ck, lmax, ux, uy, uz, t2x, t2y, t2z, h)
-          - _radius_along(ck, lmax, ux, uy, uz, t2x, t2y, t2z, -h)) / two_a
+    g1 = (shf.eval_direction(ck, lmax, ux + h * t1x, uy + h * t1y, uz + h * t1z)
+          - shf.eval_direction(ck, lmax, ux - h * t1x, uy - h * t1y, uz - h * t1z)) / two_a
+    g2 = (shf.eval_direction(ck, lmax, ux + h * t2x, uy + h * t2y, uz + h * t2z)
+          - shf.eval_direction(ck, lmax, ux - h * t2x, uy - h * t2y, uz - h * t2z)) / two_a
     wk.gd[0] = ux - (g1 * t1x + g2 * t2x) / rho
     wk.gd[1] = uy - (g1 * t1y + g2 * t2y) / rho
     wk.gd[2] = uz - (g1 * t1z + g2 * t2z) / rho
