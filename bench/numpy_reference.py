@@ -23,9 +23,9 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   at the tip's radial depth d below the layer's rest surface and no lateral offset, along grad(-d)
   (central differences of d along the scene axes, not the compiled step's tangent-plane
   differences); the net is re-centred under the sliding tip only to be drawn there;
-* puncture at the ring-w mean deflection threshold (read at the same depth); the needle's axis (the device's, else the
-  direction of travel since the skin's first touch) and its entry and boundary crossings (a scan and
-  SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
+* puncture at the ring-w mean deflection threshold (read at the same depth; times the speed
+  factor); the needle's axis (the device's, else the direction of travel since the skin's first
+  touch) and its entry and boundary crossings (a scan and SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
   needle length per broken layer, either Table 1's damping (``needle.mechanics = "table1"``) or
   cutting at the crack front plus a stick-point Karnopp friction and viscous friction (docs/model.md
   s9); the lateral constraint as stiff as the shaft is held, the bone wall, the non-finite fault
@@ -176,6 +176,8 @@ class NumpyNeedle:
         self.k_bone = nd.bone_stiffness_n_per_mm * 1e3
         self.limit = cfg.safety.force_limit_n
         self.sweeps = int(cfg.solver.sweeps_per_tick)
+        rp = cfg.rupture  # the threshold's speed dependence (docs/model.md section 2.2)
+        self.rupture = (rp.high_speed_ratio, rp.speed_scale_mm_s * 1e-3, rp.reference_speed_mm_s * 1e-3)
         self.tables = None
         if cfg.solver.servo_net == "table":
             from haptic_acu.forcenet import NetParams, lattice
@@ -209,6 +211,17 @@ class NumpyNeedle:
         self.layer = -1
         self.punctured_now = -1
         self.surface_force = 0.0
+
+    def rupture_factor(self, v, axis):
+        """The puncture threshold's factor at tip velocity ``v`` on a net whose ``axis`` points out of
+        the tissue: 1 if the high-speed ratio is 1, else the ratio of the two blends of 1 and the
+        ratio at the approach speed and at the reference speed."""
+        r, vc, vref = self.rupture
+        if r >= 1.0:
+            return 1.0
+        u = max(-float(np.dot(v, axis)), 0.0)
+        blend = lambda speed: r + (1.0 - r) * vc / (vc + speed)  # noqa: E731
+        return blend(u) / blend(vref)
 
     # -- geometry ---------------------------------------------------------------------------------
     def radii(self, q):
@@ -477,7 +490,7 @@ class NumpyNeedle:
                         ring_w = self.ring_w_deflection(lay)
                         fn = float(self.net_reaction(lay) @ net.axis)
                     net.xf[0] = q  # N1 drawn at the tip (a tabulated shape is laid only for rendering)
-                    if ring_w > lay["thresh"]:
+                    if ring_w > lay["thresh"] * self.rupture_factor(v, net.axis):
                         self.states[k] = PUNCTURED
                         self.punctured_now = k
                         if k == 0:

@@ -11,7 +11,7 @@ in about a microsecond, instead of relaxing 271 particles every millisecond (two
 sweeps, 70 us at w = 10, and they track the static solution only within 0.4%).
 
 The servo reads the first column only (rho = 0, N1 pushed straight in to the tip's depth below the
-rest surface: docs/model.md s2.2, which makes the intact surface's force a function of the tip's
+rest surface: docs/model.md s2.3, which makes the intact surface's force a function of the tip's
 position and conservative); the other columns (rho up to L / 2, the farthest the tip gets from the
 centre of a net re-centred under it) stay for the tests that hold the table to independent solvers.
 The hexagonal lattice is symmetric under rotations by 60 degrees and reflections, so the response's
