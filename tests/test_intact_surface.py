@@ -9,7 +9,6 @@ References, independent of the step: the SH surface evaluated with SciPy's harmo
 the layer's response table read with numpy.interp, and the work integrated by the trapezoid rule.
 The default config's limb body throughout (its skin is tilted away from the acupoint).
 """
-import dataclasses
 import math
 
 import numpy as np
@@ -19,9 +18,9 @@ from hypothesis import strategies as st
 
 from haptic_acu.bench import scenarios
 from haptic_acu.bench.numpy_reference import SHBasis, directions
+from haptic_acu.forcenet import NetParams
 from haptic_acu.needle import PRESSING, PUNCTURED, UNTOUCHED
 from haptic_acu.netresponse import table_for
-from haptic_acu.forcenet import NetParams
 
 DT = 1e-3
 MAX_STEP_N = 5e-3  # the issue's bound on a tick-to-tick change while sliding at constant depth
@@ -37,8 +36,7 @@ WORK_TOL_J = 1e-9
 
 @pytest.fixture(scope="module", params=["table", "sweeps"])
 def cfg(request):
-    base = scenarios.config_copy(servo_net=request.param)
-    return base
+    return scenarios.config_copy(servo_net=request.param)
 
 
 @pytest.fixture(scope="module")
