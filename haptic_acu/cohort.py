@@ -371,24 +371,85 @@ def _num(v):
 def insertion_table(rows: np.ndarray, cfg, tissue=None, reference_rows=None) -> tuple[dict, list[dict]]:
     """(session metrics, one dict per insertion with every :data:`INSERTION_COLUMNS` value) from a
     session's sample rows; ``reference_rows``: the same replay without rotation (the grasp felt)."""
-    from .metrics import entry_tick, insertion_runs, session_metrics
+    from .metrics import session_metrics
     from .samples import COL
-    from .skill_metrics import smooth_path
 
     sm = session_metrics(rows, cfg, tissue, reference_rows=reference_rows)
-    t = rows[:, COL["t_s"]]
-    p = rows[:, COL["x_m"]:COL["x_m"] + 3]
+    track = rows[:, [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]]
+    return sm, insertion_rows(sm, track, cfg)
+
+
+def insertion_rows(sm: dict, track: np.ndarray, cfg) -> list[dict]:
+    """The :data:`INSERTION_COLUMNS` of each insertion of ``sm`` (its session metrics) from the
+    session's ``track``: per row t_s, x, y, z (m), state_skin, depth_skin_m (what the path, economy
+    and smoothness columns need: :class:`_Track`)."""
+    from .metrics import entry_tick, insertion_runs
+    from .skill_metrics import smooth_path
+
+    t = track[:, 0]
+    p = track[:, 1:4]
     ps = smooth_path(t, p)
-    state = rows[:, COL["state_skin"]]
-    depth = rows[:, COL["depth_skin_m"]]
+    state = track[:, 4]
+    depth = track[:, 5]
     out = []
     for (a, b), m in zip(insertion_runs(state), sm["per_insertion"]):
         e = entry_tick(state, a)
         d = depth[a:b + 1]
         k_reach = a + int(np.argmax(d >= d.max() - REACH_TOL_MM * 1e-3))
-        ctx = InsertionContext(m=m, t=t, p=p, ps=ps, w=slice(e, b + 1), k_reach=k_reach, cfg=cfg, rows=rows)
+        ctx = InsertionContext(m=m, t=t, p=p, ps=ps, w=slice(e, b + 1), k_reach=k_reach, cfg=cfg, rows=None)
         out.append({c.name: _num(c.get(ctx)) for c in INSERTION_COLUMNS})
-    return sm, out
+    return out
+
+
+class _Track:
+    """Frame sink keeping per row only t_s, x, y, z, state_skin and depth_skin_m (48 of a row's 248
+    bytes): what :func:`insertion_rows` needs beside the streamed metrics. The smoothness columns
+    low-pass the whole session's path with a zero-phase filter (forward and backward over the
+    session), which no bounded stream reproduces exactly; this is the part of a cohort worker's
+    memory that still grows with the session's length."""
+
+    def __init__(self):
+        from .samples import COL
+        self.cols = [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]
+        self.blocks: list[np.ndarray] = []
+
+    def on_frame(self, frame) -> None:
+        if len(frame.samples):
+            self.blocks.append(frame.samples[:, self.cols])
+
+    def array(self) -> np.ndarray:
+        return np.concatenate(self.blocks) if self.blocks else np.zeros((0, len(self.cols)))
+
+
+class _Forces:
+    """Frame sink keeping per row only its tick and force (the grasp felt's reference)."""
+
+    def __init__(self):
+        from .samples import COL
+        self.cols = [COL["tick"], COL["fx_n"], COL["fx_n"] + 1, COL["fx_n"] + 2]
+        self.blocks: list[np.ndarray] = []
+
+    def on_frame(self, frame) -> None:
+        if len(frame.samples):
+            self.blocks.append(frame.samples[:, self.cols])
+
+
+def reference_forces(trajectory, cfg):
+    """(ticks, forces (n, 3)) of the headless replay of ``trajectory`` without its roll: the rows of
+    :func:`haptic_acu.replay.replay_rows` (``roll=False``) that the grasp felt uses, and no others.
+    None if that replay faults."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+
+    from .engine import Session
+
+    sink = _Forces()
+    with ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                        force_limit_n=cfg.safety.force_limit_n, roll=False) as device:
+        result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+    if result.fault:
+        return None
+    a = np.concatenate(sink.blocks) if sink.blocks else np.zeros((0, 4))
+    return a[:, 0].copy(), a[:, 1:4].copy()
 
 
 class Interrupted(UserError):
@@ -425,8 +486,13 @@ def _replay(job: Job) -> dict:
                             realtime=False, force_limit_n=cfg.safety.force_limit_n)
     device.open()
     tissue = _tissue(job)
-    sink = SummarySink(cfg)
-    sinks = [sink]
+    reference = None
+    if device.has_roll:  # the grasp felt: the same replay without rotation (its ticks and forces)
+        reference = reference_forces(job.file, cfg)
+    # nothing below keeps whole rows: the metrics are streamed, the figure gets a bounded envelope
+    sink = SummarySink(cfg, keep_rows=False, reference_rows=reference)
+    track = _Track()
+    sinks = [sink, track]
     partial = None
     if job.session_dir:
         from .report import SamplesCsvSink
@@ -445,13 +511,11 @@ def _replay(job: Job) -> dict:
         if result.duration_s < device.duration_s - 0.01:
             raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
         summary = sink.summary()
-        reference = None
-        if device.has_roll:  # the grasp felt: the same replay without rotation
-            from .replay import replay_rows
-            reference = replay_rows(job.file, cfg, roll=False)
-        sm, insertions = insertion_table(sink.rows(), cfg, tissue, reference)
+        sm = sink.metrics(summary["punctures"])
+        insertions = insertion_rows(sm, track.array(), cfg)
+        track.blocks = []
         if partial is not None:
-            _session_files(partial, Path(job.session_dir), summary, sm, sink.rows(), tissue, job)
+            _session_files(partial, Path(job.session_dir), summary, sm, sink.figure_rows(), tissue, job)
     finally:
         if partial is not None:
             shutil.rmtree(partial, ignore_errors=True)
@@ -463,13 +527,14 @@ def _replay(job: Job) -> dict:
         "insertions": insertions}
 
 
-def _session_files(partial: Path, final: Path, summary: dict, sm: dict, rows, tissue, job: Job) -> None:
+def _session_files(partial: Path, final: Path, summary: dict, sm: dict, figure, tissue, job: Job) -> None:
     """The replay's own files for one session (``--session-files``), renamed into place when whole."""
     from .report import plot_force_depth
 
     summary = dict(summary, trajectory=Path(job.file).name, metrics=sm)
     (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    plot_force_depth(rows, partial / "force_depth.png", tissue, title=job.session)
+    rows, index = figure  # SummarySink.figure_rows(): every row up to FigureRows' cap, then an envelope
+    plot_force_depth(rows, partial / "force_depth.png", tissue, title=job.session, index=index)
     if final.exists():
         shutil.rmtree(final)  # this session's files from an earlier run of this cohort
     os.replace(partial, final)

@@ -373,7 +373,7 @@ class InsertionStream:
     """:func:`haptic_acu.metrics.insertion_metrics` of one insertion fed block by block (module
     docstring). ``press``: its entry's pressing run (:class:`_Press`), opened at the run's first row
     if it had none; ``inward``: the inward skin normal at the entry; ``ref_rows``: the session
-    replayed without rotation (whole, for the grasp felt) or None."""
+    replayed without rotation for the grasp felt, as (ticks, forces (n, 3)), or None."""
 
     def __init__(self, press: _Press, target_mm, inward: np.ndarray, comfort_n: float, ref_rows=None):
         self.press = press
@@ -479,13 +479,13 @@ class InsertionStream:
 
     def _ref_forces(self, ticks: np.ndarray) -> np.ndarray:
         """The reference replay's force rows on these ticks (zeros, and no grasp, if it lacks one)."""
-        ref_ticks = self.ref[:, _TICK]
+        ref_ticks, ref_f = self.ref
         idx = np.searchsorted(ref_ticks, ticks)
         ok = idx < len(ref_ticks)
         if not ok.all() or not np.array_equal(ref_ticks[idx], ticks):
             self.ref_ok = False
             return np.zeros((len(ticks), 3))
-        return self.ref[idx, _F:_F + 3]
+        return ref_f[idx]
 
     def _fix_steps(self) -> None:
         self.u_steps = self.direction()[0]

@@ -414,8 +414,14 @@ class SessionMetricsScan:
 
     def __init__(self, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, reference_rows=None):
         self.target = tuple(float(v) for v in cfg.scene.target_depth_mm)
-        # the same session replayed without rotation (session_metrics' reference_rows), or None
-        self.ref = None if reference_rows is None else np.asarray(reference_rows, dtype=np.float64)
+        # the same session replayed without rotation (session_metrics' reference_rows: its rows, or
+        # only (ticks, forces (n, 3)) of them), or None
+        self.ref = None
+        if isinstance(reference_rows, tuple):
+            self.ref = (np.asarray(reference_rows[0], dtype=np.float64), np.asarray(reference_rows[1], dtype=np.float64))
+        elif reference_rows is not None:
+            r = np.asarray(reference_rows, dtype=np.float64)
+            self.ref = (r[:, _TICK].copy(), r[:, _F:_F + 3].copy())
         self.tissue = tissue
         self.comfort = float(lateral_comfort_n)
         self.rows_seen = 0
