@@ -79,7 +79,8 @@ class InsertionContext:
     w: slice
     k_reach: int
     cfg: object
-    rows: np.ndarray
+    rows: np.ndarray | None
+    skill: dict | None = None  # path, economy, ldlj, duration already computed (pathstream.path_columns)
 
 
 def _depth_error(c: InsertionContext):
@@ -92,12 +93,18 @@ def _skill(name):
     from . import skill_metrics as sm
 
     def path_mm(c):
+        if c.skill is not None:
+            return c.skill["path"]
         return sm.path_length(c.ps[c.w]) * 1e3
 
     def economy(c):
+        if c.skill is not None:
+            return c.skill["economy"]
         return sm.economy_of_motion(c.ps[c.w.start:c.k_reach + 1])
 
     def ldlj(c):
+        if c.skill is not None:
+            return c.skill["ldlj"]
         thrust = slice(c.w.start, c.k_reach + 1)
         return sm.ldlj(c.t[thrust], c.ps[thrust])
 
@@ -122,7 +129,7 @@ INSERTION_COLUMNS: list[Column] = [
     Column("t_entry_s", "s", "session time the tip first pressed the intact skin for this insertion (or re-entered)",
            lambda c: c.m["t_entry_s"]),
     Column("duration_s", "s", "from the entry tick to the last tick with the skin punctured",
-           lambda c: float(c.t[c.w.stop - 1] - c.t[c.w.start])),
+           lambda c: c.skill["duration"] if c.skill is not None else float(c.t[c.w.stop - 1] - c.t[c.w.start])),
     Column("path_length_mm", "mm", "length of the tip's path over the insertion (low-passed positions)",
            _skill("path")),
     Column("economy_of_motion", "1", "thrust phase (entry -> depth reached): straight-line distance over path "
@@ -381,8 +388,8 @@ def insertion_table(rows: np.ndarray, cfg, tissue=None, reference_rows=None) -> 
 
 def insertion_rows(sm: dict, track: np.ndarray, cfg) -> list[dict]:
     """The :data:`INSERTION_COLUMNS` of each insertion of ``sm`` (its session metrics) from the
-    session's ``track``: per row t_s, x, y, z (m), state_skin, depth_skin_m (what the path, economy
-    and smoothness columns need: :class:`_Track`)."""
+    session's ``track``: per row t_s, x, y, z (m), state_skin, depth_skin_m (the columns of
+    :class:`haptic_acu.pathstream.TrackFile`)."""
     from .metrics import entry_tick, insertion_runs
     from .skill_metrics import smooth_path
 
@@ -401,24 +408,18 @@ def insertion_rows(sm: dict, track: np.ndarray, cfg) -> list[dict]:
     return out
 
 
-class _Track:
-    """Frame sink keeping per row only t_s, x, y, z, state_skin and depth_skin_m (48 of a row's 248
-    bytes): what :func:`insertion_rows` needs beside the streamed metrics. The smoothness columns
-    low-pass the whole session's path with a zero-phase filter (forward and backward over the
-    session), which no bounded stream reproduces exactly; this is the part of a cohort worker's
-    memory that still grows with the session's length."""
+def streamed_insertion_rows(sm: dict, track, cfg) -> list[dict]:
+    """:func:`insertion_rows` from a :class:`haptic_acu.pathstream.TrackFile` (the rows on disk):
+    the same values, to the bit, in bounded memory (:func:`haptic_acu.pathstream.path_columns`)."""
+    from .pathstream import path_columns
+    from .skill_metrics import DEFAULT_CUTOFF_HZ
 
-    def __init__(self):
-        from .samples import COL
-        self.cols = [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]
-        self.blocks: list[np.ndarray] = []
-
-    def on_frame(self, frame) -> None:
-        if len(frame.samples):
-            self.blocks.append(frame.samples[:, self.cols])
-
-    def array(self) -> np.ndarray:
-        return np.concatenate(self.blocks) if self.blocks else np.zeros((0, len(self.cols)))
+    skill = path_columns(track, DEFAULT_CUTOFF_HZ, REACH_TOL_MM * 1e-3)
+    out = []
+    for m, sk in zip(sm["per_insertion"], skill):
+        ctx = InsertionContext(m=m, t=None, p=None, ps=None, w=slice(0, 0), k_reach=0, cfg=cfg, rows=None, skill=sk)
+        out.append({c.name: _num(c.get(ctx)) for c in INSERTION_COLUMNS})
+    return out
 
 
 class _Forces:
@@ -490,8 +491,9 @@ def _replay(job: Job) -> dict:
     if device.has_roll:  # the grasp felt: the same replay without rotation (its ticks and forces)
         reference = reference_forces(job.file, cfg)
     # nothing below keeps whole rows: the metrics are streamed, the figure gets a bounded envelope
-    sink = SummarySink(cfg, keep_rows=False, reference_rows=reference)
-    track = _Track()
+    sink = _summary_sink(cfg, reference, figure=bool(job.session_dir))
+    from .pathstream import TrackFile
+    track = TrackFile()  # t, x, y, z, state, depth per row: on disk, for the path columns
     sinks = [sink, track]
     partial = None
     if job.session_dir:
@@ -512,11 +514,11 @@ def _replay(job: Job) -> dict:
             raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
         summary = sink.summary()
         sm = sink.metrics(summary["punctures"])
-        insertions = insertion_rows(sm, track.array(), cfg)
-        track.blocks = []
+        insertions = streamed_insertion_rows(sm, track, cfg)
         if partial is not None:
             _session_files(partial, Path(job.session_dir), summary, sm, sink.figure_rows(), tissue, job)
     finally:
+        track.release()
         if partial is not None:
             shutil.rmtree(partial, ignore_errors=True)
     return {"summary": {
@@ -525,6 +527,19 @@ def _replay(job: Job) -> dict:
         "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_depth_mm"],
         "lateral_time_s": sm["lateral"]["time_over_s"]},
         "insertions": insertions}
+
+
+def _summary_sink(cfg, reference, figure: bool):
+    """A SummarySink without rows (streamed metrics); without the figure's envelope (FigureRows, up
+    to 12 MB) unless a figure is drawn (``--session-files``)."""
+    from .report import SummarySink
+
+    class NoFigure(SummarySink):
+        def start(self, info: dict) -> None:
+            super().start(info)
+            self.figure = None
+
+    return (SummarySink if figure else NoFigure)(cfg, keep_rows=False, reference_rows=reference)
 
 
 def _session_files(partial: Path, final: Path, summary: dict, sm: dict, figure, tissue, job: Job) -> None:

@@ -24,9 +24,44 @@ def _job(path: Path, cfg):
     return Job(session=path.stem, file=str(path), cfg=cfg, input_sha256=file_sha256(path), config_sha256=config_hash(cfg))
 
 
+def test_pairwise_plan_gives_numpy_sum_bits():
+    from haptic_acu.pathstream import pairwise_combine, pairwise_plan
+    rng = np.random.default_rng(5)
+    for n in [*range(1, 300), 1000, 8191, 8192, 8193, 65537, 600001]:
+        a = rng.random(n) * rng.choice([1e-6, 1.0, 1e5])
+        sums = {off: np.sum(a[off:off + ln]) for off, ln in pairwise_plan(n)}
+        assert pairwise_combine(sums, n) == float(np.sum(a))
+
+
+def test_blockwise_zero_phase_filter_is_smooth_path_to_the_bit():
+    from types import SimpleNamespace
+
+    from haptic_acu.pathstream import TrackFile, smoothed_blocks
+    from haptic_acu.samples import COL, NCOL
+    from haptic_acu.skill_metrics import smooth_path
+    rng = np.random.default_rng(6)
+    for n in (2, 3, 40, 1000, 70_001, 150_000):
+        rows = np.zeros((n, NCOL))
+        t = np.arange(n) * 1e-3
+        rows[:, COL["t_s"]] = t
+        rows[:, COL["x_m"]:COL["x_m"] + 3] = np.cumsum(rng.normal(size=(n, 3)), axis=0) * 1e-5
+        tr = TrackFile()
+        i = 0
+        while i < n:
+            k = int(rng.integers(1, 5000))
+            tr.on_frame(SimpleNamespace(samples=rows[i:i + k]))
+            i += k
+        want = smooth_path(t, rows[:, COL["x_m"]:COL["x_m"] + 3])
+        got = np.full_like(want, np.nan)
+        for a, ps in smoothed_blocks(tr, 10.0, block=int(rng.integers(50, 40_000))):
+            got[a:a + len(ps)] = ps
+        tr.release()
+        assert np.array_equal(got, want), n
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["default", "second_insertion_same_site", "twirl_reducing"])
-def test_worker_tables_equal_the_whole_row_computation(name):
+@pytest.mark.parametrize("name", ["default", "second_insertion_same_site", "twirl_reducing", "tiled"])
+def test_worker_tables_equal_the_whole_row_computation(name, tmp_path):
     from haptic_acu.cohort import _tissue, insertion_table, replay_session
     from haptic_acu.config import load_config
     from haptic_acu.devices.scripted import ScriptedDevice
@@ -37,6 +72,9 @@ def test_worker_tables_equal_the_whole_row_computation(name):
 
     cfg = load_config()
     path = ROOT / "trajectories" / f"{name}.csv"
+    if name == "tiled":  # 80 s: more rows than one of the filter's blocks (pathstream.BLOCK)
+        path = tmp_path / "tiled.csv"
+        tiled(ROOT / "trajectories" / "default.csv", 80 / 60, path)
     job = _job(path, cfg)
     rec = replay_session(job)
     assert rec["error"] is None
