@@ -422,37 +422,6 @@ def streamed_insertion_rows(sm: dict, track, cfg) -> list[dict]:
     return out
 
 
-class _Forces:
-    """Frame sink keeping per row only its tick and force (the grasp felt's reference)."""
-
-    def __init__(self):
-        from .samples import COL
-        self.cols = [COL["tick"], COL["fx_n"], COL["fx_n"] + 1, COL["fx_n"] + 2]
-        self.blocks: list[np.ndarray] = []
-
-    def on_frame(self, frame) -> None:
-        if len(frame.samples):
-            self.blocks.append(frame.samples[:, self.cols])
-
-
-def reference_forces(trajectory, cfg):
-    """(ticks, forces (n, 3)) of the headless replay of ``trajectory`` without its roll: the rows of
-    :func:`haptic_acu.replay.replay_rows` (``roll=False``) that the grasp felt uses, and no others.
-    None if that replay faults."""
-    from haptic_acu.devices.scripted import ScriptedDevice
-
-    from .engine import Session
-
-    sink = _Forces()
-    with ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
-                        force_limit_n=cfg.safety.force_limit_n, roll=False) as device:
-        result = Session(cfg, device, [sink], clock="sim", dents=False).run()
-    if result.fault:
-        return None
-    a = np.concatenate(sink.blocks) if sink.blocks else np.zeros((0, 4))
-    return a[:, 0].copy(), a[:, 1:4].copy()
-
-
 class Interrupted(UserError):
     """The replay stopped early (a signal): its record is not kept, the session runs again."""
 
@@ -489,6 +458,7 @@ def _replay(job: Job) -> dict:
     tissue = _tissue(job)
     reference = None
     if device.has_roll:  # the grasp felt: the same replay without rotation (its ticks and forces)
+        from .replay import reference_forces
         reference = reference_forces(job.file, cfg)
     # nothing below keeps whole rows: the metrics are streamed, the figure gets a bounded envelope
     sink = _summary_sink(cfg, reference, figure=bool(job.session_dir))
