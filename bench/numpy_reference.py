@@ -19,7 +19,7 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   past the last row); the tabulated shape is laid onto the net (one matrix product, ``laid_shape``)
   only for rendering, as in the compiled model: what a NumPy developer would write for that
   design; with ``"sweeps"`` the multicolour sweeps above run instead;
-* puncture at the ring-w mean deflection threshold; the needle's axis (the device's, else the
+* puncture at the ring-w mean deflection threshold (times the speed factor); the needle's axis (the device's, else the
   direction of travel since the skin's first touch) and its entry and boundary crossings (a scan and
   SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
   needle length per broken layer, either Table 1's damping (``needle.mechanics = "table1"``) or
@@ -172,6 +172,8 @@ class NumpyNeedle:
         self.k_bone = nd.bone_stiffness_n_per_mm * 1e3
         self.limit = cfg.safety.force_limit_n
         self.sweeps = int(cfg.solver.sweeps_per_tick)
+        rp = cfg.rupture  # the threshold's speed dependence (docs/model.md section 2.2)
+        self.rupture = (rp.high_speed_ratio, rp.speed_scale_mm_s * 1e-3, rp.reference_speed_mm_s * 1e-3)
         self.tables = None
         if cfg.solver.servo_net == "table":
             from haptic_acu.forcenet import NetParams, lattice
@@ -205,6 +207,17 @@ class NumpyNeedle:
         self.layer = -1
         self.punctured_now = -1
         self.surface_force = 0.0
+
+    def rupture_factor(self, v, axis):
+        """The puncture threshold's factor at tip velocity ``v`` on a net whose ``axis`` points out of
+        the tissue: 1 if the high-speed ratio is 1, else the ratio of the two blends of 1 and the
+        ratio at the approach speed and at the reference speed."""
+        r, vc, vref = self.rupture
+        if r >= 1.0:
+            return 1.0
+        u = max(-float(np.dot(v, axis)), 0.0)
+        blend = lambda speed: r + (1.0 - r) * vc / (vc + speed)  # noqa: E731
+        return blend(u) / blend(vref)
 
     # -- geometry ---------------------------------------------------------------------------------
     def radii(self, q):
@@ -466,7 +479,7 @@ class NumpyNeedle:
                         for _ in range(n_sweeps):
                             self.sweep(lay)
                         ring_w = self.ring_w_deflection(lay)
-                    if ring_w > lay["thresh"]:
+                    if ring_w > lay["thresh"] * self.rupture_factor(v, net.axis):
                         self.states[k] = PUNCTURED
                         self.punctured_now = k
                         if k == 0:

@@ -345,7 +345,9 @@ def run(args) -> int:
     cut, fc, visc = fit_post(x, f, ib, v, skin, cfg.needle, first_mm)
     skin = dataclasses.replace(skin, cutting_n_per_mm_diameter=cut, coulomb_n_per_mm2=fc,
                                viscous_n_s_per_m_per_mm2=visc)
-    cfg = dataclasses.replace(cfg, skin=skin, needle=dataclasses.replace(cfg.needle, mechanics="rich"))
+    # the fitted threshold breaks the skin at the curve's speed: that is the speed thresholds apply at
+    cfg = dataclasses.replace(cfg, skin=skin, needle=dataclasses.replace(cfg.needle, mechanics="rich"),
+                              rupture=dataclasses.replace(cfg.rupture, reference_speed_mm_s=args.speed_mm_s))
     post = slice(ib + 1, None)
     pred = post_model(skin, cfg.needle, first_mm, x[post], float(x[ib]), v)
     post_err = abs(pred.mean() - f[post].mean()) / max(abs(f[post].mean()), 1e-9)

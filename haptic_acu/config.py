@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import tomllib
 import typing
 from dataclasses import dataclass
@@ -56,7 +57,6 @@ class LayerParams:
 
 @dataclass(frozen=True)
 class NeedleParams:
-    hole_radius_mm: float  # re-entry within this distance of a hole meets no new surface force
     lateral_constraint: bool  # resist tip motion off the insertion line once the skin is pierced
     lateral_stiffness_n_per_mm: float
     bone_stiffness_n_per_mm: float  # penalty wall at the muscle/bone boundary
@@ -65,6 +65,31 @@ class NeedleParams:
     length_mm: float  # needle shaft length (no more than this is in tissue)
     stick_stiffness_n_per_mm: float  # spring of the friction's stick point (position-input rendering)
     friction_relaxation_s: float  # the held friction force relaxes with this time constant (0: never)
+
+
+@dataclass(frozen=True)
+class TwirlingParams:
+    """Twirling (haptic_acu/twirl.py, docs/model.md section 11): the tissue wound around the shaft by
+    the needle's roll. Per-layer values are lists in layer order (skin, fat, muscle)."""
+
+    k_twist_n_per_rad: tuple[float, float, float]  # torque per rad of twist per m of needle in the layer (N*m/(rad*m))
+    grasp_coil: tuple[float, float, float]  # friction gain at full twist (|twist| = slip)
+    grasp_engage: tuple[float, float, float]  # friction gain at full engagement
+    twist_slip_turns: float  # twist the shaft holds before the tissue slips on it (turns)
+    twist_tau_s: float  # twist (torque) relaxation time
+    engage_turns: float  # rotation per e-fold of engagement growth (turns)
+    engage_tau_s: float  # engagement (grasp) relaxation time
+    play_deg: float  # backlash on the roll feeding the winding (keeps encoder jitter from winding)
+
+
+@dataclass(frozen=True)
+class RuptureParams:
+    """Speed dependence of the surface's rupture (haptic_acu/mechanics.py ``rupture_speed_factor``,
+    docs/model.md section 2.2): the ring-w puncture threshold times a factor of the approach speed."""
+
+    high_speed_ratio: float  # threshold at high speed over the quasi-static one (1: no speed dependence)
+    speed_scale_mm_s: float  # approach speed over which the threshold falls halfway to its high-speed value
+    reference_speed_mm_s: float  # approach speed at which the layers' thresholds apply as configured
 
 
 @dataclass(frozen=True)
@@ -109,6 +134,8 @@ class TissueConfig:
     fat: LayerParams
     muscle: LayerParams
     needle: NeedleParams
+    twirl: TwirlingParams
+    rupture: RuptureParams
     springback: SpringbackParams
     solver: SolverParams
     safety: SafetyParams
@@ -123,15 +150,17 @@ class TissueConfig:
 # Keys whose value must be > 0 (by field name, in any section).
 _POSITIVE = {
     "thickness_mm", "k_virtual_n_per_mm", "spring_length_mm", "k_surface_n_per_mm",
-    "puncture_threshold_um", "hole_radius_mm", "lateral_stiffness_n_per_mm",
+    "puncture_threshold_um", "lateral_stiffness_n_per_mm",
     "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
     "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
     "diameter_mm", "length_mm", "stick_stiffness_n_per_mm", "stiction_ratio",
+    "twist_slip_turns", "twist_tau_s", "engage_turns", "engage_tau_s", "high_speed_ratio", "speed_scale_mm_s",
 }
 _NON_NEGATIVE = {"damping_n_s_per_m_per_mm", "bulge", "eta_rate_per_frame", "eta_min",
                  "margin_rings", "lmax", "pretension",
                  "cutting_n_per_mm_diameter", "coulomb_n_per_mm2", "viscous_n_s_per_m_per_mm2",
-                 "friction_relaxation_s"}
+                 "friction_relaxation_s", "k_twist_n_per_rad", "grasp_coil", "grasp_engage", "play_deg",
+                 "reference_speed_mm_s"}
 # Bounds on what a tissue config can ask for (by field name, in any section): far outside any
 # tissue or device, and past them the solver hangs, exhausts memory or overflows (a stiffness of
 # 1e300 N/mm overflowed the force clamp to 0 N; fit_samples = 2e9 exhausted memory;
@@ -141,7 +170,7 @@ _BOUNDS = {
     "thickness_mm": (1e-3, 1_000.0), "k_virtual_n_per_mm": (1e-6, 1_000.0),
     "damping_n_s_per_m_per_mm": (0.0, 1_000.0), "spring_length_mm": (1e-3, 100.0),
     "k_surface_n_per_mm": (1e-6, 1_000.0), "puncture_threshold_um": (1e-6, 1e6),
-    "hole_radius_mm": (1e-3, 100.0), "lateral_stiffness_n_per_mm": (1e-6, 1_000.0),
+    "lateral_stiffness_n_per_mm": (1e-6, 1_000.0),
     "bone_stiffness_n_per_mm": (1e-6, 1_000.0), "eta_rate_per_frame": (0.0, 1.0),
     "margin_rings": (0, 40), "sweeps_per_tick": (1, 100), "static_tolerance_um": (1e-6, 1_000.0),
     "force_limit_n": (1e-3, 100.0), "target_depth_mm": (0.0, 1_000.0),
@@ -151,10 +180,24 @@ _BOUNDS = {
     "stiction_ratio": (1.0, 100.0), "cutting_n_per_mm_diameter": (0.0, 1_000.0),
     "coulomb_n_per_mm2": (0.0, 1_000.0), "viscous_n_s_per_m_per_mm2": (0.0, 1e6),
     "friction_relaxation_s": (0.0, 1e4),
+    # twirling: k_twist 1 N/rad is a shear modulus of 5 MPa round a 0.25 mm needle (tissue: kPa); a
+    # grasp gain of 50 multiplies the friction 51-fold; time constants from 1 ms to 11 days
+    "k_twist_n_per_rad": (0.0, 1.0), "grasp_coil": (0.0, 50.0), "grasp_engage": (0.0, 50.0),
+    "twist_slip_turns": (1e-3, 100.0), "twist_tau_s": (1e-3, 1e6), "engage_turns": (1e-3, 100.0),
+    "engage_tau_s": (1e-3, 1e6), "play_deg": (0.0, 90.0),
+    # rupture speed dependence: ratio in (0, 1] (1: off), speeds up to 10 m/s
+    "high_speed_ratio": (1e-3, 1.0), "speed_scale_mm_s": (1e-3, 1e4), "reference_speed_mm_s": (0.0, 1e4),
+}
+# Keys that were once required and are no longer read: a file that still has one is accepted with a
+# one-line warning on stderr (the key changed nothing any more, so an old config means what it
+# meant); the message says why it went.
+_REMOVED = {
+    "needle.hole_radius_mm": "re-entry is decided by the insertion tracks, whose damage decays over the "
+                             "needle's radius (docs/model.md section 9.2)",
 }
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,
-    "needle": NeedleParams, "springback": SpringbackParams, "solver": SolverParams,
+    "needle": NeedleParams, "twirl": TwirlingParams, "rupture": RuptureParams, "springback": SpringbackParams, "solver": SolverParams,
     "safety": SafetyParams, "scene": SceneParams, "workspace": WorkspaceParams,
 }
 
@@ -191,9 +234,19 @@ def _convert(path: Path, key: str, value, tp):
     raise TypeError(tp)  # pragma: no cover - schema error, not user input
 
 
+def _warn_removed(path: Path, name: str, table: dict) -> dict:
+    """``table`` without the keys of :data:`_REMOVED`, each reported by one line on stderr."""
+    gone = [key for key in table if f"{name}.{key}" in _REMOVED]
+    for key in gone:
+        print(f"{path}: warning: key '{name}.{key}' is no longer used and is ignored: "
+              f"{_REMOVED[name + '.' + key]}; delete it", file=sys.stderr)
+    return {k: v for k, v in table.items() if k not in gone} if gone else table
+
+
 def _section(path: Path, name: str, cls, table) -> object:
     if not isinstance(table, dict):
         _fail(path, name, "expected a table")
+    table = _warn_removed(path, name, table)
     hints = typing.get_type_hints(cls)
     fields = [f for f in dataclasses.fields(cls) if f.name != "name"]
     known = {f.name for f in fields}

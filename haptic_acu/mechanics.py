@@ -378,3 +378,41 @@ def table1_force(d, lengths, v, out):
         out[k] = -d[k] * lengths[k] * v
         total += out[k]
     return total
+
+
+# ---- rupture speed dependence ---------------------------------------------------------------------
+def rupture_fields(rp) -> tuple:
+    """``(PARAMS field, value)`` pairs (SI) for the servo's Model from the config's ``[rupture]``
+    section (:class:`haptic_acu.config.RuptureParams`)."""
+    return (("rupture_ratio", float(rp.high_speed_ratio)), ("rupture_vc", rp.speed_scale_mm_s * 1e-3),
+            ("rupture_vref", rp.reference_speed_mm_s * 1e-3))
+
+
+@nb.njit(cache=True, nogil=True)
+def rupture_speed_factor(u, ratio, vc, vref):
+    """Factor on a surface's puncture threshold at approach speed ``u`` (m/s, along the axis into
+    the tissue; a receding or still tip counts as 0): the threshold falls from its quasi-static value
+    toward ``ratio`` times it as the speed rises, halfway at ``vc``, normalised to 1 at ``vref``::
+
+        g(u) = (ratio + (1 - ratio) vc / (vc + u)) / (ratio + (1 - ratio) vc / (vc + vref))
+
+    (Mahvash and Dupont 2009/2010: the rupture force and the deflection before it fall as the needle
+    moves faster and approach lower bounds; docs/model.md section 2.2.) ``ratio >= 1``: exactly 1
+    at every speed (no speed dependence)."""
+    if ratio >= 1.0:
+        return 1.0
+    if not u > 0.0:  # receding, still, or not a number: the quasi-static threshold
+        u = 0.0
+    num = ratio + (1.0 - ratio) * vc / (vc + u)
+    den = ratio + (1.0 - ratio) * vc / (vc + vref)
+    return num / den
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def puncture_threshold(threshold, v, ax, pr):
+    """A pressed layer's ring-w puncture threshold (``threshold``, m) for a tip moving at ``v`` (3,)
+    m/s on a net whose axis ``ax`` (3,) points out of the tissue: times :func:`rupture_speed_factor`
+    of the approach speed ``-(v . ax)``, with the PARAMS record ``pr``'s ``rupture_ratio``,
+    ``rupture_vc`` and ``rupture_vref``."""
+    u = -(v[0] * ax[0] + v[1] * ax[1] + v[2] * ax[2])
+    return threshold * rupture_speed_factor(u, pr.rupture_ratio, pr.rupture_vc, pr.rupture_vref)

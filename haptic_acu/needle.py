@@ -64,7 +64,7 @@ from .cptr import address_of as _address_of
 from .cptr import i64p as _i64p
 from .forcenet import (NetArrays, NetParams, Springs, Surface, Topology, build_net, force_on, lattice,
                        n_particles, relax, ring_w_mean_deflection, sync_curved)
-from .mechanics import UNCUT, mech_params
+from .mechanics import UNCUT, mech_params, puncture_threshold, rupture_fields
 from .netresponse import lay_field, lookup
 from .netresponse import pack as pack_tables
 from .netresponse import table_for
@@ -73,7 +73,7 @@ from .servostate import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUN
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
 from .tissue import Tissue, boundary_radii
 from .twirl import TwirlParams, WindState, wind_step
-from .twirl import default_params as twirl_defaults
+from .twirl import params_from_config as twirl_params
 
 SERVO_DT_S = 1e-3  # the servo period the model is built for (Session sets its own into params.dt)
 
@@ -478,7 +478,7 @@ def press(inp, m, s, d, k):
         rw = sweep_net(m, s, k, idx, sweeps)
     d.ringw = rw
     d.dz1 = wk.dz1
-    if rw > m.layer[k].threshold:
+    if rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0]):
         puncture(inp, m, s, d, k, idx, use_table)
     else:
         surface_force(m, s, d, k, idx, use_table, fn_table)
@@ -803,8 +803,7 @@ class NeedleModel:
         mp = mech_params(cfg.layers, nd)
         prm = np.zeros(1, ss.PARAMS)
         r = prm[0]
-        for name, value in (("lmax", self.lmax), ("hole_radius", nd.hole_radius_mm * 1e-3),
-                            ("lateral_on", 1 if nd.lateral_constraint else 0),
+        for name, value in (("lmax", self.lmax), ("lateral_on", 1 if nd.lateral_constraint else 0),
                             ("k_lateral", nd.lateral_stiffness_n_per_mm * 1e3),
                             ("k_bone", nd.bone_stiffness_n_per_mm * 1e3), ("force_limit", cfg.safety.force_limit_n),
                             ("sweeps", cfg.solver.sweeps_per_tick),
@@ -812,11 +811,13 @@ class NeedleModel:
                             ("needle_radius", mp.radius), ("needle_length", mp.length), ("k_stick", mp.k_stick),
                             ("decay", mp.decay), ("dt", SERVO_DT_S)):
             r[name] = value
-        tw = twirl_defaults(N_LAYERS)
+        tw = twirl_params(cfg.twirl, N_LAYERS)
         for name, value in (("k_twist", tw.k_twist), ("twist_slip", tw.twist_slip_rad), ("twist_tau", tw.twist_tau_s),
                             ("engage_rad", tw.engage_rad), ("engage_tau", tw.engage_tau_s),
                             ("grasp_coil", tw.grasp_coil), ("grasp_engage", tw.grasp_engage),
                             ("play_rad", tw.play_rad)):
+            r[name] = value
+        for name, value in rupture_fields(cfg.rupture):
             r[name] = value
         return prm
 

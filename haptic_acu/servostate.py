@@ -59,7 +59,7 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
     ("visc", "f8"),  # N*s/m per m of needle: viscous shaft friction
 ])
 PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
-    ("lmax", "i8"), ("hole_radius", "f8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
+    ("lmax", "i8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
     ("force_limit", "f8"), ("sweeps", "i8"),
     ("mechanics", "i8"),  # RICH or TABLE1
     ("needle_radius", "f8"), ("needle_length", "f8"),  # m
@@ -70,6 +70,8 @@ PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("k_twist", "f8", N_LAYERS), ("twist_slip", "f8", N_LAYERS), ("twist_tau", "f8", N_LAYERS),
     ("engage_rad", "f8", N_LAYERS), ("engage_tau", "f8", N_LAYERS), ("grasp_coil", "f8", N_LAYERS),
     ("grasp_engage", "f8", N_LAYERS), ("play_rad", "f8"),
+    # the puncture threshold's speed dependence (mechanics.rupture_speed_factor; m/s)
+    ("rupture_ratio", "f8"), ("rupture_vc", "f8"), ("rupture_vref", "f8"),
 ])
 LAYOUT = np.dtype([  # where each (layer, slot) net lives in State.pos / State.rest (idx = 2*layer + slot)
     ("xf", "i8", N_LAYERS * N_SLOTS), ("X0f", "i8", N_LAYERS * N_SLOTS), ("X0", "i8", N_LAYERS * N_SLOTS),

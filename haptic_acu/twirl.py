@@ -75,12 +75,14 @@ LANGEVIN_UNI_RATIO = 2.67
 LANGEVIN_BI_RATIO = 1.52
 
 # --------------------------------------------------------------------------------- our assumptions
+# The servo reads these from the config's [twirl] section (params_from_config); config/tissue.toml
+# holds exactly these values (a test checks), docs/model.md section 11 says where each comes from.
 TWIST_SLIP_RAD = TWO_PI  # one turn of twist held before the tissue slips on the shaft
 TWIST_TAU_S = 30.0       # twist (torque) relaxation
 ENGAGE_RAD = TWO_PI      # one turn of rotation raises engagement to 1 - 1/e
 ENGAGE_TAU_S = 60.0      # engagement relaxation (grasp outlasts the torque)
 PLAY_RAD = math.radians(1.0)  # backlash width on the roll feeding the winding
-RATE_TAU_S = 0.010       # roll-rate low-pass
+RATE_TAU_S = 0.010       # roll-rate low-pass (RollState only: the servo step computes no roll rate)
 
 
 class Protocol(NamedTuple):
@@ -226,6 +228,23 @@ def default_params(n_layers: int = N_LAYERS, grasp_coil: float = GRASP_COIL,
                        f(n_layers, TWIST_TAU_S), f(n_layers, ENGAGE_RAD), f(n_layers, ENGAGE_TAU_S),
                        f(n_layers, float(grasp_coil)), f(n_layers, float(grasp_engage)),
                        PLAY_RAD)
+
+
+def params_from_config(tc, n_layers: int = N_LAYERS) -> TwirlParams:
+    """Kernel parameters (SI) from the config's ``[twirl]`` section (:class:`haptic_acu.config.TwirlingParams`):
+    per-layer lists as arrays, turns and degrees as radians. config/tissue.toml's values are this
+    module's defaults (:func:`default_params`), exactly."""
+    def per_layer(v):
+        a = np.asarray(v, dtype=np.float64)
+        if a.shape != (n_layers,):
+            raise ValueError(f"expected {n_layers} per-layer values, got {v!r}")
+        return a.copy()
+
+    f = np.full
+    return TwirlParams(per_layer(tc.k_twist_n_per_rad), f(n_layers, tc.twist_slip_turns * TWO_PI),
+                       f(n_layers, float(tc.twist_tau_s)), f(n_layers, tc.engage_turns * TWO_PI),
+                       f(n_layers, float(tc.engage_tau_s)), per_layer(tc.grasp_coil),
+                       per_layer(tc.grasp_engage), math.radians(tc.play_deg))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

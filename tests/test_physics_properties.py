@@ -36,7 +36,6 @@ layer_params = st.fixed_dictionaries({
     "damping_n_s_per_m_per_mm": st.floats(0.0, 10.0),
 })
 needle_params = st.fixed_dictionaries({
-    "hole_radius_mm": st.floats(0.05, 3.0),
     "lateral_constraint": st.booleans(),
     "lateral_stiffness_n_per_mm": st.floats(0.01, 5.0),
     "bone_stiffness_n_per_mm": st.floats(0.01, 5.0),
