@@ -96,9 +96,9 @@ def single_insertion(minutes: float, out: Path) -> None:
 
 @pytest.mark.slow
 def test_one_long_insertion_does_not_grow_memory(tmp_path):
-    """A single insertion held 10 minutes (lift-thrust in muscle) peaks within a few MB of one held
+    """A single insertion held 10 minutes (lift-thrust in muscle) peaks as one held
     2.5 minutes: its metrics are streamed in bounded state (haptic_acu/insertion_stream.py), not
-    from its rows (~250 B a tick: +110 MB over these 7.5 minutes, before)."""
+    from its rows (before: 343 and 660 MB)."""
     res = {}
     for minutes in (2.5, 10.0):
         traj = tmp_path / f"hold_{minutes}.csv"
@@ -108,4 +108,6 @@ def test_one_long_insertion_does_not_grow_memory(tmp_path):
     short, long = res[2.5], res[10.0]
     print(res)
     assert long["ticks"] > 3.5 * short["ticks"]
-    assert long["maxrss_mb"] - short["maxrss_mb"] < 8.0, res
+    # before: +317 MB (343 -> 660 MB); two runs of the same 2.5-minute file peaked 272 and 284 MB
+    # here, so the bound allows that noise
+    assert long["maxrss_mb"] - short["maxrss_mb"] < 20.0, res
