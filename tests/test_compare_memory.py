@@ -62,7 +62,7 @@ def test_compare_of_long_sessions_is_bounded_and_its_tables_exact(tmp_path):
     long_mb = compare_peak_mb(long, tmp_path / "long")
     print({"short_mb": short_mb, "one_long_mb": one_mb, "four_long_mb": long_mb})
     # more sessions: nothing more (keeping the rows: +30 MB of rows alone per extra session)
-    assert long_mb - one_mb < 10.0, (one_mb, long_mb)
+    assert long_mb - one_mb < 20.0, (one_mb, long_mb)  # measured +0 to +4 MB; the peak varies ~12 MB run to run
     # longer sessions: only the figure's fixed cap (FigureRows: 50,000 rows and its shrinking)
     assert long_mb - short_mb < 45.0, (short_mb, long_mb)
 
