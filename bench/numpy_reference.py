@@ -19,9 +19,13 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   past the last row); the tabulated shape is laid onto the net (one matrix product, ``laid_shape``)
   only for rendering, as in the compiled model: what a NumPy developer would write for that
   design; with ``"sweeps"`` the multicolour sweeps above run instead;
-* puncture at the ring-w mean deflection threshold (times the speed factor); the needle's axis (the device's, else the
-  direction of travel since the skin's first touch) and its entry and boundary crossings (a scan and
-  SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
+* an intact surface's force is a function of the tip's position alone: the net's response with N1
+  at the tip's radial depth d below the layer's rest surface and no lateral offset, along grad(-d)
+  (central differences of d along the scene axes, not the compiled step's tangent-plane
+  differences); the net is re-centred under the sliding tip only to be drawn there;
+* puncture at the ring-w mean deflection threshold (read at the same depth; times the speed
+  factor); the needle's axis (the device's, else the direction of travel since the skin's first
+  touch) and its entry and boundary crossings (a scan and SciPy's ``brentq`` along the line); the compression offset; after a puncture, on the physical
   needle length per broken layer, either Table 1's damping (``needle.mechanics = "table1"``) or
   cutting at the crack front plus a stick-point Karnopp friction and viscous friction (docs/model.md
   s9); the lateral constraint as stiff as the shaft is held, the bone wall, the non-finite fault
@@ -224,6 +228,14 @@ class NumpyNeedle:
         """Every boundary's radius toward point ``q`` and |q - centre|."""
         th, ph, rho = directions(q, self.centre)
         return self.coeffs @ self.basis.rows(th, ph)[0], rho[0]
+
+    def depth_gradient(self, k, q, h=1e-6):
+        """grad of the depth below rest boundary k, d(q) = r_k(direction of q) - |q - centre|: central
+        differences along the scene axes (h = 1 um; the six points in one basis evaluation)."""
+        pts = q + np.concatenate([np.eye(3), -np.eye(3)]) * h
+        th, ph, rho = directions(pts, self.centre)
+        d = self.coeffs[k] @ self.basis.rows(th, ph).T - rho
+        return (d[:3] - d[3:]) / (2.0 * h)
 
     def gap(self, k, x):
         """How far point ``x`` lies outside rest boundary k (radially)."""
@@ -448,55 +460,53 @@ class NumpyNeedle:
                 self.build(k, self.centre + (q - self.centre) * (radii[k] / rho))
                 self.states[k] = PRESSING
             if self.states[k] == PRESSING:
-                r = q - net.X0f[0]
-                dz1 = -(r @ net.axis)
-                if dz1 <= 0.0:
+                dep = radii[k] - rho  # the tip's depth below the layer's rest surface (radial)
+                if dep <= 0.0:
                     self.states[k] = UNTOUCHED  # lifted off
                 else:
                     n_sweeps = sweeps
-                    lateral = r + dz1 * net.axis
+                    r = q - net.X0f[0]
+                    lateral = r + (-(r @ net.axis)) * net.axis
                     if lateral @ lateral > (0.5 * lay["L"]) ** 2:
-                        # slid sideways: a new net under the tip, warm-started with the old net's
-                        # ring-mean deflections
+                        # slid sideways: a new net under the tip (where it is drawn), warm-started
+                        # with the old net's ring-mean deflections
                         dz = -((net.xf - net.X0f) @ net.axis)
                         ring = net.hex.ring
                         mean = np.bincount(ring, dz)[1:] / np.bincount(ring)[1:]
                         self.build(k, self.centre + (q - self.centre) * (radii[k] / rho))
                         net.xf = net.X0f - mean[ring - 1][:, None] * net.axis
                         n_sweeps *= 2
-                        r = q - net.X0f[0]
+                    # the response with N1 at depth dep straight below its rest point, whatever the
+                    # lateral offset; the force along grad(-dep)
                     tab = lay.get("table")
                     if tab is not None:
-                        # the tabulated static response at (lateral offset^2 / rho_max^2, depth)
-                        dz1 = -(r @ net.axis)
-                        lateral = r + dz1 * net.axis
-                        pt = np.array([[max(float(lateral @ lateral) / tab["rho2"], 0.0), max(dz1, 0.0)]])
-                        fn_table = float(tab["F"](pt)[0])
+                        pt = np.array([[0.0, dep]])
+                        fn = float(tab["F"](pt)[0])
                         ring_w = float(tab["R"](pt)[0])
-                        net.xf[0] = q  # (the shape is laid only for rendering: see laid_shape)
                     else:
-                        net.xf[0] = q
+                        net.xf[0] = net.X0f[0] - dep * net.axis
                         for _ in range(n_sweeps):
                             self.sweep(lay)
                         ring_w = self.ring_w_deflection(lay)
+                        fn = float(self.net_reaction(lay) @ net.axis)
+                    net.xf[0] = q  # N1 drawn at the tip (a tabulated shape is laid only for rendering)
                     if ring_w > lay["thresh"] * self.rupture_factor(v, net.axis):
                         self.states[k] = PUNCTURED
                         self.punctured_now = k
                         if k == 0:
                             self.begin_insertion(p, axis, -net.axis)
                             a = self.axis
-                        dz1 = -float(r @ net.axis)
-                        comp = dz1 / max(-float(a @ net.axis), 0.2)  # the dent along the axis
+                        comp = dep / max(-float(a @ net.axis), 0.2)  # the dent along the axis
                         if comp > 0.0:
                             self.offset += comp  # the tissue beneath stays compressed by the dent
                         q = p - self.offset * a
                         radii, rho = self.radii(q)
                         front = k + 1
                     else:
-                        fn = fn_table if tab is not None else float(self.net_reaction(lay) @ net.axis)
                         fn = max(fn, 0.0)  # a surface only pushes
-                        f += fn * net.axis
-                        self.surface_force = fn
+                        g = self.depth_gradient(k, q)
+                        f -= fn * g
+                        self.surface_force = fn * float(np.linalg.norm(g))
         if self.inserted:
             s = float((p - self.entry) @ a)
             f += self.axial(s, float(v @ a), front) * a

@@ -23,3 +23,9 @@ except PackageNotFoundError:  # running from a source tree without install
 from .errors import UserError  # noqa: E402
 
 __all__ = ["__version__", "UserError"]
+
+from .kernelcache import guard as _guard, package_dirs as _package_dirs  # noqa: E402
+
+# numba checks a cached kernel against its own file only: drop the package's kernel caches when any
+# of its sources changed, before a kernel can load an old callee (haptic_acu/kernelcache.py).
+_guard(_package_dirs())

@@ -79,7 +79,8 @@ class InsertionContext:
     w: slice
     k_reach: int
     cfg: object
-    rows: np.ndarray
+    rows: np.ndarray | None
+    skill: dict | None = None  # path, economy, ldlj, duration already computed (pathstream.path_columns)
 
 
 def _depth_error(c: InsertionContext):
@@ -92,12 +93,18 @@ def _skill(name):
     from . import skill_metrics as sm
 
     def path_mm(c):
+        if c.skill is not None:
+            return c.skill["path"]
         return sm.path_length(c.ps[c.w]) * 1e3
 
     def economy(c):
+        if c.skill is not None:
+            return c.skill["economy"]
         return sm.economy_of_motion(c.ps[c.w.start:c.k_reach + 1])
 
     def ldlj(c):
+        if c.skill is not None:
+            return c.skill["ldlj"]
         thrust = slice(c.w.start, c.k_reach + 1)
         return sm.ldlj(c.t[thrust], c.ps[thrust])
 
@@ -122,7 +129,7 @@ INSERTION_COLUMNS: list[Column] = [
     Column("t_entry_s", "s", "session time the tip first pressed the intact skin for this insertion (or re-entered)",
            lambda c: c.m["t_entry_s"]),
     Column("duration_s", "s", "from the entry tick to the last tick with the skin punctured",
-           lambda c: float(c.t[c.w.stop - 1] - c.t[c.w.start])),
+           lambda c: c.skill["duration"] if c.skill is not None else float(c.t[c.w.stop - 1] - c.t[c.w.start])),
     Column("path_length_mm", "mm", "length of the tip's path over the insertion (low-passed positions)",
            _skill("path")),
     Column("economy_of_motion", "1", "thrust phase (entry -> depth reached): straight-line distance over path "
@@ -371,24 +378,48 @@ def _num(v):
 def insertion_table(rows: np.ndarray, cfg, tissue=None, reference_rows=None) -> tuple[dict, list[dict]]:
     """(session metrics, one dict per insertion with every :data:`INSERTION_COLUMNS` value) from a
     session's sample rows; ``reference_rows``: the same replay without rotation (the grasp felt)."""
-    from .metrics import entry_tick, insertion_runs, session_metrics
+    from .metrics import session_metrics
     from .samples import COL
-    from .skill_metrics import smooth_path
 
     sm = session_metrics(rows, cfg, tissue, reference_rows=reference_rows)
-    t = rows[:, COL["t_s"]]
-    p = rows[:, COL["x_m"]:COL["x_m"] + 3]
+    track = rows[:, [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]]
+    return sm, insertion_rows(sm, track, cfg)
+
+
+def insertion_rows(sm: dict, track: np.ndarray, cfg) -> list[dict]:
+    """The :data:`INSERTION_COLUMNS` of each insertion of ``sm`` (its session metrics) from the
+    session's ``track``: per row t_s, x, y, z (m), state_skin, depth_skin_m (the columns of
+    :class:`haptic_acu.pathstream.TrackFile`)."""
+    from .metrics import entry_tick, insertion_runs
+    from .skill_metrics import smooth_path
+
+    t = track[:, 0]
+    p = track[:, 1:4]
     ps = smooth_path(t, p)
-    state = rows[:, COL["state_skin"]]
-    depth = rows[:, COL["depth_skin_m"]]
+    state = track[:, 4]
+    depth = track[:, 5]
     out = []
     for (a, b), m in zip(insertion_runs(state), sm["per_insertion"]):
         e = entry_tick(state, a)
         d = depth[a:b + 1]
         k_reach = a + int(np.argmax(d >= d.max() - REACH_TOL_MM * 1e-3))
-        ctx = InsertionContext(m=m, t=t, p=p, ps=ps, w=slice(e, b + 1), k_reach=k_reach, cfg=cfg, rows=rows)
+        ctx = InsertionContext(m=m, t=t, p=p, ps=ps, w=slice(e, b + 1), k_reach=k_reach, cfg=cfg, rows=None)
         out.append({c.name: _num(c.get(ctx)) for c in INSERTION_COLUMNS})
-    return sm, out
+    return out
+
+
+def streamed_insertion_rows(sm: dict, track, cfg) -> list[dict]:
+    """:func:`insertion_rows` from a :class:`haptic_acu.pathstream.TrackFile` (the rows on disk):
+    the same values, to the bit, in bounded memory (:func:`haptic_acu.pathstream.path_columns`)."""
+    from .pathstream import path_columns
+    from .skill_metrics import DEFAULT_CUTOFF_HZ
+
+    skill = path_columns(track, DEFAULT_CUTOFF_HZ, REACH_TOL_MM * 1e-3)
+    out = []
+    for m, sk in zip(sm["per_insertion"], skill):
+        ctx = InsertionContext(m=m, t=None, p=None, ps=None, w=slice(0, 0), k_reach=0, cfg=cfg, rows=None, skill=sk)
+        out.append({c.name: _num(c.get(ctx)) for c in INSERTION_COLUMNS})
+    return out
 
 
 class Interrupted(UserError):
@@ -425,8 +456,15 @@ def _replay(job: Job) -> dict:
                             realtime=False, force_limit_n=cfg.safety.force_limit_n)
     device.open()
     tissue = _tissue(job)
-    sink = SummarySink(cfg)
-    sinks = [sink]
+    reference = None
+    if device.has_roll:  # the grasp felt: the same replay without rotation (its ticks and forces)
+        from .replay import reference_forces
+        reference = reference_forces(job.file, cfg)
+    # nothing below keeps whole rows: the metrics are streamed, the figure gets a bounded envelope
+    sink = _summary_sink(cfg, reference, figure=bool(job.session_dir))
+    from .pathstream import TrackFile
+    track = TrackFile()  # t, x, y, z, state, depth per row: on disk, for the path columns
+    sinks = [sink, track]
     partial = None
     if job.session_dir:
         from .report import SamplesCsvSink
@@ -445,14 +483,12 @@ def _replay(job: Job) -> dict:
         if result.duration_s < device.duration_s - 0.01:
             raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
         summary = sink.summary()
-        reference = None
-        if device.has_roll:  # the grasp felt: the same replay without rotation
-            from .replay import replay_rows
-            reference = replay_rows(job.file, cfg, roll=False)
-        sm, insertions = insertion_table(sink.rows(), cfg, tissue, reference)
+        sm = sink.metrics(summary["punctures"])
+        insertions = streamed_insertion_rows(sm, track, cfg)
         if partial is not None:
-            _session_files(partial, Path(job.session_dir), summary, sm, sink.rows(), tissue, job)
+            _session_files(partial, Path(job.session_dir), summary, sm, sink.figure_rows(), tissue, job)
     finally:
+        track.release()
         if partial is not None:
             shutil.rmtree(partial, ignore_errors=True)
     return {"summary": {
@@ -463,13 +499,27 @@ def _replay(job: Job) -> dict:
         "insertions": insertions}
 
 
-def _session_files(partial: Path, final: Path, summary: dict, sm: dict, rows, tissue, job: Job) -> None:
+def _summary_sink(cfg, reference, figure: bool):
+    """A SummarySink without rows (streamed metrics); without the figure's envelope (FigureRows, up
+    to 12 MB) unless a figure is drawn (``--session-files``)."""
+    from .report import SummarySink
+
+    class NoFigure(SummarySink):
+        def start(self, info: dict) -> None:
+            super().start(info)
+            self.figure = None
+
+    return (SummarySink if figure else NoFigure)(cfg, keep_rows=False, reference_rows=reference)
+
+
+def _session_files(partial: Path, final: Path, summary: dict, sm: dict, figure, tissue, job: Job) -> None:
     """The replay's own files for one session (``--session-files``), renamed into place when whole."""
     from .report import plot_force_depth
 
     summary = dict(summary, trajectory=Path(job.file).name, metrics=sm)
     (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    plot_force_depth(rows, partial / "force_depth.png", tissue, title=job.session)
+    rows, index = figure  # SummarySink.figure_rows(): every row up to FigureRows' cap, then an envelope
+    plot_force_depth(rows, partial / "force_depth.png", tissue, title=job.session, index=index)
     if final.exists():
         shutil.rmtree(final)  # this session's files from an earlier run of this cohort
     os.replace(partial, final)

@@ -3,8 +3,9 @@
 Both runners call :func:`haptic_acu.cohort.replay_session` on each :class:`~haptic_acu.cohort.Job`
 and hand every record to ``on_result`` as it arrives (the caller saves it at once, so an
 interrupted run keeps every finished session). At most ``2 * workers`` jobs are in flight, so
-memory stays bounded whatever the cohort's size (a worker holds one session's sample rows:
-31 float64 per servo tick, ~15 MB per minute of trajectory).
+memory stays bounded whatever the cohort's size; a worker keeps no session's rows in memory (its
+metrics are streamed, the path columns read the rows back from a temporary file:
+:mod:`haptic_acu.pathstream`).
 
 Local: ``concurrent.futures.ProcessPoolExecutor`` with spawned workers started in their own process
 group, so a Ctrl-C at the terminal reaches only the parent, which cancels what is queued and ends

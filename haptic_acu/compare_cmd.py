@@ -69,32 +69,25 @@ def open_trajectory(path: Path, cfg):
     return dev
 
 
-class _Rows:
-    """Frame sink keeping every sample row."""
-
-    def __init__(self):
-        self.blocks = []
-
-    def on_frame(self, frame) -> None:
-        if len(frame.samples):
-            self.blocks.append(frame.samples)
-
-    def rows(self) -> np.ndarray:
-        return np.concatenate(self.blocks) if self.blocks else np.zeros((0, NCOL))
-
-
-def replay_rows(device, path: Path, cfg, tissue) -> np.ndarray:
-    """Play an opened device through a fresh model on simulated time; all sample rows."""
+def replay_session(device, path: Path, cfg, tissue) -> tuple[dict, list, tuple]:
+    """Play an opened device through a fresh model on simulated time: (its metrics, its punctures,
+    its :func:`session_curve`). Nothing grows with the session's length: the metrics are streamed
+    (:class:`haptic_acu.metrics.SessionMetricsScan`), the figure gets the bounded envelope of
+    :class:`haptic_acu.report.FigureRows` (every row of a session up to its cap, 50 s at 1 kHz)."""
     from .engine import Session
     from .needle import NeedleModel
+    from .report import SummarySink, puncture_records
 
-    sink = _Rows()
+    sink = SummarySink(cfg, keep_rows=False)
     session = Session(cfg, device, [sink], clock="sim", model=NeedleModel(cfg, tissue), dents=False)
     result = session.run()
     device.close()
     if result.fault:
         raise UserError(f"{path}: replay stopped: {result.fault}", exit_status=3)
-    return sink.rows()
+    ev = puncture_records(sink.scan.punctures)
+    metrics = sink.metrics(ev)
+    rows, index = sink.figure_rows()
+    return metrics, ev, session_curve(rows, tissue, ev, index)
 
 
 # ---- the table --------------------------------------------------------------------------------
@@ -180,6 +173,24 @@ def first_insertion_diff(metrics) -> dict:
 
 
 # ---- the figure -------------------------------------------------------------------------------
+def session_curve(rows, tissue, punctures=None, index=None) -> tuple:
+    """One session's curve for :func:`plot_curves`: (tip depth below the rest skin in mm, ``F . u``
+    in N, insertion index per row, punctures, each puncture's insertion index). ``rows``: every row
+    or the bounded envelope of :class:`haptic_acu.report.FigureRows` with its ``index``."""
+    from .report import SessionScan, insertion_index, puncture_records, radial_force_n, tip_depth_m, tissue_of
+
+    tissue = tissue_of(tissue)
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, NCOL)
+    depth = tip_depth_m(rows[:, COL["x_m"]:COL["x_m"] + 3], tissue)
+    if index is None:
+        index = insertion_index(rows) if len(rows) else np.zeros(0, np.int64)
+    idx = np.maximum(index, 0)
+    ev = punctures if punctures is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
+    t = rows[:, COL["t_s"]]
+    ev_idx = [int(idx[min(int(np.searchsorted(t, e["t_s"] - 5e-5)), len(idx) - 1)]) for e in ev]
+    return depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx
+
+
 def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion: int | None = None,
                  dpi: int = 110) -> None:
     """``F . u`` (N) against the tip's depth below the rest skin (mm) for every session, as in
@@ -189,24 +200,21 @@ def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion
     (``punctures_list``: each session's :func:`~haptic_acu.report.puncture_records`; else found here).
     ``tissue``: a Tissue or a TissueConfig. PNG without a date or software stamp: identical input
     gives identical bytes."""
+    curves = [session_curve(rows, tissue, None if punctures_list is None else punctures_list[j])
+              for j, rows in enumerate(rows_list)]
+    plot_curves(curves, labels, path, tissue, insertion, dpi)
+
+
+def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110) -> None:
+    """:func:`plot_compare` from each session's :func:`session_curve`."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from .report import (_BAND_COLOURS, MAX_PANELS, SessionScan, insertion_index, puncture_records, radial_force_n,
-                         tip_depth_m, tissue_of)
+    from .report import _BAND_COLOURS, MAX_PANELS, tissue_of
 
     tissue = tissue_of(tissue)
-    curves = []
-    for j, rows in enumerate(rows_list):
-        rows = np.asarray(rows, dtype=np.float64).reshape(-1, NCOL)
-        depth = tip_depth_m(rows[:, COL["x_m"]:COL["x_m"] + 3], tissue)
-        idx = np.maximum(insertion_index(rows), 0) if len(rows) else np.zeros(0, np.int64)
-        ev = punctures_list[j] if punctures_list is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
-        t = rows[:, COL["t_s"]]
-        ev_idx = [int(idx[min(int(np.searchsorted(t, e["t_s"] - 5e-5)), len(idx) - 1)]) for e in ev]
-        curves.append((depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx))
     n_ins = max([int(c[2].max()) + 1 for c in curves if c[2].size] + [1])
     shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
     fig = Figure(figsize=(max(8.5, 3.4 * len(shown) + 2.8), 5.2), layout="constrained")
@@ -309,20 +317,16 @@ def run(args) -> int:
 
 def _compare_into(partial: Path, args, cfg, devices, paths, labels):
     """Replay every session through one tissue, then write compare.json and compare.png into ``partial``."""
-    from .metrics import session_metrics
-    from .report import SessionScan, puncture_records, tip_depth_m
     from .tissue import Tissue
 
     with step("building the tissue"):
         tissue = Tissue.from_config(cfg)
-    rows, punctures, metrics = [], [], []
+    curves, metrics = [], []
     for dev, p in zip(devices, paths):
         with step(f"replaying {p.name}"):
-            r = replay_rows(dev, p, cfg, tissue)
-        ev = puncture_records(SessionScan(tissue).feed(r, tip_depth_m(r[:, COL["x_m"]:COL["x_m"] + 3], tissue)))
-        rows.append(r)
-        punctures.append(ev)
-        metrics.append(session_metrics(r, cfg, tissue, punctures=ev))
+            m, _, curve = replay_session(dev, p, cfg, tissue)
+        curves.append(curve)
+        metrics.append(m)
     if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
         raise UserError(f"--insertion {args.insertion}: no session has that many insertions "
                         f"(they have {', '.join(str(m['insertions']) for m in metrics)})")
@@ -334,5 +338,5 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
     if len(metrics) == 2:
         doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
     (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
-    plot_compare(rows, labels, partial / "compare.png", tissue, punctures, args.insertion)
-    return rows, labels, metrics
+    plot_curves(curves, labels, partial / "compare.png", tissue, args.insertion)
+    return curves, labels, metrics

@@ -220,12 +220,13 @@ def _technique(run: np.ndarray, depth_c: np.ndarray, u: np.ndarray, ref: np.ndar
     without rotation, or None."""
     from .technique import technique_metrics
 
+    from .insertion_stream import dot3
     f = run[:, _F:_F + 3]
     table = {"t_s": run[:, _T], "depth_mm": depth_c * 1e3, "roll_deg": run[:, _ROLL],
-             "torque_nmm": run[:, _TORQUE], "f_axial_n": -(f @ u)}
+             "torque_nmm": run[:, _TORQUE], "f_axial_n": -dot3(f, u)}
     reference = None
     if ref is not None:
-        reference = {"f_axial_n": -(ref[:, _F:_F + 3] @ u)}
+        reference = {"f_axial_n": -dot3(ref[:, _F:_F + 3], u)}
     return technique_metrics(table, reference)
 
 
@@ -269,7 +270,8 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
     else:
         u = inward
         angle = None
-    axial = (p - entry) @ u
+    from .insertion_stream import dot3
+    axial = dot3(p - entry, u)  # row by row, the same bits as the streamed metrics' blocks
 
     # speed: from the puncture (run's first tick) to the first tick at 90% of the max depth
     speed = None
@@ -395,22 +397,31 @@ class MedianCounter:
 
 
 class SessionMetricsScan:
-    """:func:`session_metrics` on a stream of row blocks, in memory bounded by the longest insertion.
+    """:func:`session_metrics` on a stream of row blocks, in memory that does not grow with the
+    session or with any one insertion's length.
 
-    Rows are kept only from the start of the open insertion's window (its entry tick: the skin's
-    pressing run before the puncture) to the newest row; an insertion is measured with
-    :func:`insertion_metrics` on its window as soon as it ends, and the window is dropped. The tick
+    Each insertion is measured as its rows arrive (:class:`haptic_acu.insertion_stream.InsertionStream`:
+    running extremes, reversals, strokes and troughs; no rows beyond its first 20 s), the pressing run
+    before it (its entry) by its peaks (:class:`~haptic_acu.insertion_stream._Press`). The tick
     period (the median interval) is counted as it goes (:class:`MedianCounter`) and applied at
-    :meth:`result`. The result is identical to :func:`session_metrics` on all the rows
-    (tests/test_metrics.py checks it on random block splits).
+    :meth:`result`. The result equals :func:`session_metrics` on all the rows (tests/test_metrics.py
+    on random block splits, tests/test_metrics_stream.py on the bundled trajectories; the
+    insertion_stream module docstring states the one approximation, for insertions over 20 s that
+    go deeper after it).
 
     ``entries``: each insertion's entry tick as a row index of the whole stream (for the figure's
     colours, :func:`haptic_acu.report.insertion_index`)."""
 
     def __init__(self, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N, reference_rows=None):
         self.target = tuple(float(v) for v in cfg.scene.target_depth_mm)
-        # the same session replayed without rotation (session_metrics' reference_rows), or None
-        self.ref = None if reference_rows is None else np.asarray(reference_rows, dtype=np.float64)
+        # the same session replayed without rotation (session_metrics' reference_rows: its rows, or
+        # only (ticks, forces (n, 3)) of them), or None
+        self.ref = None
+        if isinstance(reference_rows, tuple):
+            self.ref = (np.asarray(reference_rows[0], dtype=np.float64), np.asarray(reference_rows[1], dtype=np.float64))
+        elif reference_rows is not None:
+            r = np.asarray(reference_rows, dtype=np.float64)
+            self.ref = (r[:, _TICK].copy(), r[:, _F:_F + 3].copy())
         self.tissue = tissue
         self.comfort = float(lateral_comfort_n)
         self.rows_seen = 0
@@ -418,10 +429,12 @@ class SessionMetricsScan:
         self.dt = MedianCounter()
         self.insertions: list[tuple[dict, int]] = []  # (metrics without dt, run length)
         self.entries: list[int] = []
-        self._win: list[np.ndarray] = []  # the open window's row blocks
-        self._win_start = 0  # the window's first row, as an index of the stream
+        self.streams: list = []  # the measured insertions' streams (their step_error_bound_m)
+        self._press = None  # the open pressing run (a possible entry)
+        self._open = None  # the open insertion's stream
         self._last_state = 0.0
         self._last_t: float | None = None
+        self._done: dict | None = None
 
     def feed(self, rows: np.ndarray) -> None:
         rows = np.asarray(rows, dtype=np.float64)
@@ -437,79 +450,57 @@ class SessionMetricsScan:
         self._last_t = float(t[-1])
         st = rows[:, _SKIN]
         self.punctured_rows += int(np.count_nonzero(st == PUNCTURED))
-        inside = st == PUNCTURED
-        closing = (self._last_state == PUNCTURED and not inside[0]) or bool(np.any(inside[:-1] & ~inside[1:]))
-        start = self.rows_seen
-        self.rows_seen += k
-        self._last_state = float(st[-1])
-        if closing:
-            buf = np.concatenate(self._win + [rows]) if self._win else rows
-            self._win_start = start - (len(buf) - k)
-            self._measure_closed(buf)
-            return
-        e = _open_start(st)
-        if e > 0 or not self._win:
-            self._win = [rows[e:]] if e < k else []
-            self._win_start = start + e
-        else:
-            self._win.append(rows)
-        if st[-1] == PUNCTURED and (not self.entries or self.entries[-1] != self._win_start):
-            self.entries.append(self._win_start)  # an open insertion's window starts at its entry
-
-    def _measure_closed(self, buf: np.ndarray) -> None:
-        st = buf[:, _SKIN]
-        n = len(buf)
         tip = None
         if self.tissue is not None:
             from .report import tip_depth_m
-            tip = tip_depth_m(buf[:, _X:_X + 3], self.tissue)
-        for a, b in insertion_runs(st):
-            e = self._win_start + entry_tick(st, a)
-            if not self.entries or self.entries[-1] != e:
-                self.entries.append(e)
-            if b < n - 1:
-                m = insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip, self.ref)
-                self.insertions.append((m, b - a + 1))
-        e = _open_start(st)
-        self._win = [buf[e:].copy()] if e < n else []
-        self._win_start += e
+            tip = tip_depth_m(rows[:, _X:_X + 3], self.tissue)
+        bounds = [0, *(np.flatnonzero(np.diff(st) != 0) + 1).tolist(), k]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            self._segment(rows[a:b], None if tip is None else tip[a:b], self.rows_seen + a, float(st[a]))
+        self.rows_seen += k
+
+    def _segment(self, seg: np.ndarray, tip, start: int, state: float) -> None:
+        """Rows ``seg`` of one skin state, the first at stream index ``start``."""
+        from .insertion_stream import InsertionStream, _Press
+        if state == PUNCTURED:
+            if self._open is None:
+                press = self._press if self._last_state == PRESSING and self._press is not None else _Press(start, seg[0])
+                self._press = None
+                if self.tissue is not None:
+                    inward = -np.asarray(self.tissue.normal(0, press.entry), dtype=np.float64)
+                else:
+                    inward = np.array([0.0, 0.0, -1.0])
+                self._open = InsertionStream(press, self.target, inward, self.comfort, self.ref)
+                self.entries.append(press.index)
+            self._open.feed(seg, tip)
+        else:
+            self._close()
+            if state == PRESSING:
+                if self._last_state != PRESSING or self._press is None:
+                    self._press = _Press(start, seg[0])
+                self._press.feed(seg, tip)
+            else:
+                self._press = None
+        self._last_state = state
+
+    def _close(self) -> None:
+        if self._open is not None:
+            self.insertions.append((self._open.result(), self._open.n))
+            self.streams.append(self._open)
+            self._open = None
 
     def result(self, punctures=()) -> dict:
         """The :func:`session_metrics` dict (an insertion still open at the end is measured here);
         ``punctures``: the summary's puncture list."""
-        pending = []
-        if self._win:
-            buf = np.concatenate(self._win) if len(self._win) > 1 else self._win[0]
-            st = buf[:, _SKIN]
-            tip = None
-            if self.tissue is not None:
-                from .report import tip_depth_m
-                tip = tip_depth_m(buf[:, _X:_X + 3], self.tissue)
-            pending = [(insertion_metrics(buf, a, b, 0.0, self.target, self.tissue, self.comfort, (), tip, self.ref),
-                        b - a + 1)
-                       for a, b in insertion_runs(st)]
+        self._close()
         dt = self.dt.median() if self.rows_seen >= 2 else 0.0
         insertions = []
-        for m, n_run in self.insertions + pending:
+        for m, n_run in self.insertions:
             m = dict(m)
             over = m["lateral"]["ticks_over"]
             m["lateral"] = dict(m["lateral"], time_over_s=_r(over * dt, 4))
             m["time_in_tissue_s"] = _r(n_run * dt, 4)
             m["punctures"] = [p for p in punctures if m["t_entry_s"] <= p["t_s"] <= m["t_exit_s"]]
+            m["technique"] = m.pop("technique")
             insertions.append(m)
         return _session_dict(insertions, self.punctured_rows, dt, self.target, self.comfort)
-
-
-def _open_start(st: np.ndarray) -> int:
-    """Where the open window at the end of states ``st`` begins: the entry tick of a trailing
-    punctured run, or the start of a trailing pressing run; ``len(st)`` if neither."""
-    n = len(st)
-    last = st[-1]
-    if last != PUNCTURED and last != PRESSING:
-        return n
-    a = n
-    if last == PUNCTURED:
-        other = np.flatnonzero(st != PUNCTURED)
-        a = int(other[-1]) + 1 if other.size else 0
-    other = np.flatnonzero(st[:a] != PRESSING)
-    return int(other[-1]) + 1 if other.size else 0

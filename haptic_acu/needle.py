@@ -14,7 +14,11 @@ thin Python object that owns the arrays.
 
 States per layer and insertion site: UNTOUCHED -> PRESSING (a force net is active) -> PUNCTURED.
 The needle presses at most one layer at a time, the first one not yet punctured (the "front").
-Force on the needle (and so on the hand): the pressed layer's net reaction along its normal, plus,
+Force on the needle (and so on the hand): the pressed layer's net reaction (eq. 6) with N1 held at the
+tip's radial depth d below that layer's rest surface and no lateral offset, along grad(-d) (so a
+function of the tip's position alone, the gradient of a potential: sliding is smooth and no closed
+path on an intact surface returns energy; the net is re-centred under a sliding tip only where it is
+drawn; docs/model.md s2), plus,
 once the skin is broken, the axial force of the layers the shaft is in (:mod:`haptic_acu.postpuncture`:
 ``needle.mechanics = "rich"``: cutting at the tip into uncut tissue + stick-point Karnopp shaft
 friction + viscous friction, each per layer in proportion to the needle length in it;
@@ -329,8 +333,10 @@ def tip_on_net(s, X0f, ax):
 
 @nb.njit(cache=True, nogil=True)
 def recentre(m, s, k, idx, use_table):
-    """The tip slid half a spacing sideways: rebuild the net under it. A swept net keeps its
-    ring-mean deflection profile as the warm start; a tabulated one is read at its new offset."""
+    """The tip slid half a spacing sideways: rebuild the net under it (where it is drawn and, at a
+    puncture, handed to springback). The force does not change: it is read with N1 at the tip's
+    depth and no lateral offset, before and after. A swept net keeps its ring-mean deflection
+    profile as the warm start."""
     wk = s.work[0]
     w = m.layer[k].w
     n = n_particles_of(m, k)
@@ -356,16 +362,55 @@ def recentre(m, s, k, idx, use_table):
                 xf[i, c] = X0f[i, c] - dz * ax[c]
 
 
+@nb.njit(cache=True, nogil=True)
+def depth_gradient(m, s, k):
+    """The tip's depth below layer ``k``'s rest surface, d(q) = r_k(u) - |q - c| (radial, about the
+    body's centre c; u the tip's direction), and the gradient of -d into ``work.gd``:
+    grad(-d) = u - grad_S r_k(u) / |q - c|, grad_S the surface gradient on the unit sphere, from
+    central differences along two tangents (h = 1e-4 rad: O(h^2) = 1e-8 relative, no pole
+    singularity). Needs ``tip_radii`` (``s.radii``, ``work.rho``); returns d. The intact surface's
+    force f(d) * grad(-d) is then the gradient of the potential -int_0^d f: conservative."""
+    wk = s.work[0]
+    lmax = m.params[0].lmax
+    ck = m.coeffs[k]
+    rho = wk.rho
+    ux = (wk.q[0] - m.centre[0]) / rho
+    uy = (wk.q[1] - m.centre[1]) / rho
+    uz = (wk.q[2] - m.centre[2]) / rho
+    if abs(ux) < 0.9:
+        ax, ay, az = 1.0, 0.0, 0.0
+    else:
+        ax, ay, az = 0.0, 1.0, 0.0
+    t1x = uy * az - uz * ay
+    t1y = uz * ax - ux * az
+    t1z = ux * ay - uy * ax
+    m1 = math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+    t1x /= m1
+    t1y /= m1
+    t1z /= m1
+    t2x = uy * t1z - uz * t1y
+    t2y = uz * t1x - ux * t1z
+    t2z = ux * t1y - uy * t1x
+    h = 1e-4
+    two_a = 2.0 * math.atan(h)  # u +- h t are +-atan(h) from u along the great circle through t
+    g1 = (shf.eval_direction(ck, lmax, ux + h * t1x, uy + h * t1y, uz + h * t1z)
+          - shf.eval_direction(ck, lmax, ux - h * t1x, uy - h * t1y, uz - h * t1z)) / two_a
+    g2 = (shf.eval_direction(ck, lmax, ux + h * t2x, uy + h * t2y, uz + h * t2z)
+          - shf.eval_direction(ck, lmax, ux - h * t2x, uy - h * t2y, uz - h * t2z)) / two_a
+    wk.gd[0] = ux - (g1 * t1x + g2 * t2x) / rho
+    wk.gd[1] = uy - (g1 * t1y + g2 * t2y) / rho
+    wk.gd[2] = uz - (g1 * t1z + g2 * t2z) / rho
+    return s.radii[k] - rho
+
+
 @nb.njit(cache=True, nogil=True, inline="always")
 def table_response(m, s, k, idx):
-    """The tabulated net's static response at the tip: (surface force, ring-w deflection). Its shape
-    is laid onto the particles only when someone looks (the visual loop, from the tip kept in
+    """The tabulated net's static response with N1 held at the tip's depth ``work.dz1`` straight
+    below its rest point (lateral offset 0): (N1's reaction along the axis, ring-w deflection). Its
+    shape is laid onto the particles only when someone looks (the visual loop, from the tip kept in
     ``servo.slot_q``; the puncture hand-over)."""
     wk = s.work[0]
-    ax = s.axes[idx]
-    rx, ry, rz, dz1 = wk.r[0], wk.r[1], wk.r[2], wk.dz1
-    lat2 = (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
-    fn, rw = lookup(m.tab, m.tmeta[k], lat2, dz1)
+    fn, rw = lookup(m.tab, m.tmeta[k], 0.0, wk.dz1)
     for c in range(3):
         s.servo[0].slot_q[idx, c] = wk.q[c]
     return fn, rw
@@ -373,18 +418,25 @@ def table_response(m, s, k, idx):
 
 @nb.njit(cache=True, nogil=True)
 def sweep_net(m, s, k, idx, sweeps):
-    """N1 on the tip, ``sweeps`` relaxation sweeps of the net; returns its ring-w deflection."""
+    """N1 held ``work.dz1`` straight below its rest point, ``sweeps`` relaxation sweeps of the net:
+    (N1's reaction along the axis, ring-w deflection). N1 is then drawn at the tip."""
     sv = s.servo[0]
     wk = s.work[0]
     net = net_views(m, s, idx)
     topo = lattice_views(m, k)
     springs = springs_of(m, k)
+    ax = net.axis
     for c in range(3):
-        net.xf[0, c] = wk.q[c]
+        net.xf[0, c] = net.X0f[0, c] - wk.dz1 * ax[c]
     for it in range(sweeps):
         relax(net, topo, springs, sv.sweep[k] % 2)
         sv.sweep[k] += 1
-    return ring_w_mean_deflection(net, topo, springs.w)
+    force_on(0, net, topo, springs, wk.fo)
+    fn = wk.fo[0] * ax[0] + wk.fo[1] * ax[1] + wk.fo[2] * ax[2]
+    rw = ring_w_mean_deflection(net, topo, springs.w)
+    for c in range(3):
+        net.xf[0, c] = wk.q[c]
+    return fn, rw
 
 
 @nb.njit(cache=True, nogil=True)
@@ -432,56 +484,56 @@ def puncture(inp, m, s, d, k, idx, use_table):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def surface_force(m, s, d, k, idx, use_table, fn_table):
-    """The pressed net's reaction along its axis (a surface only pushes), added to ``work.f``."""
+def surface_force(s, d, k, fn):
+    """The pressed surface's force ``fn * grad(-d)`` (``work.gd``; a surface only pushes: fn >= 0),
+    added to ``work.f``; its magnitude into ``d.f_surface``."""
     wk = s.work[0]
-    if use_table:
-        fn = fn_table
-    else:
-        ax = s.axes[idx]
-        force_on(0, net_views(m, s, idx), lattice_views(m, k), springs_of(m, k), wk.fo)
-        fn = wk.fo[0] * ax[0] + wk.fo[1] * ax[1] + wk.fo[2] * ax[2]
     if fn < 0.0:
         fn = 0.0
-    ax = s.axes[idx]
+    g = wk.gd
     for c in range(3):
-        wk.f[c] += fn * ax[c]
-    d.f_surface = fn
-    d.f_layer[k] = fn
+        wk.f[c] += fn * g[c]
+    mag = fn * math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    d.f_surface = mag
+    d.f_layer[k] = mag
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def press(inp, m, s, d, k):
-    """Layer ``k`` is being pressed: N1 follows the tip (lifted off: the net goes, nothing broke);
-    re-centre the net if the tip slid away; the net's response (table or sweeps); puncture past the
-    threshold, else the surface force."""
+    """Layer ``k`` is being pressed (intact). The force is a function of the tip's position alone:
+    the net's response with N1 at the tip's depth d below the layer's rest surface and no lateral
+    offset (table or sweeps), along grad(-d) (:func:`depth_gradient`); the puncture test reads the
+    same response. Lifted off (d <= 0): the net goes, nothing broke. The net is re-centred under
+    the tip when it slid half a spacing away: that moves the drawn net, not the force."""
     sv = s.servo[0]
     wk = s.work[0]
     idx = 2 * k + sv.slot[k]
-    X0f = net_views(m, s, idx)[1]
-    ax = s.axes[idx]
-    lat2 = tip_on_net(s, X0f, ax)
-    if wk.dz1 <= 0.0:
+    dep = s.radii[k] - wk.rho
+    if dep <= 0.0:
         sv.state[k] = UNTOUCHED
         sv.owner[k, idx % 2] = FREE
         return
+    X0f = net_views(m, s, idx)[1]
+    ax = s.axes[idx]
+    lat2 = tip_on_net(s, X0f, ax)
     sweeps = m.params[0].sweeps
     use_table = m.tmeta[k].nr > 0
     if lat2 > (0.5 * m.layer[k].spacing) ** 2:
         recentre(m, s, k, idx, use_table)
         sweeps *= 2
         tip_on_net(s, X0f, ax)
-    fn_table = 0.0
+    wk.dz1 = dep
+    depth_gradient(m, s, k)
     if use_table:
-        fn_table, rw = table_response(m, s, k, idx)
+        fn, rw = table_response(m, s, k, idx)
     else:
-        rw = sweep_net(m, s, k, idx, sweeps)
+        fn, rw = sweep_net(m, s, k, idx, sweeps)
     d.ringw = rw
-    d.dz1 = wk.dz1
+    d.dz1 = dep
     if rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0]):
         puncture(inp, m, s, d, k, idx, use_table)
     else:
-        surface_force(m, s, d, k, idx, use_table, fn_table)
+        surface_force(s, d, k, fn)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -622,19 +674,18 @@ SWEPT_K_ALONG = 2500.0
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def pressed_slope(m, s, k, idx):
-    """The pressed net's stiffness along its axis (N/m) at the tip: the tabulated response's slope
-    over one column step ahead (the nets stiffen with depth, so ahead is the larger), or
-    :data:`SWEPT_K_ALONG` for a swept net."""
+    """The pressed surface's stiffness along grad(-d) (N/m) at the tip: the tabulated response's
+    slope over one row ahead (the nets stiffen with depth, so ahead is the larger) times |grad d|^2,
+    or :data:`SWEPT_K_ALONG` for a swept net."""
     if m.tmeta[k].nr <= 0:
         return SWEPT_K_ALONG
     wk = s.work[0]
-    ax = s.axes[idx]
-    dz1 = wk.dz1
-    lat2 = (wk.r[0] + dz1 * ax[0]) ** 2 + (wk.r[1] + dz1 * ax[1]) ** 2 + (wk.r[2] + dz1 * ax[2]) ** 2
+    dep = wk.dz1
     h = m.tmeta[k].h
-    f0 = lookup(m.tab, m.tmeta[k], lat2, dz1)[0]
-    f1 = lookup(m.tab, m.tmeta[k], lat2, dz1 + h)[0]
-    slope = (f1 - f0) / h
+    f0 = lookup(m.tab, m.tmeta[k], 0.0, dep)[0]
+    f1 = lookup(m.tab, m.tmeta[k], 0.0, dep + h)[0]
+    g = wk.gd
+    slope = (f1 - f0) / h * (g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     return slope if slope > 0.0 else 0.0
 
 
@@ -657,8 +708,10 @@ def render_local(m, s, d):
     if front < N_LAYERS and sv.state[front] == PRESSING:
         idx = 2 * front + sv.slot[front]
         along = pressed_slope(m, s, front, idx)
+        g = wk.gd
+        gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
         for c in range(3):
-            d.r_axis[c] = s.axes[idx, c]
+            d.r_axis[c] = g[c] / gn
     if sv.inserted != 0:
         a = sv.axis
         for c in range(3):

@@ -10,10 +10,14 @@ is a function of two numbers per layer, computed once per set of net parameters 
 in about a microsecond, instead of relaxing 271 particles every millisecond (two Gauss-Seidel-Newton
 sweeps, 70 us at w = 10, and they track the static solution only within 0.4%).
 
+The servo reads the first column only (rho = 0, N1 pushed straight in to the tip's depth below the
+rest surface: docs/model.md s2.3, which makes the intact surface's force a function of the tip's
+position and conservative); the other columns (rho up to L / 2, the farthest the tip gets from the
+centre of a net re-centred under it) stay for the tests that hold the table to independent solvers.
 The hexagonal lattice is symmetric under rotations by 60 degrees and reflections, so the response's
-dependence on the direction of the lateral offset enters as cos(6 psi) at sixth order in rho / L; the
-servo re-centres the net when rho exceeds L / 2, so rho / L <= 1/2, where that anisotropy measured
-0.1% of the axial force. Columns are solved with the offset at psi = 15 degrees, where cos(6 psi) = 0.
+dependence on the direction of the lateral offset enters as cos(6 psi) at sixth order in rho / L; at
+rho / L <= 1/2 that anisotropy measured 0.1% of the axial force. Columns are solved with the offset
+at psi = 15 degrees, where cos(6 psi) = 0.
 
 Layout, per layer: rows ``c_i = i * h`` (i = 0 .. nc-1, h = L / ROWS_PER_SPACING), columns
 ``s_j = (rho_j / rho_max)^2 = j / (nr-1)`` (even functions of rho are smooth in rho^2), tables

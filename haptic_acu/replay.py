@@ -232,7 +232,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     try:
         reference = None
         if device.has_roll and not realtime:  # the grasp felt: the same replay without rotation
-            reference = replay_rows(trajectory, cfg, roll=False)
+            reference = reference_forces(trajectory, cfg)  # its ticks and forces, not its rows
         # streamed: memory bounded by the work, not the file
         summary_sink = SummarySink(cfg, keep_rows=False, reference_rows=reference)
         io = _IOErrors()
@@ -304,6 +304,38 @@ def replay_rows(trajectory, cfg, roll: bool = True):
                         force_limit_n=cfg.safety.force_limit_n, roll=roll) as device:
         result = Session(cfg, device, [sink], clock="sim", dents=False).run()
     return None if result.fault else sink.rows()
+
+
+class _Forces:
+    """Frame sink keeping per row only its tick and force (the grasp felt's reference)."""
+
+    def __init__(self):
+        from .samples import COL
+        self.cols = [COL["tick"], COL["fx_n"], COL["fx_n"] + 1, COL["fx_n"] + 2]
+        self.blocks: list = []
+
+    def on_frame(self, frame) -> None:
+        if len(frame.samples):
+            self.blocks.append(frame.samples[:, self.cols])
+
+
+def reference_forces(trajectory, cfg):
+    """(ticks, forces (n, 3)) of :func:`replay_rows` with ``roll=False``: all the grasp felt uses of
+    that reference replay (32 of a row's 248 bytes). None if that replay faults."""
+    import numpy as np
+
+    from haptic_acu.devices.scripted import ScriptedDevice
+
+    from .engine import Session
+
+    sink = _Forces()
+    with ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                        force_limit_n=cfg.safety.force_limit_n, roll=False) as device:
+        result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+    if result.fault:
+        return None
+    a = np.concatenate(sink.blocks) if sink.blocks else np.zeros((0, 4))
+    return a[:, 0].copy(), a[:, 1:4].copy()
 
 
 def trajectories_from(args_paths) -> list[Path]:

@@ -131,6 +131,52 @@ def eval_point(coeffs, lmax, theta, phi):
 
 
 @nb.njit(cache=True, nogil=True)
+def eval_direction(coeffs, lmax, dx, dy, dz):
+    """r in the direction (dx, dy, dz) (any length > 0) without a transcendental call: cos theta,
+    sin theta and cos/sin(phi) from the components, cos/sin(m phi) by angle addition. Equal to
+    :func:`eval_point` at that direction to rounding (not bit for bit); for kernels that evaluate a
+    surface at several nearby directions every tick (the pressed surface's slope). Allocates nothing."""
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    x = dz / n
+    sxy = math.sqrt(dx * dx + dy * dy)
+    s = sxy / n
+    if sxy > 0.0:
+        c1 = dx / sxy
+        s1 = dy / sxy
+    else:
+        c1 = 1.0  # the pole: phi = 0, as direction_of gives it
+        s1 = 0.0
+    pmm = _INV_SQRT_4PI
+    cm = 1.0
+    sm = 0.0
+    total = 0.0
+    for m in range(lmax + 1):
+        if m > 0:
+            pmm = -_REC_MM[m] * s * pmm
+            t = cm * c1 - sm * s1
+            sm = sm * c1 + cm * s1
+            cm = t
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            if l == m:
+                p = pmm
+            elif l == m + 1:
+                p = _REC_M1[m] * x * pmm
+            else:
+                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
+            if l > m:
+                p_lm2 = p_lm1
+                p_lm1 = p
+            base = l * l + l
+            if m == 0:
+                total += coeffs[base] * p
+            else:
+                total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
+    return total
+
+
+@nb.njit(cache=True, nogil=True)
 def _eval_point4(coeffs, lmax, theta, phi, out):
     """eval_point for four rows at once (the tissue's boundaries): one Legendre recurrence and one set
     of cos/sin(m phi), the four sums in registers and formed in eval_point's order (bit for bit)."""

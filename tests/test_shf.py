@@ -258,3 +258,20 @@ def test_grid_and_unit_vectors():
     np.testing.assert_allclose(np.linalg.norm(u, axis=-1), 1.0, atol=1e-15)
     np.testing.assert_allclose(u[..., 2], np.cos(th), atol=1e-15)
     np.testing.assert_allclose(np.arctan2(u[..., 1], u[..., 0]) % (2 * np.pi), ph, atol=1e-12)
+
+
+@pytest.mark.parametrize("lmax", [2, 15, 30])
+def test_eval_direction_agrees_with_scipy_anywhere_and_at_the_poles(lmax):
+    """eval_direction (no transcendental calls: the pressed surface's slope kernel) against SciPy's
+    harmonics at random directions of random lengths, at the poles and next to them."""
+    rng = np.random.default_rng(21 + lmax)
+    coeffs = rng.normal(size=(lmax + 1) ** 2)
+    theta, phi, u = random_directions(300, seed=22)
+    near = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-9, 0.0, 1.0], [0.0, -1e-9, -1.0], [1e-12, 1e-12, 1.0]])
+    u = np.vstack([u, near / np.linalg.norm(near, axis=1)[:, None]])
+    theta = np.arctan2(np.hypot(u[:, 0], u[:, 1]), u[:, 2])  # (arccos loses 1e-9 rad at a pole)
+    phi = np.arctan2(u[:, 1], u[:, 0])
+    ref = scipy_real_basis(lmax, theta, phi) @ coeffs
+    scale = rng.uniform(1e-3, 1e3, size=len(u))
+    got = np.array([shf.eval_direction(coeffs, lmax, *(v * k)) for v, k in zip(u, scale)])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10 * np.abs(coeffs).sum())
