@@ -521,6 +521,8 @@ class NumpyNeedle:
             layer = next((j for j in range(3) if rho > radii[j + 1]), 3)
         if front < 3 and layer > front - 1:
             layer = front - 1
+        if self.punctured_now >= 0:
+            layer = max(layer, self.punctured_now)  # the tip is in the layer it broke this tick
         self.layer = layer
         if not np.all(np.isfinite(f)):
             self.fault = True

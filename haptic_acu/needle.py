@@ -636,6 +636,11 @@ def locate(s, d):
                 break
     if layer > front - 1 and front < N_LAYERS:
         layer = front - 1
+    # On the tick a layer breaks the lifted tip sits on that layer's rest surface, where rounding
+    # alone would decide the side: the tip is in the layer it broke.
+    broke = int(d.puncture)
+    if broke >= 0 and layer < broke:
+        layer = broke
     d.layer = layer
     if layer >= 0:
         dep = radii[layer] - rho

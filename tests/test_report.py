@@ -148,7 +148,7 @@ def _png_chunks(data: bytes):
 
 
 def test_summary_sink_keeps_every_row(session):
-    assert np.array_equal(session.summary.rows(), session.rows)
+    assert np.array_equal(session.summary.rows(), session.rows, equal_nan=True)  # axis columns are nan before entry
 
 
 def test_figure_is_a_valid_png_and_byte_identical_across_runs(session):
@@ -229,7 +229,7 @@ def test_figure_rows_are_bounded_and_keep_every_extreme(session):
     for f in (radial_force_n, lateral_force_n):
         assert f(kept, tissue).max() == f(rows, tissue).max() and f(kept, tissue).min() == f(rows, tissue).min()
     assert tip_depth_m(kept[:, C["x_m"]:C["x_m"] + 3], tissue).max() == tip_depth_m(rows[:, C["x_m"]:C["x_m"] + 3], tissue).max()
-    assert np.array_equal(kept[0], rows[0]) and np.array_equal(kept[-1], rows[-1])
+    assert np.array_equal(kept[0], rows[0], equal_nan=True) and np.array_equal(kept[-1], rows[-1], equal_nan=True)
     assert np.count_nonzero(kept[:, C["puncture"]] >= 0) == np.count_nonzero(rows[:, C["puncture"]] >= 0)
     where = [int(np.flatnonzero((rows[:, C["tick"]] == t))[0]) for t in kept[:, C["tick"]]]
     assert np.array_equal(index, insertion_index(rows)[where])
