@@ -48,7 +48,15 @@ LIMITING = 2  # the continuous-force protection is scaling the force down
 FAULT = 4  # a fault: the force is zero
 
 AUX_DTYPE = np.dtype([("n_hist", np.int64), ("head", np.int64), ("initialised", np.int64), ("fault", np.int64),
-                      ("f_sq_avg", np.float64), ("scale", np.float64), ("status", np.int64)])
+                      ("f_sq_avg", np.float64), ("scale", np.float64), ("status", np.int64),
+                      ("off_x", np.float64), ("off_y", np.float64), ("off_z", np.float64)])  # release offset (m)
+
+# After a release the coupling's anchor (the device shifted by the release offset) rejoins the device
+# at this speed: the proxy catches up no faster than the hand plus this, so the tissue (and a replay
+# of the recorded proxy path) sees a velocity a hand could have, not a jump over one tick. Ours:
+# a fifth of the 25 mm/s a fine needle is pushed at most in the bundled sessions; 1.2 mm (a firm
+# grip's compression at the muscle's break) is spent in about 0.2 s.
+RELEASE_CATCH_UP_M_S = 5e-3
 
 
 class DeviceLimits(NamedTuple):
@@ -108,12 +116,15 @@ class TissueLocal(NamedTuple):
     axis inside tissue, a pressed net's axis; zeros: none, then ``stiffness_across`` acts in every
     direction). ``damping``: N*s/m along the axis; ``stiffness_along``/``stiffness_across``: N/m
     (an upper bound is safe: it only slows the proxy); ``friction``: Coulomb level along the axis (N).
-    ``released``: 1.0 when the tissue let go this tick (a puncture): for this one proxy step the
-    tissue's damping and friction are left out, so the coupling spring's compression (a rendering
-    artefact: the device is deeper than a rigid needle would be) is spent moving the proxy into the
-    next layer at once, rather than bled out through the damping of the layers above; the drop is
-    felt within a tick and the next layer still meets the needle (and pops) on its own. Dropping a
-    dissipative term for one step stores no energy: passive.
+    ``released``: 1.0 when the tissue let go this tick (a puncture). The coupling spring's
+    compression along the axis (a rendering artefact: the device is deeper than a rigid needle would
+    be) is relaxed at once by offsetting its anchor (:func:`anchor_point`), so the drop is felt
+    within the tick, and for this one proxy step the tissue's damping and friction are left out; the
+    proxy does not jump: the offset shrinks at :data:`RELEASE_CATCH_UP_M_S`, so the tissue, and a
+    replay of the recorded proxy path, never see a catch-up faster than the hand plus that (a
+    one-tick jump of the compression, 0.35 mm with a firm grip at the muscle's break, put -8 N of
+    viscous shaft friction, clamped, into the simulated force). Relaxing a spring and dropping a
+    dissipative term for one step store no energy: passive.
     """
     force: np.ndarray
     axis: np.ndarray
@@ -226,6 +237,36 @@ def move_proxy(k, b, tissue, state, device_pos, dt):
 
 
 @nb.njit(cache=True, nogil=True)
+def anchor_point(aux, tissue, proxy, device_pos, dt, out):
+    """The point the coupling ties the proxy to, into ``out``: the device shifted by the release
+    offset. A release (puncture) sets the offset's part along the tissue's axis to the coupling's
+    compression, so the spring is relaxed at once (the drop is felt this tick) without moving the
+    proxy; the offset then shrinks at :data:`RELEASE_CATCH_UP_M_S` back to zero."""
+    a = tissue.axis
+    an = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    ox, oy, oz = aux.off_x, aux.off_y, aux.off_z
+    if tissue.released != 0.0 and an > 0.0:
+        a0, a1, a2 = a[0] / an, a[1] / an, a[2] / an
+        gap = (proxy[0] - device_pos[0]) * a0 + (proxy[1] - device_pos[1]) * a1 + (proxy[2] - device_pos[2]) * a2
+        old = ox * a0 + oy * a1 + oz * a2
+        ox += (gap - old) * a0
+        oy += (gap - old) * a1
+        oz += (gap - old) * a2
+    else:
+        m = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if m > 0.0:
+            keep = m - RELEASE_CATCH_UP_M_S * dt
+            f = keep / m if keep > 0.0 else 0.0
+            ox *= f
+            oy *= f
+            oz *= f
+    aux.off_x, aux.off_y, aux.off_z = ox, oy, oz
+    out[0] = device_pos[0] + ox
+    out[1] = device_pos[1] + oy
+    out[2] = device_pos[2] + oz
+
+
+@nb.njit(cache=True, nogil=True)
 def _zero(state, aux):
     for c in range(3):
         state.force[c] = 0.0
@@ -305,9 +346,11 @@ def render_step(limits, params, state, tissue, device_pos):
     foaw_velocity(state.history, aux.n_hist, aux.head, params.encoder_step_m, params.dt_s, state.device_v)
     k = min(params.stiffness_n_per_m, limits.stiffness_n_per_m)
     b = min(params.damping_n_s_per_m, limits.damping_n_s_per_m)
-    move_proxy(k, b, tissue, state, device_pos, params.dt_s)
+    anchor = state.force  # scratch until _protect writes the force below
+    anchor_point(aux, tissue, state.proxy, device_pos, params.dt_s, anchor)
+    move_proxy(k, b, tissue, state, anchor, params.dt_s)
     for c in range(3):
-        state.demand[c] = k * (state.proxy[c] - device_pos[c]) + b * (state.proxy_v[c] - state.device_v[c])
+        state.demand[c] = k * (state.proxy[c] - anchor[c]) + b * (state.proxy_v[c] - state.device_v[c])
     status = _protect(limits, params, state, aux)
     aux.status = status
     return status

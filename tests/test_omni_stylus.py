@@ -142,6 +142,24 @@ def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp
     assert r_in.sum() > 800 and np.all(angle_deg(r["axis"][r_in], OBLIQUE) < 2.0)
 
 
+
+def test_a_firm_grip_through_the_muscle_has_no_clamped_tick(emulator, tmp_path):
+    # Issue 13: a firm grip (2 N/mm) inserting straight down at 10 mm/s through skin, fat and the
+    # muscle's break to 20 mm. The coupling's compression at the muscle's break once reached the tissue
+    # as a 0.35 m/s proxy jump: -8 N of viscous shaft friction, two ticks clamped at 3.3 N.
+    down = np.array([0.0, 0.0, -1.0])
+    path, duration = line_path(down, -4.0, 20.0, 10.0, 0.5)
+    proc, frames, rec, out = run_cli(emulator, tmp_path, path, duration,
+                                     stylus={**FIRM_GRIP, "hand_tremor": TREMOR},
+                                     stylus_axis=[(0.0, *to_device_dir(down))])
+    assert proc.returncode == 0, proc.stderr
+    s = samples(out)
+    assert s["state_muscle"][-1] == "punctured"
+    assert np.all(s["clamped"] == 0)
+    with open(out / "samples.csv", newline="") as f:
+        fmag = np.array([float(r["f_n"]) for r in csv.DictReader(f)])
+    assert fmag.max() < 1.5, fmag.max()  # the muscle's surface peaks near 0.75 N
+
 @pytest.mark.parametrize("how", ["nan_transform", "travel_switch"])
 def test_without_the_stylus_axis_the_travel_decides(emulator, tmp_path, how):
     # A transform whose rotation is NaN (the device gives no orientation) is no fault: the step falls

@@ -218,6 +218,39 @@ def test_a_release_spends_the_coupling_compression_at_once():
     assert slow == pytest.approx(before * 93.0 / (93.0 + B + K * DT), rel=1e-6)
 
 
+def test_a_release_under_a_moving_hand_relaxes_the_coupling_without_a_proxy_jump():
+    # The device advances at 10 mm/s into a stiff surface that then breaks (nothing left but its
+    # damping): the coupling's compression is relaxed in the release tick (the force is the broken
+    # tissue's, 0 here), while the proxy's velocity, which the tissue sees next tick and a replay
+    # of the recorded proxy path sees too, never exceeds the hand's plus RELEASE_CATCH_UP_M_S
+    # (a one-tick jump of the compression once clamped the simulated force at a muscle's break).
+    state = R.new_state()
+    tis = LinearTissue(k=2200.0, c=93.0)
+    speed = 0.01
+    x = np.zeros(3)
+    for i in range(1500):
+        x = np.array([0.0, 0.0, -1e-3 - speed * DT * i])
+        R.render_step(LIM, PAR, state, tis.report(state.proxy.copy()), x)
+    before = abs(state.force[2])
+    gap = state.proxy[2] - x[2]
+    assert before > 0.5 and gap > 0.5e-3  # the compression: the device is well past the proxy
+    broken = LinearTissue(k=0.0, c=93.0)
+    released = 1.0
+    speeds, forces = [], []
+    n = int(gap / R.RELEASE_CATCH_UP_M_S / DT) + 1500
+    for i in range(n):
+        x = x - np.array([0.0, 0.0, speed * DT])
+        R.render_step(LIM, PAR, state, broken.report(state.proxy.copy(), released=released), x)
+        released = 0.0
+        speeds.append(-state.proxy_v[2])
+        forces.append(abs(state.demand[2]))  # before the continuous-force protection (0.88 N here)
+    assert forces[0] < 1e-9  # relaxed in the release tick
+    assert max(speeds) <= speed + R.RELEASE_CATCH_UP_M_S + 1e-3, max(speeds)
+    # the anchor has rejoined the device (the gap at 5 mm/s) and the coupling has settled (its time
+    # constant with the damper, (c + B) / K, is 0.15 s): the damper at the hand's speed, c v
+    assert forces[-1] == pytest.approx(93.0 * speed, rel=0.02), forces[-1]
+
+
 def _closed_path(amps, freqs, phases, n):
     t = np.arange(n + 1) / n
     p = np.zeros((n + 1, 3))
