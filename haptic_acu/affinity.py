@@ -1,6 +1,8 @@
-"""CPU pinning for a live session (Linux ``sched_setaffinity``): the servo thread on one core, the
-rerun logging child on the others, so the logger's bursts cannot take the servo's core (issue 13:
-with the logging child the compiled loop missed 12 ticks in 30 s, without it none in 10 s).
+"""CPU pinning for a live session (Linux ``sched_setaffinity``): the servo thread alone on one core,
+the rerun logging child and every other thread of the session's process on the others, so neither
+the logger's bursts nor the visual loop, the feed or the recorder can take the servo's core (issue
+13: with the logging child the compiled loop missed 12 ticks in 30 s, without it none in 10 s; a
+10-minute soak with only the servo thread and the child pinned still missed 135 ticks).
 
 Used by :class:`haptic_acu.engine.Session` when ``pin_cores`` is on; a host with one usable core,
 or without ``sched_setaffinity``, runs unpinned (:func:`split` returns None).
@@ -47,3 +49,32 @@ def pin_process(pid: int, cores) -> bool:
         return True
     except (AttributeError, OSError):
         return False
+
+
+def pin_other_threads(cores, keep_tid: int) -> dict:
+    """Pin every thread of this process but ``keep_tid`` (a native thread id) to ``cores``; threads
+    they start later inherit it. Returns ``{tid: previous set}`` for :func:`restore_threads`
+    (threads that refuse or have ended are skipped)."""
+    prev = {}
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return prev
+    for tid in tids:
+        if tid == keep_tid:
+            continue
+        try:
+            before = os.sched_getaffinity(tid)
+            os.sched_setaffinity(tid, set(cores))
+            prev[tid] = before
+        except (AttributeError, OSError):
+            continue
+    return prev
+
+
+def restore_threads(prev: dict) -> None:
+    for tid, cores in prev.items():
+        try:
+            os.sched_setaffinity(tid, cores)
+        except OSError:
+            pass

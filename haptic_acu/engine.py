@@ -656,6 +656,9 @@ class Session:
             self.sched_fifo = prev is not None
             prev_cpus = affinity.pin_thread({cores[0]}) if cores else None
             self.pinned = prev_cpus is not None
+            # the servo's core to itself: the process's other threads (main, visual, feed, sinks)
+            # and the ones they start on the other cores
+            others = affinity.pin_other_threads(cores[1], threading.get_native_id()) if self.pinned else {}
             try:
                 outcome["status"] = call_driver(
                     rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64), dm), t0_ns, period_ns, k_limit,
@@ -663,6 +666,7 @@ class Session:
             except BaseException as e:
                 outcome["error"] = e
             finally:
+                affinity.restore_threads(others)
                 affinity.restore(prev_cpus)
                 self._restore_sched(prev)
                 self._stop.set()

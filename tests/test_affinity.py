@@ -50,3 +50,41 @@ def test_a_child_process_is_pinned_to_the_other_cores():
     finally:
         child.kill()
         child.wait()
+
+
+def test_the_servo_core_is_left_to_the_servo_thread_and_everything_is_restored():
+    servo, others = affinity.split()
+    ready, done = threading.Event(), threading.Event()
+    seen = {}
+
+    def idle():  # a thread that exists before the pinning (the visual loop, the feed)
+        ready.set()
+        done.wait(30)
+        seen["idle"] = os.sched_getaffinity(0)
+
+    def servo_thread():
+        me = threading.get_native_id()
+        prev = affinity.pin_thread({servo})
+        others_prev = affinity.pin_other_threads(others, me)
+        seen["main"] = os.sched_getaffinity(main_tid)
+        seen["self"] = os.sched_getaffinity(0)
+        late = threading.Thread(target=lambda: seen.setdefault("late", os.sched_getaffinity(0)))
+        late.start()  # started by the servo thread: inherits {servo}; by any other: others
+        late.join()
+        done.set()
+        idler.join()
+        affinity.restore_threads(others_prev)
+        affinity.restore(prev)
+        seen["main_after"] = os.sched_getaffinity(main_tid)
+
+    main_tid = threading.get_native_id()
+    before = os.sched_getaffinity(0)
+    idler = threading.Thread(target=idle)
+    idler.start()
+    ready.wait(30)
+    t = threading.Thread(target=servo_thread)
+    t.start()
+    t.join()
+    assert seen["self"] == {servo} and seen["main"] == others and seen["idle"] == others
+    assert servo not in seen["main"] and seen["late"] == {servo}
+    assert seen["main_after"] == before and os.sched_getaffinity(0) == before
