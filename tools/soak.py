@@ -110,6 +110,14 @@ def main() -> int:
         out, err = proc.communicate(timeout=60)
     st1 = steal_jiffies()
     print(err.strip().splitlines()[0] if err.strip() else "", file=sys.stderr)
+    summary = work / "session" / "summary.json"
+    if summary.is_file():
+        import json
+
+        loop = json.loads(summary.read_text()).get("loop", {})
+        pe = loop.get("period_error_us", {})
+        print(f"session: {loop.get('missed_ticks')} missed ticks; period error p50 {pe.get('p50')} us, "
+              f"p99 {pe.get('p99')} us, p99.9 {pe.get('p999')} us, max {pe.get('max')} us")
     for line in out.splitlines():
         if "tick" in line or "missed" in line:
             print("session: " + line.strip())
