@@ -93,6 +93,24 @@ def _surface_at(coeffs_k, lmax, ux, uy, uz):
     return ux / rr * r, uy / rr * r, uz / rr * r
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def tangents(ux, uy, uz):
+    """Two unit tangents (t1, t2) orthogonal to the unit direction u and to each other (t1 from
+    u x the x axis, or the y axis near it), as six floats."""
+    if abs(ux) < 0.9:
+        ax, ay, az = 1.0, 0.0, 0.0
+    else:
+        ax, ay, az = 0.0, 1.0, 0.0
+    t1x = uy * az - uz * ay
+    t1y = uz * ax - ux * az
+    t1z = ux * ay - uy * ax
+    m1 = math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+    t1x /= m1
+    t1y /= m1
+    t1z /= m1
+    return t1x, t1y, t1z, uy * t1z - uz * t1y, uz * t1x - ux * t1z, ux * t1y - uy * t1x
+
+
 @nb.njit(cache=True, nogil=True)
 def surface_normal(coeffs_k, lmax, centre, p, out):
     """Outward unit normal of a radial SH surface at its point toward ``p`` (central differences
@@ -104,20 +122,7 @@ def surface_normal(coeffs_k, lmax, centre, p, out):
     dx /= m
     dy /= m
     dz /= m
-    if abs(dx) < 0.9:
-        ax, ay, az = 1.0, 0.0, 0.0
-    else:
-        ax, ay, az = 0.0, 1.0, 0.0
-    t1x = dy * az - dz * ay
-    t1y = dz * ax - dx * az
-    t1z = dx * ay - dy * ax
-    m1 = math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
-    t1x /= m1
-    t1y /= m1
-    t1z /= m1
-    t2x = dy * t1z - dz * t1y
-    t2y = dz * t1x - dx * t1z
-    t2z = dx * t1y - dy * t1x
+    t1x, t1y, t1z, t2x, t2y, t2z = tangents(dx, dy, dz)
     h = 1e-4
     ax_, ay_, az_ = _surface_at(coeffs_k, lmax, dx + h * t1x, dy + h * t1y, dz + h * t1z)
     bx_, by_, bz_ = _surface_at(coeffs_k, lmax, dx - h * t1x, dy - h * t1y, dz - h * t1z)
@@ -377,20 +382,7 @@ def depth_gradient(m, s, k):
     ux = (wk.q[0] - m.centre[0]) / rho
     uy = (wk.q[1] - m.centre[1]) / rho
     uz = (wk.q[2] - m.centre[2]) / rho
-    if abs(ux) < 0.9:
-        ax, ay, az = 1.0, 0.0, 0.0
-    else:
-        ax, ay, az = 0.0, 1.0, 0.0
-    t1x = uy * az - uz * ay
-    t1y = uz * ax - ux * az
-    t1z = ux * ay - uy * ax
-    m1 = math.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
-    t1x /= m1
-    t1y /= m1
-    t1z /= m1
-    t2x = uy * t1z - uz * t1y
-    t2y = uz * t1x - ux * t1z
-    t2z = ux * t1y - uy * t1x
+    t1x, t1y, t1z, t2x, t2y, t2z = tangents(ux, uy, uz)
     h = 1e-4
     two_a = 2.0 * math.atan(h)  # u +- h t are +-atan(h) from u along the great circle through t
     g1 = (shf.eval_direction(ck, lmax, ux + h * t1x, uy + h * t1y, uz + h * t1z)

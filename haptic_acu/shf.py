@@ -97,6 +97,31 @@ for _l in range(REC_LMAX + 1):
 del _l, _m
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add_order(coeffs, lmax, m, pmm, x, cm, sm, total):
+    """``total`` plus order m's terms, l = m..lmax (the associated Legendre recurrence from
+    P_mm = ``pmm`` at cos theta = ``x``; cm, sm: cos and sin of m phi), in the order
+    :func:`eval_point` and :func:`eval_direction` always summed them."""
+    p_lm2 = 0.0
+    p_lm1 = pmm
+    for l in range(m, lmax + 1):
+        if l == m:
+            p = pmm
+        elif l == m + 1:
+            p = _REC_M1[m] * x * pmm
+        else:
+            p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
+        if l > m:
+            p_lm2 = p_lm1
+            p_lm1 = p
+        base = l * l + l
+        if m == 0:
+            total += coeffs[base] * p
+        else:
+            total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
+    return total
+
+
 @nb.njit(cache=True, nogil=True)
 def eval_point(coeffs, lmax, theta, phi):
     """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing.
@@ -108,25 +133,7 @@ def eval_point(coeffs, lmax, theta, phi):
     for m in range(lmax + 1):
         if m > 0:
             pmm = -_REC_MM[m] * s * pmm
-        cm = math.cos(m * phi)
-        sm = math.sin(m * phi)
-        p_lm2 = 0.0
-        p_lm1 = pmm
-        for l in range(m, lmax + 1):
-            if l == m:
-                p = pmm
-            elif l == m + 1:
-                p = _REC_M1[m] * x * pmm
-            else:
-                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
-            if l > m:
-                p_lm2 = p_lm1
-                p_lm1 = p
-            base = l * l + l
-            if m == 0:
-                total += coeffs[base] * p
-            else:
-                total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
+        total = _add_order(coeffs, lmax, m, pmm, x, math.cos(m * phi), math.sin(m * phi), total)
     return total
 
 
@@ -156,23 +163,7 @@ def eval_direction(coeffs, lmax, dx, dy, dz):
             t = cm * c1 - sm * s1
             sm = sm * c1 + cm * s1
             cm = t
-        p_lm2 = 0.0
-        p_lm1 = pmm
-        for l in range(m, lmax + 1):
-            if l == m:
-                p = pmm
-            elif l == m + 1:
-                p = _REC_M1[m] * x * pmm
-            else:
-                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
-            if l > m:
-                p_lm2 = p_lm1
-                p_lm1 = p
-            base = l * l + l
-            if m == 0:
-                total += coeffs[base] * p
-            else:
-                total += _SQRT2 * p * (coeffs[base + m] * cm + coeffs[base - m] * sm)
+        total = _add_order(coeffs, lmax, m, pmm, x, cm, sm, total)
     return total
 
 
