@@ -306,7 +306,7 @@ class _Strokes:
             self.last_dcm = dl[-1]
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
-        from .technique import _r
+        from .technique import summarise_strokes
         off = 0 if uniform else 10
         per = []
         for sgn, sums in self.strokes:
@@ -317,22 +317,7 @@ class _Strokes:
             fsum = sums[j + 2:j + 5]
             res = sgn * -float(fsum[0] * u[0] + fsum[1] * u[1] + fsum[2] * u[2]) / n
             per.append((sgn, float(sums[j + 1]) / n, res))
-
-        def mean(sgn, k):
-            vals = [s[k] for s in per if s[0] == sgn]
-            return float(np.mean(vals)) if vals else None
-
-        thrust_f, lift_f = mean(1.0, 2), mean(-1.0, 2)
-        ratio = thrust_f / lift_f if thrust_f is not None and lift_f is not None and lift_f > 0 else None
-        return {
-            "thrusts": sum(1 for s in per if s[0] > 0),
-            "lifts": sum(1 for s in per if s[0] < 0),
-            "thrust_speed_mm_s": _r(mean(1.0, 1), 3),
-            "lift_speed_mm_s": _r(mean(-1.0, 1), 3),
-            "thrust_resistance_n": _r(thrust_f, 4),
-            "lift_resistance_n": _r(lift_f, 4),
-            "thrust_to_lift": _r(ratio, 3),
-        }
+        return summarise_strokes(per)
 
     def grasp_result(self) -> dict:
         from .technique import _r

@@ -173,7 +173,13 @@ def stroke_forces(t_s, depth_mm, f_axial_n=None, min_stroke_mm: float = DEPTH_MI
     depth = np.asarray(depth_mm, dtype=np.float64)
     f = None if f_axial_n is None else np.asarray(f_axial_n, dtype=np.float64)
     rev = turning_points(depth, min_stroke_mm)
-    strokes = _stroke_means(t, depth, f, rev, min_speed_mm_s)
+    return summarise_strokes(_stroke_means(t, depth, f, rev, min_speed_mm_s))
+
+
+def summarise_strokes(strokes) -> dict:
+    """The thrust-against-lift summary of per-stroke ``(sign, speed mm/s, resistance N or None)``
+    (+1 thrust, -1 lift): counts, mean speeds and resistances, their ratio. Shared by the batch
+    :func:`stroke_forces` and the streamed insertion metrics."""
 
     def mean(sgn, k):
         vals = [s[k] for s in strokes if s[0] == sgn and s[k] is not None]
