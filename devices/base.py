@@ -105,6 +105,19 @@ class Device(abc.ABC):
         raise NotImplementedError(f"{self.info.name} does not drive the clock")
 
     # -- what the engine also uses; each has a default, a device overrides what it can do ---------
+    #: The device-to-scene mapping (a device in its own frame and units converts with it; the
+    #: OMNI's compiled callback maps positions itself). Default: the identity.
+    workspace: Workspace = Workspace()
+
+    #: True if the device gives the needle's axis (``DeviceState.axis``, :meth:`pose_block`): a
+    #: recording of the session then carries it (haptic_acu.recorder). Default: no.
+    gives_axis: bool = False
+
+    #: ``(servo tick, name)`` of the events the device played (the keyboard's and a recording's
+    #: ``reset``), for a recording of the session; a device with events keeps a list here and the
+    #: engine's drivers append the ones they apply. Default: none.
+    events: "list[tuple[int, str]] | tuple" = ()
+
     def read_at(self, t_s: float) -> DeviceState:
         """The state at session time ``t_s`` on the engine's clock (default: :meth:`read`)."""
         return self.read()
@@ -117,6 +130,12 @@ class Device(abc.ABC):
         """(positions (n, 3) m, velocities (n, 3) m/s, done flags (n,)) at increasing times ``t_s``;
         only for a device with :attr:`reads_ahead`."""
         raise NotImplementedError(f"{self.info.name} cannot be read ahead")
+
+    def pose_block(self, t_s: np.ndarray):
+        """(needle axis (n, 3), unit, handle to tip, scene frame; roll (n,) in degrees) at the ticks
+        ``t_s`` (just read by :meth:`read_block`), each None when the device gives none. Default:
+        (None, None)."""
+        return None, None
 
     def roll_block(self, t_s: np.ndarray) -> np.ndarray | None:
         """The needle's roll (rad, cumulative) at the ticks ``t_s`` (just read by :meth:`read_block`),

@@ -70,7 +70,7 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
-from .servotick import PythonTick, axis_block, call_driver, run_ticks, tick_table
+from .servotick import PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
 from .samples import NCOL, SampleRing
 from .springback import Springback
 
@@ -149,12 +149,6 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
         dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], support, tmp)
         total += tmp
     return total.reshape(np.shape(theta))
-
-
-def roll_of_block(device, T: np.ndarray) -> np.ndarray:
-    """The device's needle roll (rad, contiguous) at the ticks ``T``: zeros when it gives none."""
-    r = device.roll_block(T)
-    return np.zeros(T.size) if r is None else np.ascontiguousarray(r, dtype=np.float64)
 
 
 def percentiles_us(values_s: np.ndarray) -> dict:
@@ -484,7 +478,7 @@ class Session:
             if self._sim_table is None:  # the ring's and the model's arrays outlive it
                 self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
             A = axis_block(dev, T)
-            R = roll_of_block(dev, T)
+            R = roll_block(dev, T)
             n = self._run_ticks_resetting(P, V, A, R, T, k0, dev.reset_ticks(T), self._sim_table)
             self.tick += n
             self._t_session = float(T[n - 1])

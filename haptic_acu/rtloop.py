@@ -36,7 +36,7 @@ from numba.extending import intrinsic
 
 from . import servostate as ss
 from .devicemodel import model_tick
-from .servotick import STALE, account, axis_block, reset_servo, servo_tick, unpack_tick
+from .servotick import STALE, account, axis_block, reset_servo, roll_block, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -236,12 +236,6 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
     return status
 
 
-def device_roll(device, T):
-    """The device's roll at the ticks ``T`` (rad), or None (a device without ``roll_block``: none)."""
-    f = getattr(device, "roll_block", None)
-    return None if f is None else f(T)
-
-
 class Feed:
     """Positions and velocities of the next ticks, read ahead from a device's ``read_block`` by a
     Python thread (the compiled loop never waits for it: if it ever falls behind, the loop stops
@@ -254,7 +248,7 @@ class Feed:
         self.p = np.zeros((capacity, 3))
         self.v = np.zeros((capacity, 3))
         self.reset = np.zeros(capacity, np.int8)  # the device's reset events (Device.reset_ticks)
-        self.events = bool(getattr(device, "has_events", False))
+        self.events = bool(device.has_events)
         self.a = np.full((capacity, 3), np.nan)
         self.r = np.zeros(capacity)  # the needle's roll (rad), if the device gives one
         self.capacity = capacity
@@ -283,13 +277,9 @@ class Feed:
             if self.events:
                 cuts = [c for c in self.device.reset_ticks(T[:n]) if 0 <= c < n]
                 self.reset[idx[cuts]] = 1
-                log = getattr(self.device, "events", None)  # (tick, name) for a recording, as read_at does
-                if log is not None:
-                    log.extend((k0 + c, "reset") for c in cuts)
+                self.device.events.extend((k0 + c, "reset") for c in cuts)  # for a recording, as read_at does
             self.a[idx] = axis_block(self.device, T)[:n]
-            R = device_roll(self.device, T)
-            if R is not None:
-                self.r[idx] = R[:n]
+            self.r[idx] = roll_block(self.device, T)[:n]
             ctl[0]["fed"] = k0 + n  # published after the rows (CPython runs these in order)
         return ctl[0]["fed"] < ctl[0]["end"]
 

@@ -54,12 +54,18 @@ def call_driver(driver, *args):
 
 def axis_block(device, T) -> np.ndarray:
     """The needle axis (n, 3), unit, handle to tip, at times ``T`` from a device that knows it
-    (``pose_block``: a trajectory's axis columns); NaN rows where it does not."""
-    pose = getattr(device, "pose_block", None)
-    axis = pose(T)[0] if pose is not None else None
+    (``Device.pose_block``: a trajectory's axis columns); NaN rows where it does not."""
+    axis = device.pose_block(T)[0]
     if axis is None:
         return np.full((len(T), 3), np.nan)
     return np.ascontiguousarray(axis, dtype=np.float64)
+
+
+def roll_block(device, T) -> np.ndarray:
+    """The needle's roll (rad, cumulative, contiguous) at times ``T`` (``Device.roll_block``);
+    zeros when the device gives none."""
+    r = device.roll_block(T)
+    return np.zeros(len(T)) if r is None else np.ascontiguousarray(r, dtype=np.float64)
 
 
 @register_jitable
