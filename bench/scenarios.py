@@ -18,13 +18,13 @@ import math
 
 import numpy as np
 
-from haptic_acu.config import load_config
+from haptic_acu.config import LAYER_NAMES, load_config
 from haptic_acu.needle import PRESSING, PUNCTURED, NeedleModel
 from haptic_acu.tissue import Tissue
 
 DT = 1e-3
 HUGE_THRESHOLD_UM = 1e9  # a ring-w deflection no net reaches: the layer never breaks
-LAYER_KEYS = ("skin", "fat", "muscle")
+LAYER_KEYS = LAYER_NAMES
 
 
 def config_copy(base=None, layer: int | None = None, w: int | None = None, never_puncture: bool = False,

@@ -29,6 +29,7 @@ from .overrides import add_config_args, config_from_args
 from .progress import step
 from .replay_cmd import fresh_path
 from .samples import COL, NCOL
+from .servostate import PLACE_NAMES
 
 COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
 # per-insertion numbers whose difference from the first session goes into compare.json
@@ -229,7 +230,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     x0, x1 = lo - pad, hi + pad
     edges = [*bounds, max(x1, float(bounds[3]))]
     handles = []
-    for name, a, b in zip(("skin", "fat", "muscle", "bone"), edges[:-1], edges[1:]):
+    for name, a, b in zip(PLACE_NAMES[1:], edges[:-1], edges[1:]):
         if b <= x0 or a >= x1:
             continue
         for ax in axes:

@@ -44,8 +44,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-N_LAYERS = 3
-MAX_TRACKS = 32
+from .servostate import MAX_TRACKS, N_LAYERS
+
 STUCK, SLIP_FWD, SLIP_BACK = 0, 1, -1
 V_BAND = 1e-4  # m/s, ours: Karnopp's stick band: slower than this a sliding needle sticks again
 UNCUT = 1e9  # m: a layer's cut range [lo, hi] is empty while lo = UNCUT, hi = -UNCUT (finite, so the

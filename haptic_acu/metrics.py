@@ -72,9 +72,9 @@ from __future__ import annotations
 import numpy as np
 
 from .samples import COL, NCOL
+from .servostate import LAYER_NAMES as LAYERS
+from .servostate import PRESSING, PUNCTURED
 
-LAYERS = ("skin", "fat", "muscle")
-PRESSING, PUNCTURED = 1, 2  # layer states (haptic_acu.needle)
 DEFAULT_LATERAL_COMFORT_N = 0.5
 CYCLE_PROMINENCE_M = 1e-3
 SPEED_DEPTH_FRACTION = 0.9

@@ -550,7 +550,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     x0, x1 = lo - pad, hi + pad
     edges = [*bounds, max(x1, bounds[3])]
     handles = []
-    for name, a, b in zip(("skin", "fat", "muscle", "bone"), edges[:-1], edges[1:]):
+    for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
         if b <= x0 or a >= x1:
             continue
         for ax in panels:

@@ -49,11 +49,11 @@ from .report import LAYERS, SessionScan, tip_depth_m
 from .samples import COL
 from .tissue import grid_triangles
 from .twirl import twist_direction
-from .servostate import FREE
+from .servostate import FREE, LAYER_NAMES, PLACE_NAMES
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
-BOUNDARY_NAMES = ("skin", "fat", "muscle", "bone")  # boundary k is the top of layer k (3: bone)
+BOUNDARY_NAMES = PLACE_NAMES[1:]  # boundary k is the top of layer k (3: bone)
 NEEDLE_LENGTH_M = 0.040
 FORCE_ARROW_M_PER_N = 0.010
 _DENT_EPS_M = 5e-6  # re-log a patch when its dent changed by more than this (invisible below)
@@ -71,7 +71,7 @@ _SPLIT_COLS = np.r_[COL["f_skin_n"]:COL["f_muscle_n"] + 1, COL["f_surface_n"]:CO
 SERIES = {
     "force/total": (["|F|", "fx", "fy", "fz"], [(20, 20, 20), (214, 39, 40), (44, 160, 44), (31, 119, 180)],
                     lambda r, d: np.column_stack([np.linalg.norm(r[:, _C_F:_C_F + 3], axis=1), r[:, _C_F:_C_F + 3]])),
-    "force/split": (["skin", "fat", "muscle", "surface", "damping", "lateral", "bone"],
+    "force/split": ([*LAYER_NAMES, "surface", "damping", "lateral", "bone"],
                     [(215, 140, 100), (200, 160, 30), (170, 40, 40), (31, 119, 180), (255, 127, 14), (148, 103, 189),
                      (140, 86, 75)],
                     lambda r, d: r[:, _SPLIT_COLS]),

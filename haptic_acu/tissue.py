@@ -22,7 +22,6 @@ from . import shf
 from .config import TissueConfig
 from .errors import UserError
 
-LAYERS = ("skin", "fat", "muscle")
 BOUNDARIES = ("skin surface", "skin/fat", "fat/muscle", "muscle/bone")
 OUTSIDE, SKIN, FAT, MUSCLE, BONE = -1, 0, 1, 2, 3
 

@@ -55,7 +55,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-N_LAYERS = 3
+from .servostate import N_LAYERS
+
 TWO_PI = 2.0 * math.pi
 
 # ------------------------------------------------------------------------------- published figures
