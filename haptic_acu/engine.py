@@ -316,6 +316,11 @@ class Session:
         except Exception:  # the device may be the thing that failed
             pass
 
+    def _state_fault(self, t: float, tick: int) -> None:
+        """The servo step latched a fault (a non-finite state) at session time ``t``, tick ``tick``:
+        the one message every driver reports it with."""
+        self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {tick}); force set to zero")
+
     # -- the two loop bodies (shared by every clock) --------------------------------------------
     def _servo_tick(self, t: float, state, period_err: float = 0.0, period: float = 0.0,
                     command: bool = True) -> np.ndarray:
@@ -335,7 +340,7 @@ class Session:
         ok = self._tick(t, self.tick, period_err, period)
         self.tick += 1
         if not ok:
-            self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {self.tick - 1}); force set to zero")
+            self._state_fault(t, self.tick - 1)
             return self._zero
         if command:
             self.device.set_force(self._force)
@@ -483,8 +488,7 @@ class Session:
             self.tick += n
             self._t_session = float(T[n - 1])
             if self.model.diag["fault"] != 0.0:
-                self._set_fault(f"non-finite needle state at t={T[n - 1]:.3f} s (tick {self.tick - 1}); "
-                                "force set to zero")
+                self._state_fault(float(T[n - 1]), self.tick - 1)
                 return False
             dev.set_force(self._force)
         return T.size == k1 + 1 - k0
@@ -695,8 +699,7 @@ class Session:
             raise outcome["error"]
         status = outcome.get("status")
         if status == rtloop.FAULTED:
-            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {last_index}); "
-                            "force set to zero")
+            self._state_fault(self._t_session, last_index)
         elif feed.error is not None and self.fault is None:  # the device failed: the feeder stopped the loop
             e = feed.error
             raise e if isinstance(e, DeviceFault) else DeviceFault(f"{self.device.info.name}: {type(e).__name__}: {e}")
@@ -800,8 +803,7 @@ class Session:
             self._t_session = float(fctl[0]["t_session"])
             arrays.clear()  # (the table's addresses are dead from here)
         if c["done"] == ol.DONE_STATE and self.fault is None:
-            self._set_fault(f"non-finite needle state at t={self._t_session:.3f} s (tick {self.tick - 1}); "
-                            "force set to zero")
+            self._state_fault(self._t_session, self.tick - 1)
         if c["done"] == ol.DONE_RENDER and self.fault is None:
             self._set_fault(f"rendering layer: a non-finite position or tissue report at t={self._t_session:.3f} s "
                             f"(tick {self.tick - 1}); force set to zero")
