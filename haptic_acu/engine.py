@@ -70,7 +70,7 @@ from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
 from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
-from .servotick import PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
+from .servotick import SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
 from .samples import NCOL, SampleRing
 from .springback import Springback
 
@@ -739,8 +739,8 @@ class Session:
             deadline = anchor + k * dt
             now = perf()
             remaining = deadline - now
-            if remaining > 4e-4:
-                sleep(remaining - 3e-4)
+            if remaining > SLEEP_AFTER_NS / 1e9:  # servotick's rule, as the compiled loop's
+                sleep(remaining - SPIN_NS / 1e9)
             while perf() < deadline:
                 pass
             start = perf()

@@ -5,7 +5,7 @@ for milliseconds at a time inside C calls (NumPy, rerun, file writes), so the Py
 error has a long tail (the benchmark's loop rows measure it); no switch interval fixes a C call that
 does not return. So for a device whose positions can be computed ahead (the scripted device: a
 trajectory file), the whole loop runs in :func:`servo_loop`, compiled with ``nogil``: it waits for
-each absolute deadline (:func:`wait_until`: ``clock_nanosleep`` to 300 us before it, then a spin on
+each absolute deadline (:func:`wait_until`: ``clock_nanosleep`` to shortly before it, then a spin on
 ``clock_gettime``), runs :func:`~haptic_acu.servotick.servo_tick` (the step, the sample row into the
 ring, published), and never returns to Python until the session ends. A Python feeder thread
 keeps the trajectory's positions for the next second of ticks in a ring (:class:`Feed`), with a flag
@@ -36,7 +36,7 @@ from numba.extending import intrinsic
 
 from . import servostate as ss
 from .devicemodel import model_tick
-from .servotick import STALE, account, axis_block, reset_servo, roll_block, servo_tick, unpack_tick
+from .servotick import SLEEP_AFTER_NS, SPIN_NS, STALE, account, axis_block, reset_servo, roll_block, servo_tick, unpack_tick
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
@@ -127,10 +127,11 @@ class FeedRows(NamedTuple):
 
 @nb.njit(cache=True, nogil=True)
 def wait_until(ts, deadline):
-    """Sleep to 300 us before ``deadline`` (ns), then spin on the clock; returns the time (ns)."""
+    """Sleep to :data:`~haptic_acu.servotick.SPIN_NS` before ``deadline`` (ns), then spin on the
+    clock; returns the time (ns)."""
     now = now_ns(ts)
-    if deadline - now > 400000:
-        sleep_until_ns(ts, deadline - 300000)
+    if deadline - now > SLEEP_AFTER_NS:
+        sleep_until_ns(ts, deadline - SPIN_NS)
     now = now_ns(ts)
     while now < deadline:
         now = now_ns(ts)

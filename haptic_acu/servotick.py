@@ -26,6 +26,11 @@ from .needle import step_servo
 from .samples import write_sample
 
 STALE = -1  # what a compiled driver returns for a table of another layout (see call_driver)
+# The wait for a tick's deadline on our timer, one rule for the compiled loop (rtloop.wait_until) and
+# the Python one (engine.Session._timer_loop): sleep to SPIN_NS before it when it is more than
+# SLEEP_AFTER_NS away, then spin on the clock (a sleep wakes late by tens of microseconds).
+SPIN_NS = 300_000
+SLEEP_AFTER_NS = 400_000
 # A driver's table: the header, the Servo, the sample Ring, the Timing (a device may append its own).
 AT_RING = ss.HEADER + ss.SERVO_TABLE
 AT_TIMING = AT_RING + ss.table_size(ss.Ring)
