@@ -843,9 +843,13 @@ class NeedleModel:
         mp = mech_params(cfg.layers, cfg.needle)
         for k, layer in enumerate(cfg.layers):
             prm = NetParams.from_layer(layer)
-            lp[k] = (prm.k_virtual, prm.k_surface, prm.spacing_m, prm.pretension, prm.threshold_m, prm.w,
-                     layer.damping_n_s_per_m_per_mm * 1e3, layer.thickness_mm * 1e-3,
-                     mp.cut[k], mp.fs[k], mp.fc[k], mp.b[k])
+            r = lp[k]
+            for name, value in (("k_virtual", prm.k_virtual), ("k_surface", prm.k_surface), ("spacing", prm.spacing_m),
+                                ("pretension", prm.pretension), ("threshold", prm.threshold_m), ("w", prm.w),
+                                ("damping", layer.damping_n_s_per_m_per_mm * 1e3),
+                                ("thickness", layer.thickness_mm * 1e-3), ("cut", mp.cut[k]), ("fs", mp.fs[k]),
+                                ("fc", mp.fc[k]), ("visc", mp.b[k])):
+                r[name] = value
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:
