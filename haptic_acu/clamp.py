@@ -1,7 +1,7 @@
-"""A force clamp that holds exactly in floating point (issue 15), for the servo core to adopt.
+"""A force clamp that holds exactly in floating point (issue 15): the servo step's clamp phase
+(``needle.clamp``) and the OMNI guard's clamps in both frames (``omniloop.guard_out``) call it.
 
-The servo's clamp today (``needle.step_kernel`` and ``omniloop``'s two device-frame clamps) is
-``mag = sqrt(fx*fx + fy*fy + fz*fz); if mag > lim: f *= lim / mag``. Two ways it fails:
+The naive clamp, ``mag = sqrt(fx*fx + fy*fy + fz*fz); if mag > lim: f *= lim / mag``, fails two ways:
 
 * rounding: about half of all clamped vectors come out 1 ulp above the limit (|f| =
   3.3000000000000003 N for a 3.3 N device), which a device checking ``|f| <= nominal`` strictly

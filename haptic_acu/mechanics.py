@@ -28,10 +28,9 @@ Parts (Okamura, Simone and O'Leary 2004 split the force the same way):
   layer k (the physical depth below that layer's rest surface, clipped to its thickness).
 
 Cost: every call between compiled functions that passes arrays (or tuples of them) pays numba's
-reference counting, about 30-45 ns per array on this project's loaded host, and every ``tuple.field``
-access of an array is one more; kernels therefore bind each array to a local once and take plain
-arrays and scalars below :func:`post_puncture_force`. One call measured 1.4 us per tick under a
-load average of 9-11 on 2 cores (mostly those atomic reference counts).
+reference counting (atomic increments and decrements), and every ``tuple.field`` access of an array
+is one more; kernels therefore bind each array to a local once and take plain arrays and scalars
+below :func:`post_puncture_force` (the tick's cost is measured by ``bench/``: README, Performance).
 
 The needle's diameter scales cutting and friction linearly (config keys are per mm of diameter:
 docs/model.md cites the measurements); :func:`mech_params` does that conversion.

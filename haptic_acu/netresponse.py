@@ -7,8 +7,9 @@ N1 relative to its rest point: its depth along the axis ``c`` and its lateral of
 else about the contact enters: not the point on the body, not the surface's curvature (the patch is
 flat by construction), not the history (the static problem has one solution). So the static response
 is a function of two numbers per layer, computed once per set of net parameters and read by the servo
-in about a microsecond, instead of relaxing 271 particles every millisecond (two Gauss-Seidel-Newton
-sweeps, 70 us at w = 10, and they track the static solution only within 0.4%).
+with one bilinear interpolation, instead of relaxing 271 particles every millisecond (two
+Gauss-Seidel-Newton sweeps per tick cost tens of times more and track the static solution only
+within 0.4%; ``bench/`` times both: README, Performance).
 
 The servo reads the first column only (rho = 0, N1 pushed straight in to the tip's depth below the
 rest surface: docs/model.md s2.3, which makes the intact surface's force a function of the tip's
@@ -29,7 +30,7 @@ puncture threshold (or, for a net that never breaks, F_CAP_N) plus a margin; bey
 servo extrapolates linearly. The servo interpolates bilinearly in (s, c).
 
 Build cost: one continuation in c per column (a predictor from the last two rows, then sweeps to the
-static tolerance), columns on two threads (the solver is ``nogil``); about 0.1-1 s per layer, kept in a
+static tolerance), columns on two threads (the solver is ``nogil``; the bench times it per layer), kept in a
 cache directory (``HAPTIC_ACU_CACHE``, default ``~/.cache/haptic-acu``) keyed by every parameter that
 enters, so later sessions load it in milliseconds.
 """

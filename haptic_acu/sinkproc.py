@@ -1,9 +1,8 @@
 """Run a frame sink in its own process, so its work does not hold this process's GIL.
 
-Measured (bench, 2-core machine): with rerun logging in the visual thread, the real-time servo loop's
-period error reached p99 137 us and p99.9 610 us with 4.7 missed ticks per 10,000 (rerun's calls
-hold the GIL for hundreds of microseconds); without it, p99 0.3 us, p99.9 109 us, none missed. A
-:class:`ProcessSink` moves the sink (the rerun logger) into a child process: the visual thread only
+Why: rerun's calls hold the GIL for hundreds of microseconds, and with rerun logging in the visual
+thread the real-time servo loop's period error had a long tail and missed ticks (the bench's loop
+rows measure it: README, Performance). A :class:`ProcessSink` moves the sink (the rerun logger) into a child process: the visual thread only
 pickles a small snapshot of each frame (sample rows, dents, live net positions; tens of kB) into a
 pipe, and the child calls the real sink. In headless replay the child also runs on the other core.
 
