@@ -755,6 +755,30 @@ def step_kernel(inp, m, s, out):
     render_local(m, s, d)
 
 
+@nb.njit(cache=True, nogil=True)
+def reset_servo(sv, keep_holes=False):
+    """Fresh tissue (:meth:`NeedleModel.reset`; in compiled code a recording's ``reset`` event, the
+    keyboard's ``r``): the needle out, every layer untouched, the insertion axis back to -z, nothing
+    wound, the last output cleared; the holes and the insertion tracks too unless ``keep_holes``."""
+    s = sv.state
+    nholes = s.servo[0].nholes
+    ss.clear(s.servo)
+    s.servo[0].axis[2] = -1.0
+    for k in range(s.servo[0].grasp.shape[0]):
+        s.servo[0].grasp[k] = 1.0  # nothing wound: the shaft friction as it is
+    if keep_holes:
+        s.servo[0].nholes = nholes
+    else:
+        ss.clear(s.holes)
+        s.tr_entry[:] = 0.0
+        s.tr_axis[:] = 0.0
+        s.tr_axis[:, 2] = -1.0
+        s.tr_lo[:] = UNCUT
+        s.tr_hi[:] = -UNCUT
+        s.tr_count[:] = 0
+    ss.clear(sv.out.diag)
+
+
 _STEP_C = None
 
 
@@ -913,21 +937,9 @@ class NeedleModel:
         self.plane = tuple(lat.plane for lat in self.lattices)
 
     def reset(self, keep_holes: bool = True) -> None:
-        """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False."""
-        nh = self.rec["nholes"]
-        self.state.servo[:] = np.zeros(1, ss.SERVO)
-        self.rec["axis"][2] = -1.0
-        self.rec["grasp"][:] = 1.0  # nothing wound: the shaft friction as it is
-        if keep_holes:
-            self.rec["nholes"] = nh
-        else:
-            self.state.holes[:] = np.zeros(MAX_HOLES, ss.HOLE)
-            self.state.tr_entry[:] = 0.0
-            self.state.tr_axis[:] = [0.0, 0.0, -1.0]
-            self.state.tr_lo[:] = UNCUT
-            self.state.tr_hi[:] = -UNCUT
-            self.state.tr_count[:] = 0
-        self.out.diag[:] = np.zeros(1, DIAG)
+        """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False
+        (:func:`reset_servo`, the one reset the compiled drivers run too)."""
+        reset_servo(self.servo, bool(keep_holes))
 
     def kernel_args(self) -> tuple:
         """Everything :func:`step_kernel` takes: (inp, model, state, diag)."""

@@ -21,8 +21,7 @@ from numba.extending import intrinsic, register_jitable
 
 from . import servostate as ss
 from .cptr import address_of, i64p
-from .mechanics import UNCUT
-from .needle import step_servo
+from .needle import reset_servo, step_servo  # noqa: F401 (reset_servo: the compiled loop's)
 from .samples import write_sample
 
 STALE = -1  # what a compiled driver returns for a table of another layout (see call_driver)
@@ -103,26 +102,6 @@ def account(timing, err, period, to_s):
     c.n_err = n + 1
     if err > period:
         c.missed += 1
-
-
-@nb.njit(cache=True, nogil=True)
-def reset_servo(sv):
-    """In compiled code, what ``NeedleModel.reset(keep_holes=False)`` does (a recording's ``reset``
-    event, the keyboard's ``r``): the needle out, every layer untouched, no holes, the insertion
-    axis back to -z, the last output cleared (tests/test_rtloop.py compares the two)."""
-    s = sv.state
-    ss.clear(s.servo)
-    s.servo[0].axis[2] = -1.0
-    for k in range(s.servo[0].grasp.shape[0]):
-        s.servo[0].grasp[k] = 1.0
-    ss.clear(s.holes)
-    s.tr_entry[:] = 0.0
-    s.tr_axis[:] = 0.0
-    s.tr_axis[:, 2] = -1.0
-    s.tr_lo[:] = UNCUT
-    s.tr_hi[:] = -UNCUT
-    s.tr_count[:] = 0
-    ss.clear(sv.out.diag)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

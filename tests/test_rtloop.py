@@ -268,25 +268,31 @@ def test_a_skip_threshold_that_is_not_a_whole_number_of_ticks_is_refused(cfg, ti
                 skip_after_ticks=bad)
 
 
-def test_the_compiled_reset_is_the_models_reset(cfg, tissue):
-    """servotick.reset_servo (what the compiled loop runs on a reset event) leaves exactly the state
-    NeedleModel.reset(keep_holes=False) leaves, from a needle deep in the tissue with holes made."""
+def test_a_reset_model_answers_as_a_fresh_one(cfg, tissue):
+    """needle.reset_servo (NeedleModel.reset, and what the compiled loop runs on a reset event), from
+    a needle deep in the tissue with holes made, leaves a model that answers a new insertion exactly as
+    a freshly built one does, tick for tick; ``keep_holes`` keeps the holes and the tracks."""
     from haptic_acu.servotick import reset_servo
     model = NeedleModel(cfg, tissue)
     v = np.array([0.0, 0.0, -0.01])
-    for z in np.arange(5e-3, -15e-3, -1e-5):
+    path = np.arange(5e-3, -15e-3, -1e-5)
+    for z in path:
         model.step(np.array([0.0, 0.0, z]), v)
     assert model.rec["nholes"] > 0 and max(model.rec["state"]) == 2
-    a = model.copy_state()
-    model.reset(keep_holes=False)
-    by_python = model.copy_state()
-    model.restore_state(a)
-    reset_servo(model.servo)
-    by_kernel = model.copy_state()
-    for x, y in zip(by_python[0], by_kernel[0]):
-        assert x.tobytes() == y.tobytes()
-    assert by_python[1].tobytes() == by_kernel[1].tobytes()
-    assert a[0].servo.tobytes() != by_kernel[0].servo.tobytes()  # the reset did change something
+    deep = model.copy_state()
+    reset_servo(model.servo)  # the compiled loop's call
+    fresh = NeedleModel(cfg, tissue)
+    assert model.rec.tobytes() == fresh.rec.tobytes() and model.diag.tobytes() == fresh.diag.tobytes()
+    for x in path:  # a second insertion, beside the first (the same site would be the same too)
+        p = np.array([1e-3, 0.0, x])
+        assert model.step(p, v).tobytes() == fresh.step(p, v).tobytes()
+    assert model.rec["nholes"] > 0
+    model.restore_state(deep)
+    model.reset(keep_holes=True)
+    assert max(model.rec["state"]) == 0 and not model.inserted
+    assert model.rec["nholes"] == deep[0].servo[0]["nholes"]
+    for name in ("holes", "tr_entry", "tr_axis", "tr_lo", "tr_hi", "tr_count"):
+        assert getattr(model.state, name).tobytes() == getattr(deep[0], name).tobytes()
 
 
 def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tissue, tmp_path):
