@@ -69,7 +69,7 @@ from . import affinity, devicemodel
 from .errors import DeviceFault
 from .forcenet import dent_on_grid
 from .needle import NeedleModel
-from .servostate import FREE, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing
+from .servostate import FREE, N_LAYERS, N_SLOTS, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing, net_index
 from .servotick import SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
 from .samples import NCOL, SampleRing
 from .springback import Springback
@@ -94,9 +94,10 @@ class Dents(Mapping):
     def __init__(self, model, skip_settled=None):
         self._model = model
         self._cache = {}
-        self._keys = [k for k in range(3) if any(
-            model.owner(2 * k + s) == SERVO_OWNS or (model.owner(2 * k + s) == VISUAL_OWNS and not (skip_settled is not None and skip_settled[2 * k + s]))
-            for s in range(2))]
+        self._keys = [k for k in range(N_LAYERS) if any(
+            model.owner(net_index(k, s)) == SERVO_OWNS or (model.owner(net_index(k, s)) == VISUAL_OWNS and not (
+                skip_settled is not None and skip_settled[net_index(k, s)]))
+            for s in range(N_SLOTS))]
 
     def __getitem__(self, k):
         if k not in self._keys:
@@ -141,8 +142,8 @@ def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
     total = np.zeros(th.size)
     tmp = np.empty(th.size)
     support = 1.5 * model.params[k].spacing_m
-    for s in range(2):
-        idx = 2 * k + s
+    for s in range(N_SLOTS):
+        idx = net_index(k, s)
         if model.owner(idx) == FREE:
             continue
         pos = model.net_positions(idx)

@@ -150,8 +150,8 @@ def surface_normal(coeffs_k, lmax, centre, p, out):
 def net_views(m, s, idx):
     """Slot ``idx`` (= 2*layer + slot)'s net: (xf, X0f, X0, x, rest, axis) views into the state."""
     lay = m.layout[0]
-    n = n_particles_of(m, idx // 2)
-    n_all = lay.n_all[idx // 2]
+    n = n_particles_of(m, ss.net_layer(idx))
+    n_all = lay.n_all[ss.net_layer(idx)]
     return NetArrays(s.pos[lay.xf[idx]:lay.xf[idx] + n], s.pos[lay.X0f[idx]:lay.X0f[idx] + n],
                      s.pos[lay.X0[idx]:lay.X0[idx] + n_all], s.pos[lay.x[idx]:lay.x[idx] + n_all],
                      s.rest[lay.rest[idx]:lay.rest[idx] + n], s.axes[idx])
@@ -315,7 +315,7 @@ def touch(inp, m, s, k):
     sv.slot[k] = sl
     sv.owner[k, sl] = SERVO_OWNS
     sv.gen[k, sl] += 1
-    build_slot(m, s, k, 2 * k + sl)
+    build_slot(m, s, k, ss.net_index(k, sl))
     sv.state[k] = PRESSING
     return PRESSING
 
@@ -358,7 +358,7 @@ def recentre(m, s, k, idx, use_table):
             wk.cnt[r_i] += 1.0
     contact_point(m, s, k)
     build_slot(m, s, k, idx)
-    s.servo[0].gen[k, idx % 2] += 1
+    s.servo[0].gen[k, ss.net_slot(idx)] += 1
     if not use_table:
         for i in range(n):
             r_i = ringk[i] - 1
@@ -447,7 +447,7 @@ def puncture(inp, m, s, d, k, idx, use_table):
         for c in range(3):
             xf[0, c] = wk.q[c]
     sync_curved(net)
-    sv.owner[k, idx % 2] = VISUAL_OWNS
+    sv.owner[k, ss.net_slot(idx)] = VISUAL_OWNS
     d.puncture = k
     if k == 0:
         # The insertion axis (the device's, else the direction of travel since the first touch,
@@ -499,11 +499,11 @@ def press(inp, m, s, d, k):
     the tip when it slid half a spacing away: that moves the drawn net, not the force."""
     sv = s.servo[0]
     wk = s.work[0]
-    idx = 2 * k + sv.slot[k]
+    idx = ss.net_index(k, sv.slot[k])
     dep = s.radii[k] - wk.rho
     if dep <= 0.0:
         sv.state[k] = UNTOUCHED
-        sv.owner[k, idx % 2] = FREE
+        sv.owner[k, ss.net_slot(idx)] = FREE
         return
     X0f = net_views(m, s, idx)[1]
     ax = s.axes[idx]
@@ -906,7 +906,7 @@ class NeedleModel:
         rest_rows = 0
         for k in range(N_LAYERS):
             for sl in range(N_SLOTS):
-                idx = 2 * k + sl
+                idx = ss.net_index(k, sl)
                 for block, size in (("xf", self.n[k]), ("X0f", self.n[k]), ("X0", self.n_all[k]),
                                     ("x", self.n_all[k])):
                     lay[block][0, idx] = rows
@@ -926,11 +926,11 @@ class NeedleModel:
         def view(block, i, size):
             return pos[lay[block][i]:lay[block][i] + size]
 
-        self.xf = tuple(view("xf", i, self.n[i // 2]) for i in slots)
-        self.X0f = tuple(view("X0f", i, self.n[i // 2]) for i in slots)
-        self.X0 = tuple(view("X0", i, self.n_all[i // 2]) for i in slots)
-        self.x = tuple(view("x", i, self.n_all[i // 2]) for i in slots)
-        self.rest_len = tuple(self.state.rest[lay["rest"][i]:lay["rest"][i] + self.n[i // 2]] for i in slots)
+        self.xf = tuple(view("xf", i, self.n[ss.net_layer(i)]) for i in slots)
+        self.X0f = tuple(view("X0f", i, self.n[ss.net_layer(i)]) for i in slots)
+        self.X0 = tuple(view("X0", i, self.n_all[ss.net_layer(i)]) for i in slots)
+        self.x = tuple(view("x", i, self.n_all[ss.net_layer(i)]) for i in slots)
+        self.rest_len = tuple(self.state.rest[lay["rest"][i]:lay["rest"][i] + self.n[ss.net_layer(i)]] for i in slots)
         self.axes = tuple(self.state.axes[i] for i in slots)
         self.nbr = tuple(lat.nbr for lat in self.lattices)
         self.ring = tuple(lat.ring for lat in self.lattices)
@@ -1022,18 +1022,18 @@ class NeedleModel:
         return self.state.holes[: min(int(self.rec["nholes"]), MAX_HOLES)].copy()
 
     def active_slot(self, k: int) -> int:
-        return 2 * k + int(self.rec["slot"][k])
+        return ss.net_index(k, int(self.rec["slot"][k]))
 
     def owner(self, idx: int) -> int:
-        return int(self.rec["owner"][idx // 2, idx % 2])
+        return int(self.rec["owner"][ss.net_layer(idx), ss.net_slot(idx)])
 
     def generation(self, idx: int) -> int:
-        return int(self.rec["gen"][idx // 2, idx % 2])
+        return int(self.rec["gen"][ss.net_layer(idx), ss.net_slot(idx)])
 
     def pressed_net_flat(self, idx: int) -> np.ndarray:
         """Flat-lattice positions of a pressing (owner SERVO_OWNS) net: the relaxed particles, or for
         a tabulated net its equilibrium shape at the tip the servo last held N1 at."""
-        k = idx // 2
+        k = ss.net_layer(idx)
         if self.tables[k] is None:
             return self.xf[idx].copy()
         n = self.n[k]
@@ -1047,7 +1047,7 @@ class NeedleModel:
 
     def net_positions(self, idx: int) -> np.ndarray:
         """Current curved-surface positions of slot ``idx``'s particles (force net + margin)."""
-        k = idx // 2
+        k = ss.net_layer(idx)
         n = self.n[k]
         if self.owner(idx) == SERVO_OWNS:
             out = self.X0[idx].copy()

@@ -49,7 +49,7 @@ from .report import LAYERS, SessionScan, tip_depth_m
 from .samples import COL
 from .tissue import grid_triangles
 from .twirl import twist_direction
-from .servostate import FREE, LAYER_NAMES, PLACE_NAMES
+from .servostate import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, net_layer, net_slot
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -442,7 +442,7 @@ class RerunSink:
         for k in range(3):
             if k in dents:
                 dent = np.asarray(dents[k])
-            elif any(model.owner(2 * k + s) != FREE for s in range(2)):
+            elif any(model.owner(net_index(k, s)) != FREE for s in range(N_SLOTS)):
                 continue  # a settled net: its dent has stopped changing, keep what was logged
             else:
                 dent = None
@@ -456,8 +456,8 @@ class RerunSink:
 
     def _nets(self, model) -> None:
         rec = self.rec
-        for idx in range(2 * len(LAYERS)):
-            k, s = divmod(idx, 2)
+        for idx in range(N_SLOTS * len(LAYERS)):
+            k, s = net_layer(idx), net_slot(idx)
             path = f"world/nets/{LAYERS[k]}/slot{s}"
             if model.owner(idx) == FREE:
                 if idx in self._net_last:

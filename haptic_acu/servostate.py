@@ -47,6 +47,27 @@ MAX_HOLES = 64
 MAX_TRACKS = 32  # insertion tracks remembered (mechanics.py's track memory; the oldest is overwritten)
 RICH, TABLE1 = 0, 1  # PARAMS.mechanics: cutting + Karnopp friction, or the paper's Table 1
 
+
+
+@register_jitable
+def net_index(k, s):
+    """The index of layer ``k``'s slot ``s`` net in the per-net arrays (:data:`LAYOUT`'s blocks,
+    ``SERVO.slot_q``, ``State.axes``, ``NeedleModel.x``...): slots of a layer are adjacent."""
+    return N_SLOTS * k + s
+
+
+@register_jitable
+def net_layer(idx):
+    """The layer of the net ``idx`` (:func:`net_index`)."""
+    return idx // N_SLOTS
+
+
+@register_jitable
+def net_slot(idx):
+    """The slot of the net ``idx`` (:func:`net_index`) within its layer."""
+    return idx % N_SLOTS
+
+
 # ---- record dtypes --------------------------------------------------------------------------------------
 LAYER = np.dtype([  # per layer (Model.layer[k])
     ("k_virtual", "f8"), ("k_surface", "f8"), ("spacing", "f8"), ("pretension", "f8"),

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .servostate import VISUAL_OWNS
+from .servostate import VISUAL_OWNS, net_layer
 
 
 @nb.njit(cache=True, nogil=True)
@@ -119,7 +119,7 @@ class Springback:
                 self.settled[idx] = False
             if self.settled[idx]:
                 continue
-            step = springback_step(m.x[idx], m.X0[idx], m.n[idx // 2], self.eta[idx], self.goals[idx])
+            step = springback_step(m.x[idx], m.X0[idx], m.n[net_layer(idx)], self.eta[idx], self.goals[idx])
             self.eta[idx] = max(self.eta_min, self.eta[idx] - self.eta_rate)
             if self.eta[idx] <= self.eta_min and step < self.settle_m:
                 self.settled[idx] = True
