@@ -76,3 +76,107 @@ def test_the_measures_on_known_code(src, lines, params):
         assert fn.end_lineno - fn.lineno + 1 == lines
     if params is not None:
         assert any(map(compiler_of, fn.decorator_list)) and n_params(fn) == params
+
+
+# ---- the review's other findings (issue 11), kept true the same way --------------------------------
+VOCABULARY = {"N_LAYERS", "N_SLOTS", "MAX_TRACKS", "MAX_HOLES", "LAYER_NAMES", "PLACE_NAMES", "STATE_NAMES",
+              "UNTOUCHED", "PRESSING", "PUNCTURED", "FREE", "SERVO_OWNS", "VISUAL_OWNS"}
+# where the vocabulary is declared (config.py: the layer names a config file uses), and the NumPy
+# reference, an independent re-implementation on purpose
+VOCABULARY_HOMES = {"haptic_acu/servostate.py", "haptic_acu/config.py", "bench/numpy_reference.py"}
+# the engine's side of the device interface: it uses what devices.base.Device declares
+ENGINE_SIDE = ("haptic_acu/engine.py", "haptic_acu/servotick.py", "haptic_acu/rtloop.py", "haptic_acu/omniloop.py")
+# the servo core and the engine: imports run one way, devices/ -> haptic_acu (the commands that build a
+# device import devices/)
+CORE = ("servostate", "needle", "servotick", "rtloop", "omniloop", "engine", "samples", "rendering", "devicemodel",
+        "mechanics", "postpuncture", "twirl", "clamp", "netresponse", "forcenet", "shf", "tissue", "springback")
+
+
+def rel(path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def literal_value(node):
+    try:
+        return ast.literal_eval(node)
+    except (ValueError, SyntaxError, TypeError):
+        return None
+
+
+def vocabulary_declarations(tree):
+    """(line, name) of module-level assignments of a vocabulary name to a literal (an import or an
+    expression of other names is not a declaration)."""
+    for node in tree.body:
+        if isinstance(node, ast.Assign):
+            for tgt in node.targets:
+                names = tgt.elts if isinstance(tgt, ast.Tuple) else [tgt]
+                for n in names:
+                    if isinstance(n, ast.Name) and n.id in VOCABULARY and literal_value(node.value) is not None:
+                        yield node.lineno, n.id
+
+
+def layer_name_literals(tree):
+    """Lines of tuple or list literals spelling the layer names ("skin", "fat", "muscle"...)."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Tuple, ast.List)):
+            v = literal_value(node)
+            if isinstance(v, (tuple, list)) and tuple(v[:3]) == ("skin", "fat", "muscle"):
+                yield node.lineno
+
+
+def device_probes(tree):
+    """(line, what) of getattr / hasattr on a device, and reads of a device's private fields."""
+    def is_device(n):
+        return (isinstance(n, ast.Name) and n.id in ("dev", "device")) or (
+            isinstance(n, ast.Attribute) and n.attr == "device")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr") \
+                and node.args and is_device(node.args[0]):
+            yield node.lineno, f"{node.func.id}(device, ...)"
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__") \
+                and is_device(node.value):
+            yield node.lineno, f"device.{node.attr}"
+
+
+def imports_devices(tree) -> list[int]:
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and "devices" in node.module.split("."):
+            out.append(node.lineno)
+        elif isinstance(node, ast.Import) and any("devices" in a.name.split(".") for a in node.names):
+            out.append(node.lineno)
+    return out
+
+
+def test_the_vocabulary_is_declared_once():
+    found = [f"{rel(p)}:{line} {name}" for p in sources() if rel(p) not in VOCABULARY_HOMES
+             for line, name in vocabulary_declarations(ast.parse(p.read_text()))]
+    found += [f"{rel(p)}:{line} a literal list of the layer names" for p in sources()
+              if rel(p) not in VOCABULARY_HOMES for line in layer_name_literals(ast.parse(p.read_text()))]
+    assert not found, "the model's vocabulary re-declared (import it from haptic_acu.servostate):\n" + "\n".join(found)
+
+
+def test_the_engine_uses_only_the_declared_device_interface():
+    found = [f"{name}:{line} {what}" for name in ENGINE_SIDE
+             for line, what in device_probes(ast.parse((ROOT / name).read_text()))]
+    assert not found, "the engine probes a device or reads its private fields:\n" + "\n".join(found)
+
+
+def test_the_core_never_imports_devices():
+    found = [f"haptic_acu/{m}.py:{line}" for m in CORE
+             for line in imports_devices(ast.parse((ROOT / "haptic_acu" / f"{m}.py").read_text()))]
+    assert not found, "imports run devices/ -> haptic_acu, never back from the core:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("src, vocab, names, probes, imports", [
+    ("N_LAYERS = 3\nPRESSING, PUNCTURED = 1, 2\nfrom x import FREE\nN_SLOTS = len(A)\n", 3, 0, 0, 0),
+    ("X = ('skin', 'fat', 'muscle')\nY = [*A, 'skin']\n", 0, 1, 0, 0),
+    ("def f(dev, self):\n    getattr(dev, 'x', None)\n    self.device._handle\n    hasattr(other, 'y')\n", 0, 0, 2, 0),
+    ("from haptic_acu.devices.scripted import S\nimport devices.base\nfrom .servostate import N\n", 0, 0, 0, 2),
+])
+def test_the_review_checks_on_known_code(src, vocab, names, probes, imports):
+    tree = ast.parse(src)
+    assert len(list(vocabulary_declarations(tree))) == vocab
+    assert len(list(layer_name_literals(tree))) == names
+    assert len(list(device_probes(tree))) == probes
+    assert len(imports_devices(tree)) == imports
