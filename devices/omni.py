@@ -56,6 +56,12 @@ from typing import Callable
 import numpy as np
 
 from haptic_acu.errors import DeviceFault, UserError
+# the HD API's constants, declared once for this device and its compiled callback (haptic_acu.omniloop)
+from haptic_acu.hdapi import (HD_BAD_HANDLE, HD_CALLBACK_CONTINUE, HD_CALLBACK_DONE, HD_CURRENT_BUTTONS,
+                              HD_CURRENT_FORCE, HD_CURRENT_GIMBAL_ANGLES, HD_CURRENT_TRANSFORM, HD_CURRENT_VELOCITY,
+                              HD_DEVICE_MODEL_TYPE, HD_FORCE_OUTPUT, HD_INVALID_ENUM, HD_INVALID_HANDLE,
+                              HD_MAX_SCHEDULER_PRIORITY, HD_NOMINAL_MAX_CONTINUOUS_FORCE, HD_NOMINAL_MAX_DAMPING,
+                              HD_NOMINAL_MAX_FORCE, HD_NOMINAL_MAX_STIFFNESS, HD_SUCCESS)
 
 from .base import Device, DeviceInfo, DeviceState, Workspace
 
@@ -67,25 +73,6 @@ INSTALL_HINT = (
     "driver) and put libHD.so on the loader path (LD_LIBRARY_PATH or ldconfig)"
 )
 
-# HD API constants (the values of the HD API headers, as in pyOpenHaptics.hd_define).
-HD_SUCCESS = 0x0000
-HD_INVALID_ENUM = 0x0100
-HD_CURRENT_BUTTONS = 0x2000
-HD_CURRENT_VELOCITY = 0x2051
-HD_CURRENT_TRANSFORM = 0x2052
-HD_CURRENT_GIMBAL_ANGLES = 0x2150  # the third is the stylus roll
-HD_DEVICE_MODEL_TYPE = 0x2501
-HD_NOMINAL_MAX_STIFFNESS = 0x2602
-HD_NOMINAL_MAX_FORCE = 0x2603
-HD_NOMINAL_MAX_CONTINUOUS_FORCE = 0x2604
-HD_NOMINAL_MAX_DAMPING = 0x2609
-HD_CURRENT_FORCE = 0x2700
-HD_FORCE_OUTPUT = 0x4000
-HD_INVALID_HANDLE = 0xFFFFFFFF
-HD_BAD_HANDLE = 0x0104
-HD_CALLBACK_DONE = 0
-HD_CALLBACK_CONTINUE = 1
-HD_MAX_SCHEDULER_PRIORITY = 0xFFFF
 
 _ERROR_NAMES = {
     0x0000: "HD_SUCCESS", 0x0100: "HD_INVALID_ENUM", 0x0101: "HD_INVALID_VALUE",

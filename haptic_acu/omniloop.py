@@ -55,19 +55,10 @@ from . import servostate as ss
 from .clamp import clamp_force
 from .cptr import address_of as data_address
 from .cptr import i64p as _i64p
+from .hdapi import (HD_CALLBACK_CONTINUE, HD_CALLBACK_DONE, HD_CURRENT_BUTTONS, HD_CURRENT_FORCE,
+                    HD_CURRENT_GIMBAL_ANGLES, HD_CURRENT_TRANSFORM, HD_CURRENT_VELOCITY, HD_INVALID_ENUM, HD_SUCCESS)
 from .rtloop import now_ns
 from .servotick import TICK_TABLE, account, servo_tick, tick_table, unpack_tick
-
-# HD API values (as in devices/omni.py)
-HD_SUCCESS = 0x0000
-HD_INVALID_ENUM = 0x0100
-HD_CURRENT_BUTTONS = 0x2000
-HD_CURRENT_VELOCITY = 0x2051
-HD_CURRENT_TRANSFORM = 0x2052
-HD_CURRENT_GIMBAL_ANGLES = 0x2150  # the third is the stylus roll (rad, wrapping at +-pi)
-HD_CURRENT_FORCE = 0x2700
-HD_CALLBACK_DONE = 0
-HD_CALLBACK_CONTINUE = 1
 
 # The callback's control record (ictl[0]), shared with the device's watcher and the engine
 CTL = np.dtype([("stop", "i8"), ("abort", "i8"), ("ticks", "i8"), ("in_tick", "i8"), ("valid", "i8"), ("frozen", "i8"),
