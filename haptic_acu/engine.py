@@ -47,8 +47,8 @@ stuck for ``stale_s`` (50 ms) of session time while a force is commanded (a stal
 drives-clock OMNI checks its own position instead), or no servo tick for ``servo_watchdog_s``
 (2 s; a read that blocks): the visual loop then commands zero force and the session ends when the
 read returns (a read that never returns cannot be interrupted: devices time out their own I/O). The
-watchdog is long because on a loaded 2-core machine whole-loop stalls of up to ~0.9 s were seen
-with healthy devices; the timer-driven devices (keyboard, scripted) have no motor to hold a force.
+watchdog is long because a loaded 2-core host can stall the whole process for most of a second
+with a healthy device; the timer-driven devices (keyboard, scripted) have no motor to hold a force.
 """
 from __future__ import annotations
 
