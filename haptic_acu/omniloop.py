@@ -169,7 +169,7 @@ def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, pe
     (``Device.servo_guard()``; its ``limits``, rendering.DeviceLimits or None, turn the rendering
     layer on), the force limit, the rate, the servo period and the session length."""
     ws = np.zeros(1, WS)
-    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm, getattr(workspace, "roll_sign", 1.0))
+    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm, workspace.roll_sign)
     prm = np.zeros(1, PRM)
     still = guard.get("still_ticks")
     prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
@@ -192,7 +192,7 @@ def warm_guard() -> None:
     """Compile (or load) :func:`guard_in` and :func:`guard_out` for the Python callback."""
     from types import SimpleNamespace
 
-    identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0))
+    identity = SimpleNamespace(scale=1.0, rotation=lambda: np.eye(3), offset_mm=(0.0, 0.0, 0.0), roll_sign=1.0)
     o = make_arrays(identity, {"handle": 0, "stall_ticks": 2, "ramp_ticks": 1, "velocity_alpha": 1.0,
                                "limits": R.DeviceLimits(3.3, 0.88, 1260.0, 3.0)}, 1.0, 1000.0)
     inp = ss.TickIn(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(1), np.full(3, np.nan), np.zeros(1))
