@@ -158,8 +158,12 @@ def render_limits(workspace, limits, dt_s: float) -> np.ndarray:
     scene = R.DeviceLimits(limits.max_force_n, limits.continuous_force_n, limits.stiffness_n_per_m / sc,
                            limits.damping_n_s_per_m / sc)
     p = R.default_params(scene, dt_s, ENCODER_STEP_MM * 1e-3 * sc)
-    out[0] = (1.0, *scene, p.stiffness_n_per_m, p.damping_n_s_per_m, p.encoder_step_m, p.continuous_tau_s,
-              p.ramp_per_s, p.dt_s)
+    r = out[0]
+    for name, value in (("on", 1.0), ("max_force", scene.max_force_n), ("cont_force", scene.continuous_force_n),
+                        ("k_max", scene.stiffness_n_per_m), ("b_max", scene.damping_n_s_per_m),
+                        ("k", p.stiffness_n_per_m), ("b", p.damping_n_s_per_m), ("enc", p.encoder_step_m),
+                        ("tau", p.continuous_tau_s), ("ramp", p.ramp_per_s), ("dt", p.dt_s)):
+        r[name] = value
     return out
 
 
@@ -169,12 +173,19 @@ def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, pe
     (``Device.servo_guard()``; its ``limits``, rendering.DeviceLimits or None, turn the rendering
     layer on), the force limit, the rate, the servo period and the session length."""
     ws = np.zeros(1, WS)
-    ws[0] = (workspace.scale, workspace.rotation(), workspace.offset_mm, workspace.roll_sign)
+    w = ws[0]
+    for name, value in (("scale", workspace.scale), ("R", workspace.rotation()), ("offset", workspace.offset_mm),
+                        ("roll_sign", workspace.roll_sign)):
+        w[name] = value
     prm = np.zeros(1, PRM)
     still = guard.get("still_ticks")
-    prm[0] = (guard["handle"], guard["stall_ticks"], guard["ramp_ticks"], force_limit_n, guard["velocity_alpha"],
-              period_s * 1e9, limit_t, rate_hz, guard.get("stall_df_n", STALL_DF_N),
-              math.inf if still is None else still, 1.0 if guard.get("stylus_axis", True) else 0.0)
+    r = prm[0]
+    for name, value in (("handle", guard["handle"]), ("stall", guard["stall_ticks"]), ("ramp", guard["ramp_ticks"]),
+                        ("limit_n", force_limit_n), ("alpha", guard["velocity_alpha"]), ("period_ns", period_s * 1e9),
+                        ("limit_t", limit_t), ("rate", rate_hz), ("stall_df", guard.get("stall_df_n", STALL_DF_N)),
+                        ("still", math.inf if still is None else still),
+                        ("axis_on", 1.0 if guard.get("stylus_axis", True) else 0.0)):
+        r[name] = value
     ictl = np.zeros(1, CTL)
     ictl["vel_dev"] = 1
     limits = guard.get("limits")
