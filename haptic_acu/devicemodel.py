@@ -27,8 +27,7 @@ OMNI_LIMITS = R.limits_from_hd(3.3, 0.88, 1.26, 0.003)
 ENCODER_STEP_M = 0.055e-3
 
 GRIP = np.dtype([("k", "f8"), ("b", "f8"), ("m", "f8")])
-PRM = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_max", "f8"), ("b_max", "f8"),
-                ("k", "f8"), ("b", "f8"), ("enc", "f8"), ("tau", "f8"), ("ramp", "f8"), ("dt", "f8")])
+PRM = R.LIMITS  # the rendering layer's limits and parameters (the OMNI callback's rlim)
 
 
 class DeviceModel(NamedTuple):
@@ -46,11 +45,9 @@ class DeviceModel(NamedTuple):
 def new(dt_s: float, on: bool = True, limits: R.DeviceLimits = OMNI_LIMITS, grip: stylus.Grip = stylus.FIRM) -> DeviceModel:
     """A device model for a session at ``dt_s`` per tick (``on=False``: an inert one)."""
     p = R.default_params(limits, dt_s, ENCODER_STEP_M)
-    prm = np.zeros(1, PRM)
-    prm[0] = (1.0 if on else 0.0, *limits, p.stiffness_n_per_m, p.damping_n_s_per_m, p.encoder_step_m,
-              p.continuous_tau_s, p.ramp_per_s, p.dt_s)
+    prm = R.limits_record(limits, p, on)
     g = np.zeros(1, GRIP)
-    g[0] = (grip.stiffness_n_per_m, grip.damping_n_s_per_m, grip.mass_kg)
+    g[0]["k"], g[0]["b"], g[0]["m"] = grip.stiffness_n_per_m, grip.damping_n_s_per_m, grip.mass_kg
     return DeviceModel(prm, g, np.zeros(6), np.zeros(3), np.zeros(3), np.zeros(3), R.new_state(), np.zeros(3),
                        np.zeros(3))
 

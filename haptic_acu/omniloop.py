@@ -84,8 +84,7 @@ WS = np.dtype([("scale", "f8"), ("R", "f8", (3, 3)), ("offset", "f8", 3),
                ("roll_sign", "f8")])  # +1: the third gimbal angle grows clockwise seen from the handle
 # the rendering layer's limits and parameters (rlim[0]), in the scene frame (rendering.DeviceLimits,
 # CouplingParams); on = 0: no rendering layer (the device gets the simulated force)
-RLIM = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_max", "f8"), ("b_max", "f8"),
-                 ("k", "f8"), ("b", "f8"), ("enc", "f8"), ("tau", "f8"), ("ramp", "f8"), ("dt", "f8")])
+RLIM = R.LIMITS
 
 # statuses (CTL.status)
 S_RUNNING, S_STOPPED, S_HD_ERROR, S_CLOSED, S_POS_NAN, S_STALL, S_VEL_NAN, S_FORCE_NAN, S_STATE_NAN, S_ROLL_NAN = range(10)
@@ -151,20 +150,12 @@ def render_limits(workspace, limits, dt_s: float) -> np.ndarray:
     (rendering.DeviceLimits, device frame; None: no rendering layer) seen in the scene frame: a
     scene displacement is ``scale`` times the device's, so the stiffness and damping the device can
     render are divided by it, and its encoder step multiplied; forces are not scaled."""
-    out = np.zeros(1, RLIM)
     if limits is None:
-        return out
+        return np.zeros(1, RLIM)
     sc = float(workspace.scale)
     scene = R.DeviceLimits(limits.max_force_n, limits.continuous_force_n, limits.stiffness_n_per_m / sc,
                            limits.damping_n_s_per_m / sc)
-    p = R.default_params(scene, dt_s, ENCODER_STEP_MM * 1e-3 * sc)
-    r = out[0]
-    for name, value in (("on", 1.0), ("max_force", scene.max_force_n), ("cont_force", scene.continuous_force_n),
-                        ("k_max", scene.stiffness_n_per_m), ("b_max", scene.damping_n_s_per_m),
-                        ("k", p.stiffness_n_per_m), ("b", p.damping_n_s_per_m), ("enc", p.encoder_step_m),
-                        ("tau", p.continuous_tau_s), ("ramp", p.ramp_per_s), ("dt", p.dt_s)):
-        r[name] = value
-    return out
+    return R.limits_record(scene, R.default_params(scene, dt_s, ENCODER_STEP_MM * 1e-3 * sc))
 
 
 def make_arrays(workspace, guard: dict, force_limit_n: float, rate_hz: float, period_s: float = 1e-3,

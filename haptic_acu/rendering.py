@@ -90,6 +90,24 @@ class CouplingParams(NamedTuple):
     dt_s: float
 
 
+# The limits and the coupling's parameters as one record, as the compiled ticks read them (the OMNI
+# callback's ``rlim``, the scripted device's model's ``prm``), in the scene frame; on = 0: no layer.
+LIMITS = np.dtype([("on", "f8"), ("max_force", "f8"), ("cont_force", "f8"), ("k_max", "f8"), ("b_max", "f8"),
+                   ("k", "f8"), ("b", "f8"), ("enc", "f8"), ("tau", "f8"), ("ramp", "f8"), ("dt", "f8")])
+
+
+def limits_record(limits: DeviceLimits, p: CouplingParams, on: bool = True) -> np.ndarray:
+    """A (1,) :data:`LIMITS` record of ``limits`` and the coupling parameters ``p``."""
+    out = np.zeros(1, LIMITS)
+    r = out[0]
+    for name, value in (("on", 1.0 if on else 0.0), ("max_force", limits.max_force_n),
+                        ("cont_force", limits.continuous_force_n), ("k_max", limits.stiffness_n_per_m),
+                        ("b_max", limits.damping_n_s_per_m), ("k", p.stiffness_n_per_m), ("b", p.damping_n_s_per_m),
+                        ("enc", p.encoder_step_m), ("tau", p.continuous_tau_s), ("ramp", p.ramp_per_s), ("dt", p.dt_s)):
+        r[name] = value
+    return out
+
+
 def default_params(limits: DeviceLimits, dt_s: float = 1e-3, encoder_step_m: float = 0.055e-3) -> CouplingParams:
     """Half the device's nominal stiffness and damping (a margin below where OpenHaptics says the
     device buzzes), a 5 s RMS window (a motor's windings heat over seconds: a puncture's 1.5 N peak
