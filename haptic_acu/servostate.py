@@ -38,6 +38,7 @@ from .netresponse import TMETA
 
 # ---- the model's vocabulary ---------------------------------------------------------------------------
 PLACE_NAMES = ("outside", "skin", "fat", "muscle", "bone")  # where the tip is: PLACE_NAMES[DIAG.layer + 1]
+OUTSIDE, SKIN, FAT, MUSCLE, BONE = range(-1, len(PLACE_NAMES) - 1)  # the place codes (DIAG.layer, tissue.locate)
 N_LAYERS = len(LAYER_NAMES)
 UNTOUCHED, PRESSING, PUNCTURED = 0, 1, 2  # a layer's state at the insertion site
 STATE_NAMES = ("untouched", "pressing", "punctured")

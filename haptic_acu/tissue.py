@@ -21,9 +21,9 @@ import numpy as np
 from . import shf
 from .config import TissueConfig
 from .errors import UserError
+from .servostate import BONE, FAT, MUSCLE, OUTSIDE, SKIN  # noqa: F401 (the place codes, re-exported)
 
 BOUNDARIES = ("skin surface", "skin/fat", "fat/muscle", "muscle/bone")
-OUTSIDE, SKIN, FAT, MUSCLE, BONE = -1, 0, 1, 2, 3
 
 
 def limb_radius(theta, phi, semi_axes_m, bulge):

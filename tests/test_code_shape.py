@@ -80,7 +80,8 @@ def test_the_measures_on_known_code(src, lines, params):
 
 # ---- the review's other findings (issue 11), kept true the same way --------------------------------
 VOCABULARY = {"N_LAYERS", "N_SLOTS", "MAX_TRACKS", "MAX_HOLES", "LAYER_NAMES", "PLACE_NAMES", "STATE_NAMES",
-              "UNTOUCHED", "PRESSING", "PUNCTURED", "FREE", "SERVO_OWNS", "VISUAL_OWNS"}
+              "UNTOUCHED", "PRESSING", "PUNCTURED", "FREE", "SERVO_OWNS", "VISUAL_OWNS",
+              "OUTSIDE", "SKIN", "FAT", "MUSCLE", "BONE"}
 # where the vocabulary is declared (config.py: the layer names a config file uses), and the NumPy
 # reference, an independent re-implementation on purpose
 VOCABULARY_HOMES = {"haptic_acu/servostate.py", "haptic_acu/config.py", "bench/numpy_reference.py"}
