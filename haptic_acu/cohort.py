@@ -379,10 +379,11 @@ def insertion_table(rows: np.ndarray, cfg, tissue=None, reference_rows=None) -> 
     """(session metrics, one dict per insertion with every :data:`INSERTION_COLUMNS` value) from a
     session's sample rows; ``reference_rows``: the same replay without rotation (the grasp felt)."""
     from .metrics import session_metrics
+    from .pathstream import TRACK_COLUMNS
     from .samples import COL
 
     sm = session_metrics(rows, cfg, tissue, reference_rows=reference_rows)
-    track = rows[:, [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]]
+    track = rows[:, [COL[name] for name in TRACK_COLUMNS]]
     return sm, insertion_rows(sm, track, cfg)
 
 
@@ -391,13 +392,14 @@ def insertion_rows(sm: dict, track: np.ndarray, cfg) -> list[dict]:
     session's ``track``: per row t_s, x, y, z (m), state_skin, depth_skin_m (the columns of
     :class:`haptic_acu.pathstream.TrackFile`)."""
     from .metrics import entry_tick, insertion_runs
+    from .pathstream import TCOL
     from .skill_metrics import smooth_path
 
-    t = track[:, 0]
-    p = track[:, 1:4]
+    t = track[:, TCOL["t_s"]]
+    p = track[:, TCOL["x_m"]:TCOL["x_m"] + 3]
     ps = smooth_path(t, p)
-    state = track[:, 4]
-    depth = track[:, 5]
+    state = track[:, TCOL["state_skin"]]
+    depth = track[:, TCOL["depth_skin_m"]]
     out = []
     for (a, b), m in zip(insertion_runs(state), sm["per_insertion"]):
         e = entry_tick(state, a)

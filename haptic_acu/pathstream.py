@@ -26,8 +26,11 @@ import numpy as np
 from .samples import COL
 
 BLOCK = 65_536  # rows per block of the filter's passes (1.6 MB of float64 x, y, z)
-_COLS = [COL["t_s"], COL["x_m"], COL["x_m"] + 1, COL["x_m"] + 2, COL["state_skin"], COL["depth_skin_m"]]
+TRACK_COLUMNS = ("t_s", "x_m", "y_m", "z_m", "state_skin", "depth_skin_m")  # a track's row: sample columns
+TCOL = {name: i for i, name in enumerate(TRACK_COLUMNS)}
+_COLS = [COL[name] for name in TRACK_COLUMNS]
 _W = len(_COLS)
+_T, _X, _STATE, _DEPTH = TCOL["t_s"], TCOL["x_m"], TCOL["state_skin"], TCOL["depth_skin_m"]
 
 
 class TrackFile:
@@ -45,7 +48,7 @@ class TrackFile:
         if len(rows):
             a = np.ascontiguousarray(rows[:, _COLS], dtype=np.float64)
             self.f.write(a.tobytes())
-            t = a[:, 0]
+            t = a[:, _T]
             if self._last_t is not None:
                 self.dt.add(np.array([t[0] - self._last_t]))
             self.dt.add(np.diff(t))
@@ -89,12 +92,12 @@ def smoothed_blocks(track: TrackFile, cutoff_hz, block: int = BLOCK):
     n = track.n
     if setup is None:
         for a in reversed(range(0, n, block)):
-            yield a, track.read(a, min(n, a + block))[:, 1:4].copy()
+            yield a, track.read(a, min(n, a + block))[:, _X:_X + 3].copy()
         return
     from scipy.signal import sosfilt, sosfilt_zi
     sos, pad = setup
-    head = track.read(0, pad + 1)[:, 1:4]
-    tail = track.read(n - pad - 1, n)[:, 1:4]
+    head = track.read(0, pad + 1)[:, _X:_X + 3]
+    tail = track.read(n - pad - 1, n)[:, _X:_X + 3]
     left = 2 * head[0:1] - head[pad:0:-1]  # scipy.signal odd_ext, its two ends
     right = 2 * tail[-1:] - tail[-2:-(pad + 2):-1]
     zi = sosfilt_zi(sos).reshape(len(sos), 2, 1)
@@ -106,7 +109,7 @@ def smoothed_blocks(track: TrackFile, cutoff_hz, block: int = BLOCK):
             return left
         if src == "right":
             return right
-        return track.read(src, min(n, src + block))[:, 1:4]
+        return track.read(src, min(n, src + block))[:, _X:_X + 3]
 
     z = zi * left[0:1]
     states = []
@@ -164,7 +167,7 @@ def insertion_windows(track: TrackFile, reach_tol_m: float) -> list[tuple[int, i
     runs: list[list] = []  # [entry, first, last, max depth]
     prev, press = None, None
     for a, rows in track.chunks():
-        st, depth = rows[:, 4], rows[:, 5]
+        st, depth = rows[:, _STATE], rows[:, _DEPTH]
         cut = [0, *(np.flatnonzero(np.diff(st) != 0) + 1).tolist(), len(st)]
         for i, j in zip(cut[:-1], cut[1:]):
             s = st[i]
@@ -222,7 +225,7 @@ def path_columns(track: TrackFile, cutoff_hz, reach_tol_m: float) -> list[dict]:
             lo, hi = max(e, s), min(kr + 1, s + m)
             if lo < hi:
                 if t is None:
-                    t = track.read(s, s + m)[:, 0].copy()
+                    t = track.read(s, s + m)[:, _T].copy()
                 thrust[w].append((t[lo - s:hi - s].copy(), ps[lo - s:hi - s].copy()))
             if s <= e:  # the block holding the entry: this insertion is whole
                 out[w] = _finish(track, e, b, sums[w], thrust[w])
