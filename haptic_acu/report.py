@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .samples import COL, NCOL
-from .servostate import PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
+from .servostate import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
@@ -134,12 +134,12 @@ class SessionScan:
         self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
         self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
         # pressing runs and punctures (a few rows per frame: a plain loop)
-        states = rows[:, _C_STATE:_C_STATE + 3].astype(np.int64).tolist()
+        states = rows[:, _C_STATE:_C_STATE + N_LAYERS].astype(np.int64).tolist()
         punct = rows[:, _C_PUNCT].tolist()
         found = []
         for i in range(k):
             st = states[i]
-            for j in range(3):
+            for j in range(N_LAYERS):
                 if st[j] == PRESSING:
                     if self._prev_state[j] != PRESSING or f[i] > self._press_peak[j]:
                         self._press_peak[j] = float(f[i])
@@ -759,7 +759,7 @@ class SamplesCsvSink:
         if self._fmt is None:
             from .csvfmt import RowFormatter
             cols = [("fixed", 0)] + [("fixed", nd) for *_, nd in _CSV_NUMERIC]
-            cols += [("category", PLACES)] + [("category", STATE_NAMES)] * 3
+            cols += [("category", PLACES)] + [("category", STATE_NAMES)] * N_LAYERS
             cols += [("fixed", nd) for *_, nd in _CSV_TAIL]
             cols += [("category", LAYERS), ("fixed", 0), ("fixed", 0)]
             self._fmt = RowFormatter(cols)
@@ -774,7 +774,7 @@ class SamplesCsvSink:
         punct[punct < 0] = np.nan  # empty cell
         table = np.column_stack(
             [rows[:, _C_TICK]] + [col(s) for s in _CSV_NUMERIC]
-            + [rows[:, _C_LAYER] + 1] + [rows[:, _C_STATE + j] for j in range(3)]
+            + [rows[:, _C_LAYER] + 1] + [rows[:, _C_STATE + j] for j in range(N_LAYERS)]
             + [col(s) for s in _CSV_TAIL] + [punct, rows[:, COL["clamped"]], rows[:, COL["fault"]]])
         self._f.write(self._fmt.format(table).decode("ascii"))
         self.rows_written += k
