@@ -407,7 +407,10 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     """The host's own floor: a bare Python 1 kHz loop (absolute deadlines, sleep-then-spin, SCHED_FIFO
     if allowed, switch interval 0.2 ms) doing no work. Whatever tail it shows is the machine's (a
     virtual machine's CPU can be taken away for milliseconds), not the simulator's."""
+    from haptic_acu.servotick import SLEEP_AFTER_NS, SPIN_NS  # the engine's wait rule
+
     _log(progress, f"machine floor: a bare 1 kHz loop, {duration_s:.0f} s")
+    sleep_after, spin = SLEEP_AFTER_NS / 1e9, SPIN_NS / 1e9
     old = sys.getswitchinterval()
     sys.setswitchinterval(2e-4)
     n = int(duration_s * 1000)
@@ -421,8 +424,8 @@ def machine_floor(duration_s: float, progress=False) -> dict:
             for k in range(n):
                 d = t0 + k * 1e-3
                 r = d - perf()
-                if r > 4e-4:
-                    time.sleep(r - 3e-4)
+                if r > sleep_after:
+                    time.sleep(r - spin)
                 while perf() < d:
                     pass
                 errs[k] = perf() - d
