@@ -936,6 +936,18 @@ def _prow(lines: list, label: str, p) -> None:
         lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
 
 
+def _loop_row(lines: list, r, label: str, extra: str = "") -> None:
+    """One loop's period-error row (``label`` with ``{s}``: its seconds), its tick count, and the
+    host's stolen-CPU line (nothing if the loop was not run)."""
+    if not r:
+        return
+    _prow(lines, label.format(s=f"{r['duration_s']:.0f}"), r["period_error_us"])
+    lines.append(f"  {r['ticks']} ticks, {r['missed_ticks']} missed"
+                 + ("" if r.get("pinned", True) else " (pinning refused: ran unpinned)") + extra
+                 + (f"; STOPPED: {r['fault']}" if r.get("fault") else ""))
+    _steal_line(lines, r.get("steal"))
+
+
 def _share(loop, floor) -> str:
     """The pinned loop's misses beside its floor's (per 10,000 ticks): how many the session adds."""
     if not loop or not loop.get("ticks") or not floor.get("ticks"):
@@ -995,46 +1007,16 @@ def _table_loops(res: dict, lines: list) -> None:
                  f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}"
                  + (f"; STOPPED: {lp['fault']}" if lp["fault"] else ""))
     _steal_line(lines, res.get("loop_steal"))
-    lnr = res.get("loop_no_rerun")
-    if lnr:
-        prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
-        lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
-                     + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
-        _steal_line(lines, lnr.get("steal"))
-    lip = res.get("loop_rerun_in_process")
-    if lip:
-        prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
-        lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
-                     + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
-        _steal_line(lines, lip.get("steal"))
-    lpin = res.get("loop_pinned")
-    if lpin:
-        prow(f"  same, {lpin['duration_s']:.0f} s, servo thread and logging child pinned apart (us)",
-             lpin["period_error_us"])
-        lines.append(f"  {lpin['ticks']} ticks, {lpin['missed_ticks']} missed"
-                     + ("" if lpin["pinned"] else " (pinning refused: ran unpinned)")
-                     + (f"; STOPPED: {lpin['fault']}" if lpin["fault"] else ""))
-        _steal_line(lines, lpin.get("steal"))
-    lps = res.get("loop_python_servo")
-    if lps:
-        prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
-        lines.append(f"  {lps['ticks']} ticks, {lps['missed_ticks']} missed"
-                     + (f"; STOPPED: {lps['fault']}" if lps["fault"] else ""))
-        _steal_line(lines, lps.get("steal"))
+    for key, what in (("loop_no_rerun", "without rerun logging"), ("loop_rerun_in_process", "rerun logging in this process"),
+                      ("loop_pinned", "servo thread and logging child pinned apart"),
+                      ("loop_python_servo", "servo loop in Python instead")):
+        _loop_row(lines, res.get(key), f"  same, {{s}} s, {what} (us)")
     mf = res.get("machine_floor")
-    if mf:
-        prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
-        lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
-        _steal_line(lines, mf.get("steal"))
+    _loop_row(lines, mf, "  machine floor: bare Python 1 kHz loop, {s} s (us)", " (the host's share of any tail)")
     cf = res.get("compiled_floor")
     if cf:
-        prow(f"  machine floor: compiled loop timing, no work, pinned, {cf['duration_s']:.0f} s (us)",
-             cf["period_error_us"])
-        lines.append(f"  {cf['ticks']} ticks, {cf['missed_ticks']} missed"
-                     + ("" if cf["pinned"] else " (pinning refused: ran unpinned)")
-                     + f", SCHED_FIFO: {'yes' if cf['sched_fifo'] else 'no'}"
-                     + _share(res.get("loop_pinned"), cf))
-        _steal_line(lines, cf.get("steal"))
+        _loop_row(lines, cf, "  machine floor: compiled loop timing, no work, pinned, {s} s (us)",
+                  f", SCHED_FIFO: {'yes' if cf['sched_fifo'] else 'no'}" + _share(res.get("loop_pinned"), cf))
     om = res.get("omni_loop")
     if om:
         for servo in ("compiled", "python"):
