@@ -10,6 +10,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
+from .bundled import bundled_names
 from .errors import UserError
 
 
@@ -18,7 +19,9 @@ def register(sub) -> None:
                        description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm) through the simulator "
                                    "on simulated time and write samples.csv, summary.json, force_depth.png and "
                                    "recording.rrd. Without TRAJECTORY: the bundled default insertion.")
-    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY", help="CSV files or folders of them")
+    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY",
+                   help="CSV files, folders of them, or bundled trajectories by name from any folder ("
+                        + bundled_names() + ")")
     from .overrides import add_config_args
     add_config_args(p)
     p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
@@ -139,6 +142,7 @@ def write_table(path: Path, rows: list[dict]) -> None:
 
 def run(args) -> int:
     from .overrides import config_from_args
+    from .bundled import not_found_hint
     from .replay import replay_one, trajectories_from
 
     if args.jobs < 0:
@@ -150,7 +154,7 @@ def run(args) -> int:
     paths = trajectories_from(args.trajectories)
     for p in paths:
         if not p.is_file():
-            raise UserError(f"{p}: trajectory file not found")
+            raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
