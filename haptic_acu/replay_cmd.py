@@ -149,8 +149,8 @@ def run(args) -> int:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
     if args.spawn:
-        from .viewer import check_spawn
-        check_spawn()
+        from .viewer import NO_DISPLAY_REPLAY, check_spawn
+        check_spawn(NO_DISPLAY_REPLAY)
     paths = trajectories_from(args.trajectories)
     for p in paths:
         if not p.is_file():

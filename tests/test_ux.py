@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +19,7 @@ from haptic_acu.errors import UserError
 from haptic_acu.overrides import apply_overrides, parse_set
 from haptic_acu.samples import COL, NCOL
 from haptic_acu.status import format_status, loop_health
-from haptic_acu.viewer import NO_DISPLAY, has_display
+from haptic_acu.viewer import NO_DISPLAY, NO_DISPLAY_REPLAY, has_display
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -154,8 +155,14 @@ def test_spawn_without_display_is_one_line_at_once(tmp_path):
                   "--out", tmp_path / "s")):
         r = haptic_acu(*args, env=env, timeout=60)
         assert r.returncode == 2, r.stderr
-        assert r.stderr.strip().splitlines() == [f"haptic-acu {args[0]}: error: {NO_DISPLAY}"]
-        assert "--rrd FILE" in NO_DISPLAY and "--connect" in NO_DISPLAY
+        message = NO_DISPLAY_REPLAY if args[0] == "replay" else NO_DISPLAY
+        assert r.stderr.strip().splitlines() == [f"haptic-acu {args[0]}: error: {message}"]
+        # the alternatives it names are options of that very command (replay has no --rrd)
+        sub = build_parser(args[0])._subparsers._group_actions[0].choices[args[0]]
+        opts = {o for a in sub._actions for o in a.option_strings}
+        named = set(re.findall(r"--[a-z][a-z-]*", message)) - {"--spawn"}
+        assert "--connect" in named and named <= opts, (args[0], named - opts)
+    assert "--rrd FILE" in NO_DISPLAY and "recording.rrd" in NO_DISPLAY_REPLAY
     assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()
 
 
