@@ -72,7 +72,7 @@ def _flat(summary: dict) -> dict:
     """summaries.csv's row: the session's numbers (each the summary's, not a second estimate), the
     first puncture of each layer, and the session-level trainee metrics."""
     row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
-           "max_force_n": summary["max_force_n"], "max_depth_mm": summary["max_depth_mm"],
+           "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
            "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
     for p in summary["punctures"]:
         row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])

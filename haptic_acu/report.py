@@ -165,10 +165,12 @@ class SummarySink:
 
     ``summary()`` is a JSON-ready dict, deterministic for identical rows: forces in N to 0.1 mN,
     depths in mm to 1 um, times in s to 0.1 ms. Keys: ``ticks``, ``duration_s``, ``max_force_n``
-    (max |F|), ``max_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
-    0 if the tip never went below it), ``layers_reached``, ``punctures`` (see :class:`SessionScan`:
-    layer, t_s, tip_depth_mm, peak_force_n), ``layers`` (time_s and peak |F| per place the tip was
-    in, "outside" including pressing the intact skin), ``clamped_ticks``, ``fault``, and on
+    (max |F|), ``max_tip_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
+    0 if the tip never went below it; named like each insertion's ``max_tip_depth_mm``, not like its
+    ``max_depth_mm``, the needle's depth in the tissue), ``layers_reached``, ``punctures`` (see
+    :class:`SessionScan`: layer, t_s, tip_depth_mm, peak_force_n), ``places`` (time_s and peak |F|
+    per place the tip was in, "outside" including pressing the intact skin: not a layer's puncture
+    peak), ``clamped_ticks``, ``fault``, and on
     :meth:`close` the engine's ``loop`` statistics (timing figures there are only deterministic on
     the sim clock). ``cfg`` (optional) is the session's TissueConfig; ``start`` also takes it from
     ``info``.
@@ -273,10 +275,10 @@ class SummarySink:
             "ticks": s.ticks,
             "duration_s": _r((s.t_last - s.t_first) if s.ticks else 0.0, 4),
             "max_force_n": _r(s.max_force, 4),
-            "max_depth_mm": _r(max_depth_mm, 3),
+            "max_tip_depth_mm": _r(max_depth_mm, 3),
             "layers_reached": [name for i, name in enumerate(PLACES) if i > 0 and s.ticks_in[i] > 0],
             "punctures": puncture_records(s.punctures),
-            "layers": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
+            "places": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
                        for i, name in enumerate(PLACES)},
             "clamped_ticks": s.clamped_ticks,
             "fault": self.fault,
@@ -293,7 +295,7 @@ class SummarySink:
         file = sys.stdout if file is None else file
         s = self.summary()
         line = (f"session: {s['duration_s']:.3f} s, {s['ticks']} ticks; max |F| {s['max_force_n']:.3f} N, "
-                f"max tip depth {s['max_depth_mm']:.2f} mm below the rest skin")
+                f"max tip depth {s['max_tip_depth_mm']:.2f} mm below the rest skin")
         print(line, file=file)
         if s["punctures"]:
             for p in s["punctures"]:
@@ -301,7 +303,7 @@ class SummarySink:
                       f"peak {p['peak_force_n']:.3f} N", file=file)
         else:
             print("  no puncture", file=file)
-        parts = [f"{name} {v['time_s']:.3f} s / {v['peak_force_n']:.3f} N" for name, v in s["layers"].items()
+        parts = [f"{name} {v['time_s']:.3f} s / {v['peak_force_n']:.3f} N" for name, v in s["places"].items()
                  if v["time_s"] > 0 or v["peak_force_n"] > 0]
         print("  time / peak |F| by place: " + ", ".join(parts), file=file)
         if s["clamped_ticks"]:
@@ -627,7 +629,7 @@ def result_lines(summary: dict) -> list[str]:
     for p in summary["punctures"]:
         out.append(f"  {p['layer']:<6} punctured at t={T(p['t_s'])} s, tip {D(p['tip_depth_mm'])} mm below the rest "
                    f"skin, peak |F| {F(p['peak_force_n'])} N")
-    out.append(f"  max |F| {F(summary['max_force_n'])} N; tip at most {D(summary['max_depth_mm'])} mm below the rest "
+    out.append(f"  max |F| {F(summary['max_force_n'])} N; tip at most {D(summary['max_tip_depth_mm'])} mm below the rest "
                f"skin; layers reached: {', '.join(summary['layers_reached']) or 'none'}")
     m = summary.get("metrics")
     if m:

@@ -45,7 +45,7 @@ def test_every_recording_column_is_described():
 
 
 def test_every_batch_table_column_is_described():
-    summary = {"trajectory": "a.csv", "duration_s": 1.0, "ticks": 1000, "max_force_n": 0.5, "max_depth_mm": 9.0,
+    summary = {"trajectory": "a.csv", "duration_s": 1.0, "ticks": 1000, "max_force_n": 0.5, "max_tip_depth_mm": 9.0,
                "layers_reached": ["skin", "fat"],
                "punctures": [{"layer": "skin", "t_s": 0.5, "tip_depth_mm": 1.5, "peak_force_n": 0.47}],
                "metrics": {"insertions": 1, "skin_punctures": 1, "time_in_tissue_s": 0.4,

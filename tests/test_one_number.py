@@ -1,0 +1,36 @@
+"""One name, one number (issue 16): a key that appears at several levels of summary.json and in the
+batch tables means the same quantity and has the same value there. The oblique entry is the case
+that told them apart: its needle goes 25 mm into the tissue along a 30 degree axis while its tip is
+only about 21.5 mm below the rest skin (25 cos 30 deg = 21.65 mm less the dents), and the summary
+used to call the second number ``max_depth_mm`` like the first."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+
+def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "haptic_acu", "replay", "oblique_entry", "default", "--no-rrd",
+                        "--jobs", "1", "--quiet", "--out", "b"], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    s = json.loads((tmp_path / "b" / "oblique_entry" / "summary.json").read_text())
+    (ins,) = s["metrics"]["per_insertion"]
+    # the two quantities differ here, by the geometry of a 30 degree insertion 25 mm deep
+    assert ins["max_depth_mm"] == 25.0
+    assert 25.0 * math.cos(math.radians(30)) - 1.0 < ins["max_tip_depth_mm"] < 25.0 * math.cos(math.radians(30))
+    # one name each, one value at every level
+    assert "max_depth_mm" not in s and s["max_tip_depth_mm"] == ins["max_tip_depth_mm"]
+    assert "layers" not in s and set(s["places"]) == {"outside", "skin", "fat", "muscle", "bone"}
+    with open(tmp_path / "b" / "summaries.csv", newline="") as f:
+        rows = {row["trajectory"]: row for row in csv.DictReader(f)}
+    assert "max_depth_mm" not in rows["oblique_entry.csv"]
+    assert float(rows["oblique_entry.csv"]["max_tip_depth_mm"]) == s["max_tip_depth_mm"]
+    with open(tmp_path / "b" / "insertions.csv", newline="") as f:
+        irow = next(row for row in csv.DictReader(f) if row["trajectory"] == "oblique_entry.csv")
+    assert float(irow["max_depth_mm"]) == ins["max_depth_mm"]
+    assert float(irow["max_tip_depth_mm"]) == ins["max_tip_depth_mm"]
