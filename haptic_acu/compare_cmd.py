@@ -98,6 +98,11 @@ def _fmt(x, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _tech(i, part: str, key: str):
+    """An insertion's ``technique`` number (docs/model.md s11), None where it has none."""
+    return ((i.get("technique") or {}).get(part) or {}).get(key)
+
+
 def _puncture_peak(layer: str):
     def cell(i) -> str:
         peaks = [f"{p['peak_force_n']:.3f}" for p in i.get("punctures", ()) if p["layer"] == layer]
@@ -119,6 +124,11 @@ INSERTION_ROWS = (
     ("mean lift amplitude (mm)", lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f")),
     ("lift-thrust frequency (Hz)", lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f")),
     ("max lateral force (N)", lambda i: f"{i['lateral']['max_n']:.3f}"),
+    ("twirl cycles", lambda i: str(_tech(i, "twirl", "cycles"))),
+    ("twirl swing (deg)", lambda i: _fmt(_tech(i, "twirl", "swing_deg"), ".0f")),
+    ("twirl frequency (Hz)", lambda i: _fmt(_tech(i, "twirl", "frequency_hz"), ".2f")),
+    ("thrust / lift resistance", lambda i: _fmt(_tech(i, "lift_thrust_forces", "thrust_to_lift"), ".2f")),
+    ("technique", lambda i: _tech(i, "classification", "label") or "-"),
 )
 
 

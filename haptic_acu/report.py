@@ -619,6 +619,23 @@ RESULT_DEPTH = "{:.2f}"  # mm
 RESULT_TIME = "{:.3f}"   # s
 
 
+def technique_text(tech) -> str:
+    """The insertion's technique for its result line: the twirling (cycles, swing, frequency) when it
+    twirled, and the reinforcing / reducing / even label when there is one (docs/model.md s11)."""
+    if not tech:
+        return ""
+    out = ""
+    tw = tech.get("twirl") or {}
+    if tw.get("cycles"):
+        swing = "-" if tw.get("swing_deg") is None else f"{tw['swing_deg']:.0f}"
+        frq = "-" if tw.get("frequency_hz") is None else f"{tw['frequency_hz']:.2f}"
+        out += f"; {tw['cycles']} twirl cycles ({swing} deg, {frq} Hz)"
+    label = (tech.get("classification") or {}).get("label")
+    if label:
+        out += f"; technique: {label}"
+    return out
+
+
 def result_lines(summary: dict) -> list[str]:
     """The session's results as text lines (replay and run): punctures, the depth reached against the
     target, per-insertion metrics. The numbers are the summary's, shown at fixed decimals."""
@@ -648,7 +665,7 @@ def result_lines(summary: dict) -> list[str]:
             tip = f" (tip {D(i['max_tip_depth_mm'])} mm below the rest skin)" if "max_tip_depth_mm" in i else ""
             out.append(f"  insertion {n}: needle {D(i['max_depth_mm'])} mm into the tissue{tip}: {i['depth_verdict']}; "
                        f"entry {D(i['entry_offset_mm'])} mm off the acupoint at {ang} deg to the normal; "
-                       f"{spd} mm/s; {cyc}")
+                       f"{spd} mm/s; {cyc}{technique_text(i.get('technique'))}")
     return out
 
 
