@@ -432,6 +432,7 @@ def tissue_of(tissue_or_config=None):
 # insertion colours: one per insertion (tab10 without the band-like browns), approach in grey
 INSERTION_COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
 APPROACH_COLOUR = "0.55"
+OFFSET_COLOUR = "k"  # the tip offset on the lateral panel: black, no insertion's colour nor the approach's grey
 LATERAL_SHOWN_N = 0.1  # the lateral-force panel is drawn when |F_lateral| exceeds this (N)
 LATERAL_TRAVEL_MM = 1.0  # ... or when the tip moves sideways more than this while touching (mm)
 MAX_PANELS = 4  # force-depth panels side by side (one per insertion; the rest share the last)
@@ -599,13 +600,16 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     if ax_lat is not None:
         ax_lat.set_ylabel("lateral |F| (N)")
         ax_lat.set_xlim(*tspan)
-        ax_lat.set_ylim(bottom=0.0)
         ax_lat.set_title("force across the needle (lateral)", fontsize=9)
         ax_lat.tick_params(labelbottom=False)
+        # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
+        # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
         tw = ax_lat.twinx()
-        tw.plot(t, offset_mm, color="0.35", lw=0.9, ls=":")
-        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8)
-        tw.set_ylim(bottom=0.0)
+        tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
+        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
+        tw.tick_params(axis="y", colors=OFFSET_COLOUR)
+        tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
+        ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
