@@ -197,6 +197,28 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
     assert "ON BONE" in narrow and "FORCE LIMIT" in narrow and "servo" not in narrow and len(narrow) <= 110
 
 
+def test_status_on_common_terminal_widths_keeps_what_the_trainee_acts_on():
+    """Issue 16's fields on a real terminal: the full line is over 200 columns, so what stays at 80
+    and 120 columns matters. Inside the tissue: the depth against the target and the force at 80
+    (and the speed at 100), the roll at 120; in the air: the position against the acupoint."""
+    r = _row(layer=2, states=(2, 2, 2), force=(0, 0, 0.3))
+    r[COL["depth_skin_m"]], r[COL["roll_deg"]], r[COL["torque_nmm"]] = 15.06e-3, 108.0, 0.039
+    extra = dict(ticks=7300, tip_depth_mm=15.06, target_mm=(15, 30), speed_set_mm_s=5.0,
+                 last_puncture={"layer": "muscle", "peak_force_n": 0.748})
+    full = format_status(7.3, r, RATES, 76, **extra)
+    for want in ("x +0.0 y +0.0 mm", "15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)", "roll +108 deg",
+                 "last puncture muscle 0.748 N", "host late 1.0%, missed 76", "servo 1000 Hz"):
+        assert want in full, want
+    for width, want in ((79, ("15.06 mm deep (target 15-30)", "|F| 0.30 N")),
+                        (99, ("15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)")),
+                        (119, ("15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)", "roll +108 deg"))):
+        text = format_status(7.3, r, RATES, 76, width=width, **extra)
+        assert len(text) <= width and all(w in text for w in want), (width, text)
+        assert "servo" not in text  # the rates go first
+    air = format_status(1.0, _row(x_mm=1.25, y_mm=-0.5), RATES, 0, width=79, tip_depth_mm=-3.2, speed_set_mm_s=5.0)
+    assert "x +1.2 y -0.5 mm" in air and "air, 3.20 mm above skin" in air and len(air) <= 79
+
+
 def test_status_says_when_the_continuous_force_protection_eases_off():
     from haptic_acu import rendering
 
