@@ -399,6 +399,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
                                     "ticks": int(py["ticks"]), "missed_ticks": int(py["missed_ticks"]),
                                     "fault": py["fault"], "steal": py["steal"]}
     out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
+    out["compiled_floor"] = compiled_floor(sizes.loop_plain_s or 3.0, progress)
     return out
 
 
@@ -407,13 +408,6 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     if allowed, switch interval 0.2 ms) doing no work. Whatever tail it shows is the machine's (a
     virtual machine's CPU can be taken away for milliseconds), not the simulator's."""
     _log(progress, f"machine floor: a bare 1 kHz loop, {duration_s:.0f} s")
-    prev = None
-    if hasattr(os, "sched_setscheduler"):
-        try:
-            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
-            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(10))
-        except OSError:
-            prev = None
     old = sys.getswitchinterval()
     sys.setswitchinterval(2e-4)
     n = int(duration_s * 1000)
@@ -422,23 +416,29 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     steal = measure.StealSampler()
     steal.__enter__()
     try:
-        t0 = perf() + 0.01
-        for k in range(n):
-            d = t0 + k * 1e-3
-            r = d - perf()
-            if r > 4e-4:
-                time.sleep(r - 3e-4)
-            while perf() < d:
-                pass
-            errs[k] = perf() - d
+        with measure.sched_fifo():
+            t0 = perf() + 0.01
+            for k in range(n):
+                d = t0 + k * 1e-3
+                r = d - perf()
+                if r > 4e-4:
+                    time.sleep(r - 3e-4)
+                while perf() < d:
+                    pass
+                errs[k] = perf() - d
     finally:
         steal.__exit__(None, None, None)
         sys.setswitchinterval(old)
-        if prev is not None:
-            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
     return {"duration_s": duration_s, "period_error_us": percentiles(errs, 1e6), "ticks": n,
             "missed_ticks": int(np.count_nonzero(errs > 1e-3)),
             "steal": measure.split_by_steal(errs, t0, 1e-3, steal)}
+
+
+def compiled_floor(duration_s: float, progress=False) -> dict:
+    """The compiled loop's floor (:func:`measure.compiled_floor`): its timing rule with no work, alone
+    on the servo's core as ``--pin-cores`` runs it."""
+    _log(progress, f"machine floor: the compiled loop's timing with no work, pinned, {duration_s:.0f} s")
+    return measure.compiled_floor(duration_s)
 
 
 # ---- the OMNI, through the HD API emulator ----------------------------------------------------------
@@ -848,7 +848,7 @@ def targets(res: dict) -> list[dict]:
 REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
                  "servo_tick_sweeps_us", "net_table_build",
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
-                 "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
+                 "loop_no_rerun", "machine_floor", "compiled_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes",
                  "cohort", "first_run_s")
@@ -933,6 +933,15 @@ def _prow(lines: list, label: str, p) -> None:
         lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
 
 
+def _share(loop, floor) -> str:
+    """The pinned loop's misses beside its floor's (per 10,000 ticks): how many the session adds."""
+    if not loop or not loop.get("ticks") or not floor.get("ticks"):
+        return ""
+    a = 1e4 * loop["missed_ticks"] / loop["ticks"]
+    b = 1e4 * floor["missed_ticks"] / floor["ticks"]
+    return f"; per 10,000 ticks: the pinned session {a:.1f}, this floor {b:.1f}"
+
+
 def _steal_line(lines: list, st) -> None:
     """The host's stolen-CPU line under a loop row (nothing if not measured)."""
     if not st or not st.get("available") or "steal_share" not in st:
@@ -1014,6 +1023,15 @@ def _table_loops(res: dict, lines: list) -> None:
         prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
         lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
         _steal_line(lines, mf.get("steal"))
+    cf = res.get("compiled_floor")
+    if cf:
+        prow(f"  machine floor: compiled loop timing, no work, pinned, {cf['duration_s']:.0f} s (us)",
+             cf["period_error_us"])
+        lines.append(f"  {cf['ticks']} ticks, {cf['missed_ticks']} missed"
+                     + ("" if cf["pinned"] else " (pinning refused: ran unpinned)")
+                     + f", SCHED_FIFO: {'yes' if cf['sched_fifo'] else 'no'}"
+                     + _share(res.get("loop_pinned"), cf))
+        _steal_line(lines, cf.get("steal"))
     om = res.get("omni_loop")
     if om:
         for servo in ("compiled", "python"):
