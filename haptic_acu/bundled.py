@@ -16,3 +16,32 @@ def bundled_dir(name: str) -> Path:
     if installed.is_dir():
         return installed
     return _PACKAGE.parent / name
+
+
+def bundled_trajectories() -> dict[str, Path]:
+    """The bundled trajectories by name (the file's stem: ``default``, ``lateral_sweep``, ...)."""
+    return {p.stem: p for p in sorted(bundled_dir("trajectories").glob("*.csv"))}
+
+
+def resolve_trajectory(arg) -> Path:
+    """A TRAJECTORY argument as a path. A file or folder that exists is itself (the user's own file
+    wins); a bare name with no folder part that is not a file here but names a bundled trajectory,
+    with or without ``.csv`` (``default``, ``lateral_sweep.csv``), is the bundled file, so an
+    installed wheel's trajectories can be used from any folder. Anything else is returned as given
+    (the caller's "not found" names it, with :func:`not_found_hint`)."""
+    p = Path(arg)
+    if p.exists() or p.parent != Path("."):
+        return p
+    name = p.name[:-4] if p.name.endswith(".csv") else p.name
+    return bundled_trajectories().get(name, p)
+
+
+def not_found_hint() -> str:
+    """The tail of a "trajectory file not found" message: the bundled names one may use instead."""
+    names = ", ".join(bundled_trajectories())
+    return f" (bundled trajectories, usable by name from any folder: {names})" if names else ""
+
+
+def bundled_names() -> str:
+    """The bundled trajectories' names, comma separated (for help texts)."""
+    return ", ".join(bundled_trajectories())

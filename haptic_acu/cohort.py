@@ -496,7 +496,7 @@ def _replay(job: Job) -> dict:
     return {"summary": {
         "insertions": sm["insertions"], "skin_punctures": sm["skin_punctures"],
         "session_duration_s": summary["duration_s"], "time_in_tissue_s": sm["time_in_tissue_s"],
-        "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_depth_mm"],
+        "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
         "lateral_time_s": sm["lateral"]["time_over_s"]},
         "insertions": insertions}
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bundled import bundled_names, not_found_hint, resolve_trajectory
 from .errors import UserError
 from .overrides import add_config_args, config_from_args
 from .progress import step
@@ -43,7 +44,9 @@ def register(sub) -> None:
                                    "expert's, headless through the same tissue; print their metrics side by side "
                                    "(every insertion, or --insertion N) and write compare.json and compare.png "
                                    "(force against depth, as in force_depth.png, one colour per session).")
-    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY", help="trajectory CSVs, one per session (any number)")
+    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY",
+                   help="trajectory CSVs, one per session (any number), or bundled trajectories by name ("
+                        + bundled_names() + ")")
     add_config_args(p)
     p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
                                                 "if it exists)")
@@ -59,7 +62,7 @@ def open_trajectory(path: Path, cfg):
     from haptic_acu.devices.scripted import ScriptedDevice
 
     if not path.is_file():
-        raise UserError(f"{path}: trajectory file not found")
+        raise UserError(f"{path}: trajectory file not found{not_found_hint()}")
     dev = ScriptedDevice(path, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
                          force_limit_n=cfg.safety.force_limit_n)
     dev.open()
@@ -96,6 +99,11 @@ def _fmt(x, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _tech(i, part: str, key: str):
+    """An insertion's ``technique`` number (docs/model.md s11), None where it has none."""
+    return ((i.get("technique") or {}).get(part) or {}).get(key)
+
+
 def _puncture_peak(layer: str):
     def cell(i) -> str:
         peaks = [f"{p['peak_force_n']:.3f}" for p in i.get("punctures", ()) if p["layer"] == layer]
@@ -117,6 +125,11 @@ INSERTION_ROWS = (
     ("mean lift amplitude (mm)", lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f")),
     ("lift-thrust frequency (Hz)", lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f")),
     ("max lateral force (N)", lambda i: f"{i['lateral']['max_n']:.3f}"),
+    ("twirl cycles", lambda i: str(_tech(i, "twirl", "cycles"))),
+    ("twirl swing (deg)", lambda i: _fmt(_tech(i, "twirl", "swing_deg"), ".0f")),
+    ("twirl frequency (Hz)", lambda i: _fmt(_tech(i, "twirl", "frequency_hz"), ".2f")),
+    ("thrust / lift resistance", lambda i: _fmt(_tech(i, "lift_thrust_forces", "thrust_to_lift"), ".2f")),
+    ("technique", lambda i: _tech(i, "classification", "label") or "-"),
 )
 
 
@@ -280,7 +293,7 @@ def _labels(args, paths) -> list[str]:
 def run(args) -> int:
 
     cfg = config_from_args(args)
-    paths = [Path(p) for p in args.sessions]
+    paths = [resolve_trajectory(p) for p in args.sessions]
     if args.insertion is not None and args.insertion < 1:
         raise UserError(f"--insertion: 1 is the first insertion, got {args.insertion}")
     labels = _labels(args, paths)

@@ -339,12 +339,15 @@ def reference_forces(trajectory, cfg):
 
 
 def trajectories_from(args_paths) -> list[Path]:
-    """Expand the command line's TRAJECTORY arguments: files as given, folders to their *.csv."""
+    """Expand the command line's TRAJECTORY arguments: files as given, folders to their *.csv, the
+    name of a bundled trajectory to its file (:func:`haptic_acu.bundled.resolve_trajectory`)."""
+    from .bundled import resolve_trajectory
+
     if not args_paths:
         return [DEFAULT_TRAJECTORY]
     out = []
     for a in args_paths:
-        p = Path(a)
+        p = resolve_trajectory(a)
         if p.is_dir():
             files = sorted(p.glob("*.csv"))
             if not files:

@@ -10,6 +10,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
+from .bundled import bundled_names
 from .errors import UserError
 
 
@@ -18,7 +19,9 @@ def register(sub) -> None:
                        description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm) through the simulator "
                                    "on simulated time and write samples.csv, summary.json, force_depth.png and "
                                    "recording.rrd. Without TRAJECTORY: the bundled default insertion.")
-    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY", help="CSV files or folders of them")
+    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY",
+                   help="CSV files, folders of them, or bundled trajectories by name from any folder ("
+                        + bundled_names() + ")")
     from .overrides import add_config_args
     add_config_args(p)
     p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
@@ -69,7 +72,7 @@ def _flat(summary: dict) -> dict:
     """summaries.csv's row: the session's numbers (each the summary's, not a second estimate), the
     first puncture of each layer, and the session-level trainee metrics."""
     row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
-           "max_force_n": summary["max_force_n"], "max_depth_mm": summary["max_depth_mm"],
+           "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
            "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
     for p in summary["punctures"]:
         row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])
@@ -139,18 +142,19 @@ def write_table(path: Path, rows: list[dict]) -> None:
 
 def run(args) -> int:
     from .overrides import config_from_args
+    from .bundled import not_found_hint
     from .replay import replay_one, trajectories_from
 
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
     if args.spawn:
-        from .viewer import check_spawn
-        check_spawn()
+        from .viewer import NO_DISPLAY_REPLAY, check_spawn
+        check_spawn(NO_DISPLAY_REPLAY)
     paths = trajectories_from(args.trajectories)
     for p in paths:
         if not p.is_file():
-            raise UserError(f"{p}: trajectory file not found")
+            raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")

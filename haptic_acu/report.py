@@ -165,10 +165,12 @@ class SummarySink:
 
     ``summary()`` is a JSON-ready dict, deterministic for identical rows: forces in N to 0.1 mN,
     depths in mm to 1 um, times in s to 0.1 ms. Keys: ``ticks``, ``duration_s``, ``max_force_n``
-    (max |F|), ``max_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
-    0 if the tip never went below it), ``layers_reached``, ``punctures`` (see :class:`SessionScan`:
-    layer, t_s, tip_depth_mm, peak_force_n), ``layers`` (time_s and peak |F| per place the tip was
-    in, "outside" including pressing the intact skin), ``clamped_ticks``, ``fault``, and on
+    (max |F|), ``max_tip_depth_mm`` (deepest tip point below the rest skin surface, :func:`tip_depth_m`;
+    0 if the tip never went below it; named like each insertion's ``max_tip_depth_mm``, not like its
+    ``max_depth_mm``, the needle's depth in the tissue), ``layers_reached``, ``punctures`` (see
+    :class:`SessionScan`: layer, t_s, tip_depth_mm, peak_force_n), ``places`` (time_s and peak |F|
+    per place the tip was in, "outside" including pressing the intact skin: not a layer's puncture
+    peak), ``clamped_ticks``, ``fault``, and on
     :meth:`close` the engine's ``loop`` statistics (timing figures there are only deterministic on
     the sim clock). ``cfg`` (optional) is the session's TissueConfig; ``start`` also takes it from
     ``info``.
@@ -273,10 +275,10 @@ class SummarySink:
             "ticks": s.ticks,
             "duration_s": _r((s.t_last - s.t_first) if s.ticks else 0.0, 4),
             "max_force_n": _r(s.max_force, 4),
-            "max_depth_mm": _r(max_depth_mm, 3),
+            "max_tip_depth_mm": _r(max_depth_mm, 3),
             "layers_reached": [name for i, name in enumerate(PLACES) if i > 0 and s.ticks_in[i] > 0],
             "punctures": puncture_records(s.punctures),
-            "layers": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
+            "places": {name: {"time_s": _r(s.time_in[i], 4), "peak_force_n": _r(s.peak_in[i], 4)}
                        for i, name in enumerate(PLACES)},
             "clamped_ticks": s.clamped_ticks,
             "fault": self.fault,
@@ -293,7 +295,7 @@ class SummarySink:
         file = sys.stdout if file is None else file
         s = self.summary()
         line = (f"session: {s['duration_s']:.3f} s, {s['ticks']} ticks; max |F| {s['max_force_n']:.3f} N, "
-                f"max tip depth {s['max_depth_mm']:.2f} mm below the rest skin")
+                f"max tip depth {s['max_tip_depth_mm']:.2f} mm below the rest skin")
         print(line, file=file)
         if s["punctures"]:
             for p in s["punctures"]:
@@ -301,7 +303,7 @@ class SummarySink:
                       f"peak {p['peak_force_n']:.3f} N", file=file)
         else:
             print("  no puncture", file=file)
-        parts = [f"{name} {v['time_s']:.3f} s / {v['peak_force_n']:.3f} N" for name, v in s["layers"].items()
+        parts = [f"{name} {v['time_s']:.3f} s / {v['peak_force_n']:.3f} N" for name, v in s["places"].items()
                  if v["time_s"] > 0 or v["peak_force_n"] > 0]
         print("  time / peak |F| by place: " + ", ".join(parts), file=file)
         if s["clamped_ticks"]:
@@ -430,6 +432,7 @@ def tissue_of(tissue_or_config=None):
 # insertion colours: one per insertion (tab10 without the band-like browns), approach in grey
 INSERTION_COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
 APPROACH_COLOUR = "0.55"
+OFFSET_COLOUR = "k"  # the tip offset on the lateral panel: black, no insertion's colour nor the approach's grey
 LATERAL_SHOWN_N = 0.1  # the lateral-force panel is drawn when |F_lateral| exceeds this (N)
 LATERAL_TRAVEL_MM = 1.0  # ... or when the tip moves sideways more than this while touching (mm)
 MAX_PANELS = 4  # force-depth panels side by side (one per insertion; the rest share the last)
@@ -597,13 +600,16 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     if ax_lat is not None:
         ax_lat.set_ylabel("lateral |F| (N)")
         ax_lat.set_xlim(*tspan)
-        ax_lat.set_ylim(bottom=0.0)
         ax_lat.set_title("force across the needle (lateral)", fontsize=9)
         ax_lat.tick_params(labelbottom=False)
+        # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
+        # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
         tw = ax_lat.twinx()
-        tw.plot(t, offset_mm, color="0.35", lw=0.9, ls=":")
-        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8)
-        tw.set_ylim(bottom=0.0)
+        tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
+        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
+        tw.tick_params(axis="y", colors=OFFSET_COLOUR)
+        tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
+        ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
@@ -617,6 +623,23 @@ RESULT_DEPTH = "{:.2f}"  # mm
 RESULT_TIME = "{:.3f}"   # s
 
 
+def technique_text(tech) -> str:
+    """The insertion's technique for its result line: the twirling (cycles, swing, frequency) when it
+    twirled, and the reinforcing / reducing / even label when there is one (docs/model.md s11)."""
+    if not tech:
+        return ""
+    out = ""
+    tw = tech.get("twirl") or {}
+    if tw.get("cycles"):
+        swing = "-" if tw.get("swing_deg") is None else f"{tw['swing_deg']:.0f}"
+        frq = "-" if tw.get("frequency_hz") is None else f"{tw['frequency_hz']:.2f}"
+        out += f"; {tw['cycles']} twirl cycles ({swing} deg, {frq} Hz)"
+    label = (tech.get("classification") or {}).get("label")
+    if label:
+        out += f"; technique: {label}"
+    return out
+
+
 def result_lines(summary: dict) -> list[str]:
     """The session's results as text lines (replay and run): punctures, the depth reached against the
     target, per-insertion metrics. The numbers are the summary's, shown at fixed decimals."""
@@ -627,7 +650,7 @@ def result_lines(summary: dict) -> list[str]:
     for p in summary["punctures"]:
         out.append(f"  {p['layer']:<6} punctured at t={T(p['t_s'])} s, tip {D(p['tip_depth_mm'])} mm below the rest "
                    f"skin, peak |F| {F(p['peak_force_n'])} N")
-    out.append(f"  max |F| {F(summary['max_force_n'])} N; tip at most {D(summary['max_depth_mm'])} mm below the rest "
+    out.append(f"  max |F| {F(summary['max_force_n'])} N; tip at most {D(summary['max_tip_depth_mm'])} mm below the rest "
                f"skin; layers reached: {', '.join(summary['layers_reached']) or 'none'}")
     m = summary.get("metrics")
     if m:
@@ -646,7 +669,7 @@ def result_lines(summary: dict) -> list[str]:
             tip = f" (tip {D(i['max_tip_depth_mm'])} mm below the rest skin)" if "max_tip_depth_mm" in i else ""
             out.append(f"  insertion {n}: needle {D(i['max_depth_mm'])} mm into the tissue{tip}: {i['depth_verdict']}; "
                        f"entry {D(i['entry_offset_mm'])} mm off the acupoint at {ang} deg to the normal; "
-                       f"{spd} mm/s; {cyc}")
+                       f"{spd} mm/s; {cyc}{technique_text(i.get('technique'))}")
     return out
 
 

@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+from .bundled import bundled_names, not_found_hint, resolve_trajectory
 from .errors import UserError
 from .overrides import add_config_args, config_from_args
 from .progress import step
@@ -38,7 +39,8 @@ def register(sub) -> None:
                    help="omni: a Geomagic Touch / Phantom Omni through OpenHaptics (pyOpenHaptics, libHD.so); "
                         "keyboard: move the needle with the keys (help on screen); scripted: play --trajectory "
                         "in real time")
-    p.add_argument("--trajectory", metavar="FILE", help="trajectory CSV (t_s,x_mm,y_mm,z_mm) for --device scripted")
+    p.add_argument("--trajectory", metavar="FILE", help="trajectory CSV (t_s,x_mm,y_mm,z_mm) for --device scripted, "
+                   "or a bundled trajectory's name (" + bundled_names() + ")")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
     p.add_argument("--out", metavar="DIR", help="report folder (default: a new folder runs/<device>-<time>/; "
                                                 "must be empty if it exists)")
@@ -121,6 +123,11 @@ def run(args) -> int:
     if args.spawn:
         from .viewer import check_spawn
         check_spawn()  # no display: one line now, not half a minute of viewer errors
+    if args.trajectory:  # a file, or a bundled trajectory's name
+        traj = resolve_trajectory(args.trajectory)
+        if not traj.is_file():
+            raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
+        args.trajectory = str(traj)
     if args.record:  # checked now, created only once the session can start (after device.open)
         from .recorder import check_target
         rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])

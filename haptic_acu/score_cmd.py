@@ -344,6 +344,16 @@ def _all_raters(results) -> list[str]:
     return list(seen)
 
 
+DIGITS = 15  # significant digits of every number written: float arithmetic's noise is in the 16th-17th
+
+
+def _num(x) -> float:
+    """A number as written to weights.csv, scores.csv and score.json: rounded once to DIGITS
+    significant digits, so a mean of 7.89 is written 7.89, not the float sum's 7.890000000000001
+    (weights still sum to 1 within 1e-14)."""
+    return float(f"{float(x):.{DIGITS}g}")
+
+
 def _write_weights_csv(path: Path, results, alpha) -> None:
     with path.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
@@ -351,8 +361,8 @@ def _write_weights_csv(path: Path, results, alpha) -> None:
                     "omega_combined"])
         for r in results:
             for j, idx in enumerate(INDICES):
-                w.writerow([r.name, idx, repr(float(r.objective.mean[j])), repr(float(r.objective.sigma[j])),
-                            repr(float(alpha[j])), repr(float(r.objective.beta[j])), repr(float(r.omega[j]))])
+                w.writerow([r.name, idx, _num(r.objective.mean[j]), _num(r.objective.sigma[j]),
+                            _num(alpha[j]), _num(r.objective.beta[j]), _num(r.omega[j])])
 
 
 def _write_scores_csv(path: Path, results) -> None:
@@ -361,12 +371,12 @@ def _write_scores_csv(path: Path, results) -> None:
         w.writerow(["system", "rater", "score"])
         for r in results:
             for rater, s in zip(r.raters, r.scores):
-                w.writerow([r.name, rater, repr(float(s))])
+                w.writerow([r.name, rater, _num(s)])
 
 
 def _write_json(path: Path, args, source, alpha, mu, dres, results) -> None:
     def named(v):
-        return {n: float(x) for n, x in zip(INDICES, v)}
+        return {n: _num(x) for n, x in zip(INDICES, v)}
 
     doc = {
         "method": "comprehensive weighted scoring, paper section 4.2, eq. 10-14",
@@ -378,12 +388,12 @@ def _write_json(path: Path, args, source, alpha, mu, dres, results) -> None:
             {
                 "name": r.name,
                 "n_raters": len(r.raters),
-                "mean_score": r.mean_score,
+                "mean_score": _num(r.mean_score),
                 "mean_E": named(r.objective.mean),
                 "sigma": named(r.objective.sigma),
                 "beta_objective": named(r.objective.beta),
                 "omega_combined": named(r.omega),
-                "scores": {rater: float(s) for rater, s in zip(r.raters, r.scores)},
+                "scores": {rater: _num(s) for rater, s in zip(r.raters, r.scores)},
             }
             for r in results
         ],

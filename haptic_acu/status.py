@@ -3,7 +3,7 @@
 A sink (see :mod:`haptic_acu.engine`): every visual frame it takes the newest sample row and,
 at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrolling)::
 
-    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm below skin (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | roll +90 deg +0.041 N*mm | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
+    t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm deep (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | roll +90 deg +0.041 N*mm | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
 
 * the session time (s) of the newest servo tick;
 * the tip's position relative to the acupoint (x, y in mm, the scene frame's origin);
@@ -25,8 +25,9 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
   rule).
 
 The line must fit the terminal's width (a wrapped line could not be rewritten in place): on a narrow
-terminal the least important fields go first (speed, depth below skin, position and last puncture,
-rates and loop health; the time, place, force, states and warnings stay). It is padded over the previous one. It is drawn only when the
+terminal the least important fields go first (the rates, the layer states, the position and loop
+health, the roll and last puncture; the time, place, depth against the target, force, speed and
+warnings stay: about 100 columns inside the tissue). It is padded over the previous one. It is drawn only when the
 stream is a terminal, or with ``force=True``. ``close(result)`` ends the line with a newline and
 prints the fault reason, if any.
 """
@@ -80,13 +81,17 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     keyboard's set axial speed), ``ticks`` (for the late fraction)."""
     layer = int(row[_C_LAYER])
     x_mm, y_mm = row[_C_X] * 1e3, row[_C_X + 1] * 1e3
-    fields = [(0, f"t {t_s:.2f} s"), (3, f"x {x_mm:+.1f} y {y_mm:+.1f} mm")]
+    # priorities (0 stays longest): what the trainee acts on (where the tip is against the target,
+    # force, speed, warnings) before the roll and last puncture, then position and loop health, then
+    # the layer states, then the rates
+    # the position relative to the acupoint matters most in the air, while aiming
+    fields = [(0, f"t {t_s:.2f} s"), (1 if layer < 0 else 3, f"x {x_mm:+.1f} y {y_mm:+.1f} mm")]
     if layer >= 0:
         fields.append((0, f"{_PLACE.get(layer, '?')} {row[_C_DEPTH] * 1e3:.2f} mm"))
-        deep = f"{row[_C_DEPTH_SKIN] * 1e3:.2f} mm below skin"
+        deep = f"{row[_C_DEPTH_SKIN] * 1e3:.2f} mm deep"
         if target_mm is not None:
             deep += f" (target {target_mm[0]:g}-{target_mm[1]:g})"
-        fields.append((4, deep))
+        fields.append((1, deep))
     elif int(row[_C_STATE]) == 1 and tip_depth_mm is not None:
         fields.append((0, f"pressing skin {max(tip_depth_mm, 0.0):.2f} mm"))
     elif tip_depth_mm is not None:
@@ -97,38 +102,40 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     v = f"v {float(np.linalg.norm(row[_C_V:_C_V + 3])) * 1e3:.1f} mm/s"
     if speed_set_mm_s is not None:
         v += f" (set {speed_set_mm_s:g})"
-    fields.append((5, v))
+    fields.append((1, v))
     if row[_C_ROLL] != 0.0 or row[_C_TORQUE] != 0.0:  # once the needle has been rolled
-        fields.append((4, f"roll {row[_C_ROLL]:+.0f} deg {row[_C_TORQUE]:+.3f} N*mm"))
-    fields.append((1, " ".join(f"{name}:{_STATE_SHORT[int(s)] if 0 <= int(s) < 3 else '?'}"
+        fields.append((2, f"roll {row[_C_ROLL]:+.0f} deg {row[_C_TORQUE]:+.3f} N*mm"))
+    fields.append((4, " ".join(f"{name}:{_STATE_SHORT[int(s)] if 0 <= int(s) < 3 else '?'}"
                                for name, s in zip(LAYER_NAMES, row[_C_STATE:_C_STATE + 3]))))
     if last_puncture is not None:
-        fields.append((3, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.3f} N"))
+        fields.append((2, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.3f} N"))
     if layer == _BONE:
         fields.append((0, "ON BONE: withdraw"))
     if row[_C_CLAMP]:
         fields.append((0, "FORCE LIMIT"))
     if int(row[_C_RSTAT]) & _LIMITING:  # the rendering layer's continuous-force protection
         fields.append((0, "CONTINUOUS FORCE LIMIT: easing off"))
-    fields.append((2, f"servo {rates.get('servo_hz', 0.0):.0f} Hz visual {rates.get('visual_hz', 0.0):.0f} Hz"))
+    fields.append((5, f"servo {rates.get('servo_hz', 0.0):.0f} Hz visual {rates.get('visual_hz', 0.0):.0f} Hz"))
     if missed is not None:
-        fields.append((2, loop_health(missed, ticks if ticks is not None else 0)))
+        fields.append((3, loop_health(missed, ticks if ticks is not None else 0)))
     return fields
 
 
 def format_status(t_s: float, row: np.ndarray, rates: dict, missed: int | None, width: int | None = None,
                   **extra) -> str:
-    """The status text; with ``width``, the least important fields are left out until it fits in
-    ``width`` characters (and as a last resort it is cut). ``extra``: see :func:`status_fields`."""
+    """The status text; with ``width``, the least important fields are left out one by one (the
+    last of the lowest priority first) until it fits in ``width`` characters (and as a last resort
+    it is cut). ``extra``: see :func:`status_fields`."""
     fields = status_fields(t_s, row, rates, missed, **extra)
     text = SEP.join(f for _, f in fields)
     if width is None:
         return text
-    while len(text) > width and len(fields) > 1:
+    while len(text) > width and len(fields) > 1:  # one field at a time: the last of the least important
         worst = max(p for p, _ in fields)
         if worst == 0:
             break
-        fields = [fp for fp in fields if fp[0] != worst]
+        drop = max(i for i, (p, _) in enumerate(fields) if p == worst)
+        fields = fields[:drop] + fields[drop + 1:]
         text = SEP.join(f for _, f in fields)
     return text[:width]
 

@@ -37,9 +37,16 @@ def rerun_beside_python() -> None:
         os.environ["PATH"] = str(here) + os.pathsep + os.environ.get("PATH", "")
 
 
-def check_spawn() -> None:
-    """Before a ``--spawn`` sink is built: UserError at once without a display; rerun found beside
-    the interpreter."""
+# replay has no --rrd: without --spawn it writes recording.rrd into its output folder
+NO_DISPLAY_REPLAY = ("--spawn needs a display to open the rerun viewer, and there is none here (DISPLAY and "
+                     "WAYLAND_DISPLAY are not set): leave out --spawn and the replay writes recording.rrd into its "
+                     "--out folder (open it with `rerun FILE` where there is a screen), or stream to a viewer "
+                     "running elsewhere with --connect HOST:PORT")
+
+
+def check_spawn(message: str = NO_DISPLAY) -> None:
+    """Before a ``--spawn`` sink is built: UserError(``message``: the command's own alternatives) at
+    once without a display; rerun found beside the interpreter."""
     if not has_display():
-        raise UserError(NO_DISPLAY)
+        raise UserError(message)
     rerun_beside_python()

@@ -443,7 +443,7 @@ def test_status_line_content_missed_ticks_and_fault():
     s.close(SessionResult(ticks=50, duration_s=0.049, fault="device fault: cable pulled", stats={}))
     text = buf.getvalue()
     line, fault = text.split("\n")[:2]
-    assert line.startswith("\rt 0.05 s | x +0.0 y +0.0 mm | fat 1.25 mm | 2.50 mm below skin | |F| 0.50 N | v 5.0 mm/s | ")
+    assert line.startswith("\rt 0.05 s | x +0.0 y +0.0 mm | fat 1.25 mm | 2.50 mm deep | |F| 0.50 N | v 5.0 mm/s | ")
     assert "skin:punct fat:press muscle:-" in line
     assert "roll" not in line  # never rolled: no roll field
     s2 = StatusLine(stream=io.StringIO(), force=True)
@@ -484,7 +484,8 @@ def test_status_line_at_most_ten_a_second_and_within_the_terminal_width(pty_pair
     for seg in segs:
         assert len(seg) <= 79
         assert seg.startswith("t ") and "muscle 12.50 mm" in seg and "|F| 1.00 N" in seg
-        assert "skin:punct fat:punct muscle:press" in seg
+        # at 79 columns the depth against the target and the speed stay; the layer states go first
+        assert "21.50 mm deep" in seg and "v 0.0 mm/s" in seg
 
 
 def set_winsize(fd: int, rows: int, cols: int) -> None:
@@ -561,7 +562,7 @@ def test_live_session_on_a_pty_with_status_line():
     lines = _status_lines(text)
     assert len(lines) >= 3
     pat = re.compile(r"^t (\d+\.\d+) s \| x [-+]\d+\.\d y [-+]\d+\.\d mm \| (\S+)[^|]*"
-                     r"(?:\| [\d.]+ mm below skin[^|]*)?\| \|F\| (\d+\.\d+) N \| "
+                     r"(?:\| [\d.]+ mm deep[^|]*)?\| \|F\| (\d+\.\d+) N \| "
                      r"v (\d+\.\d) mm/s(?: \(set [\d.]+\))? \| skin:(\S+) fat:(\S+) muscle:(\S+) \| "
                      r"(?:last puncture \w+ [\d.]+ N \| )?servo (\d+) Hz visual (\d+) Hz \| "
                      r"(?:loop ok|host late [\d.]+%, missed \d+)$")

@@ -106,13 +106,13 @@ def test_summary_totals(session):
     assert s["ticks"] == len(rows)
     assert s["duration_s"] == pytest.approx(rows[-1, C["t_s"]] - rows[0, C["t_s"]], abs=1e-4)
     assert s["max_force_n"] == pytest.approx(f.max(), abs=1e-4)
-    assert s["max_depth_mm"] == pytest.approx(30.0, abs=1e-3)  # the drive's deepest point, z = -30 mm
+    assert s["max_tip_depth_mm"] == pytest.approx(30.0, abs=1e-3)  # the drive's deepest point, z = -30 mm
     assert s["layers_reached"] == ["skin", "fat", "muscle"]
     # Time in each place adds up to the session; the tip is outside until the skin breaks.
-    assert sum(v["time_s"] for v in s["layers"].values()) == pytest.approx(s["duration_s"], abs=5e-4)
+    assert sum(v["time_s"] for v in s["places"].values()) == pytest.approx(s["duration_s"], abs=5e-4)
     skin_t = s["punctures"][0]["t_s"]
-    assert s["layers"]["outside"]["time_s"] == pytest.approx(skin_t - rows[0, C["t_s"]], abs=1e-4)
-    assert s["layers"]["outside"]["peak_force_n"] == pytest.approx(s["punctures"][0]["peak_force_n"], abs=1e-4)
+    assert s["places"]["outside"]["time_s"] == pytest.approx(skin_t - rows[0, C["t_s"]], abs=1e-4)
+    assert s["places"]["outside"]["peak_force_n"] == pytest.approx(s["punctures"][0]["peak_force_n"], abs=1e-4)
     assert s["loop"]["clock"] == "sim"
     json.dumps(s)  # JSON-ready
 

@@ -197,7 +197,7 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
     assert m["target_depth_mm"] == [5.0, 20.0]  # the --set override reached the session
     (ins,) = m["per_insertion"]
     assert ins["punctures"] == s["punctures"]
-    assert ins["max_tip_depth_mm"] == s["max_depth_mm"]
+    assert ins["max_tip_depth_mm"] == s["max_tip_depth_mm"]
     assert ins["depth_verdict"] == ("too deep" if ins["max_depth_mm"] > 20 else "in range")
     text = live.stdout
     for p in s["punctures"]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import statistics
 import subprocess
 import sys
@@ -408,3 +409,26 @@ def test_cli_bad_parameters(tmp_path, args, needle):
 def test_cli_subjective_and_delphi_are_exclusive(tmp_path):
     p = run_cli(EXAMPLE_RATINGS, "--subjective", "a.csv", "--delphi", "b.csv")
     assert p.returncode == 2 and "not allowed with" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_cli_writes_numbers_without_float_noise(tmp_path):
+    """Issue 16: the example's MSM soft-tissue mean E is 7.89 (the mean of its ratings, two
+    decimals each), written as 7.89, not 7.890000000000001; no number in the outputs carries more
+    than 15 significant digits, and each still equals the exact value within 1e-11 of it."""
+    out = tmp_path / "out"
+    p = run_cli(EXAMPLE_RATINGS, "--delphi", EXAMPLE_DELPHI, "--out", out)
+    assert p.returncode == 0, p.stderr
+    rows = read_csv_rows(EXAMPLE_RATINGS)
+    msm = [float(r["soft_tissue_material"]) for r in rows if r["system"] == "MSM"]
+    exact = statistics.fmean(msm)
+    text = (out / "weights.csv").read_text()
+    cell = next(r for r in read_csv_rows(out / "weights.csv")
+                if r["system"] == "MSM" and r["index"] == "soft_tissue_material")["mean_E"]
+    assert float(cell) == pytest.approx(exact, abs=1e-11)
+    assert cell == repr(round(exact, 10))  # "7.89", the mean as a person would write it
+    assert len(cell.replace(".", "").lstrip("0")) <= 15, cell
+    numbers = re.findall(r"\d+\.\d+(?:e-?\d+)?", text + (out / "scores.csv").read_text()
+                         + (out / "score.json").read_text())
+    assert numbers
+    long = [n for n in numbers if len(n.split("e")[0].replace(".", "").lstrip("0")) > 15]
+    assert not long, long[:5]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +19,7 @@ from haptic_acu.errors import UserError
 from haptic_acu.overrides import apply_overrides, parse_set
 from haptic_acu.samples import COL, NCOL
 from haptic_acu.status import format_status, loop_health
-from haptic_acu.viewer import NO_DISPLAY, has_display
+from haptic_acu.viewer import NO_DISPLAY, NO_DISPLAY_REPLAY, has_display
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -154,8 +155,14 @@ def test_spawn_without_display_is_one_line_at_once(tmp_path):
                   "--out", tmp_path / "s")):
         r = haptic_acu(*args, env=env, timeout=60)
         assert r.returncode == 2, r.stderr
-        assert r.stderr.strip().splitlines() == [f"haptic-acu {args[0]}: error: {NO_DISPLAY}"]
-        assert "--rrd FILE" in NO_DISPLAY and "--connect" in NO_DISPLAY
+        message = NO_DISPLAY_REPLAY if args[0] == "replay" else NO_DISPLAY
+        assert r.stderr.strip().splitlines() == [f"haptic-acu {args[0]}: error: {message}"]
+        # the alternatives it names are options of that very command (replay has no --rrd)
+        sub = build_parser(args[0])._subparsers._group_actions[0].choices[args[0]]
+        opts = {o for a in sub._actions for o in a.option_strings}
+        named = set(re.findall(r"--[a-z][a-z-]*", message)) - {"--spawn"}
+        assert "--connect" in named and named <= opts, (args[0], named - opts)
+    assert "--rrd FILE" in NO_DISPLAY and "recording.rrd" in NO_DISPLAY_REPLAY
     assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()
 
 
@@ -188,6 +195,28 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
     narrow = format_status(1.0, _row(layer=3, states=(2, 2, 2), clamped=1), RATES, 0, width=110,
                            last_puncture={"layer": "muscle", "peak_force_n": 1.9})
     assert "ON BONE" in narrow and "FORCE LIMIT" in narrow and "servo" not in narrow and len(narrow) <= 110
+
+
+def test_status_on_common_terminal_widths_keeps_what_the_trainee_acts_on():
+    """Issue 16's fields on a real terminal: the full line is over 200 columns, so what stays at 80
+    and 120 columns matters. Inside the tissue: the depth against the target and the force at 80
+    (and the speed at 100), the roll at 120; in the air: the position against the acupoint."""
+    r = _row(layer=2, states=(2, 2, 2), force=(0, 0, 0.3))
+    r[COL["depth_skin_m"]], r[COL["roll_deg"]], r[COL["torque_nmm"]] = 15.06e-3, 108.0, 0.039
+    extra = dict(ticks=7300, tip_depth_mm=15.06, target_mm=(15, 30), speed_set_mm_s=5.0,
+                 last_puncture={"layer": "muscle", "peak_force_n": 0.748})
+    full = format_status(7.3, r, RATES, 76, **extra)
+    for want in ("x +0.0 y +0.0 mm", "15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)", "roll +108 deg",
+                 "last puncture muscle 0.748 N", "host late 1.0%, missed 76", "servo 1000 Hz"):
+        assert want in full, want
+    for width, want in ((79, ("15.06 mm deep (target 15-30)", "|F| 0.30 N")),
+                        (99, ("15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)")),
+                        (119, ("15.06 mm deep (target 15-30)", "v 0.0 mm/s (set 5)", "roll +108 deg"))):
+        text = format_status(7.3, r, RATES, 76, width=width, **extra)
+        assert len(text) <= width and all(w in text for w in want), (width, text)
+        assert "servo" not in text  # the rates go first
+    air = format_status(1.0, _row(x_mm=1.25, y_mm=-0.5), RATES, 0, width=79, tip_depth_mm=-3.2, speed_set_mm_s=5.0)
+    assert "x +1.2 y -0.5 mm" in air and "air, 3.20 mm above skin" in air and len(air) <= 79
 
 
 def test_status_says_when_the_continuous_force_protection_eases_off():
