@@ -81,12 +81,15 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
         for line in failed_lines:
             progress.message(f"haptic-acu cohort: error: {line}")
 
+        line_of = {e.session: e.line for e in manifest.entries}
+
         def on_result(rec):
             records[rec["session"]] = rec
             if not rec.get("retry"):
                 cd.save(rec)
             if rec.get("error"):
-                progress.message(f"haptic-acu cohort: session '{rec['session']}' failed: {rec['error']}")
+                progress.message(f"haptic-acu cohort: error: {manifest.path}: line {line_of[rec['session']]}: "
+                                 f"session '{rec['session']}' failed: {rec['error']}")
             progress.update(failed=bool(rec.get("error")))
 
         t_run = time.perf_counter()

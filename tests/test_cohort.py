@@ -348,3 +348,17 @@ def test_session_files_on_request(cohort, tmp_path):
     assert summary["metrics"]["insertions"] == 1 and summary["trajectory"] == "known.csv"
     n_rows = len((folder / "samples.csv").read_text().splitlines()) - 1
     assert n_rows == summary["ticks"]
+
+
+def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
+    (tmp_path / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
+    man = tmp_path / "m.csv"
+    man.write_text("session,trainee,file\n"
+                   "g1,ann,garbled.csv\n"
+                   "gone,ann,missing.csv\n")
+    assert main(["cohort", str(man), "--out", str(tmp_path / "out"), "--jobs", "1", "--quiet"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and all(ln.startswith(f"haptic-acu cohort: error: {man}: line ") for ln in lines)
+    by_session = {("g1" if "'g1'" in ln else "gone"): ln for ln in lines}
+    assert "line 2:" in by_session["g1"] and "garbled.csv: line 3" in by_session["g1"]
+    assert "line 3:" in by_session["gone"] and "not found" in by_session["gone"]
