@@ -2,7 +2,8 @@
 ``report.json`` and two PNG figures. Statistics come from scipy.stats; nothing hand-rolled.
 
 Both work on the sessions table (one value per session: the mean over its insertions, see
-:mod:`haptic_acu.cohort_tables`); failed sessions and sessions without insertions are left out.
+:mod:`haptic_acu.cohort_tables`); failed sessions are left out. A session without an insertion has
+no value: it is left out of the level comparison and is a gap at its place on its trainee's curve.
 
 Learning curve (per trainee, per metric of :data:`REPORT_METRICS`): the trainee's sessions in
 order of ``date`` when every one of them has a date, else in manifest order; x is the session's
@@ -72,8 +73,11 @@ def learning_curves(rows: list[dict]) -> dict:
     from scipy import stats
 
     by_trainee: dict[str, list[dict]] = {}
-    for r in _usable(rows):
-        by_trainee.setdefault(r["trainee"], []).append(r)
+    # every session that ran keeps its place on the curve; one without an insertion (the skin never
+    # punctured) is a gap there, not a reason to shift the trainee's later sessions one place left
+    for r in rows:
+        if not r.get("error"):
+            by_trainee.setdefault(r["trainee"], []).append(r)
     out = {}
     for trainee, rs in by_trainee.items():
         rs = _ordered(rs)

@@ -350,6 +350,28 @@ def test_session_files_on_request(cohort, tmp_path):
     assert n_rows == summary["ticks"]
 
 
+def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
+    """A session without an insertion is a gap on its trainee's curve: the later sessions keep their
+    numbers, and the slope is fitted at those numbers."""
+    from haptic_acu.cohort_report import REPORT_METRICS, learning_curves
+
+    col = REPORT_METRICS[0][0]
+    rows = []
+    for k in range(1, 5):  # session 2 punctured no skin: no value; the others lie on y = 2 x + 1
+        value = None if k == 2 else 2.0 * k + 1
+        rows.append({"session": f"s{k}", "trainee": "a", "date": f"2026-02-0{k}", "error": "",
+                     "insertions": 0 if k == 2 else 1, col: value})
+    rows.append({"session": "failed", "trainee": "a", "date": "2026-02-05", "error": "boom", "insertions": None})
+    a = learning_curves(rows)["a"]
+    assert a["sessions"] == ["s1", "s2", "s3", "s4"]
+    assert a["days_since_first"] == [0.0, 1.0, 2.0, 3.0]
+    m = a["metrics"][col]
+    assert m["values"] == [3.0, None, 7.0, 9.0]
+    # at x = 1, 3, 4 the points are collinear: slope 2 (numbered 1, 2, 3 they would give 3)
+    assert m["theil_slope_per_session"] == pytest.approx(2.0)
+    assert m["spearman_rho"] == pytest.approx(1.0)
+
+
 def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
     (tmp_path / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
     man = tmp_path / "m.csv"
