@@ -372,6 +372,30 @@ def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
     assert m["spearman_rho"] == pytest.approx(1.0)
 
 
+def test_figure_axes_read_plain_values():
+    """A metric equal in every session up to rounding is drawn flat around its value with plain tick
+    labels, not as a range blown up to the axis (matplotlib's offset '1e-9+9.99999999e-1')."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from haptic_acu.cohort_report import readable_y
+
+    fig, (flat, spread) = plt.subplots(1, 2)
+    flat_values = [1.0, 0.999999999, 1.0, 0.999999999]
+    flat.plot(range(4), flat_values, "o")
+    readable_y(flat, flat_values)
+    spread.plot(range(3), [3.0, 5.0, 9.0], "o")
+    readable_y(spread, [3.0, 5.0, 9.0, None])
+    fig.canvas.draw()
+    lo, hi = flat.get_ylim()
+    assert lo < 0.96 and hi > 1.04 and flat.yaxis.get_offset_text().get_text() == ""
+    assert all("e" not in t.get_text() for t in flat.get_yticklabels())
+    lo, hi = spread.get_ylim()
+    assert lo <= 3.0 and hi >= 9.0 and hi - lo < 8.0  # a real spread keeps matplotlib's own limits
+    plt.close(fig)
+
+
 def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
     (tmp_path / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
     man = tmp_path / "m.csv"
