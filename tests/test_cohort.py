@@ -14,7 +14,6 @@ import pytest
 from haptic_acu.bench.cohort_bench import synthetic_cohort
 from haptic_acu.cli import main
 from haptic_acu.cohort import CohortDir, config_hash, read_manifest
-from haptic_acu.cohort_cmd import run_cohort
 from haptic_acu.cohort_tables import insertion_columns, session_columns
 from haptic_acu.config import load_config
 from haptic_acu.errors import UserError
@@ -188,17 +187,21 @@ def test_report_learning_curves_and_levels(cohort):
         assert (cohort["out"] / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_dask_cluster_gives_the_local_tables(cohort, tmp_path):
+def test_dask_cluster_gives_the_local_tables(cohort, tmp_path, capsys):
+    """The user's path: ``--scheduler tcp://HOST:PORT`` on the command line, to a cluster listening on
+    TCP (its workers threads of this process, to spare the test machine's cores)."""
     distributed = pytest.importorskip("distributed")
-    manifest = read_manifest(cohort["manifest"])
     before = set(multiprocessing.active_children())
     import dask
 
     with dask.config.set({"temporary-directory": str(tmp_path / "dask-scratch")}), \
-            distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as lc, \
-            distributed.Client(lc) as client:
-        rc = run_cohort(manifest, tmp_path / "dask", load_config(), scheduler=client, quiet=True)
+            distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp://",
+                                     dashboard_address=None) as lc:
+        address = lc.scheduler_address
+        assert address.startswith("tcp://")
+        rc = main(["cohort", str(cohort["manifest"]), "--out", str(tmp_path / "dask"), "--scheduler", address])
     assert rc == 2
+    assert f"on dask at {address}, 2 worker thread(s)" in capsys.readouterr().err
     a, b = tables(cohort["out"]), tables(tmp_path / "dask")
     for n in a:
         assert a[n].equals(b[n]), n
