@@ -51,11 +51,23 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
     worker start-up included) and ``total_s``."""
-    from . import cohort_report, cohort_tables
-    from .cohort import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
-    from .cohort_run import ProgressLine, connect, run_dask, run_local
+    from .cohort_run import connect
 
     stream = stream if stream is not None else sys.stderr
+    # reach the cluster before the output folder is made or locked: a wrong address leaves nothing
+    client = connect(scheduler) if isinstance(scheduler, str) else scheduler
+    try:
+        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files)
+    finally:
+        if isinstance(scheduler, str):
+            client.close()
+
+
+def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files) -> int:
+    from . import cohort_report, cohort_tables
+    from .cohort import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
+    from .cohort_run import ProgressLine, run_dask, run_local
+
     csha = config_hash(cfg)
     records, todo, failed_lines = {}, [], []
     t0 = time.perf_counter()
@@ -94,18 +106,13 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
 
         t_run = time.perf_counter()
         try:
-            if scheduler is None:
+            if client is None:
                 workers = jobs or max(1, len(os.sched_getaffinity(0)))
                 run_local(todo, workers, on_result)
                 where = f"local, {min(workers, max(1, len(todo)))} process(es)"
             else:
-                client = connect(scheduler) if isinstance(scheduler, str) else scheduler
                 where = f"dask at {client.scheduler.address}, {sum(client.nthreads().values())} worker thread(s)"
-                try:
-                    run_dask(todo, client, on_result)
-                finally:
-                    if isinstance(scheduler, str):
-                        client.close()
+                run_dask(todo, client, on_result)
         finally:
             progress.close()
         run_s = time.perf_counter() - t_run

@@ -411,3 +411,26 @@ def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
     by_session = {("g1" if "'g1'" in ln else "gone"): ln for ln in lines}
     assert "line 2:" in by_session["g1"] and "garbled.csv: line 3" in by_session["g1"]
     assert "line 3:" in by_session["gone"] and "not found" in by_session["gone"]
+
+
+@pytest.mark.parametrize("address, expect", [
+    ("localhost", "missing port number"),
+    ("tcp://scheduler:port", "expected tcp://HOST:PORT"),
+    ("tcp://scheduler:0", "a port in 1-65535"),
+])
+def test_bad_scheduler_address_one_line_nothing_made(tmp_path, address, expect):
+    """A malformed --scheduler is one line and exit 2 before any folder is made; the process ends
+    at once (a distributed Client made with it waited 40 s at exit and printed a traceback)."""
+    import subprocess
+    import sys
+
+    man = tmp_path / "m.csv"
+    man.write_text("session,trainee,file\ns1,ann,a.csv\n")
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "haptic_acu", "cohort", str(man), "--out", str(out),
+                        "--scheduler", address], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"haptic-acu cohort: error: --scheduler {address}: ")
+    assert expect in lines[0]
+    assert not out.exists()
