@@ -83,11 +83,13 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
                 failed_lines.append(msg)
                 continue
             rec = cd.load(e.session)
-            if not force and up_to_date(rec, isha, csha):
+            sdir = (out / "sessions" / record_name(e.session)[:-5]).resolve()
+            # asked for the session files: a session replayed earlier without them runs again
+            files_ok = not session_files or (sdir / "summary.json").is_file()
+            if not force and up_to_date(rec, isha, csha) and files_ok:
                 records[e.session] = rec
             else:
-                sdir = str((out / "sessions" / record_name(e.session)[:-5]).resolve()) if session_files else None
-                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, sdir))
+                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, str(sdir) if session_files else None))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
         progress = ProgressLine(len(todo), skipped, stream=stream, quiet=quiet)
         for line in failed_lines:

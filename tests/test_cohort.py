@@ -353,6 +353,23 @@ def test_session_files_on_request(cohort, tmp_path):
     assert n_rows == summary["ticks"]
 
 
+def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys):
+    """Sessions up to date but replayed without --session-files are replayed for their files when a
+    later run asks for them; a further run with it skips them again."""
+    man = tmp_path / "one.csv"
+    man.write_text(f"session,trainee,file\nknown,ann,{cohort['root'] / 'class' / 'known.csv'}\n")
+    out = tmp_path / "out"
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 0
+    assert not (out / "sessions").exists()
+    capsys.readouterr()
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--session-files"]) == 0
+    assert replayed_count(capsys.readouterr().err) == (1, 0)
+    (folder,) = (out / "sessions").iterdir()
+    assert (folder / "summary.json").is_file() and (folder / "samples.csv").is_file()
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--session-files"]) == 0
+    assert replayed_count(capsys.readouterr().err) == (0, 1)
+
+
 def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
     """A session without an insertion is a gap on its trainee's curve: the later sessions keep their
     numbers, and the slope is fitted at those numbers."""
