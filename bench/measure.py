@@ -187,3 +187,63 @@ def split_by_steal(errs_s, t0: float, dt: float, sampler: "StealSampler") -> dic
     if quiet.any():
         out["quiet_period_error_us"] = percentiles(np.abs(errs_s[quiet]), 1e6)
     return out
+
+
+@contextlib.contextmanager
+def sched_fifo(priority: int = 10):
+    """The calling thread at SCHED_FIFO ``priority`` (not inherited by children) while inside, as the
+    session's servo thread runs; yields whether the system allowed it, and restores the policy."""
+    prev = None
+    if hasattr(os, "sched_setscheduler"):
+        try:
+            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                                  os.sched_param(priority))
+        except OSError:
+            prev = None
+    try:
+        yield prev is not None
+    finally:
+        if prev is not None:
+            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
+
+
+def compiled_floor(duration_s: float, pin: bool = True) -> dict:
+    """The compiled real-time loop's own floor on this machine: :func:`haptic_acu.rtloop.floor_loop`
+    (the servo loop's timing rule with no work) for ``duration_s`` on a thread set up as ``run
+    --pin-cores`` sets the servo's (SCHED_FIFO where allowed; with ``pin``, alone on the
+    highest-numbered core, this process's other threads moved to the rest). Whatever it misses the
+    machine took: beside the servo loop's own count, the host's share of it."""
+    import threading
+
+    from haptic_acu import affinity, rtloop
+
+    rtloop.floor_loop(np.zeros(2, np.int64), 0, 1_000_000, np.zeros(1, np.int64))  # compiled before
+    n = max(1, int(round(duration_s * 1000)))
+    errs = np.zeros(n, np.int64)
+    out: dict = {}
+    cores = affinity.split() if pin else None
+
+    def run():
+        with sched_fifo() as fifo:
+            prev_cpus = affinity.pin_thread({cores[0]}) if cores else None
+            others = affinity.pin_other_threads(cores[1], threading.get_native_id()) if prev_cpus is not None else {}
+            try:
+                ts = np.zeros(2, np.int64)
+                t0 = rtloop.now_ns(ts) + 10_000_000
+                out.update(t0=t0 * 1e-9, fifo=fifo, pinned=prev_cpus is not None,
+                           missed=int(rtloop.floor_loop(ts, t0, 1_000_000, errs)))
+            finally:
+                affinity.restore_threads(others)
+                affinity.restore(prev_cpus)
+
+    with StealSampler() as steal:
+        th = threading.Thread(target=run, name="haptic-acu-floor")
+        th.start()
+        th.join()
+    ran = errs[errs >= 0] * 1e-9
+    late = np.where(errs >= 0, errs * 1e-9, 1.0)  # a skipped tick as a whole second late: missed
+    return {"duration_s": duration_s, "period_error_us": percentiles(ran, 1e6), "ticks": n,
+            "missed_ticks": out["missed"], "skipped_ticks": int(np.count_nonzero(errs < 0)),
+            "sched_fifo": out["fifo"], "pinned": out["pinned"],
+            "steal": split_by_steal(late, out["t0"], 1e-3, steal)}

@@ -399,6 +399,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
                                     "ticks": int(py["ticks"]), "missed_ticks": int(py["missed_ticks"]),
                                     "fault": py["fault"], "steal": py["steal"]}
     out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
+    out["compiled_floor"] = compiled_floor(sizes.loop_plain_s or 3.0, progress)
     return out
 
 
@@ -407,13 +408,6 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     if allowed, switch interval 0.2 ms) doing no work. Whatever tail it shows is the machine's (a
     virtual machine's CPU can be taken away for milliseconds), not the simulator's."""
     _log(progress, f"machine floor: a bare 1 kHz loop, {duration_s:.0f} s")
-    prev = None
-    if hasattr(os, "sched_setscheduler"):
-        try:
-            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
-            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(10))
-        except OSError:
-            prev = None
     old = sys.getswitchinterval()
     sys.setswitchinterval(2e-4)
     n = int(duration_s * 1000)
@@ -422,23 +416,29 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     steal = measure.StealSampler()
     steal.__enter__()
     try:
-        t0 = perf() + 0.01
-        for k in range(n):
-            d = t0 + k * 1e-3
-            r = d - perf()
-            if r > 4e-4:
-                time.sleep(r - 3e-4)
-            while perf() < d:
-                pass
-            errs[k] = perf() - d
+        with measure.sched_fifo():
+            t0 = perf() + 0.01
+            for k in range(n):
+                d = t0 + k * 1e-3
+                r = d - perf()
+                if r > 4e-4:
+                    time.sleep(r - 3e-4)
+                while perf() < d:
+                    pass
+                errs[k] = perf() - d
     finally:
         steal.__exit__(None, None, None)
         sys.setswitchinterval(old)
-        if prev is not None:
-            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
     return {"duration_s": duration_s, "period_error_us": percentiles(errs, 1e6), "ticks": n,
             "missed_ticks": int(np.count_nonzero(errs > 1e-3)),
             "steal": measure.split_by_steal(errs, t0, 1e-3, steal)}
+
+
+def compiled_floor(duration_s: float, progress=False) -> dict:
+    """The compiled loop's floor (:func:`measure.compiled_floor`): its timing rule with no work, alone
+    on the servo's core as ``--pin-cores`` runs it."""
+    _log(progress, f"machine floor: the compiled loop's timing with no work, pinned, {duration_s:.0f} s")
+    return measure.compiled_floor(duration_s)
 
 
 # ---- the OMNI, through the HD API emulator ----------------------------------------------------------
@@ -848,7 +848,7 @@ def targets(res: dict) -> list[dict]:
 REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_us", "servo_compiled_us",
                  "servo_tick_sweeps_us", "net_table_build",
                  "servo_tick_numpy_us", "speedup_vs_numpy", "loop_period_error_us", "ticks", "missed_ticks",
-                 "loop_no_rerun", "machine_floor", "shf_eval_ms", "shf_fit_ms",
+                 "loop_no_rerun", "machine_floor", "compiled_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes",
                  "cohort", "first_run_s")
@@ -933,6 +933,27 @@ def _prow(lines: list, label: str, p) -> None:
         lines.append(f"{label:46s} " + " ".join(f"{_fmt(p[k]):>9s}" for k in ("p50", "p99", "p999", "max")))
 
 
+def _loop_row(lines: list, r, label: str, extra: str = "") -> None:
+    """One loop's period-error row (``label`` with ``{s}``: its seconds), its tick count, and the
+    host's stolen-CPU line (nothing if the loop was not run)."""
+    if not r:
+        return
+    _prow(lines, label.format(s=f"{r['duration_s']:.0f}"), r["period_error_us"])
+    lines.append(f"  {r['ticks']} ticks, {r['missed_ticks']} missed"
+                 + ("" if r.get("pinned", True) else " (pinning refused: ran unpinned)") + extra
+                 + (f"; STOPPED: {r['fault']}" if r.get("fault") else ""))
+    _steal_line(lines, r.get("steal"))
+
+
+def _share(loop, floor) -> str:
+    """The pinned loop's misses beside its floor's (per 10,000 ticks): how many the session adds."""
+    if not loop or not loop.get("ticks") or not floor.get("ticks"):
+        return ""
+    a = 1e4 * loop["missed_ticks"] / loop["ticks"]
+    b = 1e4 * floor["missed_ticks"] / floor["ticks"]
+    return f"; per 10,000 ticks: the pinned session {a:.1f}, this floor {b:.1f}"
+
+
 def _steal_line(lines: list, st) -> None:
     """The host's stolen-CPU line under a loop row (nothing if not measured)."""
     if not st or not st.get("available") or "steal_share" not in st:
@@ -983,37 +1004,16 @@ def _table_loops(res: dict, lines: list) -> None:
                  f"SCHED_FIFO: {'yes' if lp['sched_fifo'] else 'no'}"
                  + (f"; STOPPED: {lp['fault']}" if lp["fault"] else ""))
     _steal_line(lines, res.get("loop_steal"))
-    lnr = res.get("loop_no_rerun")
-    if lnr:
-        prow(f"  same, {lnr['duration_s']:.0f} s without rerun logging (us)", lnr["period_error_us"])
-        lines.append(f"  {lnr['ticks']} ticks, {lnr['missed_ticks']} missed"
-                     + (f"; STOPPED: {lnr['fault']}" if lnr["fault"] else ""))
-        _steal_line(lines, lnr.get("steal"))
-    lip = res.get("loop_rerun_in_process")
-    if lip:
-        prow(f"  same, {lip['duration_s']:.0f} s, rerun logging in this process (us)", lip["period_error_us"])
-        lines.append(f"  {lip['ticks']} ticks, {lip['missed_ticks']} missed"
-                     + (f"; STOPPED: {lip['fault']}" if lip["fault"] else ""))
-        _steal_line(lines, lip.get("steal"))
-    lpin = res.get("loop_pinned")
-    if lpin:
-        prow(f"  same, {lpin['duration_s']:.0f} s, servo thread and logging child pinned apart (us)",
-             lpin["period_error_us"])
-        lines.append(f"  {lpin['ticks']} ticks, {lpin['missed_ticks']} missed"
-                     + ("" if lpin["pinned"] else " (pinning refused: ran unpinned)")
-                     + (f"; STOPPED: {lpin['fault']}" if lpin["fault"] else ""))
-        _steal_line(lines, lpin.get("steal"))
-    lps = res.get("loop_python_servo")
-    if lps:
-        prow(f"  same, {lps['duration_s']:.0f} s, servo loop in Python instead (us)", lps["period_error_us"])
-        lines.append(f"  {lps['ticks']} ticks, {lps['missed_ticks']} missed"
-                     + (f"; STOPPED: {lps['fault']}" if lps["fault"] else ""))
-        _steal_line(lines, lps.get("steal"))
+    for key, what in (("loop_no_rerun", "without rerun logging"), ("loop_rerun_in_process", "rerun logging in this process"),
+                      ("loop_pinned", "servo thread and logging child pinned apart"),
+                      ("loop_python_servo", "servo loop in Python instead")):
+        _loop_row(lines, res.get(key), f"  same, {{s}} s, {what} (us)")
     mf = res.get("machine_floor")
-    if mf:
-        prow(f"  machine floor: bare Python 1 kHz loop, {mf['duration_s']:.0f} s (us)", mf["period_error_us"])
-        lines.append(f"  {mf['ticks']} ticks, {mf['missed_ticks']} missed (the host's share of any tail)")
-        _steal_line(lines, mf.get("steal"))
+    _loop_row(lines, mf, "  machine floor: bare Python 1 kHz loop, {s} s (us)", " (the host's share of any tail)")
+    cf = res.get("compiled_floor")
+    if cf:
+        _loop_row(lines, cf, "  machine floor: compiled loop timing, no work, pinned, {s} s (us)",
+                  f", SCHED_FIFO: {'yes' if cf['sched_fifo'] else 'no'}" + _share(res.get("loop_pinned"), cf))
     om = res.get("omni_loop")
     if om:
         for servo in ("compiled", "python"):

@@ -1,8 +1,8 @@
 """CPU pinning for a live session (Linux ``sched_setaffinity``): the servo thread alone on one core,
 the rerun logging child and every other thread of the session's process on the others, so neither
-the logger's bursts nor the visual loop, the feed or the recorder can take the servo's core (issue
-13: with the logging child the compiled loop missed 12 ticks in 30 s, without it none in 10 s; a
-10-minute soak with only the servo thread and the child pinned still missed 135 ticks).
+the logger's bursts nor the visual loop, the feed or the recorder can take the servo's core. What
+the machine itself still takes is measured by the compiled loop's floor (``bench.measure.compiled_floor``:
+the same pinning and timing with no work); the README's Pinning paragraph has the figures.
 
 Used by :class:`haptic_acu.engine.Session` when ``pin_cores`` is on; a host with one usable core,
 or without ``sched_setaffinity``, runs unpinned (:func:`split` returns None).

@@ -151,6 +151,34 @@ def skip_ahead(ctl, timing, k, k_limit, late, period_ns, skip_after):
 
 
 @nb.njit(cache=True, nogil=True)
+def floor_loop(ts, t0_ns, period_ns, errs):
+    """The host's floor for :func:`servo_loop`: its timing rule (:func:`wait_until`, a stall of more
+    than 10 periods skipping to the present) for ``len(errs)`` ticks with no work at all. ``errs[k]``:
+    tick k's lateness (ns; -1 for a skipped tick). Returns the ticks :func:`servo_loop` would count
+    missed (later than a period, or skipped). Whatever this loop misses, the machine took."""
+    n = errs.shape[0]
+    missed = 0
+    k = 0
+    while k < n:
+        deadline = t0_ns + k * period_ns
+        late = wait_until(ts, deadline) - deadline
+        if late > 10 * period_ns:
+            skip = min(late // period_ns, n - k)
+            for j in range(k, k + skip):
+                errs[j] = -1
+            missed += skip
+            k += skip
+            if k >= n:
+                break
+            late -= skip * period_ns
+        errs[k] = late
+        if late > period_ns:
+            missed += 1
+        k += 1
+    return missed
+
+
+@nb.njit(cache=True, nogil=True)
 def stop_reason(ctl, k, k_limit):
     """The status that ends the loop before tick ``k``, or RUNNING."""
     if k >= k_limit:

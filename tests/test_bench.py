@@ -294,6 +294,10 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         assert set(m["buzz_n"]) == {"insert", "hold"} and all(0 <= v < 0.05 for v in m["buzz_n"].values())
         assert m["punctures"] and all(p["min_within_20ms_n"] <= 0.5 * p["before_n"] for p in m["punctures"])
     assert "closed loop (45 g stylus" in table and res["loop_pinned"]["ticks"] > 0
+    cf = res["compiled_floor"]  # the compiled loop's timing with no work: as long as the plain loop
+    assert cf["ticks"] == 200 and 0 <= cf["skipped_ticks"] <= cf["missed_ticks"] <= cf["ticks"]
+    assert cf["period_error_us"]["n"] == cf["ticks"] - cf["skipped_ticks"]
+    assert "machine floor: compiled loop timing, no work, pinned" in table
     out = tmp_path / "bench.json"
     run.write_json(res, out)
     assert set(json.loads(out.read_text())) == set(res)

@@ -319,3 +319,32 @@ def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tiss
     t_reset = min(float(ln.split(",", 1)[0]) for ln in out[1:] if ln.endswith(",reset"))
     k = int(np.ceil(t_reset / 1e-3 - 1e-9))
     assert dev.events == [(k, "reset")]
+
+
+def _floor_identity(errs, period_ns, missed):
+    """The floor's count is the servo loop's rule: every skipped tick, and every tick run later than
+    a period; a tick that ran is never more than the skip threshold (10 periods) late."""
+    assert np.all(errs >= -1)
+    ran = errs[errs >= 0]
+    assert np.all(ran <= 10 * period_ns)
+    assert missed == int((errs == -1).sum()) + int((ran > period_ns).sum())
+
+
+def test_the_floor_loop_counts_missed_ticks_as_the_servo_loop_does():
+    # 100 ns periods: every tick is late by many periods, so the loop skips again and again
+    ts = np.zeros(2, np.int64)
+    errs = np.zeros(3000, np.int64)
+    missed = rtloop.floor_loop(ts, rtloop.now_ns(ts), 100, errs)
+    _floor_identity(errs, 100, missed)
+    assert (errs == -1).sum() > 0 and missed > 0
+
+
+def test_a_floor_loop_entered_50_ms_late_skips_those_ticks_then_keeps_time():
+    ts = np.zeros(2, np.int64)
+    errs = np.zeros(120, np.int64)
+    period = 1_000_000
+    missed = rtloop.floor_loop(ts, rtloop.now_ns(ts) - 50 * period, period, errs)
+    _floor_identity(errs, period, missed)
+    assert np.all(errs[:50] == -1)  # the ticks whose deadlines had passed before it started
+    assert missed >= 50
+    assert (errs[50:] >= 0).mean() > 0.5  # then it keeps time (a host stall may skip a few more)

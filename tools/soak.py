@@ -2,12 +2,14 @@
 ``--rrd`` on the default insertion repeated for ``--minutes``, the resident memory of the session and
 of its rerun logging child sampled every ``--every`` seconds from /proc (issue 15's soak).
 
-    python tools/soak.py --minutes 10 [--every 10] [--out DIR] [--pin-cores]
+    python tools/soak.py --minutes 10 [--every 10] [--out DIR] [--pin-cores] [--floor]
 
 The session records (``<out>/session/recording.csv``) and logs to rerun (``session.rrd``) as a live
 trainee's session does; its own loop line (ticks, missed ticks, period error) is printed at the end
 beside the host's hypervisor steal over the run (/proc/stat), so the same run is the 10-minute
 zero-missed-tick measurement of issue 13 (``--pin-cores``: servo thread and logging child apart).
+``--floor`` then runs the compiled loop's floor for as long (``bench.measure.compiled_floor``: the
+same timing rule with no work, pinned alone on the servo's core): what the machine itself misses.
 
 Prints one line per sample (elapsed s, main MB, child MB) and a closing line with each process's
 first and last figure and its growth per minute over the second half of the run (the first minutes
@@ -79,6 +81,8 @@ def main() -> int:
     ap.add_argument("--every", type=float, default=10.0)
     ap.add_argument("--out", help="folder for the session's files (default: a temporary one)")
     ap.add_argument("--pin-cores", action="store_true", help="pass --pin-cores to the session")
+    ap.add_argument("--floor", action="store_true",
+                    help="then run the compiled loop's timing with no work, pinned, for as long")
     args = ap.parse_args()
     work = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="haptic-acu-soak-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -126,7 +130,23 @@ def main() -> int:
         if s:
             print(f"{name}: {s[0][1]:.1f} MB at {s[0][0]:.0f} s -> {s[-1][1]:.1f} MB at {s[-1][0]:.0f} s; "
                   f"second half {growth_per_min(s):+.2f} MB/min")
+    if args.floor:
+        floor(args.minutes * 60.0)
     return proc.returncode
+
+
+def floor(seconds: float) -> None:
+    """The compiled loop's floor for ``seconds``, printed like the session's loop line."""
+    from haptic_acu.bench import measure
+
+    st0 = steal_jiffies()
+    r = measure.compiled_floor(seconds)
+    st1 = steal_jiffies()
+    pe = r["period_error_us"]
+    print(f"floor: {r['missed_ticks']} missed of {r['ticks']} ticks ({r['skipped_ticks']} skipped); period error "
+          f"p50 {pe['p50']:.1f} us, p99 {pe['p99']:.1f} us, p99.9 {pe['p999']:.1f} us, max {pe['max']:.0f} us; "
+          f"pinned {r['pinned']}, SCHED_FIFO {r['sched_fifo']}")
+    print(f"host: hypervisor steal {100.0 * (st1[0] - st0[0]) / max(1, st1[1] - st0[1]):.2f}% of CPU time over the floor")
 
 
 if __name__ == "__main__":
