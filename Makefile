@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench bench-cohort clean
 
 $(STAMP): pyproject.toml
 	@echo "installing haptic-acu and its dependencies into $(VENV) (a minute or two)..."
@@ -26,6 +26,13 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+
+# issue 17's cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
+# (both runs, tens of minutes on two cores; `make bench` measures only 8 ten-second sessions)
+bench-cohort: $(STAMP)
+	@mkdir -p runs
+	f=runs/bench-cohort-$$(date -u +%Y%m%dT%H%M%SZ).json; \
+	$(PY) -m haptic_acu.bench.cohort_bench --sessions 200 --duration 60 > $$f && cat $$f
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -51,11 +51,23 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
     worker start-up included) and ``total_s``."""
-    from . import cohort_report, cohort_tables
-    from .cohort import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
-    from .cohort_run import ProgressLine, connect, run_dask, run_local
+    from .cohort_run import connect
 
     stream = stream if stream is not None else sys.stderr
+    # reach the cluster before the output folder is made or locked: a wrong address leaves nothing
+    client = connect(scheduler) if isinstance(scheduler, str) else scheduler
+    try:
+        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files)
+    finally:
+        if isinstance(scheduler, str):
+            client.close()
+
+
+def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files) -> int:
+    from . import cohort_report, cohort_tables
+    from .cohort import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
+    from .cohort_run import ProgressLine, run_dask, run_local
+
     csha = config_hash(cfg)
     records, todo, failed_lines = {}, [], []
     t0 = time.perf_counter()
@@ -71,38 +83,38 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
                 failed_lines.append(msg)
                 continue
             rec = cd.load(e.session)
-            if not force and up_to_date(rec, isha, csha):
+            sdir = (out / "sessions" / record_name(e.session)[:-5]).resolve()
+            # asked for the session files: a session replayed earlier without them runs again
+            files_ok = not session_files or (sdir / "summary.json").is_file()
+            if not force and up_to_date(rec, isha, csha) and files_ok:
                 records[e.session] = rec
             else:
-                sdir = str((out / "sessions" / record_name(e.session)[:-5]).resolve()) if session_files else None
-                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, sdir))
+                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, str(sdir) if session_files else None))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
         progress = ProgressLine(len(todo), skipped, stream=stream, quiet=quiet)
         for line in failed_lines:
             progress.message(f"haptic-acu cohort: error: {line}")
+
+        line_of = {e.session: e.line for e in manifest.entries}
 
         def on_result(rec):
             records[rec["session"]] = rec
             if not rec.get("retry"):
                 cd.save(rec)
             if rec.get("error"):
-                progress.message(f"haptic-acu cohort: session '{rec['session']}' failed: {rec['error']}")
+                progress.message(f"haptic-acu cohort: error: {manifest.path}: line {line_of[rec['session']]}: "
+                                 f"session '{rec['session']}' failed: {rec['error']}")
             progress.update(failed=bool(rec.get("error")))
 
         t_run = time.perf_counter()
         try:
-            if scheduler is None:
+            if client is None:
                 workers = jobs or max(1, len(os.sched_getaffinity(0)))
                 run_local(todo, workers, on_result)
                 where = f"local, {min(workers, max(1, len(todo)))} process(es)"
             else:
-                client = connect(scheduler) if isinstance(scheduler, str) else scheduler
                 where = f"dask at {client.scheduler.address}, {sum(client.nthreads().values())} worker thread(s)"
-                try:
-                    run_dask(todo, client, on_result)
-                finally:
-                    if isinstance(scheduler, str):
-                        client.close()
+                run_dask(todo, client, on_result)
         finally:
             progress.close()
         run_s = time.perf_counter() - t_run

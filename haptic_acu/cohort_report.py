@@ -2,7 +2,8 @@
 ``report.json`` and two PNG figures. Statistics come from scipy.stats; nothing hand-rolled.
 
 Both work on the sessions table (one value per session: the mean over its insertions, see
-:mod:`haptic_acu.cohort_tables`); failed sessions and sessions without insertions are left out.
+:mod:`haptic_acu.cohort_tables`); failed sessions are left out. A session without an insertion has
+no value: it is left out of the level comparison and is a gap at its place on its trainee's curve.
 
 Learning curve (per trainee, per metric of :data:`REPORT_METRICS`): the trainee's sessions in
 order of ``date`` when every one of them has a date, else in manifest order; x is the session's
@@ -72,8 +73,11 @@ def learning_curves(rows: list[dict]) -> dict:
     from scipy import stats
 
     by_trainee: dict[str, list[dict]] = {}
-    for r in _usable(rows):
-        by_trainee.setdefault(r["trainee"], []).append(r)
+    # every session that ran keeps its place on the curve; one without an insertion (the skin never
+    # punctured) is a gap there, not a reason to shift the trainee's later sessions one place left
+    for r in rows:
+        if not r.get("error"):
+            by_trainee.setdefault(r["trainee"], []).append(r)
     out = {}
     for trainee, rs in by_trainee.items():
         rs = _ordered(rs)
@@ -144,8 +148,31 @@ def _axes_grid(n: int):
     return plt, fig, list(axes.flat)
 
 
+def readable_y(ax, values) -> None:
+    """Plain y tick labels (no offset such as ``1e-9+9.99999999e-1``) and, when the values (finite
+    ones of ``values``) barely differ, a span of 10% of their size (at least 0.1) around them: a
+    metric equal in every session reads as a flat line, not as a range blown up from rounding."""
+    ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+    v = np.asarray([x for x in values if x is not None], float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return
+    centre = 0.5 * (v.min() + v.max())
+    half = 0.05 * max(abs(centre), 1.0)
+    if v.max() - v.min() < 1e-6 * max(abs(centre), 1.0):
+        ax.set_ylim(centre - half, centre + half)
+
+
+def _session_axis_label(curves: dict) -> str:
+    dated = [c["days_since_first"] is not None for c in curves.values()]
+    if dated and all(dated):
+        return "session number (by date)"
+    return "session number (manifest order)" if not any(dated) else "session number (by date, else manifest order)"
+
+
 def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
     plt, fig, axes = _axes_grid(len(REPORT_METRICS))
+    xlabel = _session_axis_label(curves)
     many = len(curves) > 10
     cmap = plt.get_cmap("tab10")
     for ax, (col, label) in zip(axes, REPORT_METRICS):
@@ -162,8 +189,9 @@ def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
                 med = np.nanmedian(table, axis=0)
             ax.plot(np.arange(1, longest + 1), med, "-", color="k", lw=2, label="median over trainees")
         ax.set_title(label, fontsize=10)
-        ax.set_xlabel("session (in order)")
+        ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
+        readable_y(ax, table.ravel())
         if longest:
             ax.set_xticks(range(1, longest + 1, max(1, longest // 8)))
     handles, labels = axes[0].get_legend_handles_labels()
@@ -193,7 +221,9 @@ def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> Non
             note = f"\n{pair['a']} vs {pair['b']}: r_rb = {pair['rank_biserial']:+.2f}, p = {pair['p_value']:.2g}"
         ax.set_title(label + note, fontsize=9.5)
         ax.grid(alpha=0.3, axis="y")
-    fig.suptitle("Levels: per-session mean over insertions (box: quartiles; r_rb: rank-biserial, Mann-Whitney p)")
+        readable_y(ax, np.concatenate(data) if data else [])
+    fig.suptitle(f"Levels: per-session mean over insertions (box: quartiles; r_rb: rank-biserial effect size, "
+                 f"> 0 when {levels[0]} is higher; p: Mann-Whitney)")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

@@ -112,12 +112,30 @@ def _fill(submit, pending: Iterable[Job], inflight: set, limit: int) -> None:
         inflight.add(submit(replay_session, job))
 
 
+def scheduler_address(address: str) -> str:
+    """``address`` checked as ``PROTOCOL://HOST:PORT`` (``HOST:PORT`` means tcp); UserError otherwise.
+    Checked before a Client is made: a Client given a bad address fails, then its finaliser waits
+    40 s at exit and prints a traceback."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    full = address if "://" in address else f"tcp://{address}"
+    try:
+        _, location = parse_address(full, strict=True)
+        host, port = parse_host_port(location)
+    except ValueError as e:
+        raise UserError(f"--scheduler {address}: expected tcp://HOST:PORT ({e})") from None
+    if not host or not 0 < port < 65536:
+        raise UserError(f"--scheduler {address}: expected tcp://HOST:PORT with a port in 1-65535")
+    return full
+
+
 def connect(address: str, timeout_s: float = 20.0):
     """A ``distributed.Client`` to the scheduler at ``address``; UserError if it cannot be reached."""
     try:
         from distributed import Client
     except ImportError:
         raise UserError("--scheduler needs dask.distributed: pip install 'haptic-acu[cohort]'") from None
+    address = scheduler_address(address)
     try:
         return Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as e:

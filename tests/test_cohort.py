@@ -14,7 +14,6 @@ import pytest
 from haptic_acu.bench.cohort_bench import synthetic_cohort
 from haptic_acu.cli import main
 from haptic_acu.cohort import CohortDir, config_hash, read_manifest
-from haptic_acu.cohort_cmd import run_cohort
 from haptic_acu.cohort_tables import insertion_columns, session_columns
 from haptic_acu.config import load_config
 from haptic_acu.errors import UserError
@@ -188,17 +187,21 @@ def test_report_learning_curves_and_levels(cohort):
         assert (cohort["out"] / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_dask_cluster_gives_the_local_tables(cohort, tmp_path):
+def test_dask_cluster_gives_the_local_tables(cohort, tmp_path, capsys):
+    """The user's path: ``--scheduler tcp://HOST:PORT`` on the command line, to a cluster listening on
+    TCP (its workers threads of this process, to spare the test machine's cores)."""
     distributed = pytest.importorskip("distributed")
-    manifest = read_manifest(cohort["manifest"])
     before = set(multiprocessing.active_children())
     import dask
 
     with dask.config.set({"temporary-directory": str(tmp_path / "dask-scratch")}), \
-            distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as lc, \
-            distributed.Client(lc) as client:
-        rc = run_cohort(manifest, tmp_path / "dask", load_config(), scheduler=client, quiet=True)
+            distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp://",
+                                     dashboard_address=None) as lc:
+        address = lc.scheduler_address
+        assert address.startswith("tcp://")
+        rc = main(["cohort", str(cohort["manifest"]), "--out", str(tmp_path / "dask"), "--scheduler", address])
     assert rc == 2
+    assert f"on dask at {address}, 2 worker thread(s)" in capsys.readouterr().err
     a, b = tables(cohort["out"]), tables(tmp_path / "dask")
     for n in a:
         assert a[n].equals(b[n]), n
@@ -348,3 +351,103 @@ def test_session_files_on_request(cohort, tmp_path):
     assert summary["metrics"]["insertions"] == 1 and summary["trajectory"] == "known.csv"
     n_rows = len((folder / "samples.csv").read_text().splitlines()) - 1
     assert n_rows == summary["ticks"]
+
+
+def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys):
+    """Sessions up to date but replayed without --session-files are replayed for their files when a
+    later run asks for them; a further run with it skips them again."""
+    man = tmp_path / "one.csv"
+    man.write_text(f"session,trainee,file\nknown,ann,{cohort['root'] / 'class' / 'known.csv'}\n")
+    out = tmp_path / "out"
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 0
+    assert not (out / "sessions").exists()
+    capsys.readouterr()
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--session-files"]) == 0
+    assert replayed_count(capsys.readouterr().err) == (1, 0)
+    (folder,) = (out / "sessions").iterdir()
+    assert (folder / "summary.json").is_file() and (folder / "samples.csv").is_file()
+    assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--session-files"]) == 0
+    assert replayed_count(capsys.readouterr().err) == (0, 1)
+
+
+def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
+    """A session without an insertion is a gap on its trainee's curve: the later sessions keep their
+    numbers, and the slope is fitted at those numbers."""
+    from haptic_acu.cohort_report import REPORT_METRICS, learning_curves
+
+    col = REPORT_METRICS[0][0]
+    rows = []
+    for k in range(1, 5):  # session 2 punctured no skin: no value; the others lie on y = 2 x + 1
+        value = None if k == 2 else 2.0 * k + 1
+        rows.append({"session": f"s{k}", "trainee": "a", "date": f"2026-02-0{k}", "error": "",
+                     "insertions": 0 if k == 2 else 1, col: value})
+    rows.append({"session": "failed", "trainee": "a", "date": "2026-02-05", "error": "boom", "insertions": None})
+    a = learning_curves(rows)["a"]
+    assert a["sessions"] == ["s1", "s2", "s3", "s4"]
+    assert a["days_since_first"] == [0.0, 1.0, 2.0, 3.0]
+    m = a["metrics"][col]
+    assert m["values"] == [3.0, None, 7.0, 9.0]
+    # at x = 1, 3, 4 the points are collinear: slope 2 (numbered 1, 2, 3 they would give 3)
+    assert m["theil_slope_per_session"] == pytest.approx(2.0)
+    assert m["spearman_rho"] == pytest.approx(1.0)
+
+
+def test_figure_axes_read_plain_values():
+    """A metric equal in every session up to rounding is drawn flat around its value with plain tick
+    labels, not as a range blown up to the axis (matplotlib's offset '1e-9+9.99999999e-1')."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from haptic_acu.cohort_report import readable_y
+
+    fig, (flat, spread) = plt.subplots(1, 2)
+    flat_values = [1.0, 0.999999999, 1.0, 0.999999999]
+    flat.plot(range(4), flat_values, "o")
+    readable_y(flat, flat_values)
+    spread.plot(range(3), [3.0, 5.0, 9.0], "o")
+    readable_y(spread, [3.0, 5.0, 9.0, None])
+    fig.canvas.draw()
+    lo, hi = flat.get_ylim()
+    assert lo < 0.96 and hi > 1.04 and flat.yaxis.get_offset_text().get_text() == ""
+    assert all("e" not in t.get_text() for t in flat.get_yticklabels())
+    lo, hi = spread.get_ylim()
+    assert lo <= 3.0 and hi >= 9.0 and hi - lo < 8.0  # a real spread keeps matplotlib's own limits
+    plt.close(fig)
+
+
+def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
+    (tmp_path / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
+    man = tmp_path / "m.csv"
+    man.write_text("session,trainee,file\n"
+                   "g1,ann,garbled.csv\n"
+                   "gone,ann,missing.csv\n")
+    assert main(["cohort", str(man), "--out", str(tmp_path / "out"), "--jobs", "1", "--quiet"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and all(ln.startswith(f"haptic-acu cohort: error: {man}: line ") for ln in lines)
+    by_session = {("g1" if "'g1'" in ln else "gone"): ln for ln in lines}
+    assert "line 2:" in by_session["g1"] and "garbled.csv: line 3" in by_session["g1"]
+    assert "line 3:" in by_session["gone"] and "not found" in by_session["gone"]
+
+
+@pytest.mark.parametrize("address, expect", [
+    ("localhost", "missing port number"),
+    ("tcp://scheduler:port", "expected tcp://HOST:PORT"),
+    ("tcp://scheduler:0", "a port in 1-65535"),
+])
+def test_bad_scheduler_address_one_line_nothing_made(tmp_path, address, expect):
+    """A malformed --scheduler is one line and exit 2 before any folder is made; the process ends
+    at once (a distributed Client made with it waited 40 s at exit and printed a traceback)."""
+    import subprocess
+    import sys
+
+    man = tmp_path / "m.csv"
+    man.write_text("session,trainee,file\ns1,ann,a.csv\n")
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "haptic_acu", "cohort", str(man), "--out", str(out),
+                        "--scheduler", address], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"haptic-acu cohort: error: --scheduler {address}: ")
+    assert expect in lines[0]
+    assert not out.exists()
