@@ -50,6 +50,7 @@ from haptic_acu.errors import UserError
 
 from . import measure, scenarios
 from .measure import percentiles, ratio, time_calls
+from haptic_acu.sink import Sink
 
 BLOCK = 25  # ticks per compiled block in the "compiled" servo timing
 
@@ -294,7 +295,7 @@ def looped_trajectory(src, dst, min_duration_s: float) -> float:
     return copies * period - (t[1] - t[0])
 
 
-class _DentProbe:
+class _DentProbe(Sink):
     """The visual loop's dent evaluation without rerun: reads every live dent grid each frame (the
     rerun sink does the same before logging them)."""
 

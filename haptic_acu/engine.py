@@ -72,6 +72,7 @@ from .needle import NeedleModel
 from .servostate import FREE, N_LAYERS, N_SLOTS, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing, net_index
 from .servotick import SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
 from .samples import NCOL, SampleRing
+from .sink import Sink
 from .springback import Springback
 
 
@@ -181,6 +182,9 @@ class Session:
         self.cfg = cfg
         self.device = device
         self.sinks = list(sinks)
+        for s in self.sinks:
+            if not isinstance(s, Sink):
+                raise TypeError(f"a session's outputs are haptic_acu.sink.Sink subclasses, got {type(s).__name__}")
         self.clock = clock
         self.duration_s = duration_s
         self.model = model if model is not None else NeedleModel(cfg)
@@ -268,8 +272,7 @@ class Session:
         from .springback import springback_step
         springback_step(self.model.x[0].copy(), self.model.X0[0].copy(), 1, 1.0, np.zeros_like(self.model.x[0]))
         for s in self.sinks:
-            if hasattr(s, "warm_up"):
-                s.warm_up()
+            s.warm_up()
         self._warm = True
 
     def _python_ticks(self) -> bool:
@@ -393,8 +396,7 @@ class Session:
         if not self._warm:
             self.warm_up()
         for s in self.sinks:
-            if hasattr(s, "start"):
-                s.start({"config": self.cfg, "model": self.model, "device": self.device.info, "clock": self.clock})
+            s.start({"config": self.cfg, "model": self.model, "device": self.device.info, "clock": self.clock})
         old_handlers = self._install_signals()
         wall0 = time.perf_counter()
         try:
@@ -427,12 +429,11 @@ class Session:
         file (a full disk) is a fault of the session if none was reported yet, never an exception."""
         result = SessionResult(self.tick, self._t_session, self.fault, self._stats(time.perf_counter() - wall0))
         for s in self.sinks:
-            if hasattr(s, "close"):
-                try:
-                    s.close(result)
-                except Exception as e:
-                    if self.fault is None:
-                        self._set_fault(f"closing the outputs: {e}")
+            try:
+                s.close(result)
+            except Exception as e:
+                if self.fault is None:
+                    self._set_fault(f"closing the outputs: {e}")
         if result.fault != self.fault:
             result = SessionResult(result.ticks, result.duration_s, self.fault, result.stats)
         return result
@@ -528,8 +529,7 @@ class Session:
         cores = affinity.split() if self.pin_cores and self.clock == "realtime" else None
         if cores:
             for s in self.sinks:
-                if hasattr(s, "pin"):
-                    s.pin(cores[1])
+                s.pin(cores[1])
         return cores
 
     def _pin_device_servo(self) -> None:

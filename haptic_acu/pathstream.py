@@ -24,6 +24,7 @@ import tempfile
 import numpy as np
 
 from .samples import COL
+from .sink import Sink
 
 BLOCK = 65_536  # rows per block of the filter's passes (1.6 MB of float64 x, y, z)
 TRACK_COLUMNS = ("t_s", "x_m", "y_m", "z_m", "state_skin", "depth_skin_m")  # a track's row: sample columns
@@ -33,7 +34,7 @@ _W = len(_COLS)
 _T, _X, _STATE, _DEPTH = TCOL["t_s"], TCOL["x_m"], TCOL["state_skin"], TCOL["depth_skin_m"]
 
 
-class TrackFile:
+class TrackFile(Sink):
     """Frame sink: per row t_s, x, y, z (m), state_skin, depth_skin_m, on disk (module docstring)."""
 
     def __init__(self):

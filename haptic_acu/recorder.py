@@ -26,6 +26,7 @@ import numpy as np
 from .errors import UserError
 from .samples import COL
 from .trajectory import AXIS_COLUMNS, EVENT_COLUMN, EVENT_CODES, LAYER_CODES, ROLL_COLUMN, STATE_CODES, TrajectoryWriter
+from .sink import Sink
 
 EXTRA = ("fx_n", "fy_n", "fz_n", "layer", "state_skin", "state_fat", "state_muscle", "depth_mm",
          "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to the device (0 without one)
@@ -63,7 +64,7 @@ def check_target(path, overwrite: bool = False, inputs=()) -> Path:
     return p
 
 
-class RecorderSink:
+class RecorderSink(Sink):
     """Records a session to ``path``. ``device`` (optional) may list ``events`` as (tick, name)
     pairs (the keyboard's resets); they become the ``event`` column of those ticks' rows."""
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from .bundled import bundled_dir
 from .config import load_config
 from .errors import UserError
+from .sink import Sink
 
 BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
@@ -145,7 +146,7 @@ class OutputFolder:
             self._fd = None
 
 
-class Progress:
+class Progress(Sink):
     """A percentage on stderr (a sink: called per visual frame): rewritten in place on a terminal;
     elsewhere (a pipe, a log) a plain line every 25 %, once the replay has taken over a second."""
 
@@ -187,25 +188,43 @@ class _IOErrors:
     def __init__(self):
         self.error: str | None = None
 
-    def guard(self, sink):
-        errors = self
+    def guard(self, sink: Sink) -> Sink:
+        return _Guarded(sink, self)
 
-        class Guarded:
-            def __getattr__(self, name):
-                attr = getattr(sink, name)
-                if name not in ("on_frame", "close", "start"):
-                    return attr
+    def remember(self, e: OSError) -> None:
+        if self.error is None:
+            self.error = f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}"
 
-                def call(*a, **kw):
-                    try:
-                        return attr(*a, **kw)
-                    except OSError as e:
-                        if errors.error is None:
-                            errors.error = f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}"
-                        raise
-                return call
 
-        return Guarded()
+class _Guarded(Sink):
+    """``sink`` with the first OSError of its start, on_frame or close remembered by ``errors``
+    (then raised on, for the engine to report as the session's fault)."""
+
+    def __init__(self, sink: Sink, errors: _IOErrors):
+        self.sink = sink
+        self.errors = errors
+
+    def warm_up(self) -> None:
+        self.sink.warm_up()
+
+    def pin(self, cores) -> bool:
+        return self.sink.pin(cores)
+
+    def start(self, info: dict) -> None:
+        self._call(self.sink.start, info)
+
+    def on_frame(self, frame) -> None:
+        self._call(self.sink.on_frame, frame)
+
+    def close(self, result=None) -> None:
+        self._call(self.sink.close, result)
+
+    def _call(self, method, arg) -> None:
+        try:
+            method(arg)
+        except OSError as e:
+            self.errors.remember(e)
+            raise
 
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
@@ -306,7 +325,7 @@ def replay_rows(trajectory, cfg, roll: bool = True):
     return None if result.fault else sink.rows()
 
 
-class _Forces:
+class _Forces(Sink):
     """Frame sink keeping per row only its tick and force (the grasp felt's reference)."""
 
     def __init__(self):

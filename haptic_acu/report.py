@@ -25,6 +25,7 @@ import numpy as np
 
 from .samples import COL, NCOL
 from .servostate import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
+from .sink import Sink
 
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
@@ -155,7 +156,7 @@ class SessionScan:
         return found
 
 
-class SummarySink:
+class SummarySink(Sink):
     """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
 
     With ``keep_rows=False`` (what replay and run use) no row is kept: the trainee metrics are
@@ -707,7 +708,7 @@ CSV_FIELDS = ("tick",) + tuple(h for h, *_ in _CSV_NUMERIC) + (
     "puncture", "clamped", "fault")
 
 
-class SamplesCsvSink:
+class SamplesCsvSink(Sink):
     """Writes every servo row to ``samples.csv`` as it arrives (flushed once per frame).
 
     Columns (:data:`CSV_FIELDS`): ``tick``; ``t_s``; tip position ``x_mm, y_mm, z_mm``; force on the

@@ -50,6 +50,7 @@ from .samples import COL
 from .tissue import grid_triangles
 from .twirl import twist_direction
 from .servostate import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, net_layer, net_slot
+from .sink import Sink
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -168,7 +169,7 @@ def lattice_rows(lat, n: int) -> list[np.ndarray]:
     return rows
 
 
-class RerunSink:
+class RerunSink(Sink):
     """Frame sink that logs a session to rerun. Build it with :meth:`to_file`, :meth:`spawn`,
     :meth:`connect` or :meth:`from_spec`; the engine then calls ``warm_up``, ``start``, ``on_frame``
     (visual thread) and ``close``. ``frame_cost_s`` and ``frame_cpu_s`` keep the wall and thread CPU

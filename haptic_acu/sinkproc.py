@@ -19,6 +19,7 @@ import traceback
 from dataclasses import dataclass, field
 
 import numpy as np
+from .sink import Sink
 
 
 @dataclass
@@ -87,8 +88,7 @@ def _child(conn, module: str, cls: str, ctor: str, args: tuple, env: dict | None
             msg = conn.recv()
             kind = msg[0]
             if kind == "warm_up":
-                if hasattr(sink, "warm_up"):
-                    sink.warm_up()
+                sink.warm_up()
                 conn.send(("ready",))
             elif kind == "start":
                 info = dict(msg[1])
@@ -104,7 +104,7 @@ def _child(conn, module: str, cls: str, ctor: str, args: tuple, env: dict | None
                 conn.send(("closed",))
                 return
     except EOFError:  # the parent went away: finish what we can
-        if sink is not None and hasattr(sink, "close"):
+        if sink is not None:
             try:
                 sink.close(None)
             except Exception:
@@ -118,7 +118,7 @@ def _child(conn, module: str, cls: str, ctor: str, args: tuple, env: dict | None
             pass
 
 
-class ProcessSink:
+class ProcessSink(Sink):
     """A sink that runs ``module.cls.ctor(*args)`` (or ``cls(*args)``) in a child process."""
 
     def __init__(self, module: str, cls: str, ctor: str | None, *args, close_timeout_s: float = 120.0,

@@ -42,6 +42,7 @@ import numpy as np
 from .config import LAYER_NAMES
 from .samples import COL
 from .servostate import PLACE_NAMES
+from .sink import Sink
 
 _STATE_SHORT = ("-", "press", "punct")  # short forms of servostate.STATE_NAMES
 _PLACE = {i - 1: name for i, name in enumerate(PLACE_NAMES)}  # the DIAG.layer values (-1 air ... 3 bone)
@@ -140,7 +141,7 @@ def format_status(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     return text[:width]
 
 
-class StatusLine:
+class StatusLine(Sink):
     """Status-line sink writing to ``stream`` (default stderr). See the module doc."""
 
     def __init__(self, stream=None, force: bool = False, max_hz: float = 10.0, target_mm=None,

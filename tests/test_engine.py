@@ -33,6 +33,7 @@ from haptic_acu.errors import DeviceFault
 from haptic_acu.needle import NeedleModel
 from haptic_acu.recorder import EXTRA, RecorderSink
 from haptic_acu.tissue import Tissue
+from haptic_acu.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -123,7 +124,7 @@ class PressDevice(Device):
         self.forces.append(f)
 
 
-class Counter:
+class Counter(Sink):
     """A sink counting rows and calls."""
 
     def __init__(self):
@@ -145,7 +146,7 @@ class Counter:
         self.result = result
 
 
-class Bomb:
+class Bomb(Sink):
     """A sink that raises from its ``at``-th frame on (a broken renderer)."""
 
     def __init__(self, at=5):
@@ -418,3 +419,23 @@ def test_recorder_keeps_only_rows_later_than_all_before_them(tmp_path):
     tr = recorded(rec)
     np.testing.assert_allclose(tr.t_s, [t for t, _ in expected], rtol=0, atol=1e-9)
     np.testing.assert_allclose(tr.pos_m[:, 2], [z for _, z in expected], rtol=0, atol=6e-8)  # file: 0.1 um
+
+
+def test_a_session_takes_only_declared_sinks_and_a_sink_overrides_only_what_it_needs(cfg, tissue):
+    class OnlyFrames:  # the old duck-typed shape: on_frame and nothing else
+        def on_frame(self, frame):
+            pass
+
+    with pytest.raises(TypeError, match="OnlyFrames"):
+        session(cfg, tissue, PressDevice(), [OnlyFrames()])
+
+    class Frames(Sink):  # the same, declared: the base supplies warm_up, pin, start and close
+        def __init__(self):
+            self.rows = 0
+
+        def on_frame(self, frame):
+            self.rows += len(frame.samples)
+
+    sink = Frames()
+    res = session(cfg, tissue, PressDevice(), [sink], clock="sim", duration_s=0.05).run()
+    assert res.fault is None and sink.rows == res.ticks > 0

@@ -15,6 +15,7 @@ from haptic_acu.metrics import session_metrics
 from haptic_acu.samples import COL, NCOL
 
 from physics_helpers import replace, sphere_config, sphere_tissue
+from haptic_acu.sink import Sink
 
 ROOT = Path(__file__).resolve().parent.parent
 DT = 1e-3  # s, one servo tick
@@ -354,7 +355,7 @@ def bundled(cfg):
 
     tissue = Tissue.from_config(cfg)
 
-    class Collect:
+    class Collect(Sink):
         def __init__(self):
             self.rows = []
 

@@ -26,6 +26,7 @@ from haptic_acu.servotick import call_driver, tick_table
 from haptic_acu.samples import COL
 from haptic_acu.tissue import Tissue
 from haptic_acu.trajectory import TrajectoryWriter
+from haptic_acu.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -41,7 +42,7 @@ def tissue(cfg):
     return Tissue.from_config(cfg)
 
 
-class Rows:
+class Rows(Sink):
     """A sink keeping every drained row."""
 
     def __init__(self):

@@ -17,6 +17,7 @@ from haptic_acu import twirl
 from haptic_acu.config import load_config
 from haptic_acu.needle import NeedleModel
 from haptic_acu.samples import COL
+from haptic_acu.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 1e-3
@@ -203,7 +204,7 @@ def test_bundled_twirls_replay_with_their_roll(cfg, name):
     from haptic_acu.engine import Session
     from haptic_acu import trajectory
 
-    class Keep:
+    class Keep(Sink):
         def __init__(self):
             self.rows = []
 
