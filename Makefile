@@ -28,7 +28,7 @@ bench: $(STAMP)
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
 
 # issue 17's cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
-# (both runs, tens of minutes on two cores; `make bench` measures only 8 ten-second sessions)
+# (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
 bench-cohort: $(STAMP)
 	@mkdir -p runs
 	f=runs/bench-cohort-$$(date -u +%Y%m%dT%H%M%SZ).json; \

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from haptic_acu.config import load_config
@@ -194,6 +194,8 @@ def test_response_stiffens_and_ring_w_grows_with_depth(cfg, layer):
 
 # ---- the per-tick solver: no explosion, no ringing, converges to the static solution ------------------
 @settings(max_examples=25, deadline=None)
+@example(w=4, spacing_mm=2.75, k_virtual=3.0, k_surface=1.0, pretension=0.0, depth_in_spacings=1.0, speed=0.5,
+         sweeps=1)  # a fast tip, one sweep a tick: the error crosses zero once and overshoots its first value
 @given(w=st.integers(2, 12),
        spacing_mm=st.floats(0.2, 5.0),
        k_virtual=st.floats(1e-3, 10.0),  # N/mm
@@ -222,8 +224,10 @@ def test_per_tick_solver_stays_finite_and_converges_to_static(w, spacing_mm, k_v
     static.solve(np.array([0.0, 0.0, -depth]), tol_m=1e-14, max_sweeps=200000)
     f_static = static.reaction()[2]
     assert f_static > 0
-    # the tip stops: ticking on converges to the static force, without ringing (the error never
-    # grows past its first value and crosses zero at most twice)
+    # the tip stops: ticking on converges to the static force, without ringing: the error crosses
+    # zero at most twice and never grows past its first value by more than 0.1% of the force (a
+    # Gauss-Seidel sweep lowers the net's energy, not each force component, so a single overshoot
+    # slightly past the first error is allowed; 0.1% is far below the ~7% force JND)
     tip = np.array([0.0, 0.0, -depth])
     err = []
     for _ in range(60000 // sweeps):
@@ -234,7 +238,7 @@ def test_per_tick_solver_stays_finite_and_converges_to_static(w, spacing_mm, k_v
     assert np.all(np.isfinite(net.xf))
     assert abs(err[-1]) <= 1e-6 * f_static, (err[-1], f_static)
     err = np.array(err)
-    assert np.abs(err).max() <= abs(err[0]) * (1 + 1e-9) + 1e-12 * f_static
+    assert np.abs(err).max() <= abs(err[0]) + 1e-3 * f_static
     signs = np.sign(err[np.abs(err) > 1e-6 * f_static])
     assert np.count_nonzero(np.diff(signs)) <= 2, err
     # and the static solution itself satisfies eq. 6
