@@ -98,6 +98,19 @@ del _l, _m
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _next_plm(l, m, x, pmm, p_lm1, p_lm2):
+    """One step of the associated Legendre recurrence in l at order m (from P_mm = ``pmm`` at
+    cos theta = ``x``): (P_lm, the new P_l-1,m, the new P_l-2,m), given the previous two."""
+    if l == m:
+        return pmm, p_lm1, p_lm2
+    if l == m + 1:
+        p = _REC_M1[m] * x * pmm
+    else:
+        p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
+    return p, p, p_lm1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _add_order(coeffs, lmax, m, pmm, x, cm, sm, total):
     """``total`` plus order m's terms, l = m..lmax (the associated Legendre recurrence from
     P_mm = ``pmm`` at cos theta = ``x``; cm, sm: cos and sin of m phi), in the order
@@ -105,15 +118,7 @@ def _add_order(coeffs, lmax, m, pmm, x, cm, sm, total):
     p_lm2 = 0.0
     p_lm1 = pmm
     for l in range(m, lmax + 1):
-        if l == m:
-            p = pmm
-        elif l == m + 1:
-            p = _REC_M1[m] * x * pmm
-        else:
-            p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
-        if l > m:
-            p_lm2 = p_lm1
-            p_lm1 = p
+        p, p_lm1, p_lm2 = _next_plm(l, m, x, pmm, p_lm1, p_lm2)
         base = l * l + l
         if m == 0:
             total += coeffs[base] * p
@@ -190,15 +195,7 @@ def _eval_point4(coeffs, lmax, theta, phi, out):
         p_lm2 = 0.0
         p_lm1 = pmm
         for l in range(m, lmax + 1):
-            if l == m:
-                p = pmm
-            elif l == m + 1:
-                p = _REC_M1[m] * x * pmm
-            else:
-                p = _REC_A[l, m] * (x * p_lm1 - _REC_B[l, m] * p_lm2)
-            if l > m:
-                p_lm2 = p_lm1
-                p_lm1 = p
+            p, p_lm1, p_lm2 = _next_plm(l, m, x, pmm, p_lm1, p_lm2)
             base = l * l + l
             if m == 0:
                 t0 += c0[base] * p
