@@ -6,9 +6,9 @@ A straight perpendicular insertion at the acupoint at 10 mm/s, one servo tick pe
 import numpy as np
 import pytest
 
-from haptic_acu.config import CONFIG_DIR, load_config
-from haptic_acu.needle import PUNCTURED, NeedleModel
-from haptic_acu.tissue import Tissue
+from haptic_acu.base.config import CONFIG_DIR, load_config
+from haptic_acu.servo.step import PUNCTURED, NeedleModel
+from haptic_acu.tissue.body import Tissue
 from physics_helpers import drive, straight_line
 
 SPEED = 0.01  # m/s

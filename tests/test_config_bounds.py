@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from haptic_acu.config import load_config
+from haptic_acu.base.config import load_config
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = (ROOT / "config" / "tissue.toml").read_text()

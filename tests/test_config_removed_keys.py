@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.mechanics import overlap_damage
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.mechanics import overlap_damage
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "config" / "tissue.toml"

@@ -29,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
-from haptic_acu import trajectory  # noqa: E402
-from haptic_acu.config import load_config  # noqa: E402
-from haptic_acu.recorder import EXTRA  # noqa: E402
+from haptic_acu.session import trajectory  # noqa: E402
+from haptic_acu.base.config import load_config  # noqa: E402
+from haptic_acu.session.recorder import EXTRA  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import scoring
-from haptic_acu.scoring import INDICES
+from haptic_acu.analysis import scoring
+from haptic_acu.analysis.scoring import INDICES
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE_RATINGS = REPO / "config" / "scoring" / "example_ratings.csv"
