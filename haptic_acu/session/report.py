@@ -545,7 +545,8 @@ def result_lines(summary: dict) -> list[str]:
             out.append(f"  insertion {n}: needle {D(i['max_depth_mm'])} mm into the tissue{tip}: {i['depth_verdict']}; "
                        f"entry {D(i['entry_offset_mm'])} mm off the acupoint at {ang} deg to the normal; "
                        f"{spd} mm/s; {cyc}{technique_text(i.get('technique'))}")
-    return out
+    from .point import point_lines
+    return out + point_lines(summary)  # with --point: the grading against the point
 
 
 def print_results(summary: dict, out_dir, file=None, quiet: bool = False) -> None:

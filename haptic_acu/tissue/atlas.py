@@ -291,7 +291,7 @@ def point_codes(directory=None) -> list[str]:
     return sorted(p.stem for p in directory.glob("*.toml"))
 
 
-def load_point(spec: str, directory=None) -> Point:
+def load_point(spec: str, directory=None, source: str = "--point") -> Point:
     """A point by its code (``GB21``, any case) from the bundled atlas, or a ``.toml`` file of the
     same schema (the atlas is extensible: a file of one's own works the same way)."""
     if spec.endswith(".toml"):
@@ -300,7 +300,7 @@ def load_point(spec: str, directory=None) -> Point:
     codes = point_codes(directory)
     match = [c for c in codes if c.upper() == spec.strip().upper()]
     if not match:
-        raise UserError(f"--point: unknown point {spec!r}: the atlas has {', '.join(codes)} "
+        raise UserError(f"{source}: unknown point {spec!r}: the atlas has {', '.join(codes)} "
                         f"(or give a .toml file of the same schema, docs/atlas.md)")
     return load_point_file(directory / f"{match[0]}.toml")
 

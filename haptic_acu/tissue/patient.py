@@ -229,3 +229,14 @@ def realise(point: Point, patient: Patient = DEFAULT_PATIENT) -> Anatomy:
                                           axis=s.axis, radius_mm=s.radius_mm, breathing_mm=s.breathing_mm,
                                           breathing_period_s=s.breathing_period_s))
     return Anatomy(point, patient, lay.skin_mm, fat, lay.muscle_mm, tuple(placed))
+
+
+def config_at(cfg, anatomy):
+    """The tissue config at a point: ``cfg`` with the anatomy's layer thicknesses and the point's
+    depth range as ``scene.target_depth_mm`` (every other setting kept)."""
+    from dataclasses import replace
+    pt = anatomy.point
+    return replace(cfg, skin=replace(cfg.skin, thickness_mm=anatomy.skin_mm),
+                   fat=replace(cfg.fat, thickness_mm=anatomy.fat_mm),
+                   muscle=replace(cfg.muscle, thickness_mm=anatomy.muscle_mm),
+                   scene=replace(cfg.scene, target_depth_mm=(pt.depth.min_mm, pt.depth.max_mm)))
