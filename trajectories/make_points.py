@@ -31,7 +31,7 @@ def _tilted(depth_mm: float, angle_deg: float, heading_deg: float) -> Script:
     """From 5 mm above the point along the line through it tilted ``angle`` from the normal toward
     ``heading`` (0: +x, 90: +y), ``depth`` mm along the needle, hold 1.5 s, withdraw the same way."""
     th, ph = math.radians(angle_deg), math.radians(heading_deg)
-    d = np.array([math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), -math.cos(th)])
+    d = np.round([math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), -math.cos(th)], 12) + 0.0
     start = -d * (5.0 / math.cos(th))
     return Script(start).hold(0.5).move(depth_mm * d).hold(1.5).move(start).hold(0.5)
 

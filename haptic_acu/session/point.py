@@ -116,24 +116,29 @@ def add_to_summary(summary: dict, ps: PointSetup, graded: list[dict]) -> dict:
     return summary
 
 
-def point_lines(summary: dict) -> list[str]:
-    """The end text's lines for a point session (none without one)."""
+def point_lines(summary: dict, width: int = 80) -> list[str]:
+    """The end text's lines for a point session (none without one), wrapped to ``width`` columns."""
     if "point" not in summary:
         return []
+    import textwrap
+
+    def wrap(text, indent="  "):
+        return textwrap.wrap(text, width, initial_indent=indent, subsequent_indent=indent + "  ")
+
     g = summary["point_grading"]
     p = summary["patient"]
     lo, hi = g["depth_range_mm"]
-    out = [f"  point {summary['point']}: {g['direction']['kind']}, {lo:g}-{hi:g} mm; patient {p['sex']}, "
-           f"BMI {p['bmi']:g}, age {p['age']:g}" + (f" (random, seed {p['seed']})" if p.get("seed") is not None else "")
-           + f"; {g['in_range']}/{g['insertions']} in range, {g['on_target']} on target, "
-             f"{g['critical_errors']} critical error(s)"]
+    seed = f" (random, seed {p['seed']})" if p.get("seed") is not None else ""
+    out = wrap(f"point {summary['point']}: {g['direction']['kind']}, {lo:g}-{hi:g} mm; patient {p['sex']}, "
+               f"BMI {p['bmi']:g}, age {p['age']:g}{seed}; {g['in_range']}/{g['insertions']} in range, "
+               f"{g['on_target']} on target, {g['critical_errors']} critical error(s)")
     for n, i in enumerate(g["per_insertion"], 1):
         margins = ", ".join(f"{k} {'-' if v is None else f'{v:.1f}'} mm" for k, v in i["danger_margin_mm"].items())
         ang = "-" if i["angle_error_deg"] is None else f"{i['angle_error_deg']:.1f}"
-        out.append(f"  insertion {n} at {summary['point']}: {i['max_depth_mm']:.2f} mm, {i['depth_verdict']}; "
-                   f"angle error {ang} deg; closest: {margins}")
+        out += wrap(f"insertion {n} at {summary['point']}: {i['max_depth_mm']:.2f} mm, {i['depth_verdict']}; "
+                    f"angle error {ang} deg; closest: {margins}")
         for e in i["critical_errors"]:
-            out.append(f"    CRITICAL: {e['structure']} reached at t={e['t_s']:.3f} s, needle {e['tip_depth_mm']:.2f} mm "
-                       f"in (the {e['structure']} {e['structure_depth_mm']:.2f} mm deep)"
-                       + ("; pierced" if e["pierced"] else ""))
+            out += wrap(f"CRITICAL: {e['structure']} reached at t={e['t_s']:.3f} s, needle {e['tip_depth_mm']:.2f} mm "
+                        f"in (the {e['structure']} {e['structure_depth_mm']:.2f} mm deep)"
+                        + ("; pierced" if e["pierced"] else ""), "    ")
     return out
