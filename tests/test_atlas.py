@@ -145,7 +145,7 @@ def replays(tmp_path_factory):
     out = {}
     for name, (traj, point, patient) in runs.items():
         d = base / name
-        argv = ["replay", traj, "--point", point, "--out", str(d), "--no-rrd", "--quiet"]
+        argv = ["replay", traj, "--point", point, "--out", str(d), "--quiet"] + ([] if name == "pc6_nerve" else ["--no-rrd"])
         if patient:
             argv += ["--patient", patient]
         assert main(argv) == 0, name
@@ -207,6 +207,20 @@ def test_pc6_within_the_nerve_radius_is_a_nerve_contact(replays):
     (ok,) = _grading(replays, "pc6_correct")
     assert ok["critical_errors"] == []
     assert ok["danger_margin_mm"]["median nerve"] == pytest.approx(1.8, abs=0.05)  # Streitberger et al. 2007
+
+
+def test_the_structures_are_in_the_3d_view_and_the_figure(replays):
+    from rerun.chunk import RrdReader
+    d = replays["pc6_nerve"][1]
+    store = RrdReader(d / "recording.rrd").store()
+    comps = {}
+    for chunk in store.stream().filter(content="/world/structures/median_nerve").to_chunks():
+        rb = chunk.to_record_batch()
+        comps.update({n: rb.column(n).to_pylist() for n in rb.schema.names if n.startswith("Cylinders3D")})
+    assert comps["Cylinders3D:radii"][0] == [pytest.approx(1.42e-3)]
+    assert np.allclose(comps["Cylinders3D:centers"][0][0], [0.0, 3.22e-3, -10e-3])
+    from haptic_acu.session.report import structure_depths
+    assert structure_depths(replays["gb21_man"][0]) == [("pleura", pytest.approx(17.4))]
 
 
 def test_the_end_text_names_the_critical_error(replays, capsys):
