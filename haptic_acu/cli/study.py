@@ -352,28 +352,35 @@ def cmd_analyze(args) -> int:
             report["objective"] = objective(study, out, path)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     _print_analysis(report)
-    print(f"wrote {out}/: report.json, ratings_by_model.csv, friedman.csv, wilcoxon.csv, descriptives.csv, "
-          f"order.csv, indices.png, order.png" + (", score/" if report["scores"] else "")
+    print(f"wrote {out}/: report.json, ratings_by_model.csv, friedman.csv, wilcoxon.csv,")
+    print("  descriptives.csv, order.csv, indices.png, order.png" + (", score/" if report["scores"] else "")
           + (", objective/" if path is not None else ""))
     return 0
 
 
 def _print_analysis(report) -> None:
+    import textwrap
+
     print(f"{report['rated_trials']} of {report['planned_trials']} trials rated; "
           f"{report['complete_participants']} participants rated every model")
     if report["ranking"]:
-        print("ranking by mean comprehensive score: " + ", ".join(
-            f"{m} {report['scores'][m]['mean_score']:.2f}" for m in report["ranking"]))
+        print(textwrap.fill("ranking by mean comprehensive score: " + ", ".join(
+            f"{m} {report['scores'][m]['mean_score']:.2f}" for m in report["ranking"]), 80,
+            subsequent_indent="  "))
     for m, why in report["not_scored"].items():
         print(f"  {m}: not scored: {why}")
-    print(f"{'index':<22}{'Friedman p':>11}{'W':>6}  pairs with Holm p < 0.05")
+    print(f"{'index':<22}{'Friedman p':>11}{'W':>6}{'order p':>9}{'carry p':>9}")
     for name, e in report["indices"].items():
         fr = e["friedman"]
-        p = "-" if fr["p"] is None else f"{fr['p']:.2g}"
-        w = "-" if fr["kendall_w"] is None else f"{fr['kendall_w']:.2f}"
-        sig = [f"{q['a']}>{q['b']}" if (q["median_difference"] or 0) > 0 else f"{q['b']}>{q['a']}"
+        o = e.get("order", {})
+        cells = [fr["p"], fr["kendall_w"], o.get("position_friedman", {}).get("p"), o.get("carry_over", {}).get("p")]
+        txt = ["-" if v is None else f"{v:.2g}" for v in cells]
+        print(f"{name[:21]:<22}{txt[0]:>11}{txt[1]:>6}{txt[2] if o else '':>9}{txt[3] if o else '':>9}".rstrip())
+        sig = [f"{q['a']} > {q['b']}" if (q["median_difference"] or 0) > 0 else f"{q['b']} > {q['a']}"
                for q in e["pairwise"] if q["p_holm"] is not None and q["p_holm"] < 0.05]
-        print(f"{name[:21]:<22}{p:>11}{w:>6}  " + (", ".join(sig)[:40] or "none"))
+        if sig:
+            print(textwrap.fill("Holm p < 0.05: " + ", ".join(sig), 80, initial_indent="  ",
+                                subsequent_indent="    "))
 
 
 def cmd_example(args) -> int:

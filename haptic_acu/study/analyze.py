@@ -184,7 +184,7 @@ def analyze(study: Study, out: Path, alpha, mu: float) -> dict:
                                       "median_difference_a_minus_b"], wx_rows)
     _write_csv(out / "descriptives.csv", ["index", "model", "n", "median", "q1", "q3", "iqr", "mean"], desc_rows)
     _write_csv(out / "order.csv", ["index", "position", "n", "mean", "median"], order_rows)
-    plot_indices(out / "indices.png", x, comp, models)
+    plot_indices(out / "indices.png", x, comp, models, report)
     plot_order(out / "order.png", report, study.n_trials)
     return report
 
@@ -224,7 +224,7 @@ def _plt():
     return plt
 
 
-def plot_indices(path: Path, x, comp, models) -> None:
+def plot_indices(path: Path, x, comp, models, report=None) -> None:
     """One panel per index (and the comprehensive score): each model's ratings as a box plot
     (median, quartiles) with the participants' ratings as points."""
     plt = _plt()
@@ -238,7 +238,9 @@ def plot_indices(path: Path, x, comp, models) -> None:
         for j, d in enumerate(data):
             ax.plot(j + 1 + rng.uniform(-0.18, 0.18, d.size), d, "o", ms=2.5, alpha=0.5, color="tab:blue")
         ax.set_xticks(range(1, len(models) + 1), models, fontsize=8, rotation=30 if len(models) > 5 else 0)
-        ax.set_title(LABELS.get(name, "comprehensive score (eq. 14)"), fontsize=9)
+        p = None if report is None else report["indices"][name]["friedman"]["p"]
+        ax.set_title(LABELS.get(name, "comprehensive score (eq. 14)")
+                     + ("" if p is None else f"\nFriedman p = {p:.2g}"), fontsize=9)
         ax.set_ylim(-0.3, 10.3)
         ax.grid(axis="y", alpha=0.3)
     for ax in axes[:, 0]:
@@ -262,7 +264,9 @@ def plot_order(path: Path, report, n_trials) -> None:
     ax.set_xticks(pos)
     ax.set_xlabel("trial position")
     ax.set_ylabel("mean rating")
-    ax.set_ylim(0, 10.5)
+    lo = np.nanmin([v for e in report["indices"].values() if "order" in e
+                    for v in e["order"]["position_mean"] if v is not None] or [0.0])
+    ax.set_ylim(max(0.0, np.floor(lo) - 1.0), 10.2)
     ax.set_title("Order check: mean rating by trial position (p: Friedman across positions)", fontsize=10)
     ax.legend(fontsize=7, loc="lower left", ncol=2)
     ax.grid(alpha=0.3)
@@ -365,9 +369,10 @@ def _curve(samples: Path):
 def plot_curves(path: Path, curves: dict, name: str) -> None:
     plt = _plt()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for m, (t, d, f) in curves.items():
-        a1.plot(d, f, lw=1, label=m)
-        a2.plot(t, f, lw=1, label=m)
+    styles = ["-", "--", "-.", ":", (0, (5, 1)), (0, (3, 1, 1, 1)), (0, (1, 2)), (0, (8, 3))]
+    for k, (m, (t, d, f)) in enumerate(curves.items()):
+        a1.plot(d, f, lw=1.2, ls=styles[k % len(styles)], label=m)
+        a2.plot(t, f, lw=1.2, ls=styles[k % len(styles)], label=m)
     a1.set_xlabel("tip depth below the skin (mm)")
     a1.set_ylabel("force on the needle (N)")
     a1.set_title("force against depth", fontsize=10)
