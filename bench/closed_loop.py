@@ -51,7 +51,7 @@ ENCODER_STEP_M = 0.055e-3
 # The emulator's defaults for an OMNI (hd_emulator.c): HD_NOMINAL_MAX_* (SI here).
 OMNI_LIMITS = R.limits_from_hd(3.3, 0.88, 1.26, 0.003)
 # The stiffness reported while a layer is pressed. The nets stiffen to 1.5 N/mm (skin) and 2.2 N/mm
-# (muscle) at the break (issue 13); the proxy step converges for any true stiffness below
+# (muscle) at the break; the proxy step converges for any true stiffness below
 # 2 (this + B/T) + K (with the coupling's B/T = 1500 N/m, K = 630 N/m: 6.6 N/mm), and monotonically
 # below this + B/T. A larger value only adds a drag of (value) * dt * speed (0.015 N at 10 mm/s).
 PRESS_STIFFNESS = 1500.0

@@ -24,8 +24,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
   to one), with the two fits' agreement.
 * :func:`springback`, :func:`replay`, :func:`cold_start`, :func:`scaling`.
-* :func:`first_run` (the first `make demo` replay with empty caches, issue 16), :func:`cohort` (the
-  cohort throughput of bench/cohort_bench.py, issue 17).
+* :func:`first_run` (the first `make demo` replay with empty caches), :func:`cohort` (the
+  cohort throughput of bench/cohort_bench.py).
 
 The bench never fails on a number, only on a crash: targets are reported as pass/miss.
 """
@@ -80,7 +80,7 @@ class Sizes:
     cohort_sessions: int = 8  # synthetic cohort replayed by `haptic-acu cohort` (0: not measured)
     cohort_session_s: float = 10.0  # trajectory seconds per session
     cohort_dask: bool = True  # also on a Dask LocalCluster (its overhead against the local pool)
-    first_run: bool = True  # the first replay with empty numba and table caches (issue 16)
+    first_run: bool = True  # the first replay with empty numba and table caches
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -452,7 +452,7 @@ _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; per
 
 
 def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
-    """The closed-loop rows (issue 13, bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
+    """The closed-loop rows (bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
     and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
     the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
     puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
@@ -759,7 +759,7 @@ def first_run(sizes: Sizes, progress=False) -> dict:
     (``HAPTIC_ACU_CACHE``) start as empty temporary folders: ``empty_caches`` is a first run with
     nothing cached (what a plain ``pip install`` gives); ``after_install`` the same replay once the
     caches hold what that first run (the same work ``make``'s ``python -m haptic_acu.cli.precompile``
-    does at install) left there: issue 16's target, under 10 s."""
+    does at install) left there: the target is under 10 s."""
     if not sizes.first_run:
         return {"first_run_s": None}
     from haptic_acu.session.replay import DEFAULT_TRAJECTORY

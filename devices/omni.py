@@ -622,7 +622,7 @@ class OmniDevice(Device):
             if rst & FAULT:
                 return self._abort(s, "rendering layer: a non-finite position or tissue report; force set to zero")
         state = DeviceState(
-            t_s=s.ticks / RATE_HZ,  # the device's own tick time (issue 15), never the wall clock
+            t_s=s.ticks / RATE_HZ,  # the device's own tick time, never the wall clock
             position_m=s.inp.p.copy(),
             velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),

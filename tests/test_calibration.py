@@ -28,7 +28,7 @@ TABLE2 = {
 # mostly hypodermic needles). Fat and muscle: the previous (hypodermic-range) figures scaled by the
 # skin's factor. Depths: ours (no fine-needle measurement found).
 TARGETS = {"skin": (1.5, 0.50), "fat": (1.0, 0.20), "muscle": (1.0, 0.65)}
-FIT_TOLERANCE = 0.10  # haptic-acu calibrate's acceptance on break depth and force (issue 12)
+FIT_TOLERANCE = 0.10  # haptic-acu calibrate's acceptance on break depth and force
 SURVEY_MEDIAN_N = 1.22  # van Gerwen et al. 2012: median skin puncture force over 24 studies
 
 

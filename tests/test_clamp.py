@@ -1,4 +1,4 @@
-"""The exact force clamp (haptic_acu.servo.clamp) against exact rational arithmetic (issue 15)."""
+"""The exact force clamp (haptic_acu.servo.clamp) against exact rational arithmetic."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,4 @@
-"""The code's shape rules (issue 11), checked on the project's own sources with ``ast`` so they stay
+"""The code's shape rules, checked on the project's own sources with ``ast`` so they stay
 true: no Python function longer than MAX_LINES lines, no compiled function (numba ``njit`` / ``jit``
 / ``cfunc`` / ``register_jitable`` / ``intrinsic``) with more than MAX_PARAMS parameters (kernels
 take named inputs: NamedTuples of arrays, record dtypes)."""
@@ -78,7 +78,7 @@ def test_the_measures_on_known_code(src, lines, params):
         assert any(map(compiler_of, fn.decorator_list)) and n_params(fn) == params
 
 
-# ---- the review's other findings (issue 11), kept true the same way --------------------------------
+# ---- the review's other findings, kept true the same way --------------------------------
 VOCABULARY = {"N_LAYERS", "N_SLOTS", "MAX_TRACKS", "MAX_HOLES", "LAYER_NAMES", "PLACE_NAMES", "STATE_NAMES",
               "UNTOUCHED", "PRESSING", "PUNCTURED", "FREE", "SERVO_OWNS", "VISUAL_OWNS",
               "OUTSIDE", "SKIN", "FAT", "MUSCLE", "BONE"}

@@ -1,4 +1,4 @@
-"""A cohort worker no longer keeps a session's rows (issue 15): the metrics are streamed, the
+"""A cohort worker no longer keeps a session's rows: the metrics are streamed, the
 reference replay keeps ticks and forces, the smoothness columns a six-column track. Its tables equal
 the whole-row computation (cohort.insertion_table on every row), and a worker replaying long
 sessions peaks far below what keeping their rows took."""

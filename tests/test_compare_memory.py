@@ -1,4 +1,4 @@
-"""``haptic-acu compare`` keeps per session only its metrics and a bounded figure curve (issue 15):
+"""``haptic-acu compare`` keeps per session only its metrics and a bounded figure curve:
 a comparison of four long sessions peaks (the child's own VmHWM) as one of one long session, and
 above one of two short ones only by the figure envelope's fixed cap; its compare.json holds the same
 metrics as session_metrics on every row."""

@@ -1,4 +1,4 @@
-"""A key the model no longer reads (``needle.hole_radius_mm``, issue 12: the insertion tracks decide
+"""A key the model no longer reads (``needle.hole_radius_mm``: the insertion tracks decide
 re-entry, their damage decaying over the needle's radius): an old config that still has it loads,
 means what it meant, and says once, in one line naming the file and the key, that it is ignored."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The docs' column reference names every column the tool writes (issue 16: "a column reference in
+"""The docs' column reference names every column the tool writes ("a column reference in
 the docs"); the columns are taken from the writers themselves, so a new column without a line in
 docs/output-files.md or docs/trajectory-format.md fails here."""
 from __future__ import annotations

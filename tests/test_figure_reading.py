@@ -1,4 +1,4 @@
-"""force_depth.png reads at a glance (issue 16), checked on the drawn figure itself (captured at
+"""force_depth.png reads at a glance, checked on the drawn figure itself (captured at
 savefig): one colour and panel per insertion, the lateral panel when the tip moves sideways with the
 offset not drawn on top of the lateral force, and legends that cover no axes.
 

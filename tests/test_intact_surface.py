@@ -1,4 +1,4 @@
-"""Pressing an intact surface (issue 12, "smooth intact surfaces"): the force is a function of the
+"""Pressing an intact surface ("smooth intact surfaces"): the force is a function of the
 tip's position alone, the pressed net's response with N1 at the tip's radial depth d below the rest
 surface and no lateral offset, along grad(-d) (docs/model.md section 2). So sliding on the skin is
 smooth (the net re-centres under the tip only where it is drawn), and the force is the gradient of a

@@ -1,4 +1,4 @@
-"""The puncture threshold's speed dependence (issue 12; docs/model.md section 2.2): Mahvash and Dupont
+"""The puncture threshold's speed dependence (docs/model.md section 2.2): Mahvash and Dupont
 (2009, 2010) found the rupture force falling as the needle moves faster, toward a lower bound.
 
 References: the factor's closed form evaluated here with numpy; the published shape (decreasing in

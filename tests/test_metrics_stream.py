@@ -1,4 +1,4 @@
-"""Per-insertion metrics streamed in bounded memory (haptic_acu/analysis/insertion_stream.py, issue 15)
+"""Per-insertion metrics streamed in bounded memory (haptic_acu/analysis/insertion_stream.py)
 against the batch functions that hold every row: metrics.session_metrics / find_troughs and
 technique.turning_points. Tolerance: the JSON (rounded to 1 um, 0.1 mN, 0.1 ms, 0.01 deg) is
 identical; the raw prominences equal to the bit."""

@@ -395,7 +395,7 @@ def _exact_norm2(f):
 
 
 def test_clamp_is_exact_through_the_step(cfg, tissue):
-    """Issue 15: through the servo step, a clamped force is never above the limit by even 1 ulp (its
+    """Through the servo step, a clamped force is never above the limit by even 1 ulp (its
     exact rational magnitude), and sits at the limit to within a few ulps."""
     from fractions import Fraction
     limit = 0.5

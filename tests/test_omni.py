@@ -164,7 +164,7 @@ def test_force_is_rotated_into_the_device_frame_and_limited_by_the_device(emulat
     f = frames(res)[:, 5:8]
     n = len(res["states"])
     assert np.all(np.linalg.norm(f, axis=1) <= 2.5 * (1 + 1e-12))
-    # exactly, in rational arithmetic on the commanded doubles (issue 15: the clamp in
+    # exactly, in rational arithmetic on the commanded doubles (the clamp in
     # omniloop.guard_out is haptic_acu.servo.clamp's; the naive one let the rotation's 6e-17 through)
     from fractions import Fraction
     assert all(sum(Fraction(float(x)) ** 2 for x in row) <= Fraction(2.5) ** 2 for row in f[:n])
@@ -228,7 +228,7 @@ def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tm
 
 
 def test_a_position_frozen_under_a_steady_force_is_a_still_hand_not_a_fault(emulator, tmp_path):
-    # Issue 13: a trainee may hold perfectly still on the skin, every encoder bit-for-bit still under
+    # A trainee may hold perfectly still on the skin, every encoder bit-for-bit still under
     # a steady force, for as long as they like. The position freezes at 0.3 s (the spring's force then
     # steady, ~1.6 N) and stays frozen to the end, 1.5 s later: 30 stall windows, no fault.
     stall_s = 0.05

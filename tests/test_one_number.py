@@ -1,4 +1,4 @@
-"""One name, one number (issue 16): a key that appears at several levels of summary.json and in the
+"""One name, one number: a key that appears at several levels of summary.json and in the
 batch tables means the same quantity and has the same value there. The oblique entry is the case
 that told them apart: its needle goes 25 mm into the tissue along a 30 degree axis while its tip is
 only about 21.5 mm below the rest skin (25 cos 30 deg = 21.65 mm less the dents), and the summary

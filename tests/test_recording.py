@@ -1,4 +1,4 @@
-"""Recordings and trajectory files you can trust, through the real CLI (issue 15).
+"""Recordings and trajectory files you can trust, through the real CLI.
 
 ``--record`` never destroys a file (an existing one, or the session's input) unless told
 ``--overwrite`` and creates nothing when the session cannot start; a full disk mid-session is a

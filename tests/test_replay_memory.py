@@ -1,4 +1,4 @@
-"""Replay memory is bounded by the work, not the file (issue 15): the summary, the trainee metrics
+"""Replay memory is bounded by the work, not the file: the summary, the trainee metrics
 and the figure are streamed (haptic_acu.session.report.SummarySink without keep_rows,
 haptic_acu.analysis.metrics.SessionMetricsScan, haptic_acu.session.report.FigureRows).
 

@@ -213,7 +213,7 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
 
 
 def test_a_scripted_session_with_a_reset_runs_compiled_and_records_the_reset(tmp_path):
-    """Issue 15/16: a trajectory with an ``event`` column no longer falls back to the Python loop:
+    """A trajectory with an ``event`` column no longer falls back to the Python loop:
     the compiled loop gives fresh tissue at the reset (the skin breaks twice though the second pass
     goes down the same hole) and the recording carries the reset, so it replays the same way."""
     traj = tmp_path / "twice.csv"

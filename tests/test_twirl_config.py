@@ -1,4 +1,4 @@
-"""The twirl parameters as config keys (``[twirl]``, issue 14): parsed strictly, carried into the
+"""The twirl parameters as config keys (``[twirl]``): parsed strictly, carried into the
 servo Model's params, and acting there per twirl.py's closed forms (torque = k_twist L phi below the
 slip, phi = roll less half the play; grasp = 1 + grasp_coil |phi| / slip + grasp_engage e).
 

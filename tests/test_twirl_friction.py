@@ -1,5 +1,5 @@
 """The grasp through the real shaft friction: Langevin 2001's pull-out ratios with the stick-point
-Karnopp friction of haptic_acu.tissue.mechanics (issue 12, built in parallel). Skipped until that module
+Karnopp friction of haptic_acu.tissue.mechanics (built in parallel). Skipped until that module
 is merged; then it is the pull-out test of the kernels as they will be wired: the grasp factors
 multiply each layer's friction levels (its breakaway and Coulomb thresholds: ``shaft_thresholds``
 gets ``grasp * lengths``), not the viscous part.

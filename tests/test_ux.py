@@ -198,7 +198,7 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
 
 
 def test_status_on_common_terminal_widths_keeps_what_the_trainee_acts_on():
-    """Issue 16's fields on a real terminal: the full line is over 200 columns, so what stays at 80
+    """The status line's fields on a real terminal: the full line is over 200 columns, so what stays at 80
     and 120 columns matters. Inside the tissue: the depth against the target and the force at 80
     (and the speed at 100), the roll at 120; in the air: the position against the acupoint."""
     r = _row(layer=2, states=(2, 2, 2), force=(0, 0, 0.3))

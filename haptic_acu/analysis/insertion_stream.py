@@ -1,4 +1,4 @@
-"""One insertion's metrics streamed in bounded memory (issue 15): :class:`InsertionStream`.
+"""One insertion's metrics streamed in bounded memory: :class:`InsertionStream`.
 
 :func:`haptic_acu.analysis.metrics.insertion_metrics` needs the insertion's rows; a 10-minute hold in muscle
 is 600,000 of them. This module computes the same dict from the rows as they arrive, keeping only:

@@ -1,4 +1,4 @@
-"""A force clamp that holds exactly in floating point (issue 15): the servo step's clamp phase
+"""A force clamp that holds exactly in floating point: the servo step's clamp phase
 (``needle.clamp``) and the OMNI guard's clamps in both frames (``omniloop.guard_out``) call it.
 
 The naive clamp, ``mag = sqrt(fx*fx + fy*fy + fz*fz); if mag > lim: f *= lim / mag``, fails two ways:

@@ -359,7 +359,7 @@ def engine_tick(o, sv, ring, timing):
     account(timing, err, period, 1e-9)
     # the row's time is the device's own tick time (its tick count x the period); the wall clock
     # only gives the period error (a scheduler catching up after a late tick runs ticks
-    # microseconds apart, each still 1 ms of stylus path: issue 15)
+    # microseconds apart, each still 1 ms of stylus path)
     t = ictl[0].ticks * period * 1e-9
     fx = 0.0
     fy = 0.0
@@ -472,7 +472,7 @@ def guard_in(o, inp):
             f.df_frz = df
         # the force/position relation: a force on a hand-held stylus that changes by more than
         # ``stall_df`` moves it several encoder steps, so a position frozen through such a change is a
-        # stalled device; a still hand under a steady force is no fault, however long (issue 13: a
+        # stalled device; a still hand under a steady force is no fault, however long (a
         # trainee may hold perfectly still on the skin; the ``still`` window is off unless asked for)
         loaded = f.df_frz > prm[0].stall_df
         if (ictl[0].frozen >= prm[0].stall and loaded) or ictl[0].frozen >= prm[0].still:

@@ -664,7 +664,7 @@ def clamp(m, s, d):
 
 
 # A swept (untabulated) net's stiffness along its axis for the rendering layer: an upper bound of
-# the nets' 1.5 N/mm (skin) and 2.2 N/mm (muscle) at the break (issue 13); an upper bound only slows
+# the nets' 1.5 N/mm (skin) and 2.2 N/mm (muscle) at the break; an upper bound only slows
 # the proxy (rendering.TissueLocal).
 SWEPT_K_ALONG = 2500.0
 

@@ -6,7 +6,7 @@ servo applies it) and by a hand holding it through a spring-damper to the hand's
 emulator's physical stylus mode (tests/hd_emulator/hd_emulator.c) does; the encoders report its
 position quantised to their step. Integrated in semi-implicit Euler substeps.
 
-Grips (issue 13): a 45 g stylus held loosely (0.3 N/mm) or firmly (2 N/mm); the hand's damping
+Grips: a 45 g stylus held loosely (0.3 N/mm) or firmly (2 N/mm); the hand's damping
 (ours) gives each a damping ratio of about 0.3 and 0.26: 2 and 5 N*s/m.
 """
 from __future__ import annotations

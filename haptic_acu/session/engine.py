@@ -824,7 +824,7 @@ class Session:
                 now = time.perf_counter()
                 err = (now - last[0]) - dt
                 last[0] = now
-                t = state.t_s  # the device's own tick time (issue 15); the wall clock gives only the period error
+                t = state.t_s  # the device's own tick time; the wall clock gives only the period error
                 last[1] += 1
                 if now - last[2] >= 0.5:
                     self.rates["servo_hz"] = last[1] / (now - last[2])

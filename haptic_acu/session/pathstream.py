@@ -1,4 +1,4 @@
-"""A cohort session's path metrics without its rows in memory (issue 15).
+"""A cohort session's path metrics without its rows in memory.
 
 The cohort's path length, economy of motion and LDLJ columns (:mod:`haptic_acu.analysis.skill_metrics`) are
 taken on the session's path low-passed by a zero-phase filter (``scipy.signal.sosfiltfilt``: forward
