@@ -59,9 +59,13 @@ def table(study: Study) -> list[str]:
     """The status report's lines (80 columns)."""
     st = states(study)
     n = study.n_trials
-    lines = [f"{study.folder}: {len(study.participants)} participants x {n} trials, "
-             f"{len(study.models)} systems (codes {study.doc.get('codes', 'shared')})",
-             f"{'participant':<12}{'rated':>7}{'to rate':>9}{'interr.':>9}{'to run':>8}  next / to rate"]
+    total = len(study.participants) * n
+    w = max(7, 2 * len(str(total)) + 3)  # the "rated" column: done/planned
+    pw = max(11, max(len(p) for p in study.participants)) + 1
+    lines = [f"{study.folder}:",
+             f"  {len(study.participants)} participants x {n} trials of {len(study.models)} systems "
+             f"(codes {study.doc.get('codes', 'shared')})",
+             f"{'participant':<{pw}}{'rated':>{w}}{'to rate':>9}{'interr.':>9}{'to run':>8}  next / to rate"]
     totals = {RATED: 0, TO_RATE: 0, INTERRUPTED: 0, TO_RUN: 0}
     for p in study.participants:
         mine = [st[p, t] for t in range(1, n + 1)]
@@ -77,9 +81,8 @@ def table(study: Study) -> list[str]:
             notes.append("rate: " + ",".join(map(str, rate)))
         if not notes:
             notes.append("all done")
-        lines.append(f"{p:<12}{c[RATED]:>4}/{n:<2}{c[TO_RATE]:>9}{c[INTERRUPTED]:>9}{c[TO_RUN]:>8}  "
+        lines.append(f"{p:<{pw}}{f'{c[RATED]}/{n}':>{w}}{c[TO_RATE]:>9}{c[INTERRUPTED]:>9}{c[TO_RUN]:>8}  "
                      + "; ".join(notes))
-    total = len(study.participants) * n
-    lines.append(f"{'total':<12}{totals[RATED]:>4}/{total:<2}{totals[TO_RATE]:>9}{totals[INTERRUPTED]:>9}"
+    lines.append(f"{'total':<{pw}}{f'{totals[RATED]}/{total}':>{w}}{totals[TO_RATE]:>9}{totals[INTERRUPTED]:>9}"
                  f"{totals[TO_RUN]:>8}")
-    return [line[:80] for line in lines]
+    return lines
