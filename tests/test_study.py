@@ -397,18 +397,25 @@ def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
 
 
 @pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
-def test_sigint_while_rating_records_nothing(world, tmp_path):
+def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_path):
+    """Ctrl-C mid-session is the usual end of an OMNI session: the trial is complete and the
+    ratings are asked; Ctrl-C again at the third prompt records nothing."""
     study = plan(world, tmp_path / "s")
     before = study.ratings_path.read_bytes()
     cmd = [sys.executable, "-u", "-m", "haptic_acu", "study", "trial", str(study.folder), "--participant", "P01",
-           "--device", "scripted", "--trajectory", str(world["path"])]
+           "--device", "scripted", "--trajectory", str(world["long_path"])]
     proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, bufsize=1)
+    rec = study.sessions / "P01-T1" / "recording.csv"
     try:
-        got = ""
+        deadline = time.monotonic() + TIMEOUT_S
+        while _rows(rec) < 500 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)  # ends the session
         proc.stdin.write("7\n8\n")  # two of the seven, then Ctrl-C at the third
         proc.stdin.flush()
-        deadline = time.monotonic() + TIMEOUT_S
+        got = ""
         while got.count("/7 ") < 3 and time.monotonic() < deadline and proc.poll() is None:
             got += os.read(proc.stdout.fileno(), 4096).decode()
         assert got.count("/7 ") >= 3, got
@@ -422,8 +429,8 @@ def test_sigint_while_rating_records_nothing(world, tmp_path):
     assert "no ratings recorded" in err and "Traceback" not in err
     assert study.ratings_path.read_bytes() == before
     doc = json.loads((study.sessions / "P01-T1" / "trial.json").read_text())
-    assert doc["status"] == "complete"
+    assert doc["status"] == "complete" and doc["signal"] == "SIGINT" and doc["duration_s"] < 25
     from haptic_acu.study import overview
     assert overview.states(study)["P01", 1].state == overview.TO_RATE
-    tr = trajectory.load(study.sessions / "P01-T1" / "recording.csv", extra_columns=EXTRA)
-    assert len(tr.t_s) == doc["ticks"]
+    tr = trajectory.load(rec, extra_columns=EXTRA)
+    assert len(tr.t_s) == doc["ticks"] >= 500
