@@ -187,3 +187,41 @@ def test_analyze_bad_input(analyzed, tmp_path, capsys):
     assert main(["study", "analyze", str(bad), "--out", str(tmp_path / "y"), "--no-objective"]) == 2
     err = capsys.readouterr().err
     assert f"ratings.csv: line {i + 1}:" in err and "outside 0-10" in err and err.count("\n") == 1
+
+
+def test_codes_per_participant_and_repeated_trials(configs, tmp_path):
+    """Each participant with their own codes and every model met twice: analyze unblinds each
+    participant by their own key and averages their two ratings of a model, as `score` is given
+    them by hand."""
+    assert main(["study", "plan", "--participants", "6", "--models", configs, "--out", str(tmp_path / "s"),
+                 "--seed", "2", "--codes-per-participant", "--trials-per-model", "2"]) == 0
+    study = Study(tmp_path / "s")
+    key = study.key()
+    assert len({tuple(sorted(key["systems"][p].items())) for p in study.participants}) > 1
+    rng = np.random.default_rng(8)
+    given = {}
+    for p in study.participants:
+        for t in study.trials_of(p):
+            m = key["systems"][p][t.system]
+            v = [float(f"{rng.uniform(1, 8) + (2.0 if m == 'Zetamodel' else 0.0):.1f}") for _ in INDICES]
+            study.record_ratings(t, v, "synthetic")
+            given.setdefault((m, p), []).append(v)
+    assert all(len(v) == 2 for v in given.values())
+    raters = {r.rater for r in study.read_ratings()[1]}
+    assert {"P01/1", "P01/2"} <= raters
+    by_hand = tmp_path / "by_hand.csv"
+    with open(by_hand, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["system", "rater", *INDICES])
+        for m in MODELS:
+            for p in study.participants:
+                a, b = given[m, p]
+                w.writerow([m, p, *[repr((x + y) / 2) for x, y in zip(a, b)]])
+    assert main(["score", str(by_hand), "--out", str(tmp_path / "sc")]) == 0
+    assert main(["study", "analyze", str(study.folder), "--out", str(tmp_path / "a"), "--no-objective"]) == 0
+    want = json.loads((tmp_path / "sc" / "score.json").read_text())["systems"]
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    for s in want:
+        assert rep["scores"][s["name"]]["scores"] == s["scores"]
+    assert rep["ranking"][0] == "Zetamodel"
+    assert len(rep["indices"]["real_time"]["order"]["position_mean"]) == 6

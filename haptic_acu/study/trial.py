@@ -70,7 +70,12 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
         session.warm_up()
     print(f"{trial.participant}, trial {trial.trial} of {study.n_trials}: {trial.system}. "
           "End the session with Ctrl-C" + (" (or q)" if device_name == "keyboard" else "") + ".", file=err)
-    device.open()
+    try:
+        device.open()
+    except BaseException as e:  # no device (a missing library, an OMNI not connected): no session
+        doc.update(status="fault", ended=now(), fault=f"the device did not open: {e}")
+        write_trial_json(folder, doc)
+        raise
     try:
         recorder.open()
         result = session.run()
