@@ -434,3 +434,52 @@ def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_p
     assert overview.states(study)["P01", 1].state == overview.TO_RATE
     tr = trajectory.load(rec, extra_columns=EXTRA)
     assert len(tr.t_s) == doc["ticks"] >= 500
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input to a trial: one line, exit 2, no session folder
+
+
+def test_trial_bad_input_is_one_line(world, tmp_path, capsys):
+    study = plan(world, tmp_path / "s")
+    base = ["study", "trial", str(study.folder), "--device", "scripted", "--trajectory", str(world["path"])]
+    for argv, message in (
+            (["study", "trial", str(tmp_path / "nope"), "--participant", "P01", "--device", "keyboard"],
+             "no such study folder"),
+            (base + ["--participant", "P09"], "--participant P09: not in this study"),
+            (base + ["--participant", "P01", "--trial", "3"], "--trial 3: P01 has trials 1-2"),
+            (base + ["--participant", "P01", "--duration", "-1"], "--duration must be > 0"),
+            (["study", "trial", str(study.folder), "--participant", "P01", "--device", "scripted"],
+             "--device scripted needs --trajectory"),
+            (base[:-1] + ["/no/such.csv", "--participant", "P01"], "trajectory file not found")):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1 and "Traceback" not in err, (argv, err)
+    assert list(study.sessions.iterdir()) == []
+
+
+def test_a_changed_config_is_refused_without_naming_the_model(world, tmp_path, capsys):
+    """A model's config edited after the plan: the trial refuses it, naming the system code only."""
+    d = tmp_path / "m"
+    d.mkdir()
+    files = []
+    for name in NAMES:
+        src = Path(dict(x.split("=") for x in world["models"].split(","))[name])
+        f = d / f"{name}.toml"
+        f.write_text(src.read_text())
+        files.append(f)
+    out = tmp_path / "s"
+    assert main(["study", "plan", "--participants", "2", "--models",
+                 ",".join(f"{n}={f}" for n, f in zip(NAMES, files)), "--out", str(out), "--seed", "1"]) == 0
+    files[0].write_text(files[0].read_text().replace("thickness_mm = 8.4", "thickness_mm = 8.5", 1))
+    study = Study(out)
+    key = study.key()
+    p = next(p for p in study.participants
+             if key["systems"][p][study.plan[p, 1].system] == NAMES[0])
+    capsys.readouterr()
+    assert main(["study", "trial", str(out), "--participant", p, "--device", "scripted", "--trajectory",
+                 str(world["path"])]) == 2
+    err = capsys.readouterr().err
+    assert study.plan[p, 1].system in err and "no longer matches the plan" in err
+    assert not grep_names(err) and err.count("\n") == 1
+    assert list(study.sessions.iterdir()) == []
