@@ -18,6 +18,7 @@ CHAIN = ["cli", "cohort", "session", "analysis", "servo", "tissue", "base"]
 ALLOWED = {pkg: set(CHAIN[i:]) for i, pkg in enumerate(CHAIN)}
 ALLOWED["cli"] |= {"devices", "bench", "study"}
 ALLOWED["cohort"] |= {"devices"}
+ALLOWED["study"] = {"study"} | set(CHAIN[2:])  # beside cohort: session and the packages to its right
 ALLOWED["session"] |= {"devices"}
 ALLOWED["devices"] = {"devices", "base", "servo"}
 DEVICE_EXCEPTIONS = {"haptic_acu.session.trajectory"}  # the recorded-path format a scripted device reads
