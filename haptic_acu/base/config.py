@@ -190,9 +190,8 @@ _BOUNDS = {
     # rupture speed dependence: ratio in (0, 1] (1: off), speeds up to 10 m/s
     "high_speed_ratio": (1e-3, 1.0), "speed_scale_mm_s": (1e-3, 1e4), "reference_speed_mm_s": (0.0, 1e4),
 }
-# Keys that were once required and are no longer read: a file that still has one is accepted with a
-# one-line warning on stderr (the key changed nothing any more, so an old config means what it
-# meant); the message says why it went.
+# Retired keys, not read: a file that still has one is accepted with a one-line warning on stderr
+# (the key has no effect on the model, so such a config means what it says); the message says why.
 _REMOVED = {
     "needle.hole_radius_mm": "re-entry is decided by the insertion tracks, whose damage decays over the "
                              "needle's radius (docs/model.md section 9.2)",
