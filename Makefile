@@ -22,12 +22,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# the full benchmark (issue 6), with pyshtools for the SH comparison rows
+# the full benchmark, with pyshtools for the SH comparison rows (docs/performance.md)
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
 
-# issue 17's cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
+# the cohort benchmark at a class's size: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
 # (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
 bench-cohort: $(STAMP)
 	@mkdir -p runs
