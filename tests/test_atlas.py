@@ -257,3 +257,38 @@ def test_committed_point_trajectories_match_the_script(tmp_path):
     assert made == sorted(p.name for p in (TRAJ / "points").glob("*.csv"))
     for name in made:
         assert (tmp_path / name).read_bytes() == (TRAJ / "points" / name).read_bytes(), name
+
+
+def test_guided_feedback_warns_before_a_structure_and_exam_never():
+    from haptic_acu.base.config import load_config
+    from haptic_acu.servo.samples import COL, NCOL
+    from haptic_acu.session.point import setup
+    from haptic_acu.session.status import format_status
+
+    cfg = load_config()
+    guided = setup(cfg, "GB21", None, "guided")
+    exam = setup(cfg, "GB21", None, "exam")
+    assert guided.warning([0.0, 0.0, -14.0], 0.0) == "pleura in 3.4 mm"  # 17.4 mm at t = 0 (expiration)
+    assert guided.warning([0.0, 0.0, -10.0], 0.0) == ""  # farther than 5 mm: quiet
+    assert guided.warning([0.0, 0.0, -18.0], 0.0) == "PLEURA REACHED"
+    assert exam.warning([0.0, 0.0, -18.0], 0.0) == ""
+    row = np.zeros(NCOL)
+    row[COL["layer"]] = 2
+    line = format_status(1.0, row, {}, None, width=80, warning=guided.warning([0.0, 0.0, -14.0], 0.0))
+    assert "pleura in 3.4 mm" in line and len(line) <= 80
+    assert guided.cfg.scene.target_depth_mm == (5.0, 13.0)  # the point's range is the session's target
+
+
+def test_a_patient_file_is_read_strictly(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text('sex = "female"\nbmi = 19\n')
+    p = parse_patient(str(f))
+    assert (p.sex, p.bmi, p.age) == ("female", 19.0, 30.0)
+    f.write_text("random = true\nseed = 5\n")
+    assert parse_patient(str(f)) == parse_patient("random:5")
+    for text, key in (('sex = "x"\n', "sex"), ("weight = 70\n", "weight"), ("bmi = 99\n", "bmi"),
+                      ("seed = 3\n", "seed")):
+        f.write_text(text)
+        with pytest.raises(UserError) as e:
+            parse_patient(str(f))
+        assert key in str(e.value) and str(f) in str(e.value)
