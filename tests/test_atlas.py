@@ -292,3 +292,31 @@ def test_a_patient_file_is_read_strictly(tmp_path):
         with pytest.raises(UserError) as e:
             parse_patient(str(f))
         assert key in str(e.value) and str(f) in str(e.value)
+
+
+def test_a_cohort_session_at_a_point_is_graded_in_its_tables():
+    from haptic_acu.base.config import load_config
+    from haptic_acu.cohort.sessions import Job, config_hash, point_hash, replay_session
+
+    cfg = load_config()
+    csha = config_hash(cfg)
+    traj = str(TRAJ / "points" / "GB21_pleura.csv")
+    # the record of a session at a point follows the point and the patient
+    assert point_hash(csha, None) == csha
+    assert len({point_hash(csha, ("GB21", None)), point_hash(csha, ("GB21", "sex=female")), csha}) == 3
+    rec = replay_session(Job("s1", traj, cfg, "x", point_hash(csha, ("GB21", "sex=female")), None, "GB21",
+                             "sex=female"))
+    assert rec["error"] is None
+    (ins,) = rec["insertions"]
+    assert ins["critical_errors"] == 1 and ins["critical_structures"] == "pleura"
+    assert ins["danger_margin_min_mm"] < -9.0 and ins["angle_error_deg"] == pytest.approx(0.0, abs=0.5)
+    assert rec["summary"]["graded_point"] == "GB21" and rec["summary"]["graded_patient"] == "sex=female"
+
+
+def test_a_bad_point_in_a_cohort_manifest_is_one_line(tmp_path, capsys):
+    m = tmp_path / "m.csv"
+    m.write_text(f"session,trainee,file,point\ns1,a,{TRAJ / 'points' / 'GB21_pleura.csv'},GB99\n")
+    assert main(["cohort", str(m), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "line 2" in err and "GB99" in err
+    assert not (tmp_path / "o").exists()
