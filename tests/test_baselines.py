@@ -189,12 +189,9 @@ def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path):
             outs.append(out)
         assert filecmp.cmp(outs[0] / "samples.csv", outs[1] / "samples.csv", shallow=False), name
         assert filecmp.cmp(outs[0] / "summary.json", outs[1] / "summary.json", shallow=False), name
-        data = np.genfromtxt(outs[0] / "samples.csv", delimiter=",", names=True)
-        f = np.sqrt(data["fx_n"] ** 2 + data["fy_n"] ** 2 + data["fz_n"] ** 2)
-        assert np.isfinite(f).all() and f.max() <= limit, name
+        summary = json.loads((outs[0] / "summary.json").read_text())
+        assert summary["fault"] in (None, "", False), name
+        assert math.isfinite(summary["max_force_n"]) and summary["max_force_n"] <= limit, name
         if name == "default":
-            summary = json.loads((outs[0] / "summary.json").read_text())
-            assert "punctures" in json.dumps(summary)
-            assert data["clamped"].max() == 0
-            layers = set(int(v) for v in data["puncture"] if v >= 0)
-            assert layers == {0, 1, 2}, layers
+            assert summary["clamped_ticks"] == 0
+            assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
