@@ -195,3 +195,22 @@ def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path):
         if name == "default":
             assert summary["clamped_ticks"] == 0
             assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
+
+
+def test_compare_models_replays_one_trajectory_through_each(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "cmp"
+    assert main(["compare", "default", "--models", "forcenet,shf", "--out", str(out)]) == 0
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["labels"] == ["forcenet", "shf"]
+    assert [m["model"] for m in doc["models"]] == ["forcenet", "shf"]
+    assert all(0 < m["tick_us"]["p50"] <= m["tick_us"]["p99"] for m in doc["models"])
+    skin = [next(p for p in s["metrics"]["per_insertion"][0]["punctures"] if p["layer"] == "skin")
+            for s in doc["sessions"]]
+    # SHF's skin breaks at its configured 0.5 N; the force net's at its fitted target, within 10%
+    assert skin[1]["peak_force_n"] == pytest.approx(0.5, abs=0.01)
+    assert skin[0]["peak_force_n"] == pytest.approx(0.5, rel=0.10)
+    assert (out / "compare.png").stat().st_size > 0
+    assert main(["compare", "default", "--models", "forcenet,tetra", "--out", str(tmp_path / "bad")]) == 2
+    assert "--models" in capsys.readouterr().err
