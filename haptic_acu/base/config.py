@@ -215,9 +215,8 @@ _BOUNDS = {
     "shf_stiffness_n_per_mm": (1e-6, 1_000.0), "shf_puncture_force_n": (1e-3, 100.0),
     "msm_spacing_mm": (0.1, 5.0), "msm_puncture_strain": (1e-3, 100.0),
 }
-# Keys that were once required and are no longer read: a file that still has one is accepted with a
-# one-line warning on stderr (the key changed nothing any more, so an old config means what it
-# meant); the message says why it went.
+# Retired keys, not read: a file that still has one is accepted with a one-line warning on stderr
+# (the key has no effect on the model, so such a config means what it says); the message says why.
 _REMOVED = {
     "needle.hole_radius_mm": "re-entry is decided by the insertion tracks, whose damage decays over the "
                              "needle's radius (docs/model.md section 9.2)",
