@@ -15,7 +15,8 @@ each insertion (``--insertion N``: only the N-th) with its punctures (the report
 ``--models forcenet,msm,fem,bem,shf`` replays each trajectory once through each tissue model
 (``model.kind``, docs/model.md s12), one column and one colour per model; compare.json's ``models``
 then gives each model's precomputation time (``build_s``) and its replay's wall time per servo tick
-(``us_per_tick``: the servo step with the engine around it, the same engine for every model).
+(``tick_us``: p50 and p99 of one servo step, ``NeedleModel.step``, over 2 s of pressing the skin
+at 0.5 mm/s: the cost a model adds, measured the same way for each).
 
 Identical input gives byte-identical files (except ``models``' timings). The folder is built as ``<out>.partial`` and renamed when
 complete. Bad input is a one-line error naming the file (and line), exit status 2.
@@ -402,6 +403,27 @@ def run(args) -> int:
     return 0
 
 
+def tick_cost(cfg, tissue, ticks: int = 2000) -> dict:
+    """p50 and p99 (us) of one servo step of ``cfg``'s model pressing the skin: straight down the
+    z axis at 0.5 mm/s from 0.2 mm above the acupoint (1 mm in 2000 ticks: short of every model's
+    break), on a warmed-up model."""
+    from ..servo.step import NeedleModel
+
+    model = NeedleModel(cfg, tissue)
+    model.warm_up()
+    z0 = 2e-4  # the acupoint is the skin's point at the origin, its outward normal +z
+    v = np.array([0.0, 0.0, -0.5e-3])
+    p = np.zeros(3)
+    t = np.empty(ticks)
+    clock = time.perf_counter_ns
+    for i in range(ticks):
+        p[2] = z0 - 0.5e-6 * i
+        t0 = clock()
+        model.step(p, v)
+        t[i] = clock() - t0
+    return {"p50": round(float(np.percentile(t, 50)) * 1e-3, 2), "p99": round(float(np.percentile(t, 99)) * 1e-3, 2)}
+
+
 def _precompute(cfg) -> float:
     """Build (or load) ``cfg``'s tissue model's precomputation; its build time in seconds (0 from the cache)."""
     from ..tissue.baselines import contact_for
@@ -424,10 +446,9 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
             build_s = _precompute(c)
             t1 = time.perf_counter()
             m, _, curve = replay_session(dev, p, c, tissue, point=getattr(args, "point_setup", None))
-            t2 = time.perf_counter()
-        ticks = max(int(round(dev.duration_s * 1000)), 1)
-        costs.append({"model": kind, "build_s": round(build_s if build_s else t1 - t0, 3),
-                      "us_per_tick": round((t2 - t1) / ticks * 1e6, 2)})
+        if kind is not None:
+            costs.append({"model": kind, "build_s": round(build_s if build_s else t1 - t0, 3),
+                          "tick_us": tick_cost(c, tissue)})
         curves.append(curve)
         metrics.append(m)
     if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
