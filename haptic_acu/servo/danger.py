@@ -2,7 +2,7 @@
 
 Two small compiled phases of the step (:mod:`haptic_acu.servo.step`), both a no-op without a point
 (``Model.danger`` all rows ``NONE``, the first row's kind checked first, so a session without
-``--point`` computes exactly what it computed before):
+``--point`` computes exactly what the step computes without these phases):
 
 * :func:`danger_phase` after the bone wall: each structure of ``Model.danger`` (:data:`DANGER`, one
   row each, SI units, the scene frame) acts on the tip (the device's position ``inp.p``) once the
