@@ -229,6 +229,7 @@ def test_redo_keeps_earlier_files_and_ratings_history(ran, tmp_path, capsys):
 
 
 @pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a live session's file: read as a stream
 def test_blinding_nothing_shown_names_a_model(ran):
     study = ran["study"]
     screen = ran["screen"]

@@ -29,7 +29,7 @@ def _kinds_available() -> bool:
         return False
 
 
-pytestmark = [pytest.mark.slow,
+pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore:RRD file has no footer"),
               pytest.mark.skipif(not _kinds_available(), reason="the config has no model.kind yet")]
 
 
