@@ -9,11 +9,11 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   alone (numba's dispatch of the same step with its 22 arrays), and ticks run inside one compiled
   loop (:func:`haptic_acu.servo.tick.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
   Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
-  design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
+  research mode ``solver.servo_net = "sweeps"`` (the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
   trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
   temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.servo.rtloop`); in the full run also
-  without rerun, with rerun in this process, with the servo loop in Python (the design before), and
+  without rerun, with rerun in this process, with the servo loop in Python (``--python-servo``), and
   the machine's floor (a bare Python 1 kHz loop).
 * :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
   the compiled servo callback and with the Python one.
@@ -93,7 +93,7 @@ QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0,
                             cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False,
                             closed_loop_quick=True)
 
-# The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
+# The targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
 
 
@@ -245,7 +245,7 @@ def servo(sizes: Sizes, progress=False) -> dict:
             res["speedup_vs_numpy"][sc.name] = ratio(r["numpy"]["p50"], r["step"]["p50"])
             if not r["numpy_states_match"]:
                 notes.append(f"servo {sc.name}: the NumPy reference was not in the measured state")
-    # The design before the tabulated response, for comparison: the net relaxed by
+    # The research mode, for comparison: the net relaxed by
     # solver.sweeps_per_tick Gauss-Seidel-Newton sweeps inside every tick.
     res["servo_tick_sweeps_us"] = {}
     for sc in scen:
@@ -256,6 +256,36 @@ def servo(sizes: Sizes, progress=False) -> dict:
         res["servo_tick_sweeps_us"][sc.name] = servo_scenario(sw, sizes.servo_ticks, ways=("step",))["step"]
     res["notes"] = notes
     return res
+
+
+def models(sizes: Sizes, progress=False) -> dict:
+    """Each tissue model (model.kind): the compiled tick pressing the skin and inside the muscle
+    (microseconds per tick, p50/p99 of :data:`BLOCK`-tick means), the precomputation's build time
+    (the baselines' contact, uncached; the force net's three response tables) and its tables' memory."""
+    from haptic_acu.base.config import MODEL_KINDS, load_config
+    from haptic_acu.tissue import baselines, netresponse
+    from haptic_acu.tissue.forcenet import NetParams
+
+    out = {"model_tick_us": {}, "model_build_s": {}, "model_table_bytes": {}}
+    base = load_config()
+    for kind in MODEL_KINDS:
+        cfg = scenarios.with_kind(base, kind)
+        _log(progress, f"tissue model {kind}: precomputation")
+        t0 = time.perf_counter()
+        if kind == "forcenet":
+            tol = cfg.solver.static_tolerance_um * 1e-6
+            tabs = [netresponse.build(NetParams.from_layer(layer), tol) for layer in cfg.layers]
+            nbytes = sum(t.F.nbytes + t.R.nbytes + t.D.nbytes for t in tabs)
+        else:
+            nbytes = baselines.build_contact(cfg).table_bytes
+        out["model_build_s"][kind] = round(time.perf_counter() - t0, 3)
+        out["model_table_bytes"][kind] = int(nbytes)
+        ticks = {}
+        for sc in (scenarios.press(sizes.servo_ticks, layer=0, base=cfg), scenarios.inside_muscle(sizes.servo_ticks, base=cfg)):
+            _log(progress, f"tissue model {kind}: {sc.name}")
+            ticks[sc.name.split("_w")[0]] = servo_scenario(sc, sizes.servo_ticks, ways=("compiled",)).get("compiled")
+        out["model_tick_us"][kind] = ticks
+    return {"models": out}
 
 
 def net_tables(sizes: Sizes, progress=False) -> dict:
@@ -352,7 +382,7 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
 
 
 def loop(sizes: Sizes, progress=False) -> dict:
-    """The issue's loop: real time, visual loop with springback, dents and rerun logging; and, if
+    """The live session's loop: real time, visual loop with springback, dents and rerun logging; and, if
     ``sizes.loop_plain_s``, a shorter run without rerun logging, to tell its share of the tail."""
     from haptic_acu.base.config import load_config
     from haptic_acu.session.replay import DEFAULT_TRAJECTORY
@@ -393,7 +423,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_pinned"] = {"duration_s": sizes.loop_plain_s, "period_error_us": pin["period_error_us"],
                               "ticks": int(pin["ticks"]), "missed_ticks": int(pin["missed_ticks"]),
                               "pinned": bool(pin.get("pinned")), "fault": pin["fault"], "steal": pin["steal"]}
-        # the design before rtloop.py, for comparison: the same session with the servo loop in Python
+        # for comparison: the same session with the servo loop in Python (--python-servo)
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
         out["loop_python_servo"] = {"duration_s": sizes.loop_plain_s, "period_error_us": py["period_error_us"],
@@ -453,7 +483,7 @@ _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; per
 
 def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
     """The closed-loop rows (bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
-    and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
+    and a firm (2 N/mm) hand on the closed-loop session, the force rendered by the rendering layer from
     the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
     puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
     (no rendering layer) for comparison. ``--quick``: the insertion and the hold only."""
@@ -816,7 +846,7 @@ def _get(res, *path):
 
 
 def targets(res: dict) -> list[dict]:
-    """The issue's targets, each with the measured value and pass / miss (None: not measured)."""
+    """The targets, each with the measured value and pass / miss (None: not measured)."""
     ticks = res.get("ticks") or 0
     missed = res.get("missed_ticks")
     rows = [
@@ -869,6 +899,7 @@ def collect(sizes: Sizes, progress=False) -> dict:
     tissue = scenarios.tissue_for(load_config())
     pieces = [("net_tables", lambda: net_tables(sizes, progress)),
               ("servo", lambda: servo(sizes, progress)),
+              ("models", lambda: models(sizes, progress)),
               ("sh", lambda: sh(sizes, tissue.coeffs[:3], progress)),
               ("springback", lambda: springback(sizes, progress)),
               ("scaling", lambda: scaling(sizes, progress)),
@@ -902,6 +933,21 @@ def _fmt(x, digits=3):
     if x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
         return f"{x:.2e}"
     return f"{x:.{digits}g}"
+
+
+def model_lines(md) -> list:
+    """One row per tissue model (model.kind): compiled tick pressing the skin and inside the muscle
+    (p50 / p99, us), precomputation time and table memory."""
+    if not md:
+        return []
+    lines = ["tissue models (model.kind): compiled tick, us (p50 / p99); precomputation; tables",
+             f"  {'':10s}{'press skin':>16s}{'inside muscle':>16s}{'build s':>10s}{'tables kB':>11s}"]
+    for kind, ticks in md["model_tick_us"].items():
+        cells = "".join(f"{(_fmt(t['p50']) + ' / ' + _fmt(t['p99'])) if t else '-':>16s}"
+                        for t in (ticks.get("press_skin"), ticks.get("inside_muscle")))
+        lines.append(f"  {kind:10s}{cells}{_fmt(md['model_build_s'][kind]):>10s}"
+                     f"{_fmt(md['model_table_bytes'][kind] / 1e3):>11s}")
+    return lines
 
 
 def closed_loop_lines(cl) -> list:
@@ -1031,6 +1077,7 @@ def _table_loops(res: dict, lines: list) -> None:
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
     lines += closed_loop_lines(res.get("closed_loop"))
+    lines += model_lines(res.get("models"))
 
 
 def _table_kernels(res: dict, lines: list) -> None:

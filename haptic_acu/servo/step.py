@@ -5,7 +5,8 @@ sequence of named phases, each a small kernel of its own:
 
     check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
     sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
-    twirl_phase (winding: torque, grasp) -> bone_wall -> locate -> clamp
+    twirl_phase (winding: torque, grasp) -> bone_wall -> danger_phase -> locate -> clamp
+    -> render_local -> danger_render   (the danger phases: a point's structures, servo/danger.py)
 
 Every phase takes the NamedTuples of :mod:`haptic_acu.servo.state` (``inp``: TickIn, ``m``: Model,
 ``s``: State, ``d``: the DIAG record) plus at most a layer or slot index; values one phase hands the
@@ -66,6 +67,7 @@ from ..tissue import shf
 from .clamp import clamp_force
 from .cptr import address_of as _address_of
 from .cptr import i64p as _i64p
+from .danger import DANGER, MAX_DANGER, danger_phase, danger_render, structure_rows
 from ..tissue.forcenet import (NetArrays, NetParams, Springs, Surface, Topology, build_net, force_on, lattice,
                        n_particles, relax, ring_w_mean_deflection, sync_curved)
 from ..tissue.mechanics import UNCUT, mech_params, puncture_threshold, rupture_fields
@@ -75,6 +77,7 @@ from ..tissue.netresponse import table_for
 from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
+from ..tissue.baselines import KIND_CODES, baseline_response, baseline_slope, contact_for
 from ..tissue.body import Tissue, boundary_radii
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params
@@ -516,13 +519,18 @@ def press(inp, m, s, d, k):
         tip_on_net(s, X0f, ax)
     wk.dz1 = dep
     depth_gradient(m, s, k)
-    if use_table:
-        fn, rw = table_response(m, s, k, idx)
+    if m.params[0].kind != 0:  # a baseline model (docs/model.md s12); the net is only drawn
+        fn, broke = baseline_response(inp, m, s, k, idx, dep, ax)
+        rw = 0.0
     else:
-        fn, rw = sweep_net(m, s, k, idx, sweeps)
+        if use_table:
+            fn, rw = table_response(m, s, k, idx)
+        else:
+            fn, rw = sweep_net(m, s, k, idx, sweeps)
+        broke = rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0])
     d.ringw = rw
     d.dz1 = dep
-    if rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0]):
+    if broke:
         puncture(inp, m, s, d, k, idx, use_table)
     else:
         surface_force(s, d, k, fn)
@@ -674,6 +682,8 @@ def pressed_slope(m, s, k, idx):
     """The pressed surface's stiffness along grad(-d) (N/m) at the tip: the tabulated response's
     slope over one row ahead (the nets stiffen with depth, so ahead is the larger) times |grad d|^2,
     or :data:`SWEPT_K_ALONG` for a swept net."""
+    if m.params[0].kind != 0:
+        return baseline_slope(m, s, k)
     if m.tmeta[k].nr <= 0:
         return SWEPT_K_ALONG
     wk = s.work[0]
@@ -750,9 +760,11 @@ def step_kernel(inp, m, s, out):
         post_puncture(inp, m, s, d)
     twirl_phase(inp, m, s, d)
     bone_wall(m, s, d)
+    danger_phase(inp, m, s, d)
     locate(s, d)
     clamp(m, s, d)
     render_local(m, s, d)
+    danger_render(s, d)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -843,11 +855,11 @@ class NeedleModel:
                            nbr=np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices])),
                            ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
                            plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
-                           tab=tab, tmeta=tmeta)
+                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER))
         tr = (ss.MAX_TRACKS, 3)
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
-                              tr_hi=tr)
+                              tr_hi=tr, dstate=(MAX_DANGER,))
         self.state.axes[:, 2] = 1.0
         self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan
@@ -874,6 +886,10 @@ class NeedleModel:
                                 ("thickness", layer.thickness_mm * 1e-3), ("cut", mp.cut[k]), ("fs", mp.fs[k]),
                                 ("fc", mp.fc[k]), ("visc", mp.b[k])):
                 r[name] = value
+        contact = contact_for(cfg)  # a baseline model's per-layer contact (None: the force net)
+        if contact is not None:
+            lp["bl_k"] = contact.stiffness
+            lp["bl_crit"] = contact.crit_depth
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:
@@ -886,6 +902,7 @@ class NeedleModel:
                             ("k_bone", nd.bone_stiffness_n_per_mm * 1e3), ("force_limit", cfg.safety.force_limit_n),
                             ("sweeps", cfg.solver.sweeps_per_tick),
                             ("mechanics", ss.TABLE1 if nd.mechanics == "table1" else ss.RICH),
+                            ("kind", KIND_CODES[cfg.model.kind]),
                             ("needle_radius", mp.radius), ("needle_length", mp.length), ("k_stick", mp.k_stick),
                             ("decay", mp.decay), ("dt", SERVO_DT_S)):
             r[name] = value
@@ -940,6 +957,15 @@ class NeedleModel:
         """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False
         (:func:`reset_servo`, the one reset the compiled drivers run too)."""
         reset_servo(self.servo, bool(keep_holes))
+
+    def set_structures(self, anatomy) -> None:
+        """A point's danger structures (:func:`haptic_acu.tissue.patient.realise`) into
+        ``model.danger`` (in place: a C entry point's table stays valid); None removes them."""
+        if anatomy is None:
+            self.model.danger[:] = np.zeros(1, DANGER)[0]
+        else:
+            structure_rows(anatomy, self.cfg.needle.bone_stiffness_n_per_mm, out=self.model.danger)
+        self.state.dstate[:] = 0.0
 
     def kernel_args(self) -> tuple:
         """Everything :func:`step_kernel` takes: (inp, model, state, diag)."""
