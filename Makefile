@@ -22,10 +22,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# the full benchmark (issue 6), with pyshtools for the SH comparison rows
+# the full benchmark, with pyshtools for the SH comparison rows; docs/performance.md rendered from its JSON
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
+	@mkdir -p runs
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+	$(PY) tools/perf_page.py runs/bench.json --out docs/performance.md  # the page's figures, from that JSON
 
 # issue 17's cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
 # (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
