@@ -83,6 +83,7 @@ class Sizes:
     first_run: bool = True  # the first replay with empty numba and table caches
     end_to_end_runs: int = 3  # `haptic-acu replay` commands timed per mode (with / without .rrd; 0: not measured)
     end_to_end_batch: int = 4  # copies of the trajectory in the one batch command timed
+    wheel_first_run: bool = True  # build the wheel, install it into a fresh venv, time its first command
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -93,7 +94,7 @@ QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
                             scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0,
                             cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False,
-                            closed_loop_quick=True, end_to_end_runs=1, end_to_end_batch=2)
+                            closed_loop_quick=True, end_to_end_runs=1, end_to_end_batch=2, wheel_first_run=False)
 
 # The targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -725,6 +726,50 @@ def end_to_end(sizes: Sizes, progress=False) -> dict:
                                      "on a folder of copies, --jobs 1, wall time over the files"}}
 
 
+def wheel_first_run(sizes: Sizes, progress=False) -> dict:
+    """The first command after installing the wheel: ``pip wheel`` of this source tree (its build
+    compiles the kernels into the wheel, setup.py), installed with ``--no-deps`` into a fresh venv
+    whose dependencies come from this environment through a path line, then ``haptic-acu replay
+    TRAJ --quiet`` timed twice in it with an empty ``HAPTIC_ACU_CACHE``: ``first`` and ``warm``.
+    None (with a note) outside a source tree."""
+    if not sizes.wheel_first_run:
+        return {"wheel_first_run_s": None}
+    import sysconfig
+
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
+
+    root = Path(__file__).resolve().parent.parent
+    if not (root / "pyproject.toml").is_file() or not (root / "haptic_acu").is_dir():
+        return {"wheel_first_run_s": None, "notes": ["wheel first run: not a source tree, nothing to build"]}
+    traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-wheel-") as tmp:
+        tmp = Path(tmp)
+        _log(progress, "wheel first run: building the wheel (its kernels compile now)")
+        env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "PYTHONPATH")}
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp / "dist"), str(root)],
+                       check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        build_s = time.perf_counter() - t
+        (wheel,) = (tmp / "dist").glob("haptic_acu-*.whl")
+        venv = tmp / "venv"
+        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+        subprocess.run([sys.executable, "-m", "pip", "--python", str(venv / "bin" / "python"), "install", "-q",
+                        "--no-deps", "--no-index", str(wheel)], check=True, env=env, stdout=subprocess.DEVNULL)
+        site = subprocess.run([str(venv / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                              check=True, capture_output=True, text=True).stdout.strip()
+        (Path(site) / "zz_bench_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+        env = dict(env, HAPTIC_ACU_CACHE=str(tmp / "tables"), PATH=str(venv / "bin") + os.pathsep + env.get("PATH", ""))
+        out = {}
+        for key in ("first", "warm"):
+            _log(progress, f"wheel first run: {key}")
+            cmd = [str(venv / "bin" / "haptic-acu"), "replay", traj, "--quiet", "--out", str(tmp / key)]
+            out[key] = _timed_child(cmd, env, tmp)
+    out.update(build_s=build_s, trajectory=Path(traj).name, method=(
+        "pip wheel of this tree (setup.py compiles the kernels into it), installed --no-deps into a fresh venv, "
+        "then `haptic-acu replay TRAJ --quiet` (with .rrd) twice with an empty HAPTIC_ACU_CACHE"))
+    return {"wheel_first_run_s": out}
+
+
 def ratios(res: dict) -> dict:
     """The figures a user meets, as ratios within this run: the replay command against its ticks'
     compute bound (ticks x the compiled tick's p50 pressing the skin), the replay's speed against
@@ -933,7 +978,7 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
                  "loop_no_rerun", "machine_floor", "compiled_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes",
-                 "cohort", "first_run_s", "end_to_end", "ratios")
+                 "cohort", "first_run_s", "end_to_end", "wheel_first_run_s", "ratios")
 
 
 def collect(sizes: Sizes, progress=False) -> dict:
@@ -953,6 +998,7 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("replay", lambda: replay(sizes, progress)),
               ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
               ("end_to_end", lambda: end_to_end(sizes, progress)),
+              ("wheel_first_run", lambda: wheel_first_run(sizes, progress)),
               ("first_run", lambda: first_run(sizes, progress)),  # its own empty caches
               ("cohort", lambda: cohort(sizes, progress)),
               ("loop", lambda: loop(sizes, progress)),
@@ -1142,6 +1188,10 @@ def _table_kernels(res: dict, lines: list) -> None:
     if fr:
         lines.append(f"first run of make demo ({fr['trajectory']}, .rrd included): {_fmt(fr['empty_caches'])} s with "
                      f"empty numba and table caches, {_fmt(fr['after_install'])} s once they are filled (after install)")
+    wf = res.get("wheel_first_run_s")
+    if wf:
+        lines.append(f"first command after installing the wheel into a fresh venv: {_fmt(wf['first'])} s, then "
+                     f"{_fmt(wf['warm'])} s warm (the wheel built, kernels compiled into it, in {_fmt(wf['build_s'])} s)")
     e2e, r = res.get("end_to_end"), res.get("ratios") or {}
     if e2e:
         lines.append(f"replay command ({e2e['trajectory']}, {e2e['ticks']} ticks): {_fmt(e2e['cli_s']['rrd'])} s with "
