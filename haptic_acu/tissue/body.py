@@ -124,8 +124,10 @@ def _fit_path(key: str):
 
 
 def _load_fit(key: str):
-    path = _fit_path(key)
-    if path is None or not path.is_file():
+    from .netresponse import cached_file
+
+    path = cached_file(f"body-{key}.npz")
+    if path is None:
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
