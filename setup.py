@@ -6,6 +6,7 @@ machine like the builder's the first command after ``pip install`` loads them in
 for a minute; elsewhere numba compiles as it always did. Set ``HAPTIC_ACU_NO_PRECOMPILE=1`` to
 build without them (an editable install never runs it). Everything else is in pyproject.toml."""
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,10 +18,17 @@ from setuptools.command.build_py import build_py
 class BuildPyWithKernels(build_py):
     def run(self):
         super().run()
-        if getattr(self, "editable_mode", False) or os.environ.get("HAPTIC_ACU_NO_PRECOMPILE"):
+        if getattr(self, "editable_mode", False):
             return
         lib = Path(self.build_lib).resolve()
         tables = lib / "haptic_acu" / "_bundled" / "tables"
+        # an earlier build's caches and tables left in the build folder never go into this wheel
+        shutil.rmtree(tables, ignore_errors=True)
+        for f in (lib / "haptic_acu").rglob("__pycache__/*"):
+            if f.suffix in (".nbi", ".nbc") or f.name == "haptic_acu-kernels.sha256":
+                f.unlink()
+        if os.environ.get("HAPTIC_ACU_NO_PRECOMPILE"):
+            return
         tables.mkdir(parents=True, exist_ok=True)
         env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
         # the laid-out package first, then the build environment's own path (pip's isolated
