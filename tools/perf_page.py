@@ -34,6 +34,11 @@ def fmt(x, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
+def times(x) -> str:
+    """``fmt(x)`` followed by "x" (a dash alone where not measured)."""
+    return "-" if x is None else f"{fmt(x)}x"
+
+
 def get(res, *path):
     for p in path:
         if not isinstance(res, dict):
@@ -74,23 +79,23 @@ def end_to_end_lines(res: dict) -> list[str]:
     co = res.get("cohort") or {}
     rows = [
         ["`haptic-acu replay` of the default trajectory, with its .rrd (as `make demo`): wall time",
-         f"{fmt(get(e, 'cli_s', 'rrd'))} s", f"{fmt(r.get('replay_cli_rrd_vs_bound'))}x the ticks' compute bound"],
+         f"{fmt(get(e, 'cli_s', 'rrd'))} s", f"{times(r.get('replay_cli_rrd_vs_bound'))} the ticks' compute bound"],
         ["the same with `--no-rrd`", f"{fmt(get(e, 'cli_s', 'no_rrd'))} s",
-         f"{fmt(r.get('replay_cli_no_rrd_vs_bound'))}x the bound"],
+         f"{times(r.get('replay_cli_no_rrd_vs_bound'))} the bound"],
         ["the ticks' compute bound: ticks x the compiled tick's p50 (pressing the skin)",
          f"{fmt(get(e, 'bound_s'))} s", f"{fmt(get(e, 'ticks'))} ticks x {fmt(get(e, 'tick_p50_us'))} us"],
         ["a batch of the same trajectory in one command, per file (`--jobs 1`)",
-         f"{fmt(get(e, 'batch_per_file_s'))} s", f"{fmt(r.get('batch_per_file_vs_single'))}x one file's command"],
+         f"{fmt(get(e, 'batch_per_file_s'))} s", f"{times(r.get('batch_per_file_vs_single'))} one file's command"],
         ["the replay's speed (simulated s per wall s, the session alone) against the compiled tick's",
-         f"{fmt(get(res, 'replay_speed_x', 'no_rrd'))}x real time",
-         f"{fmt(r.get('replay_speed_vs_tick_bound'))} of {fmt(get(e, 'tick_bound_x'))}x"],
+         f"{times(get(res, 'replay_speed_x', 'no_rrd'))} real time",
+         f"{fmt(r.get('replay_speed_vs_tick_bound'))} of {times(get(e, 'tick_bound_x'))}"],
         ["first `haptic-acu replay` with empty numba and table caches / once they are filled",
-         f"{fmt(fr.get('empty_caches'))} / {fmt(fr.get('after_install'))} s", f"{fmt(r.get('first_run_vs_warm'))}x"],
+         f"{fmt(fr.get('empty_caches'))} / {fmt(fr.get('after_install'))} s", times(r.get("first_run_vs_warm"))],
         ["first command after installing the wheel into a fresh venv / the same command warm",
-         f"{fmt(wf.get('first'))} / {fmt(wf.get('warm'))} s", f"{fmt(r.get('wheel_first_vs_warm'))}x"],
+         f"{fmt(wf.get('first'))} / {fmt(wf.get('warm'))} s", times(r.get("wheel_first_vs_warm"))],
         [f"cohort: Dask LocalCluster against the local pool ({fmt(co.get('sessions'))} sessions of "
          f"{fmt(co.get('session_s'))} s)", f"{fmt(get(co, 'dask', 'replay_s'))} / {fmt(get(co, 'local', 'replay_s'))} s",
-         f"{fmt(r.get('dask_vs_local'))}x; identical tables: {fmt(get(co, 'dask', 'identical_tables'))}"],
+         f"{times(r.get('dask_vs_local'))}; identical tables: {fmt(get(co, 'dask', 'identical_tables'))}"],
     ]
     return table(["what the user waits for", "measured", "ratio"], rows)
 
