@@ -162,19 +162,23 @@ def check_folder(path, label: str = "--out", resumable: str | None = None) -> No
 
 def create_new(path, overwrite: bool = False, mode: str = "wb"):
     """Open ``path`` for writing as a new file (``O_EXCL``): a file that appeared since the check is
-    refused unless ``overwrite`` (then the old one is unlinked first, never written through: a link
-    is replaced, not its target)."""
+    refused unless ``overwrite``. With ``overwrite`` a symbolic link is replaced (never written
+    through to its target), a regular file truncated, a device (/dev/null) written, a folder refused."""
     p = Path(path)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
     try:
-        fd = os.open(p, flags, 0o644)
-    except FileExistsError:
-        if not overwrite:
-            raise UserError(f"{p}: exists; {OVERWRITE_HINT}") from None
-        if p.is_dir() and not p.is_symlink():
-            raise UserError(f"{p}: is a folder; not replaced") from None
-        p.unlink()
-        fd = os.open(p, flags, 0o644)
+        try:
+            fd = os.open(p, flags, 0o644)
+        except FileExistsError:
+            if not overwrite:
+                raise UserError(f"{p}: exists; {OVERWRITE_HINT}") from None
+            if p.is_symlink():
+                p.unlink()
+                fd = os.open(p, flags, 0o644)
+            elif p.is_dir():
+                raise UserError(f"{p}: is a folder; not replaced") from None
+            else:
+                fd = os.open(p, os.O_WRONLY | (os.O_TRUNC if p.is_file() else 0) | getattr(os, "O_CLOEXEC", 0))
     except OSError as e:
         raise UserError(f"{p}: cannot create: {e.strerror or e}") from None
     return os.fdopen(fd, mode)

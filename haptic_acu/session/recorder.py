@@ -47,23 +47,6 @@ class RecordingError(Exception):
     """Writing the recording failed (the file ends on its last whole row)."""
 
 
-def check_target(path, overwrite: bool = False, inputs=()) -> Path:
-    """Refuse (one line) a recording target that would destroy something: the session's input
-    trajectory (always), an existing file (unless ``overwrite``), a folder, a missing folder."""
-    p = Path(path)
-    for src in inputs:
-        if src is not None and (Path(src).resolve() == p.resolve()
-                                or (p.exists() and Path(src).exists() and os.path.samefile(src, p))):
-            raise UserError(f"{p}: is the session's input trajectory; record to another file")
-    if p.is_dir():
-        raise UserError(f"{p}: is a folder; --record takes a file name")
-    if not p.parent.is_dir():
-        raise UserError(f"{p}: folder {p.parent} does not exist")
-    if (p.exists() or p.is_symlink()) and not overwrite:
-        raise UserError(f"{p}: exists; choose another file or add --overwrite")
-    return p
-
-
 class RecorderSink(Sink):
     """Records a session to ``path``. ``device`` (optional) may list ``events`` as (tick, name)
     pairs (the keyboard's resets); they become the ``event`` column of those ticks' rows."""
