@@ -46,7 +46,7 @@ def check_source(path, what: str = "file") -> os.stat_result:
     try:
         st = os.stat(p)
     except FileNotFoundError:
-        raise UserError(f"{p}: {what} not found") from None
+        raise UserError(f"{p}: no such file (expected a {what})") from None
     except OSError as e:
         raise UserError(f"{p}: cannot read {what}: {e.strerror or e}") from None
     if stat.S_ISDIR(st.st_mode):
@@ -161,5 +161,5 @@ def read_table(path, what: str = "file", comments: bool = True, max_bytes: int =
         elif any(c.strip() for c in fields):
             table.rows.append(Row(line, fields))
     if table is None:
-        raise UserError(f"{p}: line 1: empty {what} (expected a header line)")
+        raise UserError(f"{p}: empty file (expected a {what}'s header line)")
     return table

@@ -269,6 +269,36 @@ class FolderLock:
         self.release()
 
 
+def fresh_folder(path) -> Path:
+    """``path``, or ``path-2``, ``path-3``... the first that does not exist (a default output folder)."""
+    p = Path(path)
+    if not (p.exists() or p.is_symlink()):
+        return p
+    i = 2
+    while p.with_name(f"{p.name}-{i}").exists() or p.with_name(f"{p.name}-{i}").is_symlink():
+        i += 1
+    return p.with_name(f"{p.name}-{i}")
+
+
+def plain_text_figures():
+    """A context in which every text a figure draws is drawn as given: no mathtext (a name like
+    ``$\\foo$`` from a user's file is shown, not parsed as TeX), no LaTeX. Build and save figures in it."""
+    import matplotlib
+
+    return matplotlib.rc_context({"text.parse_math": False, "text.usetex": False})
+
+
+def plain_text(fn):
+    """Decorator: ``fn`` (which builds and saves a figure) runs in :func:`plain_text_figures`."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with plain_text_figures():
+            return fn(*args, **kwargs)
+    return wrapper
+
+
 def claim_folder(path, label: str = "--out") -> FolderLock:
     """Make ``path`` (new or empty) and hold it alone: a second command claiming it while this one
     runs, or after this one wrote into it, is refused (one line). Release with ``.release()``."""

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names
 from ..base.errors import UserError
+from ..base.outputs import fresh_folder as fresh_path
 
 
 def register(sub) -> None:
@@ -38,16 +39,6 @@ def register(sub) -> None:
 
 def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
-
-
-def fresh_path(path: Path) -> Path:
-    """``path``, or ``path-2``, ``path-3``... if it exists."""
-    if not path.exists():
-        return path
-    i = 2
-    while path.with_name(f"{path.name}-{i}").exists():
-        i += 1
-    return path.with_name(f"{path.name}-{i}")
 
 
 def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 from .sink import Sink
@@ -371,6 +372,7 @@ def _insertion_handles(n_ins: int) -> list:
     return out
 
 
+@plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
