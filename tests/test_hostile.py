@@ -272,7 +272,8 @@ def test_run_duration_not_a_finite_time(tmp_path, d):
 # ---- costs refused up front -----------------------------------------------------------------------
 def test_rings_times_tolerance_refused_naming_both(tmp_path):
     t0 = time.perf_counter()
-    one_line(cli("replay", "--set", "skin.rings=40", "--set", "solver.static_tolerance_um=1e-6", "--out",
+    one_line(cli("replay", "--set", "skin.rings=40", "--set", "skin.spring_length_mm=1", "--set",
+                 "solver.static_tolerance_um=1e-6", "--out",
                  tmp_path / "o", DEFAULT), 2, "skin.rings=40", "static_tolerance_um", "sweeps")
     assert time.perf_counter() - t0 < 10
 
