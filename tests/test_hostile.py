@@ -130,6 +130,12 @@ def test_fit_out_never_replaces_an_input(tmp_path):
     before = mesh.read_bytes()
     one_line(cli("fit", mesh, "--lmax", "1", "--out", mesh), 2, mesh)
     assert mesh.read_bytes() == before
+    mine = tmp_path / "mine.npz"
+    mine.write_text("my coefficients")
+    one_line(cli("fit", mesh, "--lmax", "1", "--out", mine), 2, mine, "--overwrite")
+    assert mine.read_text() == "my coefficients"
+    assert cli("fit", mesh, "--lmax", "1", "--out", mine, "--overwrite")[0] == 0
+    assert mine.read_bytes()[:2] == b"PK"  # an .npz now
 
 
 # ---- one line, exit 2, bounded ---------------------------------------------------------------------

@@ -97,8 +97,13 @@ def sh_fit_cost(lmax: int, samples: int) -> tuple[float, float]:
     return seconds, memory
 
 
-def check_sh_fit(lmax: int, samples: int, where: str) -> None:
-    s, b = sh_fit_cost(lmax, samples)
+def check_sh_fit(lmax: int, samples: int, where: str, keys: bool = True) -> None:
+    """Refuse a fit of ``samples`` points at degree ``lmax`` past the budget; ``keys``: name the config
+    keys (else ``where`` names the arguments)."""
+    s, b = sh_fit_cost(lmax, samples) if keys else (sh_fit_cost(lmax, samples)[0] / 4, sh_fit_cost(lmax, samples)[1])
+    if not keys and (b > memory_budget_bytes() or s > time_budget_s()):
+        raise UserError(f"{where} need about {_human_b(b)} and {_human_s(s)} to fit (budget "
+                        f"{_human_b(memory_budget_bytes())}, {_human_s(time_budget_s())}); lower --lmax")
     if b > memory_budget_bytes() or s > time_budget_s():
         raise UserError(f"{where}: body.lmax={lmax} with body.fit_samples={samples:,} needs about "
                         f"{_human_b(b)} and {_human_s(s)} to fit the body (budget {_human_b(memory_budget_bytes())}, "

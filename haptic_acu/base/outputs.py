@@ -262,6 +262,15 @@ class FolderLock:
             os.close(self.fd)
             self.fd = None
 
+    def discard_if_empty(self) -> None:
+        """Remove the claimed folder if this command made it and wrote nothing into it (a session that
+        could not start leaves nothing behind)."""
+        if getattr(self, "created", False):
+            try:
+                self.path.rmdir()
+            except OSError:
+                pass
+
     def __enter__(self):
         return self.acquire()
 
@@ -304,12 +313,14 @@ def claim_folder(path, label: str = "--out") -> FolderLock:
     runs, or after this one wrote into it, is refused (one line). Release with ``.release()``."""
     p = Path(path)
     check_folder(p, label)
+    created = not p.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise UserError(f"{p}: cannot create the output folder: {e.strerror or e}") from None
     lock = FolderLock(p, f"{p}: another session is writing to this folder; wait for it or choose "
                          f"another {label}").acquire()
+    lock.created = created
     try:
         check_folder(p, label)  # under the lock: a run that finished before us left its files
     except BaseException:

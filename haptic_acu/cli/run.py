@@ -154,6 +154,9 @@ def run(args) -> int:
     lock = claim_folder(out)  # held alone until the session's report is written
     try:
         return _run(args, cfg, device, out, rec)
+    except UserError:
+        lock.discard_if_empty()  # the session could not start: nothing left behind
+        raise
     finally:
         lock.release()
 
@@ -176,6 +179,9 @@ def _run(args, cfg, device, out: Path, rec: Path) -> int:
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
                       compiled_loop=not args.python_servo, pin_cores=args.pin_cores)  # the compiled loop honours resets
+    if args.device == "scripted":
+        from ..session.replay import check_start
+        check_start(args.trajectory, session.model.tissue)
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
@@ -206,6 +212,10 @@ def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False) -
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    from ..session.replay import needle_note
+    note = needle_note(summary, cfg)
+    if note:
+        print(note, file=sys.stderr)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     rows, index = summary_sink.figure_rows()
     with step("drawing force_depth.png"):
