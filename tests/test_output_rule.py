@@ -136,3 +136,97 @@ def test_every_command_with_outputs_is_listed():
     from haptic_acu.cli.app import COMMANDS
 
     assert set(COMMANDS) <= set(COMMAND_OUTPUTS), set(COMMANDS) - set(COMMAND_OUTPUTS)
+
+
+# ---- every output of every command, against the rule ------------------------------------------------
+def _cli(*argv):
+    import contextlib
+    import io
+
+    from haptic_acu.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            return main([str(a) for a in argv]), err.getvalue()
+        except SystemExit as e:
+            return e.code, err.getvalue()
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _inputs(d: Path) -> dict:
+    """A small valid input of each kind, in ``d``."""
+    from haptic_acu.analysis.scoring import INDICES
+
+    t = d / "t.csv"
+    t.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,3\n0.2,0,0,1\n")
+    r = d / "ratings.csv"
+    r.write_text("system,rater," + ",".join(INDICES) + "\n" + "".join(
+        f"{s},{q}," + ",".join(str((k + j + i) % 9 + 1) for i in range(len(INDICES))) + "\n"
+        for k, s in enumerate("AB") for j, q in enumerate(("r1", "r2"))))
+    m = d / "m.obj"
+    m.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
+                                                             (0, 0, 1), (0, 0, -1)]))
+    c = d / "c.csv"
+    c.write_text("depth_mm,force_n\n" + "".join(f"{i * 0.25:.2f},{0.1 * i if i < 20 else 0.5:.3f}\n"
+                                                for i in range(40)))
+    man = d / "man.csv"
+    man.write_text("session,trainee,file\ns1,ann,t.csv\n")
+    return {"traj": t, "ratings": r, "mesh": m, "curve": c, "manifest": man}
+
+
+# (command, option) -> argv builder taking (inputs, the output path); every option of COMMAND_OUTPUTS
+# has one, so an output added without a case here fails test_every_output_has_a_case
+RUN = ("run", "--device", "scripted", "--duration", "0.05", "--no-status", "--trajectory")
+CASES = {
+    ("replay", "--out"): lambda i, p: ("replay", i["traj"], "--no-rrd", "--out", p),
+    ("replay", "--out (batch)"): lambda i, p: ("replay", i["traj"], i["curve"], "--no-rrd", "--out", p),
+    ("run", "--out"): lambda i, p: (*RUN, i["traj"], "--out", p),
+    ("run", "--record"): lambda i, p: (*RUN, i["traj"], "--record", p, "--out", i["traj"].parent / "o"),
+    ("run", "--rrd"): lambda i, p: (*RUN, i["traj"], "--rrd", p, "--out", i["traj"].parent / "o"),
+    ("compare", "--out"): lambda i, p: ("compare", i["traj"], i["traj"], "--out", p),
+    ("score", "--out"): lambda i, p: ("score", i["ratings"], "--out", p),
+    ("fit", "--out"): lambda i, p: ("fit", i["mesh"], "--lmax", "1", "--out", p),
+    ("calibrate", "--out"): lambda i, p: ("calibrate", i["curve"], "--speed-mm-s", "3", "--out", p),
+    ("cohort", "--out"): lambda i, p: ("cohort", i["manifest"], "--out", p),
+    ("bench", "--json"): lambda i, p: ("bench", "--quick", "--json", p),
+}
+FOLDERS = {k for k in CASES if k[1].startswith("--out") and k[0] not in ("fit", "calibrate")}
+
+
+def test_every_output_has_a_case():
+    listed = {(c, o) for c, opts in COMMAND_OUTPUTS.items() for o in opts}
+    assert listed == set(CASES), listed ^ set(CASES)
+
+
+@pytest.mark.parametrize("case", sorted(CASES), ids=lambda c: f"{c[0]} {c[1]}")
+def test_a_users_file_at_every_output_is_kept(tmp_path, case):
+    """A user's file where the command would write (inside the folder, or the file itself) is never
+    replaced: one line, exit 2, the file as it was."""
+    ins = _inputs(tmp_path)
+    if case in FOLDERS:
+        target = tmp_path / "out"
+        target.mkdir()
+        name = (COMMAND_OUTPUTS[case[0]][case[1]] or ("x",))[0]
+        mine = target / name
+    else:
+        target = mine = tmp_path / ("mine.npz" if case[0] == "fit" else "mine.toml" if case[0] == "calibrate"
+                                    else "mine.json")
+    mine.write_text("precious")
+    code, err = _cli(*CASES[case](ins, target))
+    assert code == 2 and "Traceback" not in err, err
+    assert mine.read_text() == "precious"
+
+
+@pytest.mark.parametrize("case", sorted(k for k in CASES if k[0] != "bench"), ids=lambda c: f"{c[0]} {c[1]}")
+def test_no_output_is_an_input(tmp_path, case):
+    """Every output pointed at the command's own input: refused, the input as it was."""
+    ins = _inputs(tmp_path)
+    src = {"replay": ins["traj"], "run": ins["traj"], "compare": ins["traj"], "score": ins["ratings"],
+           "fit": ins["mesh"], "calibrate": ins["curve"], "cohort": ins["manifest"]}[case[0]]
+    before = src.read_bytes()
+    code, err = _cli(*CASES[case](ins, src), *(("--overwrite",) if case[0] in ("run", "fit") else ()))
+    assert code == 2 and "Traceback" not in err, err
+    assert src.read_bytes() == before

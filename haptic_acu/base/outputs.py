@@ -42,6 +42,7 @@ COMMAND_OUTPUTS: dict[str, dict[str, tuple[str, ...]]] = {
     "score": {"--out": ("weights.csv", "scores.csv", "score.json", "scores.png")},
     "fit": {"--out": ()},
     "calibrate": {"--out": ()},
+    "bench": {"--json": ()},
     "cohort": {"--out": ("insertions.parquet", "insertions.csv", "sessions.parquet", "sessions.csv",
                          "report.json")},
 }
@@ -308,21 +309,25 @@ def plain_text(fn):
     return wrapper
 
 
-def claim_folder(path, label: str = "--out") -> FolderLock:
+def claim_folder(path, label: str = "--out", busy: str | None = None) -> FolderLock:
     """Make ``path`` (new or empty) and hold it alone: a second command claiming it while this one
-    runs, or after this one wrote into it, is refused (one line). Release with ``.release()``."""
+    runs is refused (``busy``, one line), as is one after this one wrote into it (not empty).
+    Release with ``.release()``."""
     p = Path(path)
-    check_folder(p, label)
+    if p.is_symlink() and not p.is_dir():
+        raise UserError(f"{p}: is a link to nothing; choose another {label}")
+    if p.exists() and not p.is_dir():
+        raise UserError(f"{p}: exists and is not a folder; choose another {label}")
     created = not p.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise UserError(f"{p}: cannot create the output folder: {e.strerror or e}") from None
-    lock = FolderLock(p, f"{p}: another session is writing to this folder; wait for it or choose "
-                         f"another {label}").acquire()
+    lock = FolderLock(p, busy or f"{p}: another session is writing to this folder; wait for it or "
+                                  f"choose another {label}").acquire()
     lock.created = created
     try:
-        check_folder(p, label)  # under the lock: a run that finished before us left its files
+        check_folder(p, label)  # under the lock: a command that finished before us left its files
     except BaseException:
         lock.release()
         raise

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import csv
-import fcntl
 import os
 import sys
 import time
@@ -12,7 +11,10 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names
 from ..base.errors import UserError
+from ..base.outputs import Outputs, claim_folder, safe_cell, write_new
 from ..base.outputs import fresh_folder as fresh_path
+
+BATCH_FILES = ("summaries.csv", "insertions.csv", "punctures.csv")
 
 
 def register(sub) -> None:
@@ -122,13 +124,13 @@ def write_table(path: Path, rows: list[dict]) -> None:
     cols: list[str] = []
     for r in rows:
         cols += [c for c in r if c not in cols]
-    try:
-        with open(path, "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=cols or ["trajectory"])
-            wr.writeheader()
-            wr.writerows(rows)
-    except OSError as e:
-        raise UserError(f"{path}: cannot write: {e.strerror or e}") from None
+    import io
+
+    buf = io.StringIO(newline="")
+    wr = csv.DictWriter(buf, fieldnames=cols or ["trajectory"])
+    wr.writeheader()
+    wr.writerows({k: safe_cell(v) for k, v in r.items()} for r in rows)  # a file named =cmd|... is text
+    write_new(path, buf.getvalue())
 
 
 def run(args) -> int:
@@ -156,23 +158,19 @@ def run(args) -> int:
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
     base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
-    if base.exists() and not base.is_dir():
-        raise UserError(f"{base}: exists and is not a folder; choose another --out")
-    try:
-        base.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
-    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(lock)
-        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
-                        "another --out") from None
+    plan = Outputs().folder("--out", base, files=BATCH_FILES + tuple(p.stem for p in paths))
+    for p in paths:
+        plan.input("TRAJECTORY", p)
+    if args.config:
+        plan.input("--config", args.config)
+    if not (base.is_dir() and any(base.iterdir())):
+        plan.check()  # a folder with files: a batch writing it is named first (claim_folder)
+    lock = claim_folder(base, busy=f"{base}: another batch is writing to this folder; wait for it or "
+                                   "choose another --out")
     try:
         return _run_batch(args, paths, base)
     finally:
-        os.close(lock)
+        lock.release()
 
 
 def _run_batch(args, paths, base: Path) -> int:
