@@ -33,7 +33,7 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(PY) -m pytest -q $(XDIST) -m "not slow and not serial"
 
-# the full benchmark, with pyshtools for the SH comparison rows
+# the full benchmark, with pyshtools for the SH comparison rows (docs/performance.md)
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json --overwrite
