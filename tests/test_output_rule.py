@@ -192,8 +192,22 @@ CASES = {
     ("calibrate", "--out"): lambda i, p: ("calibrate", i["curve"], "--speed-mm-s", "3", "--out", p),
     ("cohort", "--out"): lambda i, p: ("cohort", i["manifest"], "--out", p),
     ("bench", "--json"): lambda i, p: ("bench", "--quick", "--json", p),
+    ("study", "plan --out"): lambda i, p: ("study", "plan", "--participants", "2", "--models", "forcenet,msm",
+                                           "--out", p),
+    ("study", "example --out"): lambda i, p: ("study", "example", "--no-sessions", "--out", p),
+    ("study", "analyze --out"): lambda i, p: ("study", "analyze", _example_study(i), "--no-objective", "--out", p),
+    ("study", "replay --out"): lambda i, p: ("study", "replay", _example_study(i), "--participant", "P01",
+                                             "--trial", "1", "--out", p),
 }
-FOLDERS = {k for k in CASES if k[1].startswith("--out") and k[0] not in ("fit", "calibrate")}
+
+
+def _example_study(ins) -> Path:
+    """The bundled synthetic study's plan and ratings (no sessions), made once per input folder."""
+    s = ins["traj"].parent / "study"
+    if not s.exists():
+        assert _cli("study", "example", "--no-sessions", "--out", s)[0] == 0
+    return s
+FOLDERS = {k for k in CASES if k[0] not in ("fit", "calibrate", "bench") and "--out" in k[1]}
 
 
 def test_every_output_has_a_case():
@@ -220,7 +234,8 @@ def test_a_users_file_at_every_output_is_kept(tmp_path, case):
     assert mine.read_text() == "precious"
 
 
-@pytest.mark.parametrize("case", sorted(k for k in CASES if k[0] != "bench"), ids=lambda c: f"{c[0]} {c[1]}")
+@pytest.mark.parametrize("case", sorted(k for k in CASES if k[0] not in ("bench", "study")),
+                         ids=lambda c: f"{c[0]} {c[1]}")
 def test_no_output_is_an_input(tmp_path, case):
     """Every output pointed at the command's own input: refused, the input as it was."""
     ins = _inputs(tmp_path)
