@@ -190,6 +190,33 @@ def _security(address: str):
     return sec
 
 
+def _probe(address: str, timeout_s: float, security) -> None:
+    """Ask the scheduler at ``address`` who it is, all within ``timeout_s``: UserError (one line) if
+    nothing answers, something else answers, or it is not a Dask scheduler."""
+    import asyncio
+
+    from distributed.comm import connect as comm_connect
+
+    async def ask():
+        kw = security.get_connection_args("client") if security is not None else {}
+        comm = await comm_connect(address, timeout=timeout_s, **kw)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        who = asyncio.run(asyncio.wait_for(ask(), timeout_s))
+    except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, a handshake with something else
+        what = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+        raise UserError(f"--scheduler {address}: cannot connect within {timeout_s:g} s "
+                        f"(--scheduler-timeout): {what}") from None
+    if not (isinstance(who, dict) and who.get("type") == "Scheduler"):
+        kind = who.get("type") if isinstance(who, dict) else type(who).__name__
+        raise UserError(f"--scheduler {address}: answers as {kind!r}, not a Dask scheduler")
+
+
 def connect(address: str, timeout_s: float = 20.0):
     """A ``distributed.Client`` to the scheduler at ``address``; UserError (one line) if it cannot be
     reached within ``timeout_s``."""
@@ -199,6 +226,7 @@ def connect(address: str, timeout_s: float = 20.0):
         raise UserError("--scheduler needs dask.distributed: pip install 'haptic-acu[cohort]'") from None
     address = scheduler_address(address)
     security = _security(address)
+    _probe(address, timeout_s, security)  # a listener that never answers would hold Client() forever
     try:
         return Client(address, timeout=timeout_s, set_as_default=False, security=security)
     except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, a handshake with something else
@@ -233,8 +261,6 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
     session finished before is already saved, so the next run resumes from there."""
     if not jobs:
         return
-    from distributed import wait as dwait
-
     threads = wait_for_workers(client, timeout_s, stream)
     pending = iter(jobs)
     by_future = {}
@@ -248,12 +274,15 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
     inflight = set()
     _fill(submit, pending, inflight, 2 * threads)
     lost_since = None
+    looked = time.monotonic()
     try:
         while inflight:
-            try:
-                done = set(dwait(list(inflight), timeout=POLL_S, return_when="FIRST_COMPLETED").done)
-            except TimeoutError:
-                done = set()
+            done = {f for f in inflight if f.done()}  # at most twice the worker threads to look at
+            if not done:
+                time.sleep(0.05)
+                if time.monotonic() - looked < POLL_S:
+                    continue
+                looked = time.monotonic()
             for fut in done:
                 inflight.discard(fut)
                 job = by_future.pop(fut)
