@@ -83,6 +83,7 @@ class _Out:
     folder: bool = False
     files: tuple[str, ...] = ()
     resumable: str | None = None  # a marker inside a folder this command made itself
+    owner: str = ""  # whose output a resumable folder is ("cohort")
 
 
 @dataclass
@@ -105,9 +106,10 @@ class Outputs:
             self.outs.append(_Out(label, Path(path)))
         return self
 
-    def folder(self, label: str, path, files=(), resumable: str | None = None) -> "Outputs":
+    def folder(self, label: str, path, files=(), resumable: str | None = None, owner: str = "") -> "Outputs":
         if path is not None:
-            self.outs.append(_Out(label, Path(path), folder=True, files=tuple(files), resumable=resumable))
+            self.outs.append(_Out(label, Path(path), folder=True, files=tuple(files), resumable=resumable,
+                                  owner=owner))
         return self
 
     def _paths(self):
@@ -134,7 +136,7 @@ class Outputs:
                                     "them different paths")
         for o in self.outs:
             if o.folder:
-                check_folder(o.path, o.label, o.resumable)
+                check_folder(o.path, o.label, o.resumable, o.owner)
             else:
                 check_file(o.path, o.label, self.overwrite)
 
@@ -151,14 +153,18 @@ def check_file(path, label: str = "output", overwrite: bool = False) -> None:
         raise UserError(f"{p}: exists; {OVERWRITE_HINT}")
 
 
-def check_folder(path, label: str = "--out", resumable: str | None = None) -> None:
-    """An output folder: new, or an empty folder, or (``resumable``) one holding that marker."""
+def check_folder(path, label: str = "--out", resumable: str | None = None, owner: str = "") -> None:
+    """An output folder: new, or an empty folder, or (``resumable``) one holding that marker (a folder
+    ``owner``, the command, made)."""
     p = Path(path)
     if p.is_symlink() and not p.is_dir():
         raise UserError(f"{p}: is a link to nothing; choose another {label}")
     if p.exists() and not p.is_dir():
         raise UserError(f"{p}: exists and is not a folder; choose another {label}")
     if p.is_dir() and any(p.iterdir()) and not (resumable and (p / resumable).exists()):
+        if resumable:
+            raise UserError(f"{p}: folder exists, is not empty and is not a {owner or 'command'} output; "
+                            f"choose another {label}")
         raise UserError(f"{p}: output folder exists and is not empty; choose another {label}")
 
 

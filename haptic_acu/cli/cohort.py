@@ -53,7 +53,7 @@ def run(args) -> int:
     from ..cohort.sessions import STATE_DIR
     out = Path(args.out)
     Outputs().input("MANIFEST.csv", manifest.path).input("--config", args.config).folder(
-        "--out", out, resumable=STATE_DIR).check()
+        "--out", out, resumable=STATE_DIR, owner="cohort").check()
     jobs = args.jobs
     if not args.scheduler:
         jobs, note = bounded_jobs(args.jobs)
