@@ -43,6 +43,7 @@ COMMAND_OUTPUTS: dict[str, dict[str, tuple[str, ...]]] = {
     "fit": {"--out": ()},
     "calibrate": {"--out": ()},
     "bench": {"--json": ()},
+    "points": {},  # prints only
     "study": {"plan --out": (), "example --out": (), "analyze --out": (), "replay --out": ()},
     "cohort": {"--out": ("insertions.parquet", "insertions.csv", "sessions.parquet", "sessions.csv",
                          "report.json")},

@@ -49,7 +49,6 @@ def run(args) -> int:
     cfg = config_from_args(args)
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0, got {args.jobs}")
-<<<<<<< HEAD
     if not (math.isfinite(args.scheduler_timeout) and 0 < args.scheduler_timeout <= 86400):
         raise UserError(f"--scheduler-timeout must be a number of seconds in (0, 86400], got {args.scheduler_timeout}")
     from ..base.outputs import Outputs
@@ -57,6 +56,7 @@ def run(args) -> int:
     out = Path(args.out)
     Outputs().input("MANIFEST.csv", manifest.path).input("--config", args.config).folder(
         "--out", out, resumable=STATE_DIR, owner="cohort").check()
+    points = session_points(manifest, cfg, args.point, args.patient)  # bad names: one line, before any work
     jobs = args.jobs
     if not args.scheduler:
         jobs, note = bounded_jobs(args.jobs)
@@ -64,7 +64,7 @@ def run(args) -> int:
             print(f"haptic-acu: note: {note}", file=sys.stderr)
     return run_cohort(manifest, out, cfg, jobs=jobs, scheduler=args.scheduler,
                       force=args.force, quiet=args.quiet, session_files=args.session_files,
-                      timeout_s=args.scheduler_timeout)
+                      timeout_s=args.scheduler_timeout, points=points)
 
 
 WORKER_BYTES = 300 << 20  # a replay worker's resident memory (measured: 4.7 GB for 16 workers)
@@ -97,10 +97,6 @@ def bounded_jobs(jobs: int) -> tuple[int, str | None]:
         return n, (f"{n} worker(s), not one per core: {avail / (1 << 30):.1f} GB of memory available, about "
                    f"{WORKER_BYTES >> 20} MB a worker")
     return n, None
-=======
-    points = session_points(manifest, cfg, args.point, args.patient)  # bad names: one line, before any work
-    return run_cohort(manifest, Path(args.out), cfg, jobs=args.jobs, scheduler=args.scheduler,
-                      force=args.force, quiet=args.quiet, session_files=args.session_files, points=points)
 
 
 def session_points(manifest, cfg, point=None, patient=None) -> dict:
@@ -123,16 +119,11 @@ def session_points(manifest, cfg, point=None, patient=None) -> dict:
         if pt:
             out[e.session] = (pt, pa)
     return out
->>>>>>> main
 
 
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
                quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False,
-<<<<<<< HEAD
-               timeout_s: float = 60.0) -> int:
-=======
-               points: dict | None = None) -> int:
->>>>>>> main
+               timeout_s: float = 60.0, points: dict | None = None) -> int:
     """Run the cohort (see the module); returns the exit status: 0, or 2 when a session failed.
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
@@ -143,27 +134,18 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
     # reach the cluster before the output folder is made or locked: a wrong address leaves nothing
     client = connect(scheduler, timeout_s) if isinstance(scheduler, str) else scheduler
     try:
-<<<<<<< HEAD
-        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s)
-=======
-        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, points or {})
->>>>>>> main
+        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s,
+                    points or {})
     finally:
         if isinstance(scheduler, str):
             client.close()
 
 
-<<<<<<< HEAD
-def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s) -> int:
-    from ..cohort import report as cohort_report, tables as cohort_tables
-    from ..cohort.sessions import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
-    from ..cohort.run import ProgressLine, run_dask, run_local, wait_for_workers
-=======
-def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, points) -> int:
+def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s,
+         points) -> int:
     from ..cohort import report as cohort_report, tables as cohort_tables
     from ..cohort.sessions import CohortDir, Job, config_hash, file_sha256, point_hash, record_name, up_to_date
-    from ..cohort.run import ProgressLine, run_dask, run_local
->>>>>>> main
+    from ..cohort.run import ProgressLine, run_dask, run_local, wait_for_workers
 
     csha = config_hash(cfg)
     records, todo, failed_lines = {}, [], []

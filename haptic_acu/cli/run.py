@@ -189,15 +189,11 @@ def _run(args, cfg, device, out: Path, rec: Path) -> int:
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-<<<<<<< HEAD
-                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores)  # the compiled loop honours resets
+                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
+                      model=ps.model() if ps is not None else None)  # the compiled loop honours resets
     if args.device == "scripted":
         from ..session.replay import check_start
         check_start(args.trajectory, session.model.tissue)
-=======
-                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
-                      model=ps.model() if ps is not None else None)  # the compiled loop honours resets
->>>>>>> main
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
@@ -229,16 +225,13 @@ def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, p
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
-<<<<<<< HEAD
     from ..session.replay import needle_note
     note = needle_note(summary, cfg)
     if note:
         print(note, file=sys.stderr)
-=======
     if point is not None:
         from ..session.point import add_to_summary
         add_to_summary(summary, point, grade.result())
->>>>>>> main
     (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     rows, index = summary_sink.figure_rows()
     with step("drawing force_depth.png"):
