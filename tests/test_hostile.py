@@ -311,3 +311,15 @@ def test_needle_shorter_than_its_insertion_is_stated(tmp_path):
     code, err = cli("replay", t, "--no-rrd", "--set", "needle.length_mm=1", "--out", tmp_path / "o")
     assert code == 0, err
     assert "needle.length_mm" in err and "warning" in err
+
+
+def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
+    """A cohort run with --session-files, then again with --set (every session replayed anew) but
+    without them: the old configuration's files are gone, not left beside the new tables."""
+    m = manifest(tmp_path / "m.csv", [f"s1,ann,{REPO / 'trajectories' / 'default.csv'},,"])
+    out = tmp_path / "o"
+    assert cli("cohort", m, "--out", out, "--session-files", "--jobs", "1", "--quiet")[0] == 0
+    (sdir,) = list((out / "sessions").iterdir())
+    assert (sdir / "summary.json").is_file()
+    assert cli("cohort", m, "--out", out, "--jobs", "1", "--quiet", "--set", "needle.length_mm=39")[0] == 0
+    assert not sdir.exists()

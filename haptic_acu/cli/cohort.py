@@ -121,6 +121,21 @@ def session_points(manifest, cfg, point=None, patient=None) -> dict:
     return out
 
 
+SESSION_FILES = {"samples.csv", "summary.json", "force_depth.png"}
+
+
+def _drop_stale_session_files(sdir: Path) -> None:
+    """Remove a session's files folder an earlier run wrote (only those files in it): the session is
+    replayed now, with another configuration or input, without --session-files, so the folder would
+    otherwise keep the old results beside the new tables, unmarked."""
+    import shutil
+
+    if sdir.is_dir() and not sdir.is_symlink():
+        names = {q.name for q in sdir.iterdir()}
+        if names and names <= SESSION_FILES:
+            shutil.rmtree(sdir, ignore_errors=True)
+
+
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
                quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False,
                timeout_s: float = 60.0, points: dict | None = None) -> int:
@@ -170,6 +185,8 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
             if not force and up_to_date(rec, isha, csha_s) and files_ok:
                 records[e.session] = rec
             else:
+                if not session_files:
+                    _drop_stale_session_files(sdir)  # replayed anew without them: the old ones are not its
                 todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha_s, str(sdir) if session_files else None,
                                 *(pt or (None, None))))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
