@@ -168,7 +168,11 @@ def test_calibrate_curve_bytes(data):
 def test_cohort_manifest_bytes(data):
     def go(d):
         (d / "m.csv").write_bytes(data)
-        assert_clean(*run_cli(["cohort", d / "m.csv", "--out", d / "o", "--quiet", "--jobs", "1"]))
+        status, err = run_cli(["cohort", d / "m.csv", "--out", d / "o", "--quiet", "--jobs", "1"])
+        assert status in (0, 2) and "Traceback" not in err, (status, err)
+        # a manifest's problems are listed one line each, every one naming the manifest
+        lines = [ln for ln in err.strip().splitlines() if not ln.startswith("haptic-acu: ")]
+        assert all(ln.startswith("haptic-acu cohort: error: ") and "m.csv" in ln for ln in lines), err
         if (d / "o" / "sessions.csv").exists():  # no formula reaches a spreadsheet
             assert not re.search(r"(^|,)[=@+]", (d / "o" / "sessions.csv").read_text(), re.M)
     in_tmp(go)
