@@ -53,7 +53,7 @@ def check_source(path, what: str = "file") -> os.stat_result:
         raise UserError(f"{p}: is a folder, not a {what}")
     if not stat.S_ISREG(st.st_mode):
         kind = "a pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "a device"
-        raise UserError(f"{p}: is {kind}, not a {what} file (save it to a file first)")
+        raise UserError(f"{p}: is {kind}, not a {what} (save it to a file first)")
     return st
 
 

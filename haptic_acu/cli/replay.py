@@ -156,9 +156,11 @@ def run(args) -> int:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
     paths = trajectories_from(args.trajectories)
+    from ..base.csvin import check_source
     for p in paths:
-        if not p.is_file():
+        if not (p.exists() or p.is_symlink()):
             raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
+        check_source(p, "trajectory file")  # a folder, a pipe or a device: refused unread
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")

@@ -71,7 +71,6 @@ import csv
 import math
 import os
 import re
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
@@ -100,7 +99,7 @@ DEFAULT_MAX_HAND_SPEED_M_PER_S = 2.0
 SERVO_TICK_S = 1e-3  # the velocity finite-difference step: one 1 kHz servo tick
 BLOCK_BYTES = 1 << 18  # bytes parsed at a time when streaming a whole file (~7000 rows)
 CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows)
-MAX_LINE_BYTES = 1 << 20  # a longer "line" is binary data, not a row
+from ..base.csvin import MAX_LINE_BYTES  # noqa: E402 - the input layer's line limit (1 MB)
 
 _NUMBER = re.compile(
     r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)",
@@ -204,16 +203,18 @@ class TrajectoryReader:
 
     # -- file access -------------------------------------------------------------------------
     def _open(self):
+        from ..base.csvin import check_source
+
         try:
-            st = os.stat(self.path)
-            if stat.S_ISFIFO(st.st_mode) or stat.S_ISSOCK(st.st_mode) or stat.S_ISCHR(st.st_mode):
-                raise UserError(f"{self.path}: is a pipe or a device, not a trajectory file (it is "
-                                "read more than once: save it to a file first)")
+            check_source(self.path, "trajectory file")  # the input layer's rule: a regular file
+        except UserError as e:
+            if "no such file" in str(e):
+                raise UserError(f"{self.path}: trajectory file not found") from None
+            raise
+        try:
             return open(self.path, "rb")
         except FileNotFoundError:
             raise UserError(f"{self.path}: trajectory file not found") from None
-        except IsADirectoryError:
-            raise UserError(f"{self.path}: is a directory, not a trajectory file") from None
         except OSError as e:
             raise UserError(f"{self.path}: cannot read trajectory file: {e.strerror}") from None
 
