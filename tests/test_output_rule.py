@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-from haptic_acu.base import outputs
 from haptic_acu.base.errors import UserError
 from haptic_acu.base.outputs import COMMAND_OUTPUTS, FolderLock, Outputs, claim_folder, safe_cell, write_new
 

@@ -159,7 +159,7 @@ def run(args) -> int:
     device = make_device(args, cfg)
     lock = claim_folder(out)  # held alone until the session's report is written
     try:
-        return _run(args, cfg, device, out, rec)
+        return _run(args, cfg, device, out, rec, ps)
     except UserError:
         lock.discard_if_empty()  # the session could not start: nothing left behind
         raise
@@ -167,7 +167,8 @@ def run(args) -> int:
         lock.release()
 
 
-def _run(args, cfg, device, out: Path, rec: Path) -> int:
+def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
+    """The session itself, once its outputs are checked and its folder held (``ps``: a --point setup)."""
     from ..session.engine import Session
     from ..session.recorder import RecorderSink
     from ..session.report import SamplesCsvSink, SummarySink

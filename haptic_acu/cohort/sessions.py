@@ -24,7 +24,6 @@ asked (``--session-files``: ``DIR/sessions/<name>/`` gets the replay's ``samples
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import datetime as _dt
 import hashlib

@@ -18,7 +18,6 @@ exit 3); the recording stops there and still replays.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
