@@ -190,7 +190,11 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
+    from .cohort import bounded_jobs
+    jobs, note = bounded_jobs(args.jobs)  # at most the cores and what the memory holds
+    if note:
+        print(f"haptic-acu: note: {note}", file=sys.stderr)
+    jobs = min(jobs, len(paths))
     # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
     point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
               args.feedback) if args.point else None)
