@@ -313,6 +313,7 @@ def test_needle_shorter_than_its_insertion_is_stated(tmp_path):
     assert "needle.length_mm" in err and "warning" in err
 
 
+@pytest.mark.slow
 def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
     """A cohort run with --session-files, then again with --set (every session replayed anew) but
     without them: the old configuration's files are gone, not left beside the new tables."""
