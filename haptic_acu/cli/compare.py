@@ -33,6 +33,7 @@ import numpy as np
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.config import MODEL_KINDS
 from ..base.errors import UserError
+from ..base.outputs import plain_text
 from .options import add_config_args, config_from_args
 from ..base.progress import step
 from .replay import fresh_path
@@ -280,6 +281,7 @@ def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion
     plot_curves(curves, labels, path, tissue, insertion, dpi)
 
 
+@plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110) -> None:
     """:func:`plot_compare` from each session's :func:`session_curve`."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg

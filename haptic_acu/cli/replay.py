@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import csv
-import fcntl
-import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -12,6 +10,10 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names
 from ..base.errors import UserError
+from ..base.outputs import Outputs, claim_folder, safe_cell, write_new
+from ..base.outputs import fresh_folder as fresh_path
+
+BATCH_FILES = ("summaries.csv", "insertions.csv", "punctures.csv")
 
 
 def register(sub) -> None:
@@ -40,16 +42,6 @@ def register(sub) -> None:
 
 def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
-
-
-def fresh_path(path: Path) -> Path:
-    """``path``, or ``path-2``, ``path-3``... if it exists."""
-    if not path.exists():
-        return path
-    i = 2
-    while path.with_name(f"{path.name}-{i}").exists():
-        i += 1
-    return path.with_name(f"{path.name}-{i}")
 
 
 def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
@@ -140,13 +132,13 @@ def write_table(path: Path, rows: list[dict]) -> None:
     cols: list[str] = []
     for r in rows:
         cols += [c for c in r if c not in cols]
-    try:
-        with open(path, "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=cols or ["trajectory"])
-            wr.writeheader()
-            wr.writerows(rows)
-    except OSError as e:
-        raise UserError(f"{path}: cannot write: {e.strerror or e}") from None
+    import io
+
+    buf = io.StringIO(newline="")
+    wr = csv.DictWriter(buf, fieldnames=cols or ["trajectory"])
+    wr.writeheader()
+    wr.writerows({k: safe_cell(v) for k, v in r.items()} for r in rows)  # a file named =cmd|... is text
+    write_new(path, buf.getvalue())
 
 
 def run(args) -> int:
@@ -163,9 +155,11 @@ def run(args) -> int:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
     paths = trajectories_from(args.trajectories)
+    from ..base.csvin import check_source
     for p in paths:
-        if not p.is_file():
+        if not (p.exists() or p.is_symlink()):
             raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
+        check_source(p, "trajectory file")  # a folder, a pipe or a device: refused unread
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
@@ -176,30 +170,30 @@ def run(args) -> int:
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
     base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
-    if base.exists() and not base.is_dir():
-        raise UserError(f"{base}: exists and is not a folder; choose another --out")
-    try:
-        base.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
-    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(lock)
-        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
-                        "another --out") from None
+    plan = Outputs().folder("--out", base, files=BATCH_FILES + tuple(p.stem for p in paths))
+    for p in paths:
+        plan.input("TRAJECTORY", p)
+    if args.config:
+        plan.input("--config", args.config)
+    if not (base.is_dir() and any(base.iterdir())):
+        plan.check()  # a folder with files: a batch writing it is named first (claim_folder)
+    lock = claim_folder(base, busy=f"{base}: another batch is writing to this folder; wait for it or "
+                                   "choose another --out")
     try:
         return _run_batch(args, paths, base, ps)
     finally:
-        os.close(lock)
+        lock.release()
 
 
 def _run_batch(args, paths, base: Path, ps=None) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
+    from .cohort import bounded_jobs
+    jobs, note = bounded_jobs(args.jobs)  # at most the cores and what the memory holds
+    if note:
+        print(f"haptic-acu: note: {note}", file=sys.stderr)
+    jobs = min(jobs, len(paths))
     # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
     point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
               args.feedback) if args.point else None)

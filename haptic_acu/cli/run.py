@@ -18,12 +18,14 @@ it (the figure and summary are written after the session, also after a fault).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
 
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.errors import UserError
+from ..base.outputs import Outputs, claim_folder
 from .options import add_config_args, config_from_args
 from ..base.progress import step
 
@@ -47,7 +49,8 @@ def register(sub) -> None:
     p.add_argument("--record", metavar="FILE", help="write the replayable recording to FILE instead of "
                                                     "<out>/recording.csv (an existing file is refused unless "
                                                     "--overwrite; never the session's own --trajectory)")
-    p.add_argument("--overwrite", action="store_true", help="let --record replace an existing file")
+    p.add_argument("--overwrite", action="store_true", help="let --record and --rrd FILE replace an existing file "
+                                                            "(never an input, never the report folder's files)")
     add_config_args(p)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rrd", metavar="FILE", nargs="?", const="",
@@ -91,16 +94,32 @@ def make_device(args, cfg):
     return OmniDevice(ws, force_limit_n=limit, stylus_axis=not args.travel_axis)
 
 
+MAX_DURATION_S = 1e6  # 11.6 days: a longer --duration is a typo
+
+
 def out_folder(args) -> Path:
-    """The report folder: ``--out`` (empty or new), else a fresh ``runs/<device>-<time>``."""
+    """The report folder's path: ``--out``, else a fresh ``runs/<device>-<time>`` (checked and claimed
+    by :func:`output_plan` and :func:`haptic_acu.base.outputs.claim_folder`)."""
     from .replay import fresh_path
 
     if args.out:
-        out = Path(args.out)
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            raise UserError(f"{out}: output folder exists and is not empty")
-        return out
+        return Path(args.out)
     return fresh_path(Path("runs") / f"{args.device}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def output_plan(args, out: Path, rec: Path, rrd: Path | None) -> Outputs:
+    """The session's outputs under the output rule: the report folder and its files, ``--record``
+    and ``--rrd`` elsewhere; the trajectory and the config are inputs."""
+    own = ["samples.csv", "summary.json", "force_depth.png"]
+    own += [] if args.record else ["recording.csv"]
+    own += ["recording.rrd"] if rrd is not None and not args.rrd else []
+    plan = Outputs(overwrite=args.overwrite).input("--trajectory", args.trajectory).input("--config", args.config)
+    plan.folder("--out", out, files=own)
+    if args.record:
+        plan.file("--record", rec)
+    if args.rrd:
+        plan.file("--rrd", rrd)
+    return plan
 
 
 def _rerun_sink(args, out: Path):
@@ -115,12 +134,9 @@ def _rerun_sink(args, out: Path):
 
 
 def run(args) -> int:
-    from ..session.engine import Session
-    from ..session.recorder import RecorderSink
-    from ..session.report import SamplesCsvSink, SummarySink
-
-    if args.duration is not None and not args.duration > 0:
-        raise UserError(f"--duration must be > 0, got {args.duration}")
+    if args.duration is not None and not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION_S):
+        raise UserError(f"--duration must be a number of seconds > 0 and at most {MAX_DURATION_S:g}, got "
+                        f"{args.duration}")
     cfg = config_from_args(args)
     from ..session.point import setup_from_args
     ps = setup_from_args(cfg, args)  # --point: the tissue at the point, its structures, the grading
@@ -134,16 +150,29 @@ def run(args) -> int:
         if not traj.is_file():
             raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
         args.trajectory = str(traj)
-    if args.record:  # checked now, created only once the session can start (after device.open)
-        from ..session.recorder import check_target
-        rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])
-    device = make_device(args, cfg)
     out = out_folder(args)
-    if not args.record:
-        rec = out / "recording.csv"
-    if args.rrd and not Path(args.rrd).resolve().parent.exists():
-        raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
-    out.mkdir(parents=True, exist_ok=True)
+    rec = Path(args.record) if args.record else out / "recording.csv"
+    rrd = None if args.rrd is None else Path(args.rrd) if args.rrd else out / "recording.rrd"
+    # every output checked now (nothing replaced, nothing shared); the recording is created only
+    # once the session can start (after device.open)
+    output_plan(args, out, rec, rrd).check()
+    device = make_device(args, cfg)
+    lock = claim_folder(out)  # held alone until the session's report is written
+    try:
+        return _run(args, cfg, device, out, rec, ps)
+    except UserError:
+        lock.discard_if_empty()  # the session could not start: nothing left behind
+        raise
+    finally:
+        lock.release()
+
+
+def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
+    """The session itself, once its outputs are checked and its folder held (``ps``: a --point setup)."""
+    from ..session.engine import Session
+    from ..session.recorder import RecorderSink
+    from ..session.report import SamplesCsvSink, SummarySink
+
     summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: a long session's memory stays flat
     recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
     sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
@@ -163,6 +192,9 @@ def run(args) -> int:
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
                       compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
                       model=ps.model() if ps is not None else None)  # the compiled loop honours resets
+    if args.device == "scripted":
+        from ..session.replay import check_start
+        check_start(args.trajectory, session.model.tissue)
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
@@ -194,6 +226,10 @@ def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, p
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    from ..session.replay import needle_note
+    note = needle_note(summary, cfg)
+    if note:
+        print(note, file=sys.stderr)
     if point is not None:
         from ..session.point import add_to_summary
         add_to_summary(summary, point, grade.result())

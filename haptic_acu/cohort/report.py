@@ -20,6 +20,11 @@ level has the larger value, ties counting half) and the rank-biserial correlatio
 (Cliff's delta); with more than two levels also the Kruskal-Wallis test
 (:func:`scipy.stats.kruskal`), and the figure annotates the first level against the last.
 Sessions of one trainee are not independent: with few trainees, read the p-values as descriptive.
+The pairwise tests grow with the square of the number of levels: with more than :data:`MAX_LEVELS`
+levels they are run between the first :data:`MAX_LEVELS` only (``pairs_skipped`` counts the rest,
+and a warning says so) and the figure shows those levels; the Kruskal-Wallis test takes them all.
+
+Text from the manifest (trainee and level names) is drawn as text, never as mathtext or TeX.
 """
 from __future__ import annotations
 
@@ -28,7 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.outputs import plain_text_figures
 from .sessions import _parse_date
+
+MAX_LEVELS = 12  # pairwise tests (66 pairs) and the figure's boxes at most for this many levels
 
 # (sessions-table column, axis label) of the metrics reported and plotted
 REPORT_METRICS = [
@@ -108,6 +116,13 @@ def level_comparison(rows: list[dict]) -> dict | None:
     if len(levels) < 2:
         return None
     out = {"levels": levels, "metrics": {}}
+    paired = levels[:MAX_LEVELS]
+    if len(levels) > MAX_LEVELS:
+        n = len(levels)
+        out["pairs_skipped"] = n * (n - 1) // 2 - MAX_LEVELS * (MAX_LEVELS - 1) // 2
+        import sys
+        print(f"haptic-acu: warning: {n} levels: pairwise tests only between the first {MAX_LEVELS} "
+              f"({out['pairs_skipped']} pairs skipped; report.json level_comparison)", file=sys.stderr)
     for col, _ in REPORT_METRICS:
         vals = {lv: np.array([r[col] for r in rows if r["level"] == lv and r.get(col) is not None], float)
                 for lv in levels}
@@ -115,7 +130,7 @@ def level_comparison(rows: list[dict]) -> dict | None:
                     "q1": _r(np.percentile(v, 25)) if v.size else None,
                     "q3": _r(np.percentile(v, 75)) if v.size else None} for lv, v in vals.items()}
         pairs = []
-        for a, b in combinations(levels, 2):
+        for a, b in combinations(paired, 2):
             va, vb = vals[a], vals[b]
             p = {"a": a, "b": b, "n_a": int(va.size), "n_b": int(vb.size), "mannwhitney_u": None, "p_value": None,
                  "common_language": None, "rank_biserial": None, "median_difference": None}
@@ -205,7 +220,7 @@ def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
 
 def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> None:
     plt, fig, axes = _axes_grid(len(REPORT_METRICS))
-    levels = comp["levels"]
+    levels = comp["levels"][:MAX_LEVELS]
     usable = [r for r in _usable(rows) if r.get("level")]
     rng = np.random.default_rng(0)  # fixed jitter: identical figures for identical tables
     for ax, (col, label) in zip(axes, REPORT_METRICS):
@@ -222,7 +237,8 @@ def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> Non
         ax.set_title(label + note, fontsize=9.5)
         ax.grid(alpha=0.3, axis="y")
         readable_y(ax, np.concatenate(data) if data else [])
-    fig.suptitle(f"Levels: per-session mean over insertions (box: quartiles; r_rb: rank-biserial effect size, "
+    shown = "" if len(comp["levels"]) <= MAX_LEVELS else f"first {MAX_LEVELS} of {len(comp['levels'])} levels; "
+    fig.suptitle(f"Levels ({shown}per-session mean over insertions; box: quartiles; r_rb: rank-biserial effect size, "
                  f"> 0 when {levels[0]} is higher; p: Mann-Whitney)")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     fig.savefig(path, dpi=dpi)
@@ -235,12 +251,13 @@ def write_report(out: Path, session_rows: list[dict], extra: dict) -> dict:
     curves = learning_curves(session_rows)
     comp = level_comparison(session_rows)
     figures = {}
-    if curves:
-        plot_learning_curves(curves, out / "learning_curves.png")
-        figures["learning_curves"] = "learning_curves.png"
-    if comp:
-        plot_levels(comp, session_rows, out / "levels.png")
-        figures["levels"] = "levels.png"
+    with plain_text_figures():  # names from the manifest are data, not markup
+        if curves:
+            plot_learning_curves(curves, out / "learning_curves.png")
+            figures["learning_curves"] = "learning_curves.png"
+        if comp:
+            plot_levels(comp, session_rows, out / "levels.png")
+            figures["levels"] = "levels.png"
     for name in ("learning_curves", "levels"):  # a figure an earlier run drew that this one cannot
         if name not in figures:
             (out / f"{name}.png").unlink(missing_ok=True)

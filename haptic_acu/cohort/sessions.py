@@ -24,7 +24,6 @@ asked (``--session-files``: ``DIR/sessions/<name>/`` gets the replay's ``samples
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -40,6 +39,7 @@ from typing import Callable
 import numpy as np
 
 from ..base.errors import UserError
+from ..base.outputs import FolderLock
 
 # Bump when a metric's definition changes: every cached session is then replayed again.
 METRICS_VERSION = 3  # 3: the technique columns (twirling, grasp felt, reinforcing / reducing / even)
@@ -255,10 +255,16 @@ class ManifestError(UserError):
 
 
 def _parse_date(text: str):
+    """An ISO date or date-time as a naive UTC datetime, or None. A time with a zone (``+02:00``,
+    ``Z``) is converted to UTC; one without a zone is read as UTC (docs/cohort.md), so dates with and
+    without zones sort on one time line."""
     try:
-        return _dt.datetime.fromisoformat(text)
+        d = _dt.datetime.fromisoformat(text)
     except ValueError:
         return None
+    if d.tzinfo is not None:
+        d = d.astimezone(_dt.timezone.utc).replace(tzinfo=None)
+    return d
 
 
 def read_manifest(path) -> Manifest:
@@ -266,17 +272,15 @@ def read_manifest(path) -> Manifest:
     bad row (missing column, unknown or clashing column, row of the wrong width, empty required
     cell, duplicate session, unparseable date). Missing trajectory files are not checked here:
     such a session fails alone at run time."""
+    from ..base.csvin import iter_lines, split_row
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise UserError(f"{path}: manifest not found") from None
-    except UnicodeDecodeError:
-        raise UserError(f"{path}: manifest is not UTF-8 text") from None
-    except OSError as e:
-        raise UserError(f"{path}: cannot read manifest: {e.strerror}") from None
-    reader = csv.reader(text.splitlines(keepends=True))
-    header = next(reader, None)
+    lines = ((n, text) for n, text in iter_lines(path, "manifest"))
+    header = None
+    for n, text in lines:  # the header: the first line (blank lines before it skipped)
+        if text.strip():
+            header = split_row(path, text, n)
+            break
     if not header or not any(h.strip() for h in header):
         raise UserError(f"{path}: line 1: empty manifest (expected a header {','.join(REQUIRED)},...)")
     header = [h.strip() for h in header]
@@ -297,9 +301,8 @@ def read_manifest(path) -> Manifest:
     m = Manifest(path=path, columns=header)
     seen: dict[str, int] = {}
     base = path.resolve().parent
-    line = reader.line_num
-    for row in reader:
-        start, line = line + 1, reader.line_num
+    for start, text in lines:
+        row = split_row(path, text, start)  # an unclosed quote: one line naming it, not the rows after
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
@@ -596,22 +599,15 @@ class CohortDir:
             raise UserError(f"{self.out}: folder exists, is not empty and is not a cohort output; "
                             f"choose another --out")
         self.records.mkdir(parents=True, exist_ok=True)
-        lock = self.state / "lock"
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            pid = lock.read_text().strip() if lock.exists() else "?"
-            if pid.isdigit() and not _alive(int(pid)):
-                lock.unlink(missing_ok=True)  # left by a run that died: take it over
-                return self.open()
-            raise UserError(f"{self.out}: another cohort run (pid {pid}) is writing this folder") from None
-        with os.fdopen(fd, "w") as f:
-            f.write(str(os.getpid()))
+        # an flock, not a pid file: the kernel drops it when the run dies, so of two runs taking over
+        # a dead run's folder exactly one gets it
+        self._lock = FolderLock(self.state / "lock", f"{self.out}: another cohort run{{holder}} is "
+                                                      "writing this folder").acquire()
         self._locked = True
 
     def close(self) -> None:
         if self._locked:
-            (self.state / "lock").unlink(missing_ok=True)
+            self._lock.release()
             self._locked = False
 
     def __enter__(self):
@@ -630,16 +626,6 @@ class CohortDir:
     def save(self, rec: dict) -> None:
         write_atomic(self.records / record_name(rec["session"]),
                      (json.dumps(rec, sort_keys=True, indent=1) + "\n").encode())
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def up_to_date(rec: dict | None, input_sha: str | None, config_sha: str) -> bool:

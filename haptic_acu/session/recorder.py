@@ -18,7 +18,6 @@ exit 3); the recording stops there and still replays.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -45,23 +44,6 @@ EXTRA_AXIS = EXTRA[:-1] + AXIS_COLUMNS + EXTRA[-1:]
 
 class RecordingError(Exception):
     """Writing the recording failed (the file ends on its last whole row)."""
-
-
-def check_target(path, overwrite: bool = False, inputs=()) -> Path:
-    """Refuse (one line) a recording target that would destroy something: the session's input
-    trajectory (always), an existing file (unless ``overwrite``), a folder, a missing folder."""
-    p = Path(path)
-    for src in inputs:
-        if src is not None and (Path(src).resolve() == p.resolve()
-                                or (p.exists() and Path(src).exists() and os.path.samefile(src, p))):
-            raise UserError(f"{p}: is the session's input trajectory; record to another file")
-    if p.is_dir():
-        raise UserError(f"{p}: is a folder; --record takes a file name")
-    if not p.parent.is_dir():
-        raise UserError(f"{p}: folder {p.parent} does not exist")
-    if (p.exists() or p.is_symlink()) and not overwrite:
-        raise UserError(f"{p}: exists; choose another file or add --overwrite")
-    return p
 
 
 class RecorderSink(Sink):

@@ -227,6 +227,36 @@ class _Guarded(Sink):
             raise
 
 
+def check_start(trajectory, tissue) -> None:
+    """Refuse (one line) a trajectory whose first sample is inside the tissue: a session starts with
+    the needle in the air (the tissue is intact until the tip touches it)."""
+    from .trajectory import TrajectoryReader
+
+    first = next(iter(TrajectoryReader(trajectory, max_hand_speed_m_per_s=1e9).blocks(1 << 12)), None)
+    if first is None:
+        return
+    layer, _ = tissue.locate(first.pos_m[0])
+    if layer >= 0:
+        from ..analysis.scan import tip_depth_m
+        from ..tissue.layers import PLACE_NAMES
+
+        depth = float(tip_depth_m(first.pos_m[:1], tissue)[0]) * 1e3
+        raise UserError(f"{trajectory}: line {int(first.line[0])}: the tip starts inside the tissue "
+                        f"({PLACE_NAMES[layer + 1]}, "
+                        f"{depth:.3g} mm below the skin); a trajectory starts in the air above the skin (is "
+                        "z_mm's sign flipped?)")
+
+
+def needle_note(summary: dict, cfg) -> str | None:
+    """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
+    deepest = summary.get("max_tip_depth_mm") or 0.0
+    if deepest > cfg.needle.length_mm:
+        return (f"haptic-acu: warning: the tip went {deepest:.3g} mm deep with a {cfg.needle.length_mm:g} mm "
+                "needle (needle.length_mm): the handle would be in the tissue; forces past the needle's "
+                "length are not physical")
+    return None
+
+
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None,
                point=None) -> dict:
@@ -279,6 +309,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             sinks.append(grade)
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim",
                           model=point.model() if point is not None else None)
+        check_start(trajectory, session.model.tissue)
         session.warm_up()
         if not realtime:
             preload_figure_modules()  # matplotlib's import overlaps the session's compiled ticks
@@ -303,6 +334,9 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         summary = summary_sink.summary()
         summary["trajectory"] = trajectory.name
         summary["metrics"] = summary_sink.metrics(summary["punctures"])
+        note = needle_note(summary, cfg)
+        if note:
+            print(note, file=sys.stderr)
         if point is not None:
             from .point import add_to_summary
             add_to_summary(summary, point, grade.result())

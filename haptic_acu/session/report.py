@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 from .sink import Sink
@@ -391,6 +392,7 @@ def preload_figure_modules():
     return t
 
 
+@plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
