@@ -163,6 +163,35 @@ def load(name_or_path: str) -> FileBlueprint:
     raise UserError(f"--layout {name_or_path!r}: give {' or '.join(LAYOUTS)}, or a blueprint file NAME.rbl")
 
 
+def views(source) -> list[dict]:
+    """The views of a blueprint, read back through rerun: ``source`` an .rbl or .rrd path or an
+    ``RrdReader``. Each view: ``{"origin", "kind", "name"}`` (kind: rerun's class identifier, e.g.
+    ``Spatial3D``, ``TimeSeries``)."""
+    from rerun.chunk import RrdReader
+
+    reader = source if isinstance(source, RrdReader) else RrdReader(str(source))
+    out = []
+    for entry in reader.blueprints():
+        for chunk in reader.stream(store=entry).to_chunks():
+            rb = chunk.to_record_batch()
+            if "ViewBlueprint:space_origin" not in rb.schema.names:
+                continue
+            for origin, kind, name in zip(rb.column("ViewBlueprint:space_origin").to_pylist(),
+                                          rb.column("ViewBlueprint:class_identifier").to_pylist(),
+                                          rb.column("ViewBlueprint:display_name").to_pylist()):
+                out.append({"origin": _one(origin), "kind": _one(kind), "name": _one(name)})
+    return out
+
+
+def _one(v):
+    return v[0] if isinstance(v, list) else v
+
+
+def view_origins(source) -> dict:
+    """origin -> kind of every view in a blueprint (see :func:`views`)."""
+    return {v["origin"]: v["kind"] for v in views(source)}
+
+
 def write_all(out_dir: Path = LAYOUT_DIR) -> list[Path]:
     """Build every layout and save it as ``out_dir/NAME.rbl``."""
     out_dir.mkdir(parents=True, exist_ok=True)

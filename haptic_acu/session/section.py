@@ -108,22 +108,48 @@ class Section:
         return np.stack([v @ self.e_u, v[..., 2]], axis=-1)
 
     # -- surfaces -------------------------------------------------------------------------------
-    def boundary(self, k: int, u_mm, dent=None, iters: int = 6) -> np.ndarray:
-        """w (mm) of boundary k above each u (mm) in the plane (the upper crossing). ``dent``, if
-        given, is a callable (theta, phi) -> radial dent (m) subtracted from the rest radius."""
+    def boundary(self, k: int, u_mm, dent=None, start=None, iters: int = 3) -> np.ndarray:
+        """w (mm) of boundary k above each u (mm) in the plane (its upper crossing of the vertical
+        line at u; NaN where the line misses it). At rest: bisection (50 steps, to 1e-10 m).
+        ``dent``, a callable (theta, phi) -> radial dent (m) subtracted from the rest radius, moves
+        the rest curve (``start``, w mm, or computed) by ``iters`` fixed-point steps along the
+        vertical; the dent is small against the radius, so a few steps converge."""
         t = self.tissue
         q = self.to_scene(u_mm, np.zeros_like(np.asarray(u_mm, dtype=np.float64))) - t.centre
+        if dent is None or start is None:
+            start = self._rest_boundary(k, q)
+        if dent is None:
+            return start
         h2 = q[..., 0] ** 2 + q[..., 1] ** 2
-        w = np.zeros(q.shape[:-1])  # metres, relative to z = 0
+        w = np.asarray(start, dtype=np.float64) * 1e-3  # metres above z = 0
         for _ in range(iters):
             d = q.copy()
             d[..., 2] += w
             th, ph = _angles(d)
-            r = t.radius(k, th, ph)
-            if dent is not None:
-                r = r - dent(th, ph)
-            w = np.sqrt(np.maximum(r * r - h2, 0.0)) - q[..., 2]
+            r = t.radius(k, th, ph) - dent(th, ph)
+            # the radial move of the surface point, taken along the vertical line
+            rho = np.sqrt(h2 + d[..., 2] ** 2)
+            cos_v = np.where(rho > 0.0, d[..., 2] / np.where(rho > 0.0, rho, 1.0), 1.0)
+            w = w + (r - rho) / np.maximum(cos_v, 0.2)
         return w * 1e3
+
+    def _rest_boundary(self, k: int, q: np.ndarray) -> np.ndarray:
+        t = self.tissue
+        lo = np.zeros(q.shape[:-1]) - q[..., 2]  # the centre's height: inside, if the line meets it
+        hi = lo + 1.0  # a metre above: outside
+        def outside(w):
+            d = q.copy()
+            d[..., 2] += w
+            th, ph = _angles(d)
+            return np.linalg.norm(d, axis=-1) > t.radius(k, th, ph)
+        miss = outside(lo)
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            o = outside(mid)
+            hi = np.where(o, mid, hi)
+            lo = np.where(o, lo, mid)
+        w = 0.5 * (lo + hi) * 1e3
+        return np.where(miss, np.nan, w)
 
     def depths_along(self, entry, axis, n_boundaries: int = 4, reach_mm: float = 90.0) -> np.ndarray:
         """Depths (mm) along the needle's line (from ``entry``, unit ``axis``) at which it crosses
@@ -221,7 +247,8 @@ def structure_outline(s: Structure, section: Section, half_width_mm: float = 40.
         return section.to_uw(np.array(pts))
     # the tube's axis meets the plane at x0; its cut is an ellipse around x0
     x0 = c - a * dist / cos_t
-    b1 = _unit(np.cross(a, nrm))  # across the tube, in the plane
+    b1 = np.cross(a, nrm)  # across the tube, in the plane
+    b1 = _unit(b1) if np.linalg.norm(b1) > 1e-9 else section.e_u
     b2 = np.cross(a, b1)  # across the tube, out of the plane
     ang = np.linspace(0.0, 2.0 * np.pi, n + 1)
     ring = x0 + r * (np.cos(ang)[:, None] * b1 + np.sin(ang)[:, None] * b2)

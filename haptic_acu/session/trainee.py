@@ -196,7 +196,7 @@ class TraineeScene:
         for k in range(3):
             if k in dents:
                 dk = np.asarray(dents[k])
-                curves[k] = s.boundary(k, u, dent=lambda th, ph, dk=dk: patch_dent(dk, self.theta_axis, self.phi_axis,
+                curves[k] = s.boundary(k, u, start=self.rest[k], dent=lambda th, ph, dk=dk: patch_dent(dk, self.theta_axis, self.phi_axis,
                                                                                    th, ph))
             else:
                 curves[k] = self.rest[k]
@@ -298,7 +298,12 @@ class TraineeScene:
         self.entry = skin_entry(self.tissue, tip, axis)
         self.u0 = float(new.to_uw(self.entry)[0])
         u = _U + self.u0
-        self.rest = [new.boundary(k, u) for k in range(4)]
+        rest = [new.boundary(k, u) for k in range(4)]
+        # the bone drawn BONE_SHOWN_MM deep below its top; beside it (where a vertical line misses
+        # the bone) the muscle goes down to the same flat bottom
+        self.bone_bottom = float(np.nanmin(rest[3])) - BONE_SHOWN_MM
+        rest = [np.where(np.isnan(r), self.bone_bottom, r) for r in rest]
+        self.rest = rest
         self.curves = [None] * 4
         self.depths = new.depths_along(self.entry, axis)
         rec = self.rec
@@ -315,7 +320,7 @@ class TraineeScene:
         if not any(changed):
             return
         u = _U + self.u0
-        bottom_bone = curves[3] - BONE_SHOWN_MM
+        bottom_bone = np.full(u.shape, self.bone_bottom)
         for k in range(4):
             if not (changed[k] or (k < 3 and changed[k + 1])):
                 continue
@@ -332,7 +337,7 @@ class TraineeScene:
         s = self.section
         u = _U + self.u0
         i = 4  # -22 mm from the entry
-        w = [self.rest[k][i] for k in range(4)] + [self.rest[3][i] - BONE_SHOWN_MM]
+        w = [self.rest[k][i] for k in range(4)] + [self.bone_bottom]
         mids = [0.5 * (w[k] + w[k + 1]) for k in range(4)]
         mids[0] = w[0] + 1.5  # the skin's name above its thin band
         thick = [w[k] - w[k + 1] for k in range(3)]
