@@ -83,7 +83,7 @@ _C_STATE = COL["state_skin"]
 _C_LAYER_F = COL["f_skin_n"]
 _C_SURF, _C_DAMP, _C_LAT, _C_BONE = COL["f_surface_n"], COL["f_damp_n"], COL["f_lateral_n"], COL["f_bone_n"]
 _PRESSING = 1
-_NONZERO = 1e-12
+F_ZERO_N = 1e-4  # a force series below this (0.1 mN, under the plots' resolution) is not yet sent
 
 
 def needle_back(rows: np.ndarray) -> np.ndarray:
@@ -120,22 +120,23 @@ def part_forces(rows: np.ndarray) -> np.ndarray:
     return np.column_stack([rows[:, _C_SURF], -rows[:, _C_DAMP], rows[:, _C_BONE]])
 
 
-# entity -> (series names, colours, (rows, needle depth mm) -> (k, m) values, sent only once not zero)
+# entity -> (series names, colours, (rows, needle depth mm) -> (k, m) values, the size below which the
+# series is zero and not yet sent (None: sent from the start))
 SERIES = {
     "force/total": (["|F|", "along the needle"], [(20, 20, 20), (31, 119, 180)],
                     lambda r, d: np.column_stack([np.linalg.norm(r[:, _C_F:_C_F + 3], axis=1), along_across(r)[0]]),
-                    False),
-    "force/total/across": (["across the needle"], [(255, 127, 14)], lambda r, d: along_across(r)[1][:, None], True),
-    "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: r[:, _C_F:_C_F + 1], True),
-    "force/total/fy": (["fy (scene)"], [(44, 160, 44)], lambda r, d: r[:, _C_F + 1:_C_F + 2], True),
-    "force/total/fz": (["fz (scene, + up)"], [(148, 103, 189)], lambda r, d: r[:, _C_F + 2:_C_F + 3], True),
+                    None),
+    "force/total/across": (["across the needle"], [(255, 127, 14)], lambda r, d: along_across(r)[1][:, None], F_ZERO_N),
+    "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: r[:, _C_F:_C_F + 1], F_ZERO_N),
+    "force/total/fy": (["fy (scene)"], [(44, 160, 44)], lambda r, d: r[:, _C_F + 1:_C_F + 2], F_ZERO_N),
+    "force/total/fz": (["fz (scene, + up)"], [(148, 103, 189)], lambda r, d: r[:, _C_F + 2:_C_F + 3], F_ZERO_N),
     "force/layer": (list(LAYER_NAMES), [(215, 140, 100), (200, 160, 30), (170, 40, 40)],
-                    lambda r, d: layer_forces(r), True),
+                    lambda r, d: layer_forces(r), F_ZERO_N),
     "force/part": (["pressed surface", "cutting and friction", "bone"], [(31, 119, 180), (255, 127, 14), (110, 110, 110)],
-                   lambda r, d: part_forces(r), True),
-    "depth/tip": (["tip"], [(0, 90, 255)], lambda r, d: -d[:, None], False),
+                   lambda r, d: part_forces(r), F_ZERO_N),
+    "depth/tip": (["tip"], [(0, 90, 255)], lambda r, d: -d[:, None], None),
     "twirl/series": (["roll (deg)", "twist torque (N*mm)"], [(31, 119, 180), (214, 39, 40)],
-                     lambda r, d: r[:, [COL["roll_deg"], COL["torque_nmm"]]], True),
+                     lambda r, d: r[:, [COL["roll_deg"], COL["torque_nmm"]]], 1e-9),
 }
 MARKS = (["target (shallow end)", "target (deep end)", "skin | fat", "fat | muscle", "muscle | bone"],
          [(20, 150, 60), (20, 150, 60), (215, 140, 100), (200, 160, 30), (120, 120, 120)])
@@ -416,10 +417,10 @@ class RerunSink(Sink):
         depth_mm = np.where(inside, rows[:, COL["depth_skin_m"]], tip_depth) * 1e3
         idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
                rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
-        for path, (_, _, get, when_nonzero) in SERIES.items():
+        for path, (_, _, get, zero) in SERIES.items():
             vals = get(rows, depth_mm)
-            if when_nonzero and path not in self._started_series:
-                nz = np.nonzero(np.any(np.abs(vals) > _NONZERO, axis=1))[0]
+            if zero is not None and path not in self._started_series:
+                nz = np.nonzero(np.any(np.abs(vals) > zero, axis=1))[0]
                 if not nz.size:
                     continue
                 self._started_series.add(path)
