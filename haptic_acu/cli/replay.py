@@ -31,6 +31,8 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
+    from .options import add_layout_arg
+    add_layout_arg(p, "instructor for a file, trainee with --spawn/--connect")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
     p.set_defaults(func=run)
@@ -56,11 +58,12 @@ def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = F
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd, overrides = args_tuple
+    traj, out_dir, config, rrd, overrides, layout = args_tuple
     from ..base.config import load_config
     from ..session.replay import replay_one
     try:
-        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides))
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides),
+                       layout=layout)
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -148,6 +151,8 @@ def run(args) -> int:
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
+    from .options import check_layout_arg
+    check_layout_arg(args)
     if args.spawn:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
@@ -159,7 +164,7 @@ def run(args) -> int:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg)
+                             spawn=args.spawn, connect=args.connect, cfg=cfg, layout=args.layout)
         print_summary(summary, out, quiet=args.quiet)
         return 0
     if args.spawn or args.connect or args.realtime:
@@ -189,7 +194,8 @@ def _run_batch(args, paths, base: Path) -> int:
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
     jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, args.layout)
+            for p in paths]
     results = {}
     from ..base import progress
     with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.errors import UserError
-from .options import add_config_args, config_from_args
+from .options import add_config_args, check_layout_arg, config_from_args
 from ..base.progress import step
 
 
@@ -54,6 +54,8 @@ def register(sub) -> None:
                    help="log to a rerun .rrd file (without FILE: <out>/recording.rrd)")
     g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer at ADDR (host:port)")
+    from .options import add_layout_arg
+    add_layout_arg(p, "trainee")
     p.add_argument("--no-status", action="store_true", help="no live status line")
     p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
     p.add_argument("--python-servo", action="store_true",
@@ -106,10 +108,10 @@ def _rerun_sink(args, out: Path):
     # hold the GIL for hundreds of microseconds beside the servo thread
     from ..session.sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
     if args.spawn:
-        return rerun_spawn_sink()
+        return rerun_spawn_sink(args.layout)
     if args.connect:
-        return rerun_connect_sink(args.connect)
-    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve())
+        return rerun_connect_sink(args.connect, args.layout)
+    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve(), args.layout)
 
 
 def run(args) -> int:
@@ -120,6 +122,7 @@ def run(args) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
     cfg = config_from_args(args)
+    check_layout_arg(args)
     if args.spawn:
         from ..session.viewer import check_spawn
         check_spawn()  # no display: one line now, not half a minute of viewer errors

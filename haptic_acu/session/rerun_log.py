@@ -270,29 +270,30 @@ class RerunSink(Sink):
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
-    def to_file(cls, path, **kw) -> "RerunSink":
-        """Write a .rrd file (headless)."""
-        return cls("file", str(path), **kw)
+    def to_file(cls, path, layout: str | None = None, **kw) -> "RerunSink":
+        """Write a .rrd file (headless); ``layout``: its default blueprint (the instructor's)."""
+        return cls("file", str(path), layout=layout, **kw)
 
     @classmethod
-    def to_file_live(cls, path, **kw) -> "RerunSink":
-        """Write a .rrd file from a live session of any length: no footer, so memory stays flat."""
-        return cls("file", str(path), footer=False, **kw)
+    def to_file_live(cls, path, layout: str | None = None, **kw) -> "RerunSink":
+        """Write a .rrd file from a live session of any length: no footer, so memory stays flat
+        (default blueprint: the trainee's)."""
+        return cls("file", str(path), footer=False, layout=layout, **kw)
 
     @classmethod
-    def spawn(cls, **kw) -> "RerunSink":
-        """Start a rerun viewer and stream to it."""
-        return cls("spawn", None, **kw)
+    def spawn(cls, layout: str | None = None, **kw) -> "RerunSink":
+        """Start a rerun viewer and stream to it (default blueprint: the trainee's)."""
+        return cls("spawn", None, layout=layout, **kw)
 
     @classmethod
-    def connect(cls, addr: str | None = None, **kw) -> "RerunSink":
+    def connect(cls, addr: str | None = None, layout: str | None = None, **kw) -> "RerunSink":
         """Stream to a running viewer: a ``rerun+http://host:port/proxy`` URL or ``host:port``
         (default: the local viewer's default address, port 9876)."""
         if addr is None:
             addr = DEFAULT_URL
         elif "://" not in addr:
             addr = f"rerun+http://{addr}/proxy"
-        return cls("connect", addr, **kw)
+        return cls("connect", addr, layout=layout, **kw)
 
     @classmethod
     def from_spec(cls, spec: str, **kw) -> "RerunSink":
