@@ -82,7 +82,7 @@ def _plot(name: str, origin: str, y_range=None) -> rrb.TimeSeriesView:
 
 def engineering_plots() -> rrb.Vertical:
     return rrb.Vertical(
-        _plot("force on the needle (N): magnitude, along and across the needle, scene components", "/force/total"),
+        _plot("force on the needle (N): along it (+ pushes it back), across it, scene components", "/force/total"),
         _plot("force along the needle by layer (N, + pushes the needle back)", "/force/layer"),
         _plot("force along the needle by part (N, + pushes the needle back)", "/force/part"),
         _plot("tip depth (mm below the skin, drawn downward) with the target and the layer boundaries", "/depth"),

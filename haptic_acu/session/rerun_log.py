@@ -6,8 +6,9 @@ Timelines: ``sim_time`` (a duration, s) and ``tick`` (the servo tick, a sequence
 Servo-rate series, one value per tick, sent as columns (``send_columns``); a series that is zero
 so far is not sent (its plot's legend shows only what has happened):
 
-    /force/total         |F| and the force along the needle (N, + pushes the needle back)
-    /force/total/across  the force across the needle (N), once it is not zero
+    /force/total         the force along the needle (N, + pushes the needle back)
+    /force/total/across  the force across the needle (N), once it is not zero (|F| is the hypotenuse
+                         of the two)
     /force/total/f<x|y|z> the scene-frame components (N), each once it is not zero
     /force/layer         the force along the needle by layer: skin, fat, muscle (N, + pushes back)
     /force/part          ... by part: pressed surface, cutting and friction, bone (N, + pushes back)
@@ -62,7 +63,7 @@ from ..servo.state import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, ne
 from .blueprints import DEFAULT_FILE, DEFAULT_LIVE
 from .blueprints import load as load_layout
 from .sink import Sink
-from .trainee import Columns, TraineeScene
+from .trainee import Columns, TraineeScene, seen_key
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -123,8 +124,7 @@ def part_forces(rows: np.ndarray) -> np.ndarray:
 # entity -> (series names, colours, (rows, needle depth mm) -> (k, m) values, the size below which the
 # series is zero and not yet sent (None: sent from the start))
 SERIES = {
-    "force/total": (["|F|", "along the needle"], [(20, 20, 20), (31, 119, 180)],
-                    lambda r, d: np.column_stack([np.linalg.norm(r[:, _C_F:_C_F + 3], axis=1), along_across(r)[0]]),
+    "force/total": (["along the needle (+ pushes it back)"], [(31, 119, 180)], lambda r, d: along_across(r)[0][:, None],
                     None),
     "force/total/across": (["across the needle"], [(255, 127, 14)], lambda r, d: along_across(r)[1][:, None], F_ZERO_N),
     "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: r[:, _C_F:_C_F + 1], F_ZERO_N),
@@ -467,9 +467,12 @@ class RerunSink(Sink):
             tip = row[_C_X:_C_X + 3]
             back = -model.axis if model.inserted else np.array([0.0, 0.0, 1.0])
             c = self._cols
-            c["world/needle"].add(t, tick, strips=[np.array([tip, tip + NEEDLE_LENGTH_M * back])])
-            c["world/twist"].add(t, tick, strips=[twist_bar(tip, back, row[COL["roll_deg"]])])
-            c["world/force"].add(t, tick, origins=tip[None], vectors=(row[_C_F:_C_F + 3] * FORCE_ARROW_M_PER_N)[None])
+            pose = seen_key(tip, back, decimals=7)  # to 0.1 um
+            c["world/needle"].add(t, tick, key=pose, strips=[np.array([tip, tip + NEEDLE_LENGTH_M * back])])
+            c["world/twist"].add(t, tick, key=(pose, round(float(row[COL["roll_deg"]]), 1)),
+                                 strips=[twist_bar(tip, back, row[COL["roll_deg"]])])
+            vec = row[_C_F:_C_F + 3] * FORCE_ARROW_M_PER_N
+            c["world/force"].add(t, tick, key=(pose, seen_key(vec, decimals=6)), origins=tip[None], vectors=vec[None])
             self.scene.frame(t, tick, rows, float(tip_depth_m(tip[None], self.tissue)[0]) * 1e3, dents)
         rates = getattr(frame, "rates", None) or {}
         if rates and frame.t_s >= self._rates_next:

@@ -78,8 +78,15 @@ class Columns:
         self.tick: list[int] = []
         self.lengths: list[int] = []
         self.fields: dict[str, list] = {}
+        self._last_key = None
 
-    def add(self, t: float, tick: int, n: int = 1, **fields) -> None:
+    def add(self, t: float, tick: int, n: int = 1, key=None, **fields) -> None:
+        """One row at (t, tick). ``key``: what the row shows (rounded to what can be seen); a row
+        whose key equals the last one's is dropped (the viewer keeps showing the last)."""
+        if key is not None:
+            if key == self._last_key:
+                return
+            self._last_key = key
         self.t.append(t)
         self.tick.append(tick)
         self.lengths.append(n)
@@ -125,7 +132,6 @@ class TraineeScene:
         self.punctures: list[tuple[np.ndarray, str]] = []
         self.depths = np.full(4, np.nan)
         self.last_event: str | None = None
-        self._verdict_last = None
         self._cols = {
             "section/scene": Columns(rr.Transform3D),
             "section/scene/needle": Columns(rr.LineStrips3D, partitioned=True),
@@ -205,9 +211,11 @@ class TraineeScene:
         uw_tip = s.to_uw(tip)
         uw_back = s.to_uw(tip - NEEDLE_MM * 1e-3 * axis)
         depth = V.needle_depth_mm(row, tip_depth_mm)
-        c["section/scene/needle"].add(t, tick, strips=[self._p3(np.array([uw_tip, uw_back]), _Y_NEEDLE)])
+        seen = seen_key(uw_tip, uw_back)
+        c["section/scene/needle"].add(t, tick, key=seen, strips=[self._p3(np.array([uw_tip, uw_back]), _Y_NEEDLE)])
         tip_label = f"tip {depth:.1f} mm" if depth >= 0.0 else "tip"
-        c["section/scene/tip"].add(t, tick, positions=self._p3(uw_tip[None], _Y_LABEL), labels=[tip_label])
+        c["section/scene/tip"].add(t, tick, key=(seen, tip_label), positions=self._p3(uw_tip[None], _Y_LABEL),
+                                   labels=[tip_label])
         ax, across = V.axial_force(row)
         back = s.direction_uw(-axis)
         n = np.hypot(*back)
@@ -215,30 +223,29 @@ class TraineeScene:
         side = np.array([back[1], -back[0]]) * 1.5  # beside the shaft
         vec = back * ax * FORCE_MM_PER_N
         f_label = "" if abs(ax) < V.FORCE_EPS_N else (f"{ax:.2f} N back" if ax > 0 else f"{-ax:.2f} N in")
-        c["section/scene/force"].add(t, tick, origins=self._p3((uw_tip + side)[None], _Y_LABEL),
+        c["section/scene/force"].add(t, tick, key=(seen, seen_key(vec), f_label), origins=self._p3((uw_tip + side)[None], _Y_LABEL),
                                      vectors=np.array([[vec[0], 0.0, vec[1]]]), labels=[f_label])
         # follow the needle: the camera looks at the entry's column, a little below the tip
         w_c = min(float(uw_tip[1]) + 12.0, -10.0)
-        c["section/scene"].add(t, tick, translation=[-self.u0_view(uw_tip), 0.0, -w_c])
+        c["section/scene"].add(t, tick, key=seen_key(self.u0, w_c), translation=[-self.u0_view(uw_tip), 0.0, -w_c])
         # the gauge
         g = min(max(depth, -2.5), GAUGE_MAX_MM)
         word = f"tip {depth:.1f} mm" if depth >= 0.0 else f"tip {-depth:.1f} mm above"
-        c["gauge/tip"].add(t, tick, origins=np.array([[-7.0, _Y_LABEL, -g]]), vectors=np.array([[6.5, 0.0, 0.0]]),
+        c["gauge/tip"].add(t, tick, key=(seen_key(g), word), origins=np.array([[-7.0, _Y_LABEL, -g]]), vectors=np.array([[6.5, 0.0, 0.0]]),
                            labels=[word])
-        c["gauge/tip_line"].add(t, tick, strips=[np.array([[-0.5, _Y_LABEL, -g], [GAUGE_W + 0.5, _Y_LABEL, -g]])])
+        c["gauge/tip_line"].add(t, tick, key=seen_key(g), strips=[np.array([[-0.5, _Y_LABEL, -g], [GAUGE_W + 0.5, _Y_LABEL, -g]])])
         # the dial
         r = np.radians(float(row[_C_ROLL]))
         d = np.array([np.sin(r), -np.cos(r)])
         perp = np.array([-d[1], d[0]])  # 90 deg clockwise of the pointer, on screen (y down)
-        c["twirl/dial/pointer"].add(t, tick, origins=np.zeros((1, 2)), vectors=(0.95 * d)[None],
+        roll_key = round(float(row[_C_ROLL]), 1)
+        c["twirl/dial/pointer"].add(t, tick, key=roll_key, origins=np.zeros((1, 2)), vectors=(0.95 * d)[None],
                                     labels=[f"roll {float(row[_C_ROLL]):+.0f} deg"])
         flag = np.array([0.55 * d, 0.55 * d + 0.35 * perp + 0.1 * d, 0.85 * d])
-        c["twirl/dial/flag"].add(t, tick, strips=[flag])
+        c["twirl/dial/flag"].add(t, tick, key=roll_key, strips=[flag])
         # the verdict, when its text changes
         text = V.verdict_markdown(row, tip_depth_mm, self.target, self.last_event)
-        if text != self._verdict_last:
-            self._verdict_last = text
-            c["verdict"].add(t, tick, text=text)
+        c["verdict"].add(t, tick, key=text, text=text)
 
     def u0_view(self, uw_tip) -> float:
         return self.u0
@@ -403,6 +410,11 @@ class TraineeScene:
         self.rec.log("gauge/target", rr.Boxes3D(mins=[[GAUGE_W + 2.5, _Y_LINE, -hi]], sizes=[[2.0, 0.1, hi - lo]],
                                                 colors=[TARGET_COLOUR], fill_mode="solid",
                                                 labels=[f"target {lo:g}-{hi:g}"], show_labels=True))
+
+
+def seen_key(*arrays, decimals: int = 3) -> tuple:
+    """What a drawing shows, rounded (mm to the micrometre): equal keys draw the same."""
+    return tuple(np.round(np.concatenate([np.ravel(a) for a in arrays]), decimals).tolist())
 
 
 def _slug(name: str) -> str:
