@@ -9,7 +9,8 @@ so far is not sent (its plot's legend shows only what has happened):
     /force/total         the force along the needle (N, + pushes the needle back)
     /force/total/across  the force across the needle (N), once it is not zero (|F| is the hypotenuse
                          of the two)
-    /force/total/f<x|y|z> the scene-frame components (N), each once it is not zero
+    /force/total/f<x|y|z> the scene-frame components (N), each once it is neither zero nor the force along
+                         the needle itself (a vertical needle's fz)
     /force/layer         the force along the needle by layer: skin, fat, muscle (N, + pushes back)
     /force/part          ... by part: pressed surface, cutting and friction, bone (N, + pushes back)
     /depth/tip           the needle's depth (mm below the skin, drawn downward: the plotted value is
@@ -121,15 +122,23 @@ def part_forces(rows: np.ndarray) -> np.ndarray:
     return np.column_stack([rows[:, _C_SURF], -rows[:, _C_DAMP], rows[:, _C_BONE]])
 
 
+def _scene_component(rows: np.ndarray, j: int) -> np.ndarray:
+    """(k, 2): scene component j, and how far it is from zero and from the force along the needle
+    (the second column only decides when the series starts: a component that is the along-force
+    itself, a vertical needle's fz, would be a second line drawn under the first)."""
+    c = rows[:, _C_F + j]
+    return np.column_stack([c, np.minimum(np.abs(c), np.abs(np.abs(c) - np.abs(along_across(rows)[0])))])
+
+
 # entity -> (series names, colours, (rows, needle depth mm) -> (k, m) values, the size below which the
 # series is zero and not yet sent (None: sent from the start))
 SERIES = {
     "force/total": (["along the needle (+ pushes it back)"], [(31, 119, 180)], lambda r, d: along_across(r)[0][:, None],
                     None),
     "force/total/across": (["across the needle"], [(255, 127, 14)], lambda r, d: along_across(r)[1][:, None], F_ZERO_N),
-    "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: r[:, _C_F:_C_F + 1], F_ZERO_N),
-    "force/total/fy": (["fy (scene)"], [(44, 160, 44)], lambda r, d: r[:, _C_F + 1:_C_F + 2], F_ZERO_N),
-    "force/total/fz": (["fz (scene, + up)"], [(148, 103, 189)], lambda r, d: r[:, _C_F + 2:_C_F + 3], F_ZERO_N),
+    "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: _scene_component(r, 0), F_ZERO_N),
+    "force/total/fy": (["fy (scene)"], [(44, 160, 44)], lambda r, d: _scene_component(r, 1), F_ZERO_N),
+    "force/total/fz": (["fz (scene, + up)"], [(148, 103, 189)], lambda r, d: _scene_component(r, 2), F_ZERO_N),
     "force/layer": (list(LAYER_NAMES), [(215, 140, 100), (200, 160, 30), (170, 40, 40)],
                     lambda r, d: layer_forces(r), F_ZERO_N),
     "force/part": (["pressed surface", "cutting and friction", "bone"], [(31, 119, 180), (255, 127, 14), (110, 110, 110)],
@@ -420,8 +429,12 @@ class RerunSink(Sink):
                rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
         for path, (_, _, get, zero) in SERIES.items():
             vals = get(rows, depth_mm)
+            if vals.shape[1] > len(SERIES[path][0]):  # a scene component and its distance from the rest
+                vals, apart = vals[:, :1], vals[:, 1:]
+            else:
+                apart = vals
             if zero is not None and path not in self._started_series:
-                nz = np.nonzero(np.any(np.abs(vals) > zero, axis=1))[0]
+                nz = np.nonzero(np.any(np.abs(apart) > zero, axis=1))[0]
                 if not nz.size:
                     continue
                 self._started_series.add(path)
