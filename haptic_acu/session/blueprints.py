@@ -32,11 +32,11 @@ DEFAULT_LIVE = "trainee"  # run, replay --spawn / --connect
 DEFAULT_FILE = "instructor"  # replay to a file
 
 # The section view's camera: straight at the plane from in front (-y), the plane's u to the right
-# and +z up, far enough to show about 48 mm of tissue top to bottom (a millimetre is ~15 px in a
+# and +z up, far enough to show about 45 mm of tissue top to bottom (a millimetre is ~18 px in a
 # 1000 px tall window). The scene under /section/scene is moved so that the point the camera looks
 # at follows the needle (haptic_acu.session.trainee).
-SECTION_EYE_DISTANCE_MM = 60.0
-GAUGE_EYE = ((6.0, -95.0, -24.0), (6.0, 0.0, -24.0))  # the gauge's 0-50 mm, fixed
+SECTION_EYE_DISTANCE_MM = 45.0
+GAUGE_EYE = ((9.0, -62.0, -24.5), (9.0, 0.0, -24.5))  # the gauge's 0-50 mm, fixed
 
 
 def _section_view() -> rrb.Spatial3DView:

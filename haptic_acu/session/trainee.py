@@ -49,7 +49,9 @@ _U = np.concatenate([np.linspace(-30.0, -6.0, 13)[:-1], np.linspace(-6.0, 6.0, 4
 _DENT_EPS_MM = 0.01  # re-log a band when its surface moved by more than this
 _Y_BAND, _Y_LINE, _Y_NEEDLE, _Y_LABEL = 0.5, 0.0, -0.5, -1.0
 GAUGE_MAX_MM = 50.0
-GAUGE_W = 12.0  # width of the gauge's bands (mm of the gauge's own scale)
+GAUGE_W = 10.0  # width of the gauge's bands (mm of the gauge's own scale)
+_G_TARGET = (GAUGE_W + 1.0, 2.0)  # the target bar's left edge and width
+_G_POINTER = (GAUGE_W + 12.0, GAUGE_W + 3.5)  # the tip pointer's start and end (x)
 
 _C_X = COL["x_m"]
 _C_T, _C_TICK = COL["t_s"], COL["tick"]
@@ -141,6 +143,7 @@ class TraineeScene:
             "gauge/tip_line": Columns(rr.LineStrips3D, partitioned=True),
             "twirl/dial/pointer": Columns(rr.Arrows2D, partitioned=True),
             "twirl/dial/flag": Columns(rr.LineStrips2D, partitioned=True),
+            "twirl/dial/roll": Columns(rr.Points2D, partitioned=True),
             "verdict": Columns(rr.TextDocument),
         }
         for k in range(4):
@@ -152,6 +155,7 @@ class TraineeScene:
         rec = self.rec
         rec.log("section", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log("gauge", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        rec.log("verdict", rr.TextDocument.from_fields(media_type=rr.MediaType.MARKDOWN), static=True)
         tris = _strip_tris(_U.size)
         for name in LAYERS4:
             rec.log(f"section/scene/layers/{name}", rr.Mesh3D.from_fields(
@@ -173,8 +177,9 @@ class TraineeScene:
         rec.log("twirl/dial/marks", rr.Points2D(np.stack([1.25 * np.sin(q), -1.25 * np.cos(q)], 1), radii=[0.0],
                                                 labels=["0", "+90", "180", "-90"], show_labels=True,
                                                 colors=[(80, 80, 80)]), static=True)
-        rec.log("twirl/dial/pointer", rr.Arrows2D.from_fields(radii=[0.05], colors=[TIP_COLOUR], show_labels=True),
-                static=True)
+        rec.log("twirl/dial/pointer", rr.Arrows2D.from_fields(radii=[0.05], colors=[TIP_COLOUR]), static=True)
+        rec.log("twirl/dial/roll", rr.Points2D.from_fields(positions=[(0.0, 1.55)], radii=[0.0], colors=[TIP_COLOUR],
+                                                           show_labels=True), static=True)
         rec.log("twirl/dial/flag", rr.LineStrips2D.from_fields(radii=[0.03], colors=[TIP_COLOUR]), static=True)
         self._log_gauge_ticks()
 
@@ -231,16 +236,19 @@ class TraineeScene:
         # the gauge
         g = min(max(depth, -2.5), GAUGE_MAX_MM)
         word = f"tip {depth:.1f} mm" if depth >= 0.0 else f"tip {-depth:.1f} mm above"
-        c["gauge/tip"].add(t, tick, key=(seen_key(g), word), origins=np.array([[-7.0, _Y_LABEL, -g]]), vectors=np.array([[6.5, 0.0, 0.0]]),
-                           labels=[word])
-        c["gauge/tip_line"].add(t, tick, key=seen_key(g), strips=[np.array([[-0.5, _Y_LABEL, -g], [GAUGE_W + 0.5, _Y_LABEL, -g]])])
+        x0, x1 = _G_POINTER
+        c["gauge/tip"].add(t, tick, key=(seen_key(g), word), origins=np.array([[x0, _Y_LABEL, -g]]),
+                           vectors=np.array([[x1 - x0, 0.0, 0.0]]), labels=[word])
+        c["gauge/tip_line"].add(t, tick, key=seen_key(g),
+                                strips=[np.array([[-0.5, _Y_LABEL, -g], [x1, _Y_LABEL, -g]])])
         # the dial
         r = np.radians(float(row[_C_ROLL]))
         d = np.array([np.sin(r), -np.cos(r)])
         perp = np.array([-d[1], d[0]])  # 90 deg clockwise of the pointer, on screen (y down)
         roll_key = round(float(row[_C_ROLL]), 1)
-        c["twirl/dial/pointer"].add(t, tick, key=roll_key, origins=np.zeros((1, 2)), vectors=(0.95 * d)[None],
-                                    labels=[f"roll {float(row[_C_ROLL]):+.0f} deg"])
+        c["twirl/dial/pointer"].add(t, tick, key=roll_key, origins=np.zeros((1, 2)), vectors=(0.95 * d)[None])
+        turns = f" ({float(row[_C_ROLL]) / 360.0:+.1f} turns)" if abs(float(row[_C_ROLL])) >= 360.0 else ""
+        c["twirl/dial/roll"].add(t, tick, key=roll_key, labels=[f"roll {float(row[_C_ROLL]):+.0f} deg{turns}"])
         flag = np.array([0.55 * d, 0.55 * d + 0.35 * perp + 0.1 * d, 0.85 * d])
         c["twirl/dial/flag"].add(t, tick, key=roll_key, strips=[flag])
         # the verdict, when its text changes
@@ -261,9 +269,8 @@ class TraineeScene:
         rec.set_time("sim_time", duration=_ns(ev["t_s"]))
         rec.set_time("tick", sequence=int(ev["tick"]))
         self._log_punctures()
-        pts = np.array([[GAUGE_W + 1.0, _Y_LABEL, -d] for d in self._puncture_depths()])
-        rec.log("gauge/punctures", rr.Points3D(pts, radii=[0.6], colors=[PUNCTURE_COLOUR],
-                                               labels=[lb for _, lb in self.punctures], show_labels=True))
+        pts = np.array([[GAUGE_W, _Y_LABEL, -d] for d in self._puncture_depths()])
+        rec.log("gauge/punctures", rr.Points3D(pts, radii=[0.5], colors=[PUNCTURE_COLOUR]))
         del uw
 
     def flush(self) -> None:
@@ -347,7 +354,7 @@ class TraineeScene:
         w = [self.rest[k][i] for k in range(4)] + [self.bone_bottom]
         mids = [0.5 * (w[k] + w[k + 1]) for k in range(4)]
         mids[0] = w[0] + 1.5  # the skin's name above its thin band
-        thick = [w[k] - w[k + 1] for k in range(3)]
+        thick = np.diff(self.depths)  # along the needle
         labels = [f"skin ({thick[0]:.1f} mm)", f"fat ({thick[1]:.1f} mm)", f"muscle ({thick[2]:.1f} mm)", "bone"]
         self.rec.log("section/scene/labels", rr.Points3D(self._p3(np.stack([np.full(4, u[i]), mids], 1), _Y_LABEL),
                                                          radii=[0.0], labels=labels, show_labels=True,
@@ -359,8 +366,10 @@ class TraineeScene:
         side = side / max(np.hypot(*side), 1e-9) * 2.0  # left of the shaft
         seg = np.array([s.to_uw(a) + side, s.to_uw(b) + side])
         self.rec.log("section/scene/target", rr.LineStrips3D([self._p3(seg, _Y_NEEDLE)], radii=[0.5],
-                                                              colors=[TARGET_COLOUR], labels=[f"target {lo:g}-{hi:g} mm"],
-                                                              show_labels=True))
+                                                              colors=[TARGET_COLOUR]))
+        self.rec.log("section/scene/target_label", rr.Points3D(self._p3((seg[0] + 2.5 * side)[None], _Y_LABEL),
+                                                               radii=[0.0], colors=[TARGET_COLOUR],
+                                                               labels=[f"target {lo:g}-{hi:g} mm"], show_labels=True))
 
     def _log_structures(self, static_time=None) -> None:
         if self.section is None:
@@ -402,14 +411,18 @@ class TraineeScene:
             if not np.isfinite(top) or top >= GAUGE_MAX_MM:
                 continue
             bot = min(d[k + 1] if np.isfinite(d[k + 1]) else GAUGE_MAX_MM, GAUGE_MAX_MM)
+            if bot - top < 3.0:
+                continue  # too thin to hold its name (the skin): the section names it
             names.append(LAYERS4[k])
-            pos.append([0.5 * GAUGE_W, _Y_LABEL, -max(0.5 * (top + bot), top + 1.2)])
+            pos.append([0.5 * GAUGE_W, _Y_LABEL, -0.5 * (top + bot)])
         self.rec.log("gauge/layer_labels", rr.Points3D(pos, radii=[0.0], labels=names, show_labels=True,
                                                        colors=[(0, 0, 0)]))
         lo, hi = self.target
-        self.rec.log("gauge/target", rr.Boxes3D(mins=[[GAUGE_W + 2.5, _Y_LINE, -hi]], sizes=[[2.0, 0.1, hi - lo]],
-                                                colors=[TARGET_COLOUR], fill_mode="solid",
-                                                labels=[f"target {lo:g}-{hi:g}"], show_labels=True))
+        self.rec.log("gauge/target", rr.Boxes3D(mins=[[_G_TARGET[0], _Y_LINE, -hi]], sizes=[[_G_TARGET[1], 0.1, hi - lo]],
+                                                colors=[TARGET_COLOUR], fill_mode="solid"))
+        self.rec.log("gauge/target_label", rr.Points3D([[_G_TARGET[0] + 1.0, _Y_LABEL, -hi - 2.5]], radii=[0.0],
+                                                       colors=[TARGET_COLOUR], labels=[f"target {lo:g}-{hi:g}"],
+                                                       show_labels=True))
 
 
 def seen_key(*arrays, decimals: int = 3) -> tuple:
