@@ -232,7 +232,7 @@ class TraineeScene:
                                      vectors=np.array([[vec[0], 0.0, vec[1]]]), labels=[f_label])
         # follow the needle: the camera looks at the entry's column, a little below the tip
         w_c = min(float(uw_tip[1]) + 12.0, -10.0)
-        c["section/scene"].add(t, tick, key=seen_key(self.u0, w_c), translation=[-self.u0_view(uw_tip), 0.0, -w_c])
+        c["section/scene"].add(t, tick, key=seen_key(self.u0, w_c), translation=[-self.u0, 0.0, -w_c])
         # the gauge
         g = min(max(depth, -2.5), GAUGE_MAX_MM)
         word = f"tip {depth:.1f} mm" if depth >= 0.0 else f"tip {-depth:.1f} mm above"
@@ -255,12 +255,8 @@ class TraineeScene:
         text = V.verdict_markdown(row, tip_depth_mm, self.target, self.last_event)
         c["verdict"].add(t, tick, key=text, text=text)
 
-    def u0_view(self, uw_tip) -> float:
-        return self.u0
-
     def puncture(self, ev: dict, tip) -> None:
         """A layer gave way (an event of haptic_acu.analysis.scan.SessionScan) with the tip at ``tip``."""
-        uw = self.section.to_uw(np.asarray(tip)) if self.section is not None else np.zeros(2)
         depth = ev["tip_depth_m"] * 1e3
         label = f"{ev['layer']} punctured, {ev['peak_force_n']:.2f} N"
         self.last_event = f"{label} at {depth:.1f} mm"
@@ -271,7 +267,6 @@ class TraineeScene:
         self._log_punctures()
         pts = np.array([[GAUGE_W, _Y_LABEL, -d] for d in self._puncture_depths()])
         rec.log("gauge/punctures", rr.Points3D(pts, radii=[0.5], colors=[PUNCTURE_COLOUR]))
-        del uw
 
     def flush(self) -> None:
         for path, col in self._cols.items():
