@@ -196,3 +196,15 @@ def test_verdict_markdown_headline():
     assert "**Force 0.80 N pushing the needle back**" in lines
     assert any(s.startswith("Roll +90 deg (clockwise seen from the handle)") for s in lines)
     assert lines[-1] == "Last: muscle punctured, 1.10 N at 9.6 mm"
+
+
+def test_a_pressed_surface_passes_through_the_tip():
+    from haptic_acu.session.trainee import PRESS_HALF_WIDTH_MM, press_through
+
+    u = np.linspace(-10.0, 10.0, 81)
+    w = -0.1 * np.abs(u) - 9.2  # a surface with a shallow smoothed dent
+    out = press_through(u, w, (1.0, -12.0))
+    assert np.interp(1.0, u, out) == pytest.approx(-12.0, abs=1e-12)  # through the tip
+    far = np.abs(u - 1.0) >= PRESS_HALF_WIDTH_MM
+    assert np.array_equal(out[far], w[far]) and np.all(out <= w)
+    assert np.array_equal(press_through(u, w, (1.0, -5.0)), w)  # a tip above the surface moves nothing

@@ -91,8 +91,7 @@ def moments(work: Path) -> list[tuple[str, str, Path, float]]:
     t, depth = s["t_s"], s["depth_skin_mm"]
     skin = s["state_skin"]
     pressed = np.nonzero(skin == "punctured")[0][0] - 1  # the last tick before the skin gives way
-    fat_top = np.nonzero(s["layer"] == "fat")[0][0]
-    six_in_fat = fat_top + int(np.argmax(s["depth_mm"][fat_top:] >= 6.0))
+    six_in_fat = int(np.argmax(depth >= 6.0))
     deep12 = int(np.argmax(depth >= 12.0))
     deep24 = int(np.argmax(depth >= 24.0))
     past = _past_target(work / "past_target.csv", 33.2)

@@ -56,6 +56,20 @@ _G_POINTER = (GAUGE_W + 12.0, GAUGE_W + 3.5)  # the tip pointer's start and end 
 _C_X = COL["x_m"]
 _C_T, _C_TICK = COL["t_s"], COL["tick"]
 _C_ROLL = COL["roll_deg"]
+_C_STATE = COL["state_skin"]
+PRESS_HALF_WIDTH_MM = 3.0  # half-width of the bump that carries a pressed surface down to the tip
+
+
+def press_through(u: np.ndarray, w: np.ndarray, uw_tip) -> np.ndarray:
+    """The curve ``w`` (mm, over ``u``) carried down to pass through the tip where the tip is below
+    it: the difference at the tip's column, spread by a cos^2 bump of half-width
+    PRESS_HALF_WIDTH_MM. The dent on the patch grid (about 1.3 mm between samples) smooths the
+    net's sharp dent at its contact particle; the particle itself is at the tip."""
+    gap = float(uw_tip[1]) - float(np.interp(uw_tip[0], u, w))
+    if gap >= 0.0:
+        return w
+    x = np.clip((u - float(uw_tip[0])) / PRESS_HALF_WIDTH_MM, -1.0, 1.0)
+    return w + gap * np.cos(0.5 * np.pi * x) ** 2
 
 
 def _ns(t_s) -> np.ndarray:
@@ -211,9 +225,12 @@ class TraineeScene:
                                                                                    th, ph))
             else:
                 curves[k] = self.rest[k]
+        uw_tip = s.to_uw(tip)
+        for k in range(3):  # a pressed surface passes through the tip (its net's contact particle)
+            if int(row[_C_STATE + k]) == V.PRESSING:
+                curves[k] = press_through(u, curves[k], uw_tip)
         self._log_curves(t, tick, curves)
         # the needle, its tip and the force
-        uw_tip = s.to_uw(tip)
         uw_back = s.to_uw(tip - NEEDLE_MM * 1e-3 * axis)
         depth = V.needle_depth_mm(row, tip_depth_mm)
         seen = seen_key(uw_tip, uw_back)
@@ -225,7 +242,7 @@ class TraineeScene:
         back = s.direction_uw(-axis)
         n = np.hypot(*back)
         back = back / n if n > 1e-9 else np.array([0.0, 1.0])
-        side = np.array([back[1], -back[0]]) * 1.5  # beside the shaft
+        side = np.array([back[1], -back[0]]) * 3.0  # beside the shaft
         vec = back * ax * FORCE_MM_PER_N
         f_label = "" if abs(ax) < V.FORCE_EPS_N else (f"{ax:.2f} N back" if ax > 0 else f"{-ax:.2f} N in")
         c["section/scene/force"].add(t, tick, key=(seen, seen_key(vec), f_label), origins=self._p3((uw_tip + side)[None], _Y_LABEL),
@@ -345,7 +362,7 @@ class TraineeScene:
         """The layers' names at the left of their bands, and the target range along the needle."""
         s = self.section
         u = _U + self.u0
-        i = 4  # -22 mm from the entry
+        i = int(np.argmin(np.abs(_U + 14.0)))  # 14 mm left of the entry
         w = [self.rest[k][i] for k in range(4)] + [self.bone_bottom]
         mids = [0.5 * (w[k] + w[k + 1]) for k in range(4)]
         mids[0] = w[0] + 1.5  # the skin's name above its thin band
