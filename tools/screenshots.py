@@ -98,8 +98,8 @@ def moments(work: Path) -> list[tuple[str, str, Path, float]]:
     twirl = resolve_trajectory("twirl_even")
     with open(twirl) as f:
         tw = np.array([[float(x) for x in ln.split(",")] for ln in f.read().splitlines()[1:] if ln.strip()])
-    turning = np.nonzero(tw[:, 4] != 0.0)[0]
-    mid_twirl = tw[turning[len(turning) // 2 + 7], 0]  # half-way through, near a turn's end (max roll)
+    turned = np.nonzero(np.abs(tw[:, 4]) >= 150.0)[0]  # near the ends of the turns
+    mid_twirl = tw[turned[len(turned) // 2], 0]
     return [
         ("skin-pressed", "trainee", default, float(t[pressed])),
         ("fat-6mm", "trainee", default, float(t[six_in_fat])),
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "docs" / "img"))
     ap.add_argument("--only", nargs="*", help="moment names (default: all)")
-    ap.add_argument("--wait", type=float, default=60.0, help="seconds the viewer gets before each picture")
+    ap.add_argument("--wait", type=float, default=90.0, help="seconds the viewer gets before each picture")
     ap.add_argument("--size", default="1600x1000")
     ap.add_argument("--screenshot", default=str(SCREENSHOT), help="the rrd-screenshot script")
     args = ap.parse_args(argv)

@@ -432,7 +432,7 @@ class TraineeScene:
         lo, hi = self.target
         self.rec.log("gauge/target", rr.Boxes3D(mins=[[_G_TARGET[0], _Y_LINE, -hi]], sizes=[[_G_TARGET[1], 0.1, hi - lo]],
                                                 colors=[TARGET_COLOUR], fill_mode="solid"))
-        self.rec.log("gauge/target_label", rr.Points3D([[_G_TARGET[0] + 1.0, _Y_LABEL, -hi - 2.5]], radii=[0.0],
+        self.rec.log("gauge/target_label", rr.Points3D([[_G_TARGET[0] + 1.0, _Y_LABEL, -lo + 2.5]], radii=[0.0],
                                                        colors=[TARGET_COLOUR], labels=[f"target {lo:g}-{hi:g}"],
                                                        show_labels=True))
 
