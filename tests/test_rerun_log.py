@@ -424,3 +424,19 @@ def test_the_recording_carries_its_layout(recording):
     reader = recording.reader
     got = view_origins(reader)
     assert {"/section", "/gauge", "/twirl/dial", "/verdict", "/force/layer", "/force/part", "/depth", "/rates"} <= set(got)
+
+
+def test_danger_structures_are_drawn_in_the_section(recording, tmp_path):
+    """The hook for a point's danger structures: given to the sink, each is cut by the section and
+    drawn at /section/scene/danger/<name>, labelled with its name and kind."""
+    from haptic_acu.session.section import Structure
+
+    path = tmp_path / "danger.rrd"
+    sink = RerunSink.to_file(path, structures=[Structure("pleura", "membrane", np.array([0.0, 0.0, -0.037]),
+                                                         normal=np.array([0.0, 0.0, -1.0]))])
+    run_session(recording.model, recording.model.cfg, sink, z0=1e-3, z1=-2e-3)
+    store = RrdReader(path).store()
+    _, _, strips = columns(store, "/section/scene/danger/pleura", "LineStrips3D:strips")
+    _, _, labels = columns(store, "/section/scene/danger/pleura", "LineStrips3D:labels")
+    assert labels[-1] == ["pleura (membrane)"]
+    np.testing.assert_allclose(np.array(strips[-1][0])[:, 2], -37.0, atol=1e-9)  # 37 mm below the acupoint

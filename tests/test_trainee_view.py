@@ -208,3 +208,20 @@ def test_a_pressed_surface_passes_through_the_tip():
     far = np.abs(u - 1.0) >= PRESS_HALF_WIDTH_MM
     assert np.array_equal(out[far], w[far]) and np.all(out <= w)
     assert np.array_equal(press_through(u, w, (1.0, -5.0)), w)  # a tip above the surface moves nothing
+
+
+def test_structures_from_the_servos_danger_rows(tissue):
+    """The servo's danger rows (haptic_acu.servo.danger.DANGER's fields) as drawable structures: a
+    membrane 37 mm along -z, an artery of radius 1.5 mm across the x-z plane, an empty row."""
+    from haptic_acu.session.section import structures_from_danger
+
+    dt = np.dtype([("kind", "i8"), ("p", "f8", 3), ("n", "f8", 3), ("depth", "f8"), ("radius", "f8")])
+    rows = np.zeros(3, dt)
+    rows[0] = (1, (0, 0, 0), (0, 0, -1), 0.037, 0.0)
+    rows[1] = (4, (0.004, 0.0, -0.02), (0, 1, 0), 0.0, 0.0015)
+    got = structures_from_danger(rows, names=["pleura", "posterior tibial artery"])
+    assert [(s.name, s.kind) for s in got] == [("pleura", "membrane"), ("posterior tibial artery", "artery")]
+    s = Section.through(tissue, [0.0, 0.0, -1.0], [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(structure_outline(got[0], s)[:, 1], -37.0, atol=1e-9)
+    ring = structure_outline(got[1], s)
+    np.testing.assert_allclose(np.hypot(ring[:, 0] - 4.0, ring[:, 1] + 20.0), 1.5, atol=1e-9)

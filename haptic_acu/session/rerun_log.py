@@ -64,6 +64,7 @@ from ..servo.state import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, ne
 from .blueprints import DEFAULT_FILE, DEFAULT_LIVE
 from .blueprints import load as load_layout
 from .sink import Sink
+from .section import structures_from_danger
 from .trainee import Columns, TraineeScene, seen_key
 
 APP_ID = "haptic-acu"
@@ -406,8 +407,10 @@ class RerunSink(Sink):
             **{f"world/tissue/{BOUNDARY_NAMES[k]}/patch": Columns(rr.Mesh3D, partitioned=True) for k in range(3)},
         }
         self._started_series: set[str] = set()
-        self.scene = TraineeScene(rec, tissue, target, (th_p[:, 0], ph_p[0]),
-                                  structures=info.get("structures") or self.structures)
+        structures = info.get("structures") or self.structures
+        if not structures and getattr(model, "danger", None) is not None:  # a point's danger structures
+            structures = structures_from_danger(model.danger)
+        self.scene = TraineeScene(rec, tissue, target, (th_p[:, 0], ph_p[0]), structures=structures)
         self.scene.start()
         for k in range(3):
             self._log_patch(k, np.zeros(th_p.shape), 0.0, 0)
