@@ -229,6 +229,8 @@ class TraineeScene:
         for k in range(3):  # a pressed surface passes through the tip (its net's contact particle)
             if int(row[_C_STATE + k]) == V.PRESSING:
                 curves[k] = press_through(u, curves[k], uw_tip)
+        for k in range(3):  # a layer pressed in carries the ones below with it: no band thinner than at rest
+            curves[k + 1] = np.minimum(curves[k + 1], curves[k] - (self.rest[k] - self.rest[k + 1]))
         self._log_curves(t, tick, curves)
         # the needle, its tip and the force
         uw_back = s.to_uw(tip - NEEDLE_MM * 1e-3 * axis)
