@@ -58,6 +58,7 @@ from ..tissue import shf
 from ..base.errors import UserError
 from .report import LAYERS, SessionScan, tip_depth_m
 from ..servo.samples import COL
+from ..tissue.layers import PRESSING
 from ..tissue.body import grid_triangles
 from ..tissue.twirl import twist_direction
 from ..servo.state import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, net_layer, net_slot
@@ -85,7 +86,6 @@ _C_AXIS = COL["axis_x"]
 _C_STATE = COL["state_skin"]
 _C_LAYER_F = COL["f_skin_n"]
 _C_SURF, _C_DAMP, _C_LAT, _C_BONE = COL["f_surface_n"], COL["f_damp_n"], COL["f_lateral_n"], COL["f_bone_n"]
-_PRESSING = 1
 F_ZERO_N = 1e-4  # a force series below this (0.1 mN, under the plots' resolution) is not yet sent
 
 
@@ -113,7 +113,7 @@ def layer_forces(rows: np.ndarray) -> np.ndarray:
     surface force (a magnitude) as it is, a punctured layer's share of the axial force (signed handle
     to tip) negated."""
     f = rows[:, _C_LAYER_F:_C_LAYER_F + 3]
-    pressing = rows[:, _C_STATE:_C_STATE + 3] == _PRESSING
+    pressing = rows[:, _C_STATE:_C_STATE + 3] == PRESSING
     return np.where(pressing, f, -f)
 
 

@@ -18,13 +18,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..servo.samples import COL
+from ..tissue.layers import PRESSING
 
 _C_LAYER, _C_STATE = COL["layer"], COL["state_skin"]
 _C_DEPTH_SKIN = COL["depth_skin_m"]
 _C_F, _C_AXIS = COL["fx_n"], COL["axis_x"]
 _C_ROLL, _C_TORQUE = COL["roll_deg"], COL["torque_nmm"]
 PLACES = {-1: "in the air", 0: "in skin", 1: "in fat", 2: "in muscle", 3: "on bone"}
-PRESSING = 1
 FORCE_EPS_N = 0.005  # below this the force reads "no force" (the display's 0.01 N resolution)
 
 
