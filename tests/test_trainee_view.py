@@ -225,3 +225,15 @@ def test_structures_from_the_servos_danger_rows(tissue):
     np.testing.assert_allclose(structure_outline(got[0], s)[:, 1], -37.0, atol=1e-9)
     ring = structure_outline(got[1], s)
     np.testing.assert_allclose(np.hypot(ring[:, 0] - 4.0, ring[:, 1] + 20.0), 1.5, atol=1e-9)
+
+
+@pytest.mark.parametrize("cmd", ["replay", "run"])
+def test_a_bad_layout_is_one_line_and_exit_2(cmd, tmp_path, capsys):
+    from haptic_acu.cli import main
+
+    extra = ["--device", "scripted", "--trajectory", "default", "--rrd"] if cmd == "run" else []
+    for bad, words in (("nurse", "give trainee or instructor"), (str(tmp_path / "x.rbl"), "no such file")):
+        assert main([cmd, *extra, "--layout", bad, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
