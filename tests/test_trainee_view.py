@@ -184,7 +184,7 @@ def test_force_sign_in_words_follows_the_needle_axis():
     a = np.array([np.sin(0.5), 0.0, -np.cos(0.5)])
     f = -a * 2.0 + np.array([0.0, 0.3, 0.0])
     assert V.force_words(*V.axial_force(_row(f=f, axis=a))) == "2.00 N pushing the needle back, 0.30 N sideways"
-    assert V.force_words(*V.axial_force(_row())) == "no force along the needle"
+    assert V.force_words(*V.axial_force(_row())) == "none along the needle"
 
 
 def test_verdict_markdown_headline():
@@ -193,7 +193,7 @@ def test_verdict_markdown_headline():
     lines = text.splitlines()
     assert lines[0] == "## Tip in muscle: past the target by 3.2 mm"
     assert "**Depth 33.2 mm** along the needle (target 15-30 mm)" in lines
-    assert "**Force 0.80 N pushing the needle back**" in lines
+    assert "**Force: 0.80 N pushing the needle back**" in lines
     assert any(s.startswith("Roll +90 deg (clockwise seen from the handle)") for s in lines)
     assert lines[-1] == "Last: muscle punctured, 1.10 N at 9.6 mm"
 

@@ -75,8 +75,10 @@ def trainee_container() -> rrb.Horizontal:
     )
 
 
-def _plot(name: str, origin: str, y_range=None) -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(name=name, origin=origin, plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop),
+def _plot(name: str, origin: str, corner=None, y_range=None) -> rrb.TimeSeriesView:
+    """A plot whose legend sits where its data usually is not: the top right (the session's end,
+    the needle out and the force back at zero) unless ``corner`` says otherwise."""
+    return rrb.TimeSeriesView(name=name, origin=origin, plot_legend=rrb.PlotLegend(corner or rrb.Corner2D.RightTop),
                               axis_y=rrb.ScalarAxis(range=y_range) if y_range else None)
 
 
@@ -85,9 +87,11 @@ def engineering_plots() -> rrb.Vertical:
         _plot("force on the needle (N): along it (+ pushes it back), across it, scene components", "/force/total"),
         _plot("force along the needle by layer (N, + pushes the needle back)", "/force/layer"),
         _plot("force along the needle by part (N, + pushes the needle back)", "/force/part"),
-        _plot("tip depth (mm below the skin, drawn downward) with the target and the layer boundaries", "/depth"),
+        # the depth drawn down to -75 mm: the legend sits below the bone's surface (48 mm at the acupoint)
+        _plot("tip depth (mm below the skin, drawn downward) with the target and the layer boundaries", "/depth",
+              corner=rrb.Corner2D.LeftBottom, y_range=(-75.0, 10.0)),
         _plot("roll (deg, + clockwise seen from the handle) and twist torque (N*mm)", "/twirl/series"),
-        row_shares=[3, 2, 2, 3, 2],
+        row_shares=[3, 2, 2, 4, 2],
         name="plots",
     )
 
@@ -114,7 +118,7 @@ def instructor() -> rrb.Blueprint:
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="hidden"), rrb.SelectionPanel(state="hidden"),
-        rrb.TimePanel(state="expanded", timeline="sim_time"),
+        rrb.TimePanel(state="collapsed", timeline="sim_time"),
     )
 
 

@@ -75,7 +75,7 @@ def axial_force(row) -> tuple[float, float]:
 
 def force_words(axial_n: float, across_n: float = 0.0) -> str:
     if abs(axial_n) < FORCE_EPS_N:
-        text = "no force along the needle"
+        text = "none along the needle"
     elif axial_n > 0:
         text = f"{axial_n:.2f} N pushing the needle back"
     else:
@@ -99,7 +99,7 @@ def verdict_markdown(row, tip_depth_mm: float, target_mm, last_event: str | None
         lines.append(f"Target {lo:g}-{hi:g} mm below the skin")
     lines.append("")
     ax, across = axial_force(row)
-    lines.append(f"**Force {force_words(ax, across)}**")
+    lines.append(f"**Force: {force_words(ax, across)}**")
     roll, torque = float(row[_C_ROLL]), float(row[_C_TORQUE])
     if roll != 0.0 or torque != 0.0:
         lines += ["", f"Roll {roll:+.0f} deg ({'clockwise' if roll >= 0 else 'anticlockwise'} seen from the "
