@@ -237,3 +237,19 @@ def test_a_bad_layout_is_one_line_and_exit_2(cmd, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert words in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
+
+
+def test_structures_from_a_points_anatomy(tissue):
+    from haptic_acu.session.section import structures_from_anatomy
+    from haptic_acu.tissue.patient import PlacedStructure
+
+    class Anatomy:
+        structures = [PlacedStructure("pleura", "membrane", 20.0, toward=(0.0, 0.0, -1.0)),
+                      PlacedStructure("median nerve", "nerve", 12.0, centre_mm=(2.0, 0.0, -12.0), axis=(0.0, 1.0, 0.0),
+                                      radius_mm=1.42)]
+
+    got = structures_from_anatomy(Anatomy())
+    s = Section.through(tissue, [0.0, 0.0, -1.0], [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(structure_outline(got[0], s)[:, 1], -20.0, atol=1e-9)
+    ring = structure_outline(got[1], s)
+    np.testing.assert_allclose(np.hypot(ring[:, 0] - 2.0, ring[:, 1] + 12.0), 1.42, atol=1e-9)

@@ -35,6 +35,8 @@ def register(sub) -> None:
     add_layout_arg(p, "instructor for a file, trainee with --spawn/--connect")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    from ..session.point import add_point_args
+    add_point_args(p)
     p.set_defaults(func=run)
 
 
@@ -58,12 +60,14 @@ def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = F
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd, overrides, layout = args_tuple
+    traj, out_dir, config, rrd, overrides, point, layout = args_tuple
     from ..base.config import load_config
+    from ..session.point import setup
     from ..session.replay import replay_one
     try:
-        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides),
-                       layout=layout)
+        cfg = load_config(config, overrides=overrides)
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=cfg,
+                       point=setup(cfg, *point) if point else None, layout=layout)
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -86,6 +90,10 @@ def _flat(summary: dict) -> dict:
             row[key] = m[key]
     for key, v in (m.get("lateral") or {}).items():
         row[f"lateral_{key}"] = v
+    if "point" in summary:  # --point: the point, the patient and the grading's totals
+        g = summary["point_grading"]
+        row.update(point=summary["point"], patient_sex=summary["patient"]["sex"], patient_bmi=summary["patient"]["bmi"],
+                   in_range=g["in_range"], on_target=g["on_target"], critical_errors=g["critical_errors"])
     return row
 
 
@@ -153,6 +161,8 @@ def run(args) -> int:
     cfg = config_from_args(args)  # a bad config fails before anything runs
     from .options import check_layout_arg
     check_layout_arg(args)
+    from ..session.point import setup_from_args
+    ps = setup_from_args(cfg, args)  # a bad point or patient too
     if args.spawn:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
@@ -164,7 +174,7 @@ def run(args) -> int:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg, layout=args.layout)
+                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
         print_summary(summary, out, quiet=args.quiet)
         return 0
     if args.spawn or args.connect or args.realtime:
@@ -184,17 +194,20 @@ def run(args) -> int:
         raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
                         "another --out") from None
     try:
-        return _run_batch(args, paths, base)
+        return _run_batch(args, paths, base, ps)
     finally:
         os.close(lock)
 
 
-def _run_batch(args, paths, base: Path) -> int:
+def _run_batch(args, paths, base: Path, ps=None) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
     jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, args.layout)
+    # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
+    point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
+              args.feedback) if args.point else None)
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point, args.layout)
             for p in paths]
     results = {}
     from ..base import progress

@@ -280,3 +280,18 @@ def structures_from_danger(rows, names=None) -> list[Structure]:
         else:
             out.append(Structure(name, kind, np.asarray(r["p"], dtype=np.float64), radius_m=float(r["radius"]), along=n))
     return out
+
+
+def structures_from_anatomy(anatomy) -> list[Structure]:
+    """:class:`Structure` s of a ``--point`` session's realised point (its ``structures``, each with
+    ``name``, ``kind``, ``depth_mm`` and either ``toward``, a plane's normal into the body, or
+    ``centre_mm``, ``axis`` and ``radius_mm``, a cylinder; the point's frame is the scene's)."""
+    out = []
+    for st in getattr(anatomy, "structures", ()) or ():
+        if st.toward is not None:
+            n = np.asarray(st.toward, dtype=np.float64)
+            out.append(Structure(st.name, st.kind, n * st.depth_mm * 1e-3, normal=n))
+        else:
+            out.append(Structure(st.name, st.kind, np.asarray(st.centre_mm, dtype=np.float64) * 1e-3,
+                                 radius_m=float(st.radius_mm) * 1e-3, along=np.asarray(st.axis, dtype=np.float64)))
+    return out
