@@ -57,6 +57,7 @@ _C_X = COL["x_m"]
 _C_T, _C_TICK = COL["t_s"], COL["tick"]
 _C_ROLL = COL["roll_deg"]
 _C_STATE = COL["state_skin"]
+MIN_BAND_MM = 1.0  # a band is never drawn thinner than this (or its rest thickness, if less)
 PRESS_HALF_WIDTH_MM = 3.0  # half-width of the bump that carries a pressed surface down to the tip
 
 
@@ -229,8 +230,10 @@ class TraineeScene:
         for k in range(3):  # a pressed surface passes through the tip (its net's contact particle)
             if int(row[_C_STATE + k]) == V.PRESSING:
                 curves[k] = press_through(u, curves[k], uw_tip)
-        for k in range(3):  # a layer pressed in carries the ones below with it: no band thinner than at rest
-            curves[k + 1] = np.minimum(curves[k + 1], curves[k] - (self.rest[k] - self.rest[k + 1]))
+        for k in range(3):  # a layer pressed in pushes the surface below once it is squeezed to 1 mm (the skin
+            # keeps its 0.8 mm): no band drawn inverted
+            keep = np.minimum(self.rest[k] - self.rest[k + 1], MIN_BAND_MM)
+            curves[k + 1] = np.minimum(curves[k + 1], curves[k] - keep)
         self._log_curves(t, tick, curves)
         # the needle, its tip and the force
         uw_back = s.to_uw(tip - NEEDLE_MM * 1e-3 * axis)
