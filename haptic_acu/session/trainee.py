@@ -156,6 +156,7 @@ class TraineeScene:
             "section/scene/force": Columns(rr.Arrows3D, partitioned=True),
             "gauge/tip": Columns(rr.Arrows3D, partitioned=True),
             "gauge/tip_line": Columns(rr.LineStrips3D, partitioned=True),
+            "gauge/target_label": Columns(rr.Points3D, partitioned=True),
             "twirl/dial/pointer": Columns(rr.Arrows2D, partitioned=True),
             "twirl/dial/flag": Columns(rr.LineStrips2D, partitioned=True),
             "twirl/dial/roll": Columns(rr.Points2D, partitioned=True),
@@ -261,6 +262,9 @@ class TraineeScene:
         x0, x1 = _G_POINTER
         c["gauge/tip"].add(t, tick, key=(seen_key(g), word), origins=np.array([[x0, _Y_LABEL, -g]]),
                            vectors=np.array([[x1 - x0, 0.0, 0.0]]), labels=[word])
+        lo, hi = self.target  # the target's name at the end of its bar away from the tip's pointer
+        z = -lo + 2.5 if g > 0.5 * (lo + hi) else -hi - 2.5
+        c["gauge/target_label"].add(t, tick, key=z, positions=np.array([[_G_TARGET[0] + 1.0, _Y_LABEL, z]]))
         c["gauge/tip_line"].add(t, tick, key=seen_key(g),
                                 strips=[np.array([[-0.5, _Y_LABEL, -g], [x1, _Y_LABEL, -g]])])
         # the dial
@@ -437,9 +441,8 @@ class TraineeScene:
         lo, hi = self.target
         self.rec.log("gauge/target", rr.Boxes3D(mins=[[_G_TARGET[0], _Y_LINE, -hi]], sizes=[[_G_TARGET[1], 0.1, hi - lo]],
                                                 colors=[TARGET_COLOUR], fill_mode="solid"))
-        self.rec.log("gauge/target_label", rr.Points3D([[_G_TARGET[0] + 1.0, _Y_LABEL, -lo + 2.5]], radii=[0.0],
-                                                       colors=[TARGET_COLOUR], labels=[f"target {lo:g}-{hi:g}"],
-                                                       show_labels=True))
+        self.rec.log("gauge/target_label", rr.Points3D.from_fields(radii=[0.0], colors=[TARGET_COLOUR],
+                                                                   labels=[f"target {lo:g}-{hi:g}"], show_labels=True))
 
 
 def seen_key(*arrays, decimals: int = 3) -> tuple:
