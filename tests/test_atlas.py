@@ -257,3 +257,66 @@ def test_committed_point_trajectories_match_the_script(tmp_path):
     assert made == sorted(p.name for p in (TRAJ / "points").glob("*.csv"))
     for name in made:
         assert (tmp_path / name).read_bytes() == (TRAJ / "points" / name).read_bytes(), name
+
+
+def test_guided_feedback_warns_before_a_structure_and_exam_never():
+    from haptic_acu.base.config import load_config
+    from haptic_acu.servo.samples import COL, NCOL
+    from haptic_acu.session.point import setup
+    from haptic_acu.session.status import format_status
+
+    cfg = load_config()
+    guided = setup(cfg, "GB21", None, "guided")
+    exam = setup(cfg, "GB21", None, "exam")
+    assert guided.warning([0.0, 0.0, -14.0], 0.0) == "pleura in 3.4 mm"  # 17.4 mm at t = 0 (expiration)
+    assert guided.warning([0.0, 0.0, -10.0], 0.0) == ""  # farther than 5 mm: quiet
+    assert guided.warning([0.0, 0.0, -18.0], 0.0) == "PLEURA REACHED"
+    assert exam.warning([0.0, 0.0, -18.0], 0.0) == ""
+    row = np.zeros(NCOL)
+    row[COL["layer"]] = 2
+    line = format_status(1.0, row, {}, None, width=80, warning=guided.warning([0.0, 0.0, -14.0], 0.0))
+    assert "pleura in 3.4 mm" in line and len(line) <= 80
+    assert guided.cfg.scene.target_depth_mm == (5.0, 13.0)  # the point's range is the session's target
+
+
+def test_a_patient_file_is_read_strictly(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text('sex = "female"\nbmi = 19\n')
+    p = parse_patient(str(f))
+    assert (p.sex, p.bmi, p.age) == ("female", 19.0, 30.0)
+    f.write_text("random = true\nseed = 5\n")
+    assert parse_patient(str(f)) == parse_patient("random:5")
+    for text, key in (('sex = "x"\n', "sex"), ("weight = 70\n", "weight"), ("bmi = 99\n", "bmi"),
+                      ("seed = 3\n", "seed")):
+        f.write_text(text)
+        with pytest.raises(UserError) as e:
+            parse_patient(str(f))
+        assert key in str(e.value) and str(f) in str(e.value)
+
+
+def test_a_cohort_session_at_a_point_is_graded_in_its_tables():
+    from haptic_acu.base.config import load_config
+    from haptic_acu.cohort.sessions import Job, config_hash, point_hash, replay_session
+
+    cfg = load_config()
+    csha = config_hash(cfg)
+    traj = str(TRAJ / "points" / "GB21_pleura.csv")
+    # the record of a session at a point follows the point and the patient
+    assert point_hash(csha, None) == csha
+    assert len({point_hash(csha, ("GB21", None)), point_hash(csha, ("GB21", "sex=female")), csha}) == 3
+    rec = replay_session(Job("s1", traj, cfg, "x", point_hash(csha, ("GB21", "sex=female")), None, "GB21",
+                             "sex=female"))
+    assert rec["error"] is None
+    (ins,) = rec["insertions"]
+    assert ins["critical_errors"] == 1 and ins["critical_structures"] == "pleura"
+    assert ins["danger_margin_min_mm"] < -9.0 and ins["angle_error_deg"] == pytest.approx(0.0, abs=0.5)
+    assert rec["summary"]["graded_point"] == "GB21" and rec["summary"]["graded_patient"] == "sex=female"
+
+
+def test_a_bad_point_in_a_cohort_manifest_is_one_line(tmp_path, capsys):
+    m = tmp_path / "m.csv"
+    m.write_text(f"session,trainee,file,point\ns1,a,{TRAJ / 'points' / 'GB21_pleura.csv'},GB99\n")
+    assert main(["cohort", str(m), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "line 2" in err and "GB99" in err
+    assert not (tmp_path / "o").exists()

@@ -214,3 +214,23 @@ def test_compare_models_replays_one_trajectory_through_each(tmp_path, capsys):
     assert (out / "compare.png").stat().st_size > 0
     assert main(["compare", "default", "--models", "forcenet,tetra", "--out", str(tmp_path / "bad")]) == 2
     assert "--models" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_live_session_runs_a_baseline_with_rerun_logging_and_its_recording_replays(tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    rec = tmp_path / "session.csv"
+    assert main(["run", "--device", "scripted", "--trajectory", "default", "--duration", "2.5", "--set",
+                 "model.kind=bem", "--out", str(out), "--record", str(rec), "--rrd", str(tmp_path / "s.rrd"),
+                 "--no-status", "--quiet"]) == 0
+    live = json.loads((out / "summary.json").read_text())
+    skin = [p for p in live["punctures"] if p["layer"] == "skin"]
+    # the half-space of skin's stiffness (0.133 N/mm) at its 1.5 mm break: 0.2 N, not the force net's 0.5 N
+    assert len(skin) == 1 and skin[0]["peak_force_n"] == pytest.approx(0.2, abs=0.03)
+    assert (tmp_path / "s.rrd").stat().st_size > 0
+    assert main(["replay", str(rec), "--set", "model.kind=bem", "--out", str(tmp_path / "rep"), "--no-rrd",
+                 "--quiet"]) == 0
+    again = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    assert [p["layer"] for p in again["punctures"]] == [p["layer"] for p in live["punctures"]]

@@ -1,7 +1,8 @@
 """A session at an atlas point (``--point CODE``, ``--patient``, ``--feedback``): the config and the
 servo model at the point, the grading sink, and what the summary and the end text gain.
 
-Without a point none of this runs: the session is what it was (the same bytes out).
+Without a point none of this runs: the session's outputs are byte for byte those of the generic
+tissue.
 """
 from __future__ import annotations
 

@@ -85,12 +85,41 @@ def random_patient(seed: int | None = None, spec: str = "random") -> Patient:
     return Patient(sex=sex, bmi=round(bmi, 2), age=round(age, 1), seed=int(seed), spec=spec)
 
 
+def patient_file(path: str) -> str:
+    """A patient TOML file (keys ``sex``, ``bmi``, ``age``, or ``random = true`` with an optional
+    ``seed``; every key checked, an unknown one refused) as ``--patient`` text."""
+    import tomllib
+    from pathlib import Path
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such patient file") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+        raise UserError(f"{path}: cannot read the patient file: {e}") from None
+    for key in data:
+        if key not in ("sex", "bmi", "age", "random", "seed"):
+            raise UserError(f"{path}: {key}: unknown key (keys: sex, bmi, age, random, seed)")
+    if data.get("random", False) is not False:
+        if data["random"] is not True or set(data) - {"random", "seed"}:
+            raise UserError(f"{path}: random: true, with at most a seed (no sex, bmi or age)")
+        seed = data.get("seed")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+            raise UserError(f"{path}: seed: must be a non-negative integer, got {seed!r}")
+        return "random" if seed is None else f"random:{seed}"
+    if "seed" in data:
+        raise UserError(f"{path}: seed: only with random = true")
+    return ",".join(f"{k}={data[k]}" for k in ("sex", "bmi", "age") if k in data)
+
+
 def parse_patient(spec: str | None, source: str = "--patient") -> Patient:
-    """``sex=female,bmi=19,age=40`` (any subset), ``random`` or ``random:SEED``; None or "" the
-    default patient. Bad values: one line naming ``source`` and the key."""
+    """``sex=female,bmi=19,age=40`` (any subset), ``random`` or ``random:SEED``, or a patient
+    ``.toml`` file (:func:`patient_file`); None or "" the default patient. Bad values: one line
+    naming ``source`` (the file) and the key."""
     if spec is None or not spec.strip():
         return DEFAULT_PATIENT
     s = spec.strip()
+    if s.endswith(".toml"):
+        return parse_patient(patient_file(s), source=s)
     if s == "random" or s.startswith("random:"):
         if s == "random":
             return random_patient(None, spec=s)
