@@ -258,19 +258,19 @@ def structure_outline(s: Structure, section: Section, half_width_mm: float = 40.
     return section.to_uw(pts)
 
 
-_KIND_NAMES = {1: "membrane", 2: "bone", 3: "nerve", 4: "artery"}  # haptic_acu.servo.danger's codes
-
-
 def structures_from_danger(rows, names=None) -> list[Structure]:
     """:class:`Structure` s from the servo's danger rows (a record array with ``kind``, ``p``, ``n``,
     ``depth``, ``radius``; scene frame, SI; kind 0 rows skipped): a membrane or bone wall is the
     plane ``depth`` from the acupoint along ``n`` (its normal), a nerve or artery the cylinder of
     ``radius`` about ``p`` along ``n``. ``names``: one per structure (default: the kind)."""
+    from ..servo.danger import KIND_CODES
+
+    kinds = {code: name for name, code in KIND_CODES.items()}
     out = []
     if rows is None:
         return out
     for i, r in enumerate(rows):
-        kind = _KIND_NAMES.get(int(r["kind"]))
+        kind = kinds.get(int(r["kind"]))
         if kind is None:
             continue
         name = names[i] if names is not None and i < len(names) else kind
