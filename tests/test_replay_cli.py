@@ -141,7 +141,7 @@ def test_default_replay_outputs_and_rrd(tmp_path):
             values += rb.column("Scalars:scalars").to_pylist()
     order = np.argsort(ticks, kind="stable")
     assert list(np.array(ticks)[order]) == list(range(s["ticks"]))
-    fz_rrd = np.array(values)[order][:, 3]
+    fz_rrd = np.array(values)[order][:, 0]  # the force along the needle: +fz for this vertical needle
     fz_csv = np.array([float(x["fz_n"]) for x in rows])
     assert np.allclose(fz_rrd, fz_csv, atol=6e-6)  # the csv keeps 5 decimals
     verify = subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "verify", str(out / "recording.rrd")],

@@ -33,6 +33,8 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
+    from .options import add_layout_arg
+    add_layout_arg(p, "instructor for a file, trainee with --spawn/--connect")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
     from ..session.point import add_point_args
@@ -50,14 +52,14 @@ def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = F
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd, overrides, point = args_tuple
+    traj, out_dir, config, rrd, overrides, point, layout = args_tuple
     from ..base.config import load_config
     from ..session.point import setup
     from ..session.replay import replay_one
     try:
         cfg = load_config(config, overrides=overrides)
         s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=cfg,
-                       point=setup(cfg, *point) if point else None)
+                       point=setup(cfg, *point) if point else None, layout=layout)
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -149,6 +151,8 @@ def run(args) -> int:
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
+    from .options import check_layout_arg
+    check_layout_arg(args)
     from ..session.point import setup_from_args
     ps = setup_from_args(cfg, args)  # a bad point or patient too
     if args.spawn:
@@ -164,7 +168,7 @@ def run(args) -> int:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps)
+                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
         print_summary(summary, out, quiet=args.quiet)
         return 0
     if args.spawn or args.connect or args.realtime:
@@ -197,7 +201,8 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
     # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
     point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
               args.feedback) if args.point else None)
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point) for p in paths]
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point, args.layout)
+            for p in paths]
     results = {}
     from ..base import progress
     with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \

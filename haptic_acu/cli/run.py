@@ -26,7 +26,7 @@ from pathlib import Path
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.errors import UserError
 from ..base.outputs import Outputs, claim_folder
-from .options import add_config_args, config_from_args
+from .options import add_config_args, check_layout_arg, config_from_args
 from ..base.progress import step
 
 
@@ -57,6 +57,8 @@ def register(sub) -> None:
                    help="log to a rerun .rrd file (without FILE: <out>/recording.rrd)")
     g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer at ADDR (host:port)")
+    from .options import add_layout_arg
+    add_layout_arg(p, "trainee")
     p.add_argument("--no-status", action="store_true", help="no live status line")
     p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
     p.add_argument("--python-servo", action="store_true",
@@ -127,10 +129,10 @@ def _rerun_sink(args, out: Path):
     # hold the GIL for hundreds of microseconds beside the servo thread
     from ..session.sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
     if args.spawn:
-        return rerun_spawn_sink()
+        return rerun_spawn_sink(args.layout)
     if args.connect:
-        return rerun_connect_sink(args.connect)
-    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve())
+        return rerun_connect_sink(args.connect, args.layout)
+    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve(), args.layout)
 
 
 def run(args) -> int:
@@ -138,6 +140,7 @@ def run(args) -> int:
         raise UserError(f"--duration must be a number of seconds > 0 and at most {MAX_DURATION_S:g}, got "
                         f"{args.duration}")
     cfg = config_from_args(args)
+    check_layout_arg(args)
     from ..session.point import setup_from_args
     ps = setup_from_args(cfg, args)  # --point: the tissue at the point, its structures, the grading
     if ps is not None:

@@ -259,7 +259,7 @@ def needle_note(summary: dict, cfg) -> str | None:
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None,
-               point=None) -> dict:
+               point=None, layout: str | None = None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
     input (nothing is left in ``out_dir``) and on a fault during the replay. ``point``: a
     :class:`~haptic_acu.session.point.PointSetup` (``--point``: its tissue, structures and grading)."""
@@ -293,11 +293,11 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         if rrd or spawn or connect:
             from .rerun_log import RerunSink
             if spawn:
-                sinks.append(RerunSink.spawn())
+                sinks.append(RerunSink.spawn(layout))
             elif connect:
-                sinks.append(RerunSink.connect(connect))
+                sinks.append(RerunSink.connect(connect, layout))
             else:
-                sink = RerunSink.to_file(partial / "recording.rrd")
+                sink = RerunSink.to_file(partial / "recording.rrd", layout)
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
                 sinks.append(io.guard(sink))
         if progress:
