@@ -50,7 +50,7 @@ def check_source(path, what: str = "file") -> os.stat_result:
     except OSError as e:
         raise UserError(f"{p}: cannot read {what}: {e.strerror or e}") from None
     if stat.S_ISDIR(st.st_mode):
-        raise UserError(f"{p}: is a folder, not a {what}")
+        raise UserError(f"{p}: is a directory, not a {what}")
     if not stat.S_ISREG(st.st_mode):
         kind = "a pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "a device"
         raise UserError(f"{p}: is {kind}, not a {what} (save it to a file first)")

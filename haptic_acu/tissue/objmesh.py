@@ -39,7 +39,7 @@ def read_vertices(path) -> tuple[np.ndarray, np.ndarray]:
     except UserError as e:
         if "no such file" in str(e):
             raise UserError(f"{path}: OBJ file not found") from None
-        if "is a folder" in str(e):
+        if "is a directory" in str(e):
             raise UserError(f"{path}: is a directory, not an OBJ file") from None
         raise
     except OSError as e:
