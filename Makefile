@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test]'
-	$(PY) -m haptic_acu.precompile  # numba's kernels and the net tables, cached now, not on the first demo
+	$(PY) -m haptic_acu.cli.precompile  # numba's kernels and the net tables, cached now, not on the first demo
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -1,10 +1,10 @@
 """Offline closed-loop harness: a hand holding the stylus of an OMNI-like device, the tissue model,
-and the force the device renders, with or without :mod:`haptic_acu.rendering` (SI units, 1 kHz).
+and the force the device renders, with or without :mod:`haptic_acu.servo.rendering` (SI units, 1 kHz).
 
-The plant is :mod:`haptic_acu.stylus`, the HD emulator's physical stylus in numba: a 45 g
+The plant is :mod:`haptic_acu.servo.stylus`, the HD emulator's physical stylus in numba: a 45 g
 stylus held by a hand (a spring-damper to a scripted hand path), pushed by the commanded force
 held over each tick, its position reported quantised to the 0.055 mm encoder step. The tissue is
-today's :class:`haptic_acu.needle.NeedleModel`, driven through its public ``step``.
+today's :class:`haptic_acu.servo.step.NeedleModel`, driven through its public ``step``.
 
 Modes:
 * ``naive``: today's OMNI path: the tissue step at the reported position with the device's
@@ -41,17 +41,17 @@ import math
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from haptic_acu import rendering as R
-from haptic_acu import stylus
-from haptic_acu.config import load_config
-from haptic_acu.needle import PRESSING, PUNCTURED, NeedleModel
+from haptic_acu.servo import rendering as R
+from haptic_acu.servo import stylus
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.step import PRESSING, PUNCTURED, NeedleModel
 
 DT = 1e-3
 ENCODER_STEP_M = 0.055e-3
 # The emulator's defaults for an OMNI (hd_emulator.c): HD_NOMINAL_MAX_* (SI here).
 OMNI_LIMITS = R.limits_from_hd(3.3, 0.88, 1.26, 0.003)
 # The stiffness reported while a layer is pressed. The nets stiffen to 1.5 N/mm (skin) and 2.2 N/mm
-# (muscle) at the break (issue 13); the proxy step converges for any true stiffness below
+# (muscle) at the break; the proxy step converges for any true stiffness below
 # 2 (this + B/T) + K (with the coupling's B/T = 1500 N/m, K = 630 N/m: 6.6 N/mm), and monotonically
 # below this + B/T. A larger value only adds a drag of (value) * dt * speed (0.015 N at 10 mm/s).
 PRESS_STIFFNESS = 1500.0
@@ -122,7 +122,7 @@ def session_path(model: NeedleModel):
 
 
 class NeedleAdapter:
-    """Today's NeedleModel seen through :class:`haptic_acu.rendering.TissueLocal` (read-only: from
+    """Today's NeedleModel seen through :class:`haptic_acu.servo.rendering.TissueLocal` (read-only: from
     its diagnostics and state after each step). The damping along the axis comes from the step's
     own damping force over the axial velocity it was given (exact, Table 1 is linear in v; kept
     while the proxy is still); a pressed net's stiffness is bounded above; the lateral constraint's
@@ -168,7 +168,7 @@ class NeedleAdapter:
 
 class DiagTissue:
     """The servo's own report for the rendering layer (the DIAG ``r_*`` fields that
-    :func:`haptic_acu.needle.render_local` writes): exactly what the OMNI path and the scripted
+    :func:`haptic_acu.servo.step.render_local` writes): exactly what the OMNI path and the scripted
     device's model render from."""
 
     def __init__(self, model: NeedleModel):

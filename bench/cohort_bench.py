@@ -114,7 +114,7 @@ def _insertion(path: _Path, rng, skill: float) -> None:
 def synthetic_session(file: Path, skill: float, seed: int, duration_s: float = 6.0) -> float:
     """Write one session's trajectory (CSV, 200 Hz) of insertions until ``duration_s`` is filled
     (at least one); returns its length (s)."""
-    from haptic_acu.trajectory import TrajectoryWriter
+    from haptic_acu.session.trajectory import TrajectoryWriter
 
     rng = np.random.default_rng(seed)
     path = _Path([0.0, 0.0, HOVER_MM])
@@ -157,9 +157,9 @@ def _tables(out: Path):
 def measure(n_sessions: int = 8, duration_s: float = 10.0, workers: int = 0, dask: bool = True,
             progress: bool = False) -> dict:
     """Replay a synthetic cohort of ``n_sessions`` with the local pool (and a Dask LocalCluster)."""
-    from haptic_acu.cohort import read_manifest
-    from haptic_acu.cohort_cmd import run_cohort
-    from haptic_acu.config import load_config
+    from haptic_acu.cohort.sessions import read_manifest
+    from haptic_acu.cli.cohort import run_cohort
+    from haptic_acu.base.config import load_config
 
     workers = workers or max(1, len(os.sched_getaffinity(0)))
     cfg = load_config()

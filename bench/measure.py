@@ -209,14 +209,14 @@ def sched_fifo(priority: int = 10):
 
 
 def compiled_floor(duration_s: float, pin: bool = True) -> dict:
-    """The compiled real-time loop's own floor on this machine: :func:`haptic_acu.rtloop.floor_loop`
+    """The compiled real-time loop's own floor on this machine: :func:`haptic_acu.servo.rtloop.floor_loop`
     (the servo loop's timing rule with no work) for ``duration_s`` on a thread set up as ``run
     --pin-cores`` sets the servo's (SCHED_FIFO where allowed; with ``pin``, alone on the
     highest-numbered core, this process's other threads moved to the rest). Whatever it misses the
     machine took: beside the servo loop's own count, the host's share of it."""
     import threading
 
-    from haptic_acu import affinity, rtloop
+    from haptic_acu.servo import affinity, rtloop
 
     rtloop.floor_loop(np.zeros(2, np.int64), 0, 1_000_000, np.zeros(1, np.int64))  # compiled before
     n = max(1, int(round(duration_s * 1000)))

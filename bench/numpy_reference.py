@@ -1,7 +1,7 @@
 """The servo step written plainly with NumPy and SciPy: the peer the compiled kernel is measured against.
 
 This is what a Python developer would write first for the layered needle model of
-:mod:`haptic_acu.needle` (MODEL.md sections 1-3), vectorised wherever the maths allows, and kept
+:mod:`haptic_acu.servo.step` (MODEL.md sections 1-3), vectorised wherever the maths allows, and kept
 independent of the compiled code (it shares only the fitted tissue coefficients and the config):
 
 * collision: the real orthonormal SH basis (Condon-Shortley phase, column ``l*l + l + m``) at the
@@ -14,7 +14,7 @@ independent of the compiled code (it shares only the fitted tissue coefficients 
   limited to L/4. It visits particles in another order than the compiled lexicographic sweep, so
   the two agree exactly only at the static solution (both converge to the same equilibrium);
 * with ``solver.servo_net = "table"`` (the default), the net's static response is read from the
-  layer's tabulated response (:mod:`haptic_acu.netresponse`: the same F, R and displacement-field
+  layer's tabulated response (:mod:`haptic_acu.tissue.netresponse`: the same F, R and displacement-field
   arrays the compiled step reads) through SciPy's ``RegularGridInterpolator`` (linear, extrapolating
   past the last row); the tabulated shape is laid onto the net (one matrix product, ``laid_shape``)
   only for rendering, as in the compiled model: what a NumPy developer would write for that
@@ -142,7 +142,7 @@ def tangent_frame(axis):
 class NumpyNeedle:
     """The layered needle model, one ``step(p, v)`` per servo tick, in NumPy/SciPy.
 
-    ``tissue`` is a :class:`haptic_acu.tissue.Tissue` (coefficients and centre); ``cfg`` the config.
+    ``tissue`` is a :class:`haptic_acu.tissue.body.Tissue` (coefficients and centre); ``cfg`` the config.
     After a step: ``force`` (N), ``states``, ``layer`` (-1 outside .. 3 bone), ``punctured_now``
     (layer broken this tick or -1), ``offset`` (compression, m), ``fault``.
     """
@@ -180,8 +180,8 @@ class NumpyNeedle:
         self.rupture = (rp.high_speed_ratio, rp.speed_scale_mm_s * 1e-3, rp.reference_speed_mm_s * 1e-3)
         self.tables = None
         if cfg.solver.servo_net == "table":
-            from haptic_acu.forcenet import NetParams, lattice
-            from haptic_acu.netresponse import table_for
+            from haptic_acu.tissue.forcenet import NetParams, lattice
+            from haptic_acu.tissue.netresponse import table_for
 
             tol = cfg.solver.static_tolerance_um * 1e-6
             self.tables = []

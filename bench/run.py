@@ -2,17 +2,17 @@
 
 Pieces (each a function taking a :class:`Sizes`, returning part of the result dict):
 
-* :func:`net_tables`: solving each net's static-response table (:mod:`haptic_acu.netresponse`),
+* :func:`net_tables`: solving each net's static-response table (:mod:`haptic_acu.tissue.netresponse`),
   the one-off cost before a new set of net parameters' first tick.
 * :func:`servo`: the servo step on the :mod:`bench.scenarios` paths, three ways: ``model.step``
   (a tick called from Python: through the step's C entry point, one pointer), ``step_kernel(*args)``
   alone (numba's dispatch of the same step with its 22 arrays), and ticks run inside one compiled
-  loop (:func:`haptic_acu.servotick.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
+  loop (:func:`haptic_acu.servo.tick.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
   Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
   design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
   trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
-  temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.rtloop`); in the full run also
+  temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.servo.rtloop`); in the full run also
   without rerun, with rerun in this process, with the servo loop in Python (the design before), and
   the machine's floor (a bare Python 1 kHz loop).
 * :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
@@ -24,8 +24,8 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   harmonics with the Condon-Shortley phase: the same convention as ours, so coefficients map one
   to one), with the two fits' agreement.
 * :func:`springback`, :func:`replay`, :func:`cold_start`, :func:`scaling`.
-* :func:`first_run` (the first `make demo` replay with empty caches, issue 16), :func:`cohort` (the
-  cohort throughput of bench/cohort_bench.py, issue 17).
+* :func:`first_run` (the first `make demo` replay with empty caches), :func:`cohort` (the
+  cohort throughput of bench/cohort_bench.py).
 
 The bench never fails on a number, only on a crash: targets are reported as pass/miss.
 """
@@ -46,11 +46,11 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from haptic_acu.errors import UserError
+from haptic_acu.base.errors import UserError
 
 from . import measure, scenarios
 from .measure import percentiles, ratio, time_calls
-from haptic_acu.sink import Sink
+from haptic_acu.session.sink import Sink
 
 BLOCK = 25  # ticks per compiled block in the "compiled" servo timing
 
@@ -80,7 +80,7 @@ class Sizes:
     cohort_sessions: int = 8  # synthetic cohort replayed by `haptic-acu cohort` (0: not measured)
     cohort_session_s: float = 10.0  # trajectory seconds per session
     cohort_dask: bool = True  # also on a Dask LocalCluster (its overhead against the local pool)
-    first_run: bool = True  # the first replay with empty numba and table caches (issue 16)
+    first_run: bool = True  # the first replay with empty numba and table caches
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -114,7 +114,7 @@ def _restore(model, snap):
 
 @nb.njit(cache=True, nogil=True)
 def empty_kernel(inp, m, s, diag):
-    """Takes what :func:`haptic_acu.needle.step_kernel` takes and does nothing: calling it from
+    """Takes what :func:`haptic_acu.servo.step.step_kernel` takes and does nothing: calling it from
     Python costs exactly the dispatch and argument unboxing of a servo call."""
     return
 
@@ -129,15 +129,15 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
       through numba's dispatcher;
     * ``dispatch``: :func:`empty_kernel` with the same arguments: the dispatcher's own cost;
     * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
-      (:func:`haptic_acu.servotick.run_ticks`, as the headless replay runs them); per-tick means.
+      (:func:`haptic_acu.servo.tick.run_ticks`, as the headless replay runs them); per-tick means.
 
     Optionally the NumPy reference on the same path (``numpy_ticks`` ticks, after the ones above).
     Returns percentile objects in microseconds.
     """
-    from haptic_acu.needle import step_kernel
-    from haptic_acu.servostate import TIMING, Ring, Timing
-    from haptic_acu.servotick import call_driver, run_ticks, tick_table
-    from haptic_acu.samples import NCOL
+    from haptic_acu.servo.step import step_kernel
+    from haptic_acu.servo.state import TIMING, Ring, Timing
+    from haptic_acu.servo.tick import call_driver, run_ticks, tick_table
+    from haptic_acu.servo.samples import NCOL
 
     P = np.ascontiguousarray(sc.P[:n])
     V = np.ascontiguousarray(sc.V[:n])
@@ -261,9 +261,9 @@ def servo(sizes: Sizes, progress=False) -> dict:
 def net_tables(sizes: Sizes, progress=False) -> dict:
     """Solving each net's static-response table (netresponse.build, no cache): what the first
     session with a new set of net parameters pays once, before its first tick."""
-    from haptic_acu.config import load_config
-    from haptic_acu.forcenet import NetParams
-    from haptic_acu.netresponse import build
+    from haptic_acu.base.config import load_config
+    from haptic_acu.tissue.forcenet import NetParams
+    from haptic_acu.tissue.netresponse import build
 
     cfg = load_config()
     tol = cfg.solver.static_tolerance_um * 1e-6
@@ -283,7 +283,7 @@ def net_tables(sizes: Sizes, progress=False) -> dict:
 
 def looped_trajectory(src, dst, min_duration_s: float) -> float:
     """Write ``src`` repeated back to back until it lasts ``min_duration_s``; returns its duration."""
-    from haptic_acu.trajectory import TrajectoryWriter, load
+    from haptic_acu.session.trajectory import TrajectoryWriter, load
 
     tr = load(src)
     t = tr.t_s - tr.t_s[0]
@@ -311,7 +311,7 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
     missing); ``compiled_loop=False``: the Python servo loop instead of the compiled one. Returns the
     session's stats plus what ran."""
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session
+    from haptic_acu.session.engine import Session
 
     traj = Path(tmp) / "looped.csv"
     looped_trajectory(trajectory, traj, duration_s + 1.0)
@@ -324,11 +324,11 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
     if rerun:
         try:
             if rerun == "inproc":
-                from haptic_acu.rerun_log import RerunSink
+                from haptic_acu.session.rerun_log import RerunSink
                 sinks = [RerunSink.to_file(rrd)]
             else:  # what `haptic-acu run --rrd` does: the logger in a child process
-                import haptic_acu.rerun_log  # noqa: F401  (the child imports it; fail here if it cannot)
-                from haptic_acu.sinkproc import rerun_file_sink
+                import haptic_acu.session.rerun_log  # noqa: F401  (the child imports it; fail here if it cannot)
+                from haptic_acu.session.sinkproc import rerun_file_sink
                 sinks = [rerun_file_sink(rrd)]
         except ImportError as e:
             rerun = False
@@ -354,8 +354,8 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
 def loop(sizes: Sizes, progress=False) -> dict:
     """The issue's loop: real time, visual loop with springback, dents and rerun logging; and, if
     ``sizes.loop_plain_s``, a shorter run without rerun logging, to tell its share of the tail."""
-    from haptic_acu.config import load_config
-    from haptic_acu.replay import DEFAULT_TRAJECTORY
+    from haptic_acu.base.config import load_config
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
 
     cfg = load_config()
     traj = sizes.trajectory or DEFAULT_TRAJECTORY
@@ -387,7 +387,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_rerun_in_process"] = {"duration_s": sizes.loop_plain_s, "period_error_us": inproc["period_error_us"],
                                         "ticks": int(inproc["ticks"]), "missed_ticks": int(inproc["missed_ticks"]),
                                         "fault": inproc["fault"], "steal": inproc["steal"]}
-        # the servo thread pinned to one core, the logging child to the other (haptic_acu.affinity)
+        # the servo thread pinned to one core, the logging child to the other (haptic_acu.servo.affinity)
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             pin = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, pin_cores=True)
         out["loop_pinned"] = {"duration_s": sizes.loop_plain_s, "period_error_us": pin["period_error_us"],
@@ -408,7 +408,7 @@ def machine_floor(duration_s: float, progress=False) -> dict:
     """The host's own floor: a bare Python 1 kHz loop (absolute deadlines, sleep-then-spin, SCHED_FIFO
     if allowed, switch interval 0.2 ms) doing no work. Whatever tail it shows is the machine's (a
     virtual machine's CPU can be taken away for milliseconds), not the simulator's."""
-    from haptic_acu.servotick import SLEEP_AFTER_NS, SPIN_NS  # the engine's wait rule
+    from haptic_acu.servo.tick import SLEEP_AFTER_NS, SPIN_NS  # the engine's wait rule
 
     _log(progress, f"machine floor: a bare 1 kHz loop, {duration_s:.0f} s")
     sleep_after, spin = SLEEP_AFTER_NS / 1e9, SPIN_NS / 1e9
@@ -452,7 +452,7 @@ _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; per
 
 
 def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
-    """The closed-loop rows (issue 13, bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
+    """The closed-loop rows (bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
     and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
     the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
     puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
@@ -483,7 +483,7 @@ def omni_loop(sizes: Sizes, progress=False) -> dict:
         sys.path.pop(0)
     if find_compiler() is None:
         return {"omni_loop": None, "notes": ["OMNI loop not measured: no C compiler for the HD emulator"]}
-    from haptic_acu.config import load_config
+    from haptic_acu.base.config import load_config
 
     z0 = -load_config().workspace.offset_mm[2]  # device z of the scene's z = 0 (the acupoint)
     knots, t = [(0.0, 0.0, 0.0, z0 + 5.0)], 0.0
@@ -516,7 +516,7 @@ def to_pyshtools(coeffs: np.ndarray) -> np.ndarray:
     """Our real orthonormal coefficients (column l*l + l + m, Condon-Shortley phase) as a pyshtools
     ``cilm`` array for ``norm=4`` (orthonormal), ``csphase=-1``: the same functions, so
     cilm[0, l, m] = c[l, m] and cilm[1, l, m] = c[l, -m]."""
-    from haptic_acu import shf
+    from haptic_acu.tissue import shf
 
     lmax = shf.lmax_of(coeffs.size)
     cilm = np.zeros((2, lmax + 1, lmax + 1))
@@ -557,8 +557,8 @@ def lat_lon(theta, phi):
 
 def fit_samples(n: int):
     """``n`` directions and the default skin surface's radius there (m): the fit benchmark's data."""
-    from haptic_acu.config import load_config
-    from haptic_acu.tissue import limb_radius, sample_directions
+    from haptic_acu.base.config import load_config
+    from haptic_acu.tissue.body import limb_radius, sample_directions
 
     body = load_config().body
     th, ph = sample_directions(n, seed=1)
@@ -567,7 +567,7 @@ def fit_samples(n: int):
 
 def sh(sizes: Sizes, coeffs: np.ndarray, progress=False) -> dict:
     """``coeffs``: the layer surfaces' coefficients (k, (lmax+1)^2), evaluated on the grid."""
-    from haptic_acu import shf
+    from haptic_acu.tissue import shf
 
     lmax = shf.lmax_of(coeffs.shape[1])
     T, P = shf.grid(*sizes.sh_grid)
@@ -637,7 +637,7 @@ def sh(sizes: Sizes, coeffs: np.ndarray, progress=False) -> dict:
 
 def springback(sizes: Sizes, progress=False) -> dict:
     """One visual-frame springback step of a w = 10 net and its margin rings, from a pressed shape."""
-    from haptic_acu.springback import springback_step
+    from haptic_acu.tissue.springback import springback_step
 
     _log(progress, "springback")
     sc = scenarios.press(400, layer=0, w=10)
@@ -660,7 +660,7 @@ def springback(sizes: Sizes, progress=False) -> dict:
 def replay(sizes: Sizes, progress=False) -> dict:
     """Simulated seconds per wall second of the headless replay (the session run, as
     ``haptic-acu replay`` reports it), without and with the .rrd recording."""
-    from haptic_acu.replay import DEFAULT_TRAJECTORY, replay_one
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY, replay_one
 
     traj = sizes.trajectory or DEFAULT_TRAJECTORY
     runs = {"no_rrd": [], "rrd": []}
@@ -691,7 +691,7 @@ def cold_start(sizes: Sizes, progress=False) -> dict:
     whole replay (plots and files included) and ``process_total`` is its wall time, an upper bound;
     otherwise it is stopped at its first tick.
     """
-    from haptic_acu.replay import DEFAULT_TRAJECTORY
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
 
     traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
     first, total = [], []
@@ -758,11 +758,11 @@ def first_run(sizes: Sizes, progress=False) -> dict:
     in child processes whose numba cache (``NUMBA_CACHE_DIR``) and net-table cache
     (``HAPTIC_ACU_CACHE``) start as empty temporary folders: ``empty_caches`` is a first run with
     nothing cached (what a plain ``pip install`` gives); ``after_install`` the same replay once the
-    caches hold what that first run (the same work ``make``'s ``python -m haptic_acu.precompile``
-    does at install) left there: issue 16's target, under 10 s."""
+    caches hold what that first run (the same work ``make``'s ``python -m haptic_acu.cli.precompile``
+    does at install) left there: the target is under 10 s."""
     if not sizes.first_run:
         return {"first_run_s": None}
-    from haptic_acu.replay import DEFAULT_TRAJECTORY
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
 
     traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
     out = {}
@@ -782,7 +782,7 @@ def first_run(sizes: Sizes, progress=False) -> dict:
 def scaling(sizes: Sizes, progress=False) -> dict:
     """Servo tick (model.step, skin pressed) for several net sizes; SH evaluation of one surface on
     the grid for several degrees."""
-    from haptic_acu import shf
+    from haptic_acu.tissue import shf
 
     out = {"servo_tick_us": {}, "servo_tick_sweeps_us": {}, "particles": {}, "sh_eval_ms": {},
            "sh_eval_point_us": {}}
@@ -860,7 +860,7 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
 
 def collect(sizes: Sizes, progress=False) -> dict:
     """Run every piece; the result dict (the JSON)."""
-    from haptic_acu.config import load_config
+    from haptic_acu.base.config import load_config
 
     t0 = time.perf_counter()
     res = {"quick": sizes == QUICK, "sizes": dataclasses.asdict(sizes), "machine": measure.machine_info()}

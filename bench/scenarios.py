@@ -18,9 +18,9 @@ import math
 
 import numpy as np
 
-from haptic_acu.config import LAYER_NAMES, load_config
-from haptic_acu.needle import PRESSING, PUNCTURED, NeedleModel
-from haptic_acu.tissue import Tissue
+from haptic_acu.base.config import LAYER_NAMES, load_config
+from haptic_acu.servo.step import PRESSING, PUNCTURED, NeedleModel
+from haptic_acu.tissue.body import Tissue
 
 DT = 1e-3
 HUGE_THRESHOLD_UM = 1e9  # a ring-w deflection no net reaches: the layer never breaks

@@ -110,7 +110,7 @@ class Device(abc.ABC):
     workspace: Workspace = Workspace()
 
     #: True if the device gives the needle's axis (``DeviceState.axis``, :meth:`pose_block`): a
-    #: recording of the session then carries it (haptic_acu.recorder). Default: no.
+    #: recording of the session then carries it (haptic_acu.session.recorder). Default: no.
     gives_axis: bool = False
 
     #: ``(servo tick, name)`` of the events the device played (the keyboard's and a recording's
@@ -123,7 +123,7 @@ class Device(abc.ABC):
         return self.read()
 
     #: True if :meth:`read_block` can give positions ahead of time (a trajectory): the engine then
-    #: runs the real-time servo loop compiled, fed ahead (haptic_acu.rtloop).
+    #: runs the real-time servo loop compiled, fed ahead (haptic_acu.servo.rtloop).
     reads_ahead: bool = False
 
     def read_block(self, t_s: np.ndarray):
@@ -168,7 +168,7 @@ class Device(abc.ABC):
 
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """Run the compiled ``callback`` with user data ``table`` from the device's scheduler until
-        ``stop`` is set or the callback ends; report its faults (see haptic_acu.omniloop)."""
+        ``stop`` is set or the callback ends; report its faults (see haptic_acu.servo.omniloop)."""
         raise NotImplementedError(f"{self.info.name} has no compiled servo callback")
 
     def __enter__(self):

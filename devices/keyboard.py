@@ -61,7 +61,7 @@ import time
 
 import numpy as np
 
-from haptic_acu.errors import UserError
+from haptic_acu.base.errors import UserError
 
 from .base import Device, DeviceInfo, DeviceState, Workspace
 

@@ -14,7 +14,7 @@ Safety, on every tick:
 * every HD call is followed by ``hdGetError``; any error ends the session;
 * no force until the first valid state; then the force is ramped in linearly over ``ramp_s``;
 * with the device's nominal limits (HD_NOMINAL_MAX_FORCE, _CONTINUOUS_FORCE, _STIFFNESS, _DAMPING,
-  read at open) the rendering layer (haptic_acu.rendering, run by omniloop.render_in) stands between
+  read at open) the rendering layer (haptic_acu.servo.rendering, run by omniloop.render_in) stands between
   the step and the device: the tissue step runs at a proxy tied to the stylus by a virtual coupling
   within those limits, and the device gets the coupling's force;
 * the force is re-checked (non-finite -> zero and a fault) and clamped to
@@ -35,7 +35,7 @@ the HD scheduler's thread (``run --pin-cores``).
 
 On a fault or an exception in ``step`` the callback commands zero force in that frame (when it is
 still running), then run_servo disables force output, unschedules the callback, stops the
-scheduler and raises :class:`~haptic_acu.errors.DeviceFault` (one line) or re-raises the
+scheduler and raises :class:`~haptic_acu.base.errors.DeviceFault` (one line) or re-raises the
 exception. The device must then be closed; it cannot be resumed.
 
 ``pyOpenHaptics`` loads ``libHD.so`` when imported, so it is imported in :meth:`open`, never
@@ -55,9 +55,9 @@ from typing import Callable
 
 import numpy as np
 
-from haptic_acu.errors import DeviceFault, UserError
-# the HD API's constants, declared once for this device and its compiled callback (haptic_acu.omniloop)
-from haptic_acu.hdapi import (HD_BAD_HANDLE, HD_CALLBACK_CONTINUE, HD_CALLBACK_DONE, HD_CURRENT_BUTTONS,
+from haptic_acu.base.errors import DeviceFault, UserError
+# the HD API's constants, declared once for this device and its compiled callback (haptic_acu.servo.omniloop)
+from haptic_acu.servo.hdapi import (HD_BAD_HANDLE, HD_CALLBACK_CONTINUE, HD_CALLBACK_DONE, HD_CURRENT_BUTTONS,
                               HD_CURRENT_FORCE, HD_CURRENT_GIMBAL_ANGLES, HD_CURRENT_TRANSFORM, HD_CURRENT_VELOCITY,
                               HD_DEVICE_MODEL_TYPE, HD_FORCE_OUTPUT, HD_INVALID_ENUM, HD_INVALID_HANDLE,
                               HD_MAX_SCHEDULER_PRIORITY, HD_NOMINAL_MAX_CONTINUOUS_FORCE, HD_NOMINAL_MAX_DAMPING,
@@ -211,7 +211,7 @@ class OmniDevice(Device):
                 raise ValueError(f"{name} must be positive, got {v!r}")
         self.workspace = workspace
         self.device_name = device_name
-        self._render = bool(render)  # the rendering layer (haptic_acu.rendering) between the step and the device
+        self._render = bool(render)  # the rendering layer (haptic_acu.servo.rendering) between the step and the device
         self.limits = None  # rendering.DeviceLimits read at open (None: no rendering layer)
         self._config_limit = force_limit_n
         self._ramp_ticks = max(1, round(ramp_s * RATE_HZ))
@@ -238,7 +238,7 @@ class OmniDevice(Device):
     def open(self) -> None:
         if self._handle is not None:
             return
-        from haptic_acu import omniloop
+        from haptic_acu.servo import omniloop
 
         omniloop.warm_guard()  # the guard the Python callback runs, compiled before the device runs
         hd = _HD(load_hd_library())
@@ -277,7 +277,7 @@ class OmniDevice(Device):
     def _read_limits(self, hd, max_force: float):
         """The device's nominal limits for the rendering layer (rendering.DeviceLimits, SI): the
         continuous force, stiffness and damping the HD API reports (HD_NOMINAL_MAX_*)."""
-        from haptic_acu import rendering
+        from haptic_acu.servo import rendering
 
         vals = {}
         for name, enum in (("continuous force", HD_NOMINAL_MAX_CONTINUOUS_FORCE),
@@ -385,8 +385,8 @@ class OmniDevice(Device):
             raise RuntimeError("OmniDevice.run_servo before open()")
         if self._fault is not None:
             raise DeviceFault(f"OMNI already faulted ({self._fault}); close and reopen it")
-        from haptic_acu import omniloop as ol
-        from haptic_acu.servostate import TickIn
+        from haptic_acu.servo import omniloop as ol
+        from haptic_acu.servo.state import TickIn
 
         servo = _Servo(step, stop, self._stall_ticks, self._ramp_ticks)
         guard = self.servo_guard()
@@ -409,9 +409,9 @@ class OmniDevice(Device):
 
     @staticmethod
     def servo_library():
-        """The HD library handle a compiled servo callback (haptic_acu.omniloop) calls into; None
+        """The HD library handle a compiled servo callback (haptic_acu.servo.omniloop) calls into; None
         where that path is not supported (then run_servo with a Python step is used)."""
-        from haptic_acu import omniloop
+        from haptic_acu.servo import omniloop
 
         return load_hd_library() if omniloop.supported() else None
 
@@ -423,11 +423,11 @@ class OmniDevice(Device):
 
     def run_servo_compiled(self, callback, table, ictl, fctl, stop) -> None:
         """:meth:`run_servo` with the whole tick compiled: the HD scheduler calls the numba cfunc
-        ``callback`` (haptic_acu.omniloop.build_callback) with ``table`` (its arrays' addresses)
+        ``callback`` (haptic_acu.servo.omniloop.build_callback) with ``table`` (its arrays' addresses)
         as user data, without the GIL. ``ictl``/``fctl`` are its control records (omniloop.CTL, FST): this thread
         watches them (stop, watchdog) and turns how the callback ended into the same one-line
         faults as the Python path."""
-        from haptic_acu import omniloop as ol
+        from haptic_acu.servo import omniloop as ol
 
         if self._handle is None:
             raise RuntimeError("OmniDevice.run_servo_compiled before open()")
@@ -600,7 +600,7 @@ class OmniDevice(Device):
             return self._abort(s, msg)
 
         # the guard the compiled callback runs too (omniloop.guard_in / guard_out)
-        from haptic_acu import omniloop as ol
+        from haptic_acu.servo import omniloop as ol
 
         g = s.guard
         c = g.ictl[0]
@@ -614,7 +614,7 @@ class OmniDevice(Device):
             return self._abort(s, ol.fault_message(g.ictl, g.fctl, hd_error_name))
         rendering = s.render is not None and g.rlim[0]["on"] != 0.0
         if rendering:
-            from haptic_acu.rendering import FAULT
+            from haptic_acu.servo.rendering import FAULT
 
             rst = ol.render_in(g, s.inp, s.render[0])
             s.render[1].fr[:] = s.inp.fr
@@ -622,7 +622,7 @@ class OmniDevice(Device):
             if rst & FAULT:
                 return self._abort(s, "rendering layer: a non-finite position or tissue report; force set to zero")
         state = DeviceState(
-            t_s=s.ticks / RATE_HZ,  # the device's own tick time (issue 15), never the wall clock
+            t_s=s.ticks / RATE_HZ,  # the device's own tick time, never the wall clock
             position_m=s.inp.p.copy(),
             velocity_m_s=s.inp.v.copy(),
             buttons=int(s.buttons.value),

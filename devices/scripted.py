@@ -1,11 +1,11 @@
 """A device that plays a trajectory file (headless replay, CI, reproducible demos).
 
-The file (format: :mod:`haptic_acu.trajectory`) is streamed through a cursor, never loaded whole,
+The file (format: :mod:`haptic_acu.session.trajectory`) is streamed through a cursor, never loaded whole,
 so a recording of any length can be replayed. Its times are session times: the tip holds the
 first sample's position until ``t_s`` reaches it, moves linearly between samples, and holds the
 last position after it, with ``DeviceState.done`` set from the moment ``t`` reaches the last
 sample's time (``duration_s``). Velocity is the interpolant's backward difference over one
-1 ms servo tick (see :mod:`haptic_acu.trajectory`).
+1 ms servo tick (see :mod:`haptic_acu.session.trajectory`).
 
 Clocking (``drives_clock`` is False: the engine keeps the clock):
 
@@ -20,7 +20,7 @@ Clocking (``drives_clock`` is False: the engine keeps the clock):
 * real time (``realtime=True``): ``read()`` uses wall-clock time since the first ``read()``
   (``time.perf_counter``); ``advance`` is ignored.
 
-Optional columns (see :mod:`haptic_acu.trajectory`): a ``reset`` event gives ``DeviceState.reset``
+Optional columns (see :mod:`haptic_acu.session.trajectory`): a ``reset`` event gives ``DeviceState.reset``
 on the first read at or after it (``read_at``) and is listed by :meth:`ScriptedDevice.reset_ticks`
 for a block of ticks (the headless engine resets the model there); the needle axis
 (``axis_x,axis_y,axis_z``) fills ``DeviceState.axis``; ``roll_deg`` fills ``DeviceState.roll_rad``
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from haptic_acu.trajectory import (
+from haptic_acu.session.trajectory import (
     DEFAULT_MAX_HAND_SPEED_M_PER_S,
     SERVO_TICK_S,
     TrajectoryInfo,
@@ -151,7 +151,7 @@ class ScriptedDevice(Device):
         self.force_commands += 1
 
     def record_forces(self, count: int, max_magnitude_n: float, last_n) -> None:
-        """What a compiled servo loop (haptic_acu.rtloop) commanded without calling ``set_force``
+        """What a compiled servo loop (haptic_acu.servo.rtloop) commanded without calling ``set_force``
         tick by tick: ``count`` commands, the largest magnitude, the last force."""
         self.force_commands += int(count)
         self.max_force_n = max(self.max_force_n, float(max_magnitude_n))

@@ -1,9 +1,9 @@
 """haptic-acu: a real-time haptic simulator of acupuncture needle insertion.
 
 The tissue is three layers (skin, fat, muscle) bounded by spherical-harmonic surfaces
-(:mod:`haptic_acu.shf`, :mod:`haptic_acu.tissue`); the needle meets a hexagonal mass-spring
-force net on each surface (:mod:`haptic_acu.forcenet`), per-layer damping after puncture and
-shape-matching springback (:mod:`haptic_acu.needle`, :mod:`haptic_acu.springback`).
+(:mod:`haptic_acu.tissue.shf`, :mod:`haptic_acu.tissue.body`); the needle meets a hexagonal mass-spring
+force net on each surface (:mod:`haptic_acu.tissue.forcenet`), per-layer damping after puncture and
+shape-matching springback (:mod:`haptic_acu.servo.step`, :mod:`haptic_acu.tissue.springback`).
 """
 import os as _os
 
@@ -20,12 +20,17 @@ try:
 except PackageNotFoundError:  # running from a source tree without install
     __version__ = "0.0.0+src"
 
-from .errors import UserError  # noqa: E402
+from .base.errors import UserError  # noqa: E402
 
 __all__ = ["__version__", "UserError"]
 
-from .kernelcache import guard as _guard, package_dirs as _package_dirs  # noqa: E402
+from .base.kernelcache import guard as _guard, package_dirs as _package_dirs  # noqa: E402
 
 # numba checks a cached kernel against its own file only: drop the package's kernel caches when any
-# of its sources changed, before a kernel can load an old callee (haptic_acu/kernelcache.py).
+# of its sources changed, before a kernel can load an old callee (haptic_acu/base/kernelcache.py).
 _guard(_package_dirs())
+
+from .base.moved import install as _install_moved  # noqa: E402
+
+# the flat layout's module paths (haptic_acu.needle, ...) still import, with a DeprecationWarning
+_install_moved()

@@ -9,8 +9,8 @@ import math
 
 import numpy as np
 
-from haptic_acu.config import load_config
-from haptic_acu.tissue import Tissue
+from haptic_acu.base.config import load_config
+from haptic_acu.tissue.body import Tissue
 
 # The synthetic layered tissue: a big sphere, so the skin is almost flat under the acupoint, every
 # boundary is exactly a sphere about the same centre and depths along -z from the acupoint are radial.

@@ -1,4 +1,4 @@
-"""haptic_acu.affinity against the operating system's own answer (sched_getaffinity): the servo
+"""haptic_acu.servo.affinity against the operating system's own answer (sched_getaffinity): the servo
 thread alone on one core, a child process on the others, the thread's old set restored."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from haptic_acu import affinity
+from haptic_acu.servo import affinity
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
                                 reason="needs sched_setaffinity and two usable cores")

@@ -18,10 +18,10 @@ import pytest
 
 from haptic_acu.bench import run, scenarios
 from haptic_acu.bench.numpy_reference import HexNet, NumpyNeedle, SHBasis
-from haptic_acu import shf
-from haptic_acu.forcenet import lattice, n_particles
-from haptic_acu.needle import PRESSING, PUNCTURED
-from haptic_acu.trajectory import TrajectoryWriter
+from haptic_acu.tissue import shf
+from haptic_acu.tissue.forcenet import lattice, n_particles
+from haptic_acu.servo.step import PRESSING, PUNCTURED
+from haptic_acu.session.trajectory import TrajectoryWriter
 
 
 # ---- the NumPy reference ---------------------------------------------------------------------------
@@ -211,7 +211,7 @@ def test_servo_scenario_times_one_step_three_ways():
 
 
 def test_looped_trajectory_repeats_the_file(tmp_path):
-    from haptic_acu.trajectory import load
+    from haptic_acu.session.trajectory import load
 
     src = tmp_path / "one.csv"
     with TrajectoryWriter(src) as w:
@@ -241,7 +241,7 @@ def test_sh_rows_say_pyshtools_is_missing_when_it_is(monkeypatch):
 
 @pytest.mark.slow
 def test_loop_runs_without_the_rerun_sink_and_says_so(monkeypatch, tmp_path):
-    monkeypatch.setitem(sys.modules, "haptic_acu.rerun_log", None)
+    monkeypatch.setitem(sys.modules, "haptic_acu.session.rerun_log", None)
     traj = tmp_path / "short.csv"
     with TrajectoryWriter(traj) as w:
         w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.2, 0.0, 0.0, -1e-3]])

@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from haptic_acu.bundled import bundled_dir, bundled_trajectories, resolve_trajectory
+from haptic_acu.base.bundled import bundled_dir, bundled_trajectories, resolve_trajectory
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from haptic_acu import calibrate_cmd as cal
+from haptic_acu.cli import calibrate as cal
 from haptic_acu.cli import main
-from haptic_acu.config import load_config
+from haptic_acu.base.config import load_config
 
 SPEED_MM_S = 3.0
 
@@ -91,7 +91,7 @@ def test_okamura_liver_replayed_through_the_servo_step(tmp_path, capsys):
     breaking at 16.7 mm, then ~0.94 N cutting plus friction; 18 G needle, 3 mm/s), 500 points with
     noise: a perpendicular insertion through the servo step (NeedleModel) with the fitted config
     reproduces the rise (R^2 >= 0.95) and the break (depth and force within 10%)."""
-    from haptic_acu.needle import NeedleModel
+    from haptic_acu.servo.step import NeedleModel
 
     rng = np.random.default_rng(3)
     x = np.linspace(0.0, 30.0, 500)

@@ -6,9 +6,9 @@ A straight perpendicular insertion at the acupoint at 10 mm/s, one servo tick pe
 import numpy as np
 import pytest
 
-from haptic_acu.config import CONFIG_DIR, load_config
-from haptic_acu.needle import PUNCTURED, NeedleModel
-from haptic_acu.tissue import Tissue
+from haptic_acu.base.config import CONFIG_DIR, load_config
+from haptic_acu.servo.step import PUNCTURED, NeedleModel
+from haptic_acu.tissue.body import Tissue
 from physics_helpers import drive, straight_line
 
 SPEED = 0.01  # m/s
@@ -28,7 +28,7 @@ TABLE2 = {
 # mostly hypodermic needles). Fat and muscle: the previous (hypodermic-range) figures scaled by the
 # skin's factor. Depths: ours (no fine-needle measurement found).
 TARGETS = {"skin": (1.5, 0.50), "fat": (1.0, 0.20), "muscle": (1.0, 0.65)}
-FIT_TOLERANCE = 0.10  # haptic-acu calibrate's acceptance on break depth and force (issue 12)
+FIT_TOLERANCE = 0.10  # haptic-acu calibrate's acceptance on break depth and force
 SURVEY_MEDIAN_N = 1.22  # van Gerwen et al. 2012: median skin puncture force over 24 studies
 
 

@@ -1,4 +1,4 @@
-"""The exact force clamp (haptic_acu.clamp) against exact rational arithmetic (issue 15)."""
+"""The exact force clamp (haptic_acu.servo.clamp) against exact rational arithmetic."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haptic_acu.clamp import clamp_force
+from haptic_acu.servo.clamp import clamp_force
 
 
 def exact_norm2(f) -> Fraction:

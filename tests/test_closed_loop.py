@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import TRACE_COLUMNS, build_emulator, emulator_env, find_compiler  # noqa: E402
 
-from haptic_acu import stylus  # noqa: E402
+from haptic_acu.servo import stylus  # noqa: E402
 from haptic_acu.bench import closed_loop as C  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,7 +39,7 @@ def emulator(tmp_path_factory):
 
 def test_the_stylus_model_is_the_emulators_physical_stylus(emulator, tmp_path):
     # hand path, grip, encoder and a naive 0.5 N/mm spring about z = 0.3 mm, in the emulator (C, HD API)
-    # and in haptic_acu.stylus (the harness's plant, numba): the same stylus trajectory
+    # and in haptic_acu.servo.stylus (the harness's plant, numba): the same stylus trajectory
     knots = [(0.0, 0.0, 0.0, 0.0), (0.2, 0.0, 0.0, 2.0), (0.4, 1.0, 0.0, 2.0)]
     grip = C.LOOSE
     (tmp_path / "sc.json").write_text(json.dumps({"kind": "spring", "k_n_per_mm": 0.5, "z_wall_mm": 0.3,

@@ -1,4 +1,4 @@
-"""The code's shape rules (issue 11), checked on the project's own sources with ``ast`` so they stay
+"""The code's shape rules, checked on the project's own sources with ``ast`` so they stay
 true: no Python function longer than MAX_LINES lines, no compiled function (numba ``njit`` / ``jit``
 / ``cfunc`` / ``register_jitable`` / ``intrinsic``) with more than MAX_PARAMS parameters (kernels
 take named inputs: NamedTuples of arrays, record dtypes)."""
@@ -78,19 +78,20 @@ def test_the_measures_on_known_code(src, lines, params):
         assert any(map(compiler_of, fn.decorator_list)) and n_params(fn) == params
 
 
-# ---- the review's other findings (issue 11), kept true the same way --------------------------------
+# ---- the review's other findings, kept true the same way --------------------------------
 VOCABULARY = {"N_LAYERS", "N_SLOTS", "MAX_TRACKS", "MAX_HOLES", "LAYER_NAMES", "PLACE_NAMES", "STATE_NAMES",
               "UNTOUCHED", "PRESSING", "PUNCTURED", "FREE", "SERVO_OWNS", "VISUAL_OWNS",
               "OUTSIDE", "SKIN", "FAT", "MUSCLE", "BONE"}
 # where the vocabulary is declared (config.py: the layer names a config file uses), and the NumPy
 # reference, an independent re-implementation on purpose
-VOCABULARY_HOMES = {"haptic_acu/servostate.py", "haptic_acu/config.py", "bench/numpy_reference.py"}
+VOCABULARY_HOMES = {"haptic_acu/tissue/layers.py", "haptic_acu/base/config.py", "bench/numpy_reference.py"}
 # the engine's side of the device interface: it uses what devices.base.Device declares
-ENGINE_SIDE = ("haptic_acu/engine.py", "haptic_acu/servotick.py", "haptic_acu/rtloop.py", "haptic_acu/omniloop.py")
+ENGINE_SIDE = ("haptic_acu/session/engine.py", "haptic_acu/servo/tick.py", "haptic_acu/servo/rtloop.py", "haptic_acu/servo/omniloop.py")
 # the servo core and the engine: imports run one way, devices/ -> haptic_acu (the commands that build a
 # device import devices/)
-CORE = ("servostate", "needle", "servotick", "rtloop", "omniloop", "engine", "samples", "rendering", "devicemodel",
-        "mechanics", "postpuncture", "twirl", "clamp", "netresponse", "forcenet", "shf", "tissue", "springback")
+CORE = ("servo/state", "servo/step", "servo/tick", "servo/rtloop", "servo/omniloop", "session/engine", "servo/samples",
+        "servo/rendering", "servo/devicemodel", "tissue/mechanics", "tissue/postpuncture", "tissue/twirl", "servo/clamp",
+        "tissue/netresponse", "tissue/forcenet", "tissue/shf", "tissue/body", "tissue/springback")
 
 
 def rel(path) -> str:
@@ -154,7 +155,7 @@ def test_the_vocabulary_is_declared_once():
              for line, name in vocabulary_declarations(ast.parse(p.read_text()))]
     found += [f"{rel(p)}:{line} a literal list of the layer names" for p in sources()
               if rel(p) not in VOCABULARY_HOMES for line in layer_name_literals(ast.parse(p.read_text()))]
-    assert not found, "the model's vocabulary re-declared (import it from haptic_acu.servostate):\n" + "\n".join(found)
+    assert not found, "the model's vocabulary re-declared (import it from haptic_acu.tissue.layers):\n" + "\n".join(found)
 
 
 def test_the_engine_uses_only_the_declared_device_interface():

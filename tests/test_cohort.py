@@ -13,11 +13,11 @@ import pytest
 
 from haptic_acu.bench.cohort_bench import synthetic_cohort
 from haptic_acu.cli import main
-from haptic_acu.cohort import CohortDir, config_hash, read_manifest
-from haptic_acu.cohort_tables import insertion_columns, session_columns
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.trajectory import TrajectoryWriter
+from haptic_acu.cohort.sessions import CohortDir, config_hash, read_manifest
+from haptic_acu.cohort.tables import insertion_columns, session_columns
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.session.trajectory import TrajectoryWriter
 
 OFFSET_MM, ANGLE_DEG, DEPTH_MM = 2.0, 15.0, 22.0
 
@@ -285,7 +285,7 @@ def test_refuses_a_folder_it_did_not_make_and_a_second_writer(tmp_path, capsys):
 
 
 def test_report_statistics_on_constructed_sessions(tmp_path):
-    from haptic_acu.cohort_report import REPORT_METRICS, write_report
+    from haptic_acu.cohort.report import REPORT_METRICS, write_report
 
     rows = []
     # trainee a: listed out of date order; metric = 2 * (rank by date) + 1. b: no dates, manifest order.
@@ -326,7 +326,7 @@ def test_report_statistics_on_constructed_sessions(tmp_path):
 def test_progress_line_counts_and_eta():
     import io
 
-    from haptic_acu.cohort_run import ProgressLine
+    from haptic_acu.cohort.run import ProgressLine
 
     buf = io.StringIO()  # not a terminal: whole lines, the first at once and the last at the end
     p = ProgressLine(total=3, skipped=2, stream=buf, every_s=1e9)
@@ -373,7 +373,7 @@ def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys):
 def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
     """A session without an insertion is a gap on its trainee's curve: the later sessions keep their
     numbers, and the slope is fitted at those numbers."""
-    from haptic_acu.cohort_report import REPORT_METRICS, learning_curves
+    from haptic_acu.cohort.report import REPORT_METRICS, learning_curves
 
     col = REPORT_METRICS[0][0]
     rows = []
@@ -399,7 +399,7 @@ def test_figure_axes_read_plain_values():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from haptic_acu.cohort_report import readable_y
+    from haptic_acu.cohort.report import readable_y
 
     fig, (flat, spread) = plt.subplots(1, 2)
     flat_values = [1.0, 0.999999999, 1.0, 0.999999999]

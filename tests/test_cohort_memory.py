@@ -1,4 +1,4 @@
-"""A cohort worker no longer keeps a session's rows (issue 15): the metrics are streamed, the
+"""A cohort worker no longer keeps a session's rows: the metrics are streamed, the
 reference replay keeps ticks and forces, the smoothness columns a six-column track. Its tables equal
 the whole-row computation (cohort.insertion_table on every row), and a worker replaying long
 sessions peaks far below what keeping their rows took."""
@@ -20,12 +20,12 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _job(path: Path, cfg):
-    from haptic_acu.cohort import Job, config_hash, file_sha256
+    from haptic_acu.cohort.sessions import Job, config_hash, file_sha256
     return Job(session=path.stem, file=str(path), cfg=cfg, input_sha256=file_sha256(path), config_sha256=config_hash(cfg))
 
 
 def test_pairwise_plan_gives_numpy_sum_bits():
-    from haptic_acu.pathstream import pairwise_combine, pairwise_plan
+    from haptic_acu.session.pathstream import pairwise_combine, pairwise_plan
     rng = np.random.default_rng(5)
     for n in [*range(1, 300), 1000, 8191, 8192, 8193, 65537, 600001]:
         a = rng.random(n) * rng.choice([1e-6, 1.0, 1e5])
@@ -36,9 +36,9 @@ def test_pairwise_plan_gives_numpy_sum_bits():
 def test_blockwise_zero_phase_filter_is_smooth_path_to_the_bit():
     from types import SimpleNamespace
 
-    from haptic_acu.pathstream import TrackFile, smoothed_blocks
-    from haptic_acu.samples import COL, NCOL
-    from haptic_acu.skill_metrics import smooth_path
+    from haptic_acu.session.pathstream import TrackFile, smoothed_blocks
+    from haptic_acu.servo.samples import COL, NCOL
+    from haptic_acu.analysis.skill_metrics import smooth_path
     rng = np.random.default_rng(6)
     for n in (2, 3, 40, 1000, 70_001, 150_000):
         rows = np.zeros((n, NCOL))
@@ -62,13 +62,13 @@ def test_blockwise_zero_phase_filter_is_smooth_path_to_the_bit():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["default", "second_insertion_same_site", "twirl_reducing", "tiled"])
 def test_worker_tables_equal_the_whole_row_computation(name, tmp_path):
-    from haptic_acu.cohort import _tissue, insertion_table, replay_session
-    from haptic_acu.config import load_config
+    from haptic_acu.cohort.sessions import _tissue, insertion_table, replay_session
+    from haptic_acu.base.config import load_config
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session
-    from haptic_acu.needle import NeedleModel
-    from haptic_acu.replay import replay_rows
-    from haptic_acu.report import SummarySink
+    from haptic_acu.session.engine import Session
+    from haptic_acu.servo.step import NeedleModel
+    from haptic_acu.session.replay import replay_rows
+    from haptic_acu.session.report import SummarySink
 
     cfg = load_config()
     path = ROOT / "trajectories" / f"{name}.csv"
@@ -98,8 +98,8 @@ def test_worker_tables_equal_the_whole_row_computation(name, tmp_path):
 CHILD = """
 import sys
 from pathlib import Path
-from haptic_acu.cohort import Job, config_hash, file_sha256, replay_session
-from haptic_acu.config import load_config
+from haptic_acu.cohort.sessions import Job, config_hash, file_sha256, replay_session
+from haptic_acu.base.config import load_config
 cfg = load_config()
 for f in sys.argv[1:]:
     p = Path(f)

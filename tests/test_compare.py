@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu.compare_cmd import plot_compare
-from haptic_acu.config import load_config
-from haptic_acu.samples import COL, NCOL
+from haptic_acu.cli.compare import plot_compare
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.samples import COL, NCOL
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAJ = ROOT / "trajectories"

@@ -1,4 +1,4 @@
-"""``haptic-acu compare`` keeps per session only its metrics and a bounded figure curve (issue 15):
+"""``haptic-acu compare`` keeps per session only its metrics and a bounded figure curve:
 a comparison of four long sessions peaks (the child's own VmHWM) as one of one long session, and
 above one of two short ones only by the figure envelope's fixed cap; its compare.json holds the same
 metrics as session_metrics on every row."""
@@ -44,12 +44,12 @@ def compare_peak_mb(paths, out: Path) -> float:
 
 @pytest.mark.slow
 def test_compare_of_long_sessions_is_bounded_and_its_tables_exact(tmp_path):
-    from haptic_acu.config import load_config
-    from haptic_acu.metrics import session_metrics
-    from haptic_acu.replay import replay_rows
-    from haptic_acu.report import SessionScan, puncture_records, tip_depth_m
-    from haptic_acu.samples import COL
-    from haptic_acu.tissue import Tissue
+    from haptic_acu.base.config import load_config
+    from haptic_acu.analysis.metrics import session_metrics
+    from haptic_acu.session.replay import replay_rows
+    from haptic_acu.session.report import SessionScan, puncture_records, tip_depth_m
+    from haptic_acu.servo.samples import COL
+    from haptic_acu.tissue.body import Tissue
 
     src = ROOT / "trajectories" / "default.csv"
     long = []

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from haptic_acu.config import DEFAULT_CONFIG, load_config
+from haptic_acu.base.config import DEFAULT_CONFIG, load_config
 
 
 def run_fit(*args):

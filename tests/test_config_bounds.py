@@ -1,4 +1,4 @@
-"""Absurd config values and a UTF-8 BOM, through the real CLI (issue 15): one line naming the key,
+"""Absurd config values and a UTF-8 BOM, through the real CLI: one line naming the key,
 exit 2, before anything runs; the BOM is accepted as the trajectories accept it."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from haptic_acu.config import load_config
+from haptic_acu.base.config import load_config
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = (ROOT / "config" / "tissue.toml").read_text()

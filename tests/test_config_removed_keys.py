@@ -1,4 +1,4 @@
-"""A key the model no longer reads (``needle.hole_radius_mm``, issue 12: the insertion tracks decide
+"""A key the model no longer reads (``needle.hole_radius_mm``: the insertion tracks decide
 re-entry, their damage decaying over the needle's radius): an old config that still has it loads,
 means what it meant, and says once, in one line naming the file and the key, that it is ignored."""
 from __future__ import annotations
@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.mechanics import overlap_damage
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.mechanics import overlap_damage
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "config" / "tissue.toml"

@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 
-from haptic_acu.csvfmt import RowFormatter
+from haptic_acu.base.csvfmt import RowFormatter
 
 
 def _near_tie(x: float, d: int) -> bool:

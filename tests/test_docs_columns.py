@@ -1,4 +1,4 @@
-"""The docs' column reference names every column the tool writes (issue 16: "a column reference in
+"""The docs' column reference names every column the tool writes ("a column reference in
 the docs"); the columns are taken from the writers themselves, so a new column without a line in
 docs/output-files.md or docs/trajectory-format.md fails here."""
 from __future__ import annotations
@@ -6,9 +6,10 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from haptic_acu import recorder, score_cmd
-from haptic_acu.replay_cmd import _flat, puncture_rows
-from haptic_acu.report import CSV_FIELDS
+from haptic_acu.session import recorder
+from haptic_acu.cli import score as score_cmd
+from haptic_acu.cli.replay import _flat, puncture_rows
+from haptic_acu.session.report import CSV_FIELDS
 
 ROOT = Path(__file__).resolve().parent.parent
 OUTPUTS = (ROOT / "docs" / "output-files.md").read_text()

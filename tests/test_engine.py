@@ -1,4 +1,4 @@
-"""The real-time engine (haptic_acu.engine.Session) under faults, signals, and headless replay.
+"""The real-time engine (haptic_acu.session.engine.Session) under faults, signals, and headless replay.
 
 Fault injection uses small test devices (real implementations of devices.base.Device, not mocks of
 the engine): a press along -z into the skin on the engine's own timer that misbehaves at read N -
@@ -26,14 +26,14 @@ import pytest
 
 from haptic_acu.devices.base import Device, DeviceInfo, DeviceState
 from haptic_acu.devices.scripted import ScriptedDevice
-from haptic_acu import trajectory
-from haptic_acu.config import load_config
-from haptic_acu.engine import Session
-from haptic_acu.errors import DeviceFault
-from haptic_acu.needle import NeedleModel
-from haptic_acu.recorder import EXTRA, RecorderSink
-from haptic_acu.tissue import Tissue
-from haptic_acu.sink import Sink
+from haptic_acu.session import trajectory
+from haptic_acu.base.config import load_config
+from haptic_acu.session.engine import Session
+from haptic_acu.base.errors import DeviceFault
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.session.recorder import EXTRA, RecorderSink
+from haptic_acu.tissue.body import Tissue
+from haptic_acu.session.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -347,7 +347,7 @@ def test_signal_stops_cleanly_with_zero_force(cfg, tissue, tmp_path, sig):
 def test_headless_replay_is_deterministic(cfg, tissue, tmp_path):
     """Two sim-clock replays of the same trajectory, each with a fresh model: byte-identical
     samples and identical summaries (when the report sinks exist)."""
-    report = pytest.importorskip("haptic_acu.report")
+    report = pytest.importorskip("haptic_acu.session.report")
     outs = []
     for i in range(2):
         dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
@@ -379,7 +379,7 @@ class ReadAtOnly(ScriptedDevice):
 def test_ticks_one_by_one_from_python_equal_the_compiled_blocks(cfg, tissue, tmp_path):
     """The same trajectory on simulated time, read ahead (run_ticks, compiled blocks) and read tick by
     tick (the Python driver): identical sample rows, so both call the one servo tick."""
-    report = pytest.importorskip("haptic_acu.report")
+    report = pytest.importorskip("haptic_acu.session.report")
     out = []
     for cls in (ScriptedDevice, ReadAtOnly):
         dev = cls(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
@@ -400,7 +400,7 @@ def test_recorder_keeps_only_rows_later_than_all_before_them(tmp_path):
     strictly increase. Expected rows from a plain loop over the same times."""
     from types import SimpleNamespace
 
-    from haptic_acu.samples import COL, NCOL
+    from haptic_acu.servo.samples import COL, NCOL
 
     blocks = [[0.001, 0.003, 0.002, 0.0025, 0.004, 0.004], [0.0035, 0.005, 0.006], [0.006], [0.0061]]
     rec = tmp_path / "rec.csv"

@@ -1,4 +1,4 @@
-"""force_depth.png reads at a glance (issue 16), checked on the drawn figure itself (captured at
+"""force_depth.png reads at a glance, checked on the drawn figure itself (captured at
 savefig): one colour and panel per insertion, the lateral panel when the tip moves sideways with the
 offset not drawn on top of the lateral force, and legends that cover no axes.
 
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from haptic_acu import samples as S
-from haptic_acu.config import load_config
-from haptic_acu.needle import NeedleModel
-from haptic_acu.report import plot_force_depth
+from haptic_acu.servo import samples as S
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.session.report import plot_force_depth
 
 
 def drive(model, path_mm, dt=1e-3) -> np.ndarray:

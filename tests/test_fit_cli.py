@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import shf
-from haptic_acu.config import DEFAULT_CONFIG, load_config
-from haptic_acu.errors import UserError
-from haptic_acu.objmesh import read_vertices
-from haptic_acu.tissue import BOUNDARIES, Tissue
+from haptic_acu.tissue import shf
+from haptic_acu.base.config import DEFAULT_CONFIG, load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.objmesh import read_vertices
+from haptic_acu.tissue.body import BOUNDARIES, Tissue
 
 ROOT = Path(__file__).resolve().parent.parent
 FOREARM = ROOT / "config" / "meshes" / "forearm.obj"

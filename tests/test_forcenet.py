@@ -1,4 +1,4 @@
-"""The force net (haptic_acu.forcenet): lattice topology, eq. 6 at equilibrium, symmetry, stiffening,
+"""The force net (haptic_acu.tissue.forcenet): lattice topology, eq. 6 at equilibrium, symmetry, stiffening,
 and the per-tick solver's stability (MODEL.md section 2)."""
 import math
 
@@ -7,9 +7,9 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from haptic_acu.config import load_config
-from haptic_acu.forcenet import Net, NetParams, lattice, n_particles
-from haptic_acu.tissue import Tissue
+from haptic_acu.base.config import load_config
+from haptic_acu.tissue.forcenet import Net, NetParams, lattice, n_particles
+from haptic_acu.tissue.body import Tissue
 from physics_helpers import sh_sphere
 
 SPHERE_R = 0.07  # m: the default limb's depth semi-axis

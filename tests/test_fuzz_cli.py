@@ -1,4 +1,4 @@
-"""Fuzz: the CLI never prints a traceback or exits 1 on bad input (issue 15).
+"""Fuzz: the CLI never prints a traceback or exits 1 on bad input.
 
 Hypothesis mutates the bytes of a small valid trajectory, and the values of the default tissue
 config, and runs ``haptic-acu replay`` in-process (:func:`haptic_acu.cli.main`). Whatever the

@@ -1,4 +1,4 @@
-"""The needle inside the tissue through the whole servo step (haptic_acu.postpuncture wired into
+"""The needle inside the tissue through the whole servo step (haptic_acu.tissue.postpuncture wired into
 needle.step_kernel), against closed forms computed here from the config:
 
 * Karnopp shaft friction rendered by the stick point: sliding at constant speed meets
@@ -15,8 +15,8 @@ import math
 import numpy as np
 import pytest
 
-from haptic_acu.config import load_config
-from haptic_acu.needle import NeedleModel
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.step import NeedleModel
 from physics_helpers import replace, sphere_config, sphere_tissue
 
 DT = 1e-3
@@ -237,7 +237,7 @@ def test_a_trajectory_s_axis_columns_reach_the_step(angled, tmp_path):
     """A replay (the scripted device, the headless engine's compiled blocks) takes the needle's axis
     from the file's axis_x,axis_y,axis_z: here 10 deg off the direction of travel, and recorded."""
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session
+    from haptic_acu.session.engine import Session
 
     m = angled
     m.reset(keep_holes=False)

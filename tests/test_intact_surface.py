@@ -1,4 +1,4 @@
-"""Pressing an intact surface (issue 12, "smooth intact surfaces"): the force is a function of the
+"""Pressing an intact surface ("smooth intact surfaces"): the force is a function of the
 tip's position alone, the pressed net's response with N1 at the tip's radial depth d below the rest
 surface and no lateral offset, along grad(-d) (docs/model.md section 2). So sliding on the skin is
 smooth (the net re-centres under the tip only where it is drawn), and the force is the gradient of a
@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 
 from haptic_acu.bench import scenarios
 from haptic_acu.bench.numpy_reference import SHBasis, directions
-from haptic_acu.forcenet import NetParams
-from haptic_acu.needle import PRESSING, PUNCTURED, UNTOUCHED
-from haptic_acu.netresponse import table_for
+from haptic_acu.tissue.forcenet import NetParams
+from haptic_acu.servo.step import PRESSING, PUNCTURED, UNTOUCHED
+from haptic_acu.tissue.netresponse import table_for
 
 DT = 1e-3
 MAX_STEP_N = 5e-3  # the issue's bound on a tick-to-tick change while sliding at constant depth

@@ -1,4 +1,4 @@
-"""The kernel-cache guard (haptic_acu/kernelcache.py) against numba's own behaviour: a cached kernel
+"""The kernel-cache guard (haptic_acu/base/kernelcache.py) against numba's own behaviour: a cached kernel
 that calls a function of another module keeps the callee's old code when only the callee's file
 changes. A two-module toy package shows the stale result without the guard and the new one with it."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from haptic_acu import kernelcache
+from haptic_acu.base import kernelcache
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -46,7 +46,7 @@ def run_g(root: Path, guarded: bool) -> float:
         sys.path.insert(0, {str(ROOT)!r})
         sys.path.insert(0, {str(root)!r})
         if {guarded!r}:
-            from haptic_acu.kernelcache import guard
+            from haptic_acu.base.kernelcache import guard
             guard([Path({str(root / 'toypkg')!r})])
         from toypkg.caller import g
         print(g(2.0))

@@ -29,10 +29,10 @@ from haptic_acu.devices.base import Device, DeviceState
 from haptic_acu.devices.keyboard import (LATERAL_STEP_M, LATERAL_STEP_S, NOT_A_TTY, SPEED_DEFAULT_M_S, SPEED_MAX_M_S,
                               SPEED_MIN_M_S, START_MM, TWIRL_HOLD_S, TWIRL_RATE_DEFAULT_DEG_S, TWIRL_RATES_DEG_S,
                               KeyboardDevice, KeyParser)
-from haptic_acu.engine import Frame, Session, SessionResult
-from haptic_acu.errors import UserError
-from haptic_acu.samples import COL, NCOL
-from haptic_acu.status import StatusLine
+from haptic_acu.session.engine import Frame, Session, SessionResult
+from haptic_acu.base.errors import UserError
+from haptic_acu.servo.samples import COL, NCOL
+from haptic_acu.session.status import StatusLine
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable

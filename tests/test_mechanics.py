@@ -1,4 +1,4 @@
-"""Post-puncture mechanics (haptic_acu/mechanics.py) against closed forms and properties.
+"""Post-puncture mechanics (haptic_acu/tissue/mechanics.py) against closed forms and properties.
 
 Karnopp's friction law (force-input) against the analytic motion of a block; the position-input stick
 point against Karnopp's static map (breakaway, sliding force, the swing on reversal) and against a
@@ -14,8 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haptic_acu import mechanics as m
-from haptic_acu.config import CONFIG_DIR, load_config
+from haptic_acu.tissue import mechanics as m
+from haptic_acu.base.config import CONFIG_DIR, load_config
 
 DT = 1e-3
 AX = np.array([0.0, 0.0, -1.0])

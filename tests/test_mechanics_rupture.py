@@ -1,4 +1,4 @@
-"""The puncture threshold's speed dependence (issue 12; docs/model.md section 2.2): Mahvash and Dupont
+"""The puncture threshold's speed dependence (docs/model.md section 2.2): Mahvash and Dupont
 (2009, 2010) found the rupture force falling as the needle moves faster, toward a lower bound.
 
 References: the factor's closed form evaluated here with numpy; the published shape (decreasing in
@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from haptic_acu import servostate as ss
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.mechanics import puncture_threshold, rupture_speed_factor
-from haptic_acu.needle import NeedleModel
+from haptic_acu.servo import state as ss
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.mechanics import puncture_threshold, rupture_speed_factor
+from haptic_acu.servo.step import NeedleModel
 
 OFF = ["rupture.high_speed_ratio=1"]
 

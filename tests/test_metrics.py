@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu.config import load_config
-from haptic_acu.metrics import session_metrics
-from haptic_acu.samples import COL, NCOL
+from haptic_acu.base.config import load_config
+from haptic_acu.analysis.metrics import session_metrics
+from haptic_acu.servo.samples import COL, NCOL
 
 from physics_helpers import replace, sphere_config, sphere_tissue
-from haptic_acu.sink import Sink
+from haptic_acu.session.sink import Sink
 
 ROOT = Path(__file__).resolve().parent.parent
 DT = 1e-3  # s, one servo tick
@@ -33,7 +33,7 @@ class Session:
     """Synthetic sample rows, one per 1 ms tick, built segment by segment.
 
     The tip moves along a straight needle line ``entry + s * u`` (mm, u a unit direction into the
-    tissue). As in the model (haptic_acu/needle.py): untouched while s < 0, pressing the skin while
+    tissue). As in the model (haptic_acu/servo/step.py): untouched while s < 0, pressing the skin while
     0 <= s < dent, punctured from the first tick with s >= dent (that tick carries puncture = 0), with
     the tissue compressed by the dent, so depth_skin = s - dent; back at s < 0 the skin is untouched.
     """
@@ -349,9 +349,9 @@ def test_bad_rows_shape(cfg):
 @pytest.fixture(scope="module")
 def bundled(cfg):
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session as EngineSession
-    from haptic_acu.needle import NeedleModel
-    from haptic_acu.tissue import Tissue
+    from haptic_acu.session.engine import Session as EngineSession
+    from haptic_acu.servo.step import NeedleModel
+    from haptic_acu.tissue.body import Tissue
 
     tissue = Tissue.from_config(cfg)
 
@@ -418,7 +418,7 @@ def test_find_troughs_matches_scipy_find_peaks():
     random walks (ties from quantisation included), noisy strokes, plateaus, edges."""
     from scipy.signal import find_peaks
 
-    from haptic_acu.metrics import find_troughs
+    from haptic_acu.analysis.metrics import find_troughs
 
     rng = np.random.default_rng(7)
     signals = [np.round(np.cumsum(rng.normal(size=2000)), 1),
@@ -454,7 +454,7 @@ def _cohort_of_insertions(end_inside: bool):
 def test_streamed_metrics_equal_the_whole_array_metrics(cfg, end_inside, seed):
     """SessionMetricsScan (what a replay uses, bounded memory) gives exactly session_metrics' dict for
     the same rows cut into random blocks (1 row to thousands), insertions crossing block edges."""
-    from haptic_acu.metrics import SessionMetricsScan
+    from haptic_acu.analysis.metrics import SessionMetricsScan
     rows = _cohort_of_insertions(end_inside)
     punct = [{"layer": "skin", "t_s": round(float(t), 4), "tip_depth_mm": 1.0, "peak_force_n": 0.5}
              for t in rows[rows[:, COL["puncture"]] == 0, COL["t_s"]]]
@@ -475,7 +475,7 @@ def test_streamed_metrics_equal_the_whole_array_metrics(cfg, end_inside, seed):
 
 
 def test_median_counter_is_numpy_median():
-    from haptic_acu.metrics import MedianCounter
+    from haptic_acu.analysis.metrics import MedianCounter
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 10, 11, 1000):
         x = rng.choice([0.001, 0.0010000000000000009, 0.0009999999999999998, 0.002], size=n)

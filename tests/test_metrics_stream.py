@@ -1,4 +1,4 @@
-"""Per-insertion metrics streamed in bounded memory (haptic_acu/insertion_stream.py, issue 15)
+"""Per-insertion metrics streamed in bounded memory (haptic_acu/analysis/insertion_stream.py)
 against the batch functions that hold every row: metrics.session_metrics / find_troughs and
 technique.turning_points. Tolerance: the JSON (rounded to 1 um, 0.1 mN, 0.1 ms, 0.01 deg) is
 identical; the raw prominences equal to the bit."""
@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu.config import load_config
-from haptic_acu.insertion_stream import BUFFER_ROWS, TroughScan, ZigZag
-from haptic_acu.metrics import SessionMetricsScan, find_troughs, session_metrics
-from haptic_acu.samples import COL, NCOL
-from haptic_acu.technique import turning_points
+from haptic_acu.base.config import load_config
+from haptic_acu.analysis.insertion_stream import BUFFER_ROWS, TroughScan, ZigZag
+from haptic_acu.analysis.metrics import SessionMetricsScan, find_troughs, session_metrics
+from haptic_acu.servo.samples import COL, NCOL
+from haptic_acu.analysis.technique import turning_points
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -103,9 +103,9 @@ BUNDLED = sorted(p.stem for p in (ROOT / "trajectories").glob("*.csv"))
 def test_bundled_trajectories_streamed_equal_batch(cfg, name):
     """Every bundled trajectory replayed: the streamed per-insertion metrics (random block splits)
     equal session_metrics on all the rows, JSON for JSON (twirl files with their reference replay)."""
-    from haptic_acu.replay import replay_rows
-    from haptic_acu.report import SessionScan, puncture_records, tip_depth_m
-    from haptic_acu.tissue import Tissue
+    from haptic_acu.session.replay import replay_rows
+    from haptic_acu.session.report import SessionScan, puncture_records, tip_depth_m
+    from haptic_acu.tissue.body import Tissue
 
     path = ROOT / "trajectories" / f"{name}.csv"
     rows = replay_rows(path, cfg)

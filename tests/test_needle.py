@@ -1,4 +1,4 @@
-"""The needle in layered tissue (haptic_acu.needle) against Table 1, on a synthetic tissue with simple
+"""The needle in layered tissue (haptic_acu.servo.step) against Table 1, on a synthetic tissue with simple
 numbers: a 200 mm sphere, layers 1/5/20 mm thick, damping 3/1/2 N*s/m per mm (physics_helpers).
 
 The tip is driven kinematically along -z through the acupoint (the sphere's top), so every boundary is
@@ -19,8 +19,8 @@ import math
 import numpy as np
 import pytest
 
-from haptic_acu.forcenet import Net, NetParams
-from haptic_acu.needle import PRESSING, PUNCTURED, UNTOUCHED, NeedleModel
+from haptic_acu.tissue.forcenet import Net, NetParams
+from haptic_acu.servo.step import PRESSING, PUNCTURED, UNTOUCHED, NeedleModel
 from physics_helpers import (damping_m, drive, layer_tops_m, replace, sphere_config, sphere_tissue,
                              straight_line, table1_damping)
 
@@ -395,7 +395,7 @@ def _exact_norm2(f):
 
 
 def test_clamp_is_exact_through_the_step(cfg, tissue):
-    """Issue 15: through the servo step, a clamped force is never above the limit by even 1 ulp (its
+    """Through the servo step, a clamped force is never above the limit by even 1 ulp (its
     exact rational magnitude), and sits at the limit to within a few ulps."""
     from fractions import Fraction
     limit = 0.5

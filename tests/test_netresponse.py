@@ -1,4 +1,4 @@
-"""The force net's tabulated static response (haptic_acu.netresponse), the servo's default fast path.
+"""The force net's tabulated static response (haptic_acu.tissue.netresponse), the servo's default fast path.
 
 Checked against independent solutions: the NumPy reference's own multicolour Gauss-Seidel-Newton
 solver (bench/numpy_reference.py: its own lattice, sweep order and Newton steps) converged at points
@@ -16,10 +16,10 @@ import pytest
 
 from haptic_acu.bench import scenarios
 from haptic_acu.bench.numpy_reference import NumpyNeedle
-from haptic_acu import netresponse
-from haptic_acu.config import load_config
-from haptic_acu.forcenet import NetParams, lattice, n_particles
-from haptic_acu.needle import PUNCTURED
+from haptic_acu.tissue import netresponse
+from haptic_acu.base.config import load_config
+from haptic_acu.tissue.forcenet import NetParams, lattice, n_particles
+from haptic_acu.servo.step import PUNCTURED
 
 TOL = 1e-10  # the default config's static tolerance (m)
 
@@ -203,7 +203,7 @@ def test_the_rendered_pressing_net_is_the_static_solution_at_the_tip(cfg):
     # Straight down at the acupoint into the skin, held 1 mm past first touch: the net the visual
     # loop reads (laid from the table at the tip the servo held) against the package's own static
     # solve of a net built at the same contact point with N1 at the same tip.
-    from haptic_acu.forcenet import Net
+    from haptic_acu.tissue.forcenet import Net
 
     model = scenarios.model_for(cfg)
     P, V = scenarios.straight(1e-3, -1.0e-3, 0.01)

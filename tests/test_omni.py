@@ -164,8 +164,8 @@ def test_force_is_rotated_into_the_device_frame_and_limited_by_the_device(emulat
     f = frames(res)[:, 5:8]
     n = len(res["states"])
     assert np.all(np.linalg.norm(f, axis=1) <= 2.5 * (1 + 1e-12))
-    # exactly, in rational arithmetic on the commanded doubles (issue 15: the clamp in
-    # omniloop.guard_out is haptic_acu.clamp's; the naive one let the rotation's 6e-17 through)
+    # exactly, in rational arithmetic on the commanded doubles (the clamp in
+    # omniloop.guard_out is haptic_acu.servo.clamp's; the naive one let the rotation's 6e-17 through)
     from fractions import Fraction
     assert all(sum(Fraction(float(x)) ** 2 for x in row) <= Fraction(2.5) ** 2 for row in f[:n])
     assert res["emulator_after_run_servo"]["overforce"] == 0
@@ -228,7 +228,7 @@ def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tm
 
 
 def test_a_position_frozen_under_a_steady_force_is_a_still_hand_not_a_fault(emulator, tmp_path):
-    # Issue 13: a trainee may hold perfectly still on the skin, every encoder bit-for-bit still under
+    # A trainee may hold perfectly still on the skin, every encoder bit-for-bit still under
     # a steady force, for as long as they like. The position freezes at 0.3 s (the spring's force then
     # steady, ~1.6 N) and stays frozen to the end, 1.5 s later: 30 stall windows, no fault.
     stall_s = 0.05
@@ -347,7 +347,7 @@ def test_exit_without_close_zeroes_and_disables_the_device(emulator, tmp_path, l
 def test_bad_force_limit_is_a_user_error_before_any_library_is_loaded():
     from haptic_acu.devices.base import Workspace
     from haptic_acu.devices.omni import OmniDevice
-    from haptic_acu.errors import UserError
+    from haptic_acu.base.errors import UserError
 
     for bad in (float("nan"), 0.0, -1.0, float("inf")):
         with pytest.raises(UserError, match="force limit"):

@@ -1,5 +1,5 @@
 """Closed-loop OMNI sessions through the real CLI, pyOpenHaptics and the HD API emulator's physical
-stylus mode (issue 13): the emulated stylus is a 45 g mass held by a hand (a spring-damper to the
+stylus mode: the emulated stylus is a 45 g mass held by a hand (a spring-damper to the
 hand's scripted path) and pushed by the force the session commands; its encoders report 0.055 mm
 steps. So the loop between the rendered force and the hand is closed, as with a trainee.
 
@@ -11,7 +11,7 @@ and physics bounds, never from the code under test:
   (the issue measured 1.2-1.7 N without a rendering layer);
 * the needle punctures skin and fat (the recording's layer states), each felt as a drop;
 * the recording replays (`haptic-acu replay`), and its rows are stamped with the device's tick
-  time, even when the emulated scheduler wakes 30 ms late and catches up (issue 15).
+  time, even when the emulated scheduler wakes 30 ms late and catches up.
 
 Subprocesses run with OPENBLAS_NUM_THREADS=1 (see test_run_omni).
 """
@@ -29,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
-from haptic_acu import trajectory  # noqa: E402
-from haptic_acu.config import load_config  # noqa: E402
-from haptic_acu.recorder import EXTRA  # noqa: E402
+from haptic_acu.session import trajectory  # noqa: E402
+from haptic_acu.base.config import load_config  # noqa: E402
+from haptic_acu.session.recorder import EXTRA  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -166,7 +166,7 @@ BUZZ_BOUND_N = 0.05
 def test_a_recording_with_a_late_scheduler_tick_replays(emulator, tmp_path):
     # The emulated scheduler wakes 30 ms late at 1.0 s and runs the missed ticks back to back (as a
     # real one catching up does): stamped with the wall clock, 1 ms of stylus path in microseconds
-    # reads as metres per second and the replay refuses the file (issue 15); stamped with the
+    # reads as metres per second and the replay refuses the file; stamped with the
     # device's tick time it replays.
     # a quick 300 mm/s move in the air across the late tick, then a press into the skin
     z5 = device_z(5.0)

@@ -1,4 +1,4 @@
-"""The OMNI's stylus as the needle (issues 12, 13, 14) through the real CLI, pyOpenHaptics and the HD
+"""The OMNI's stylus as the needle through the real CLI, pyOpenHaptics and the HD
 API emulator (tests/hd_emulator): the stylus orientation is the needle's axis, its roll's sign is the
 workspace's, and a perfectly still hand is no fault while a frozen device still is.
 
@@ -25,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
-from haptic_acu import trajectory  # noqa: E402
-from haptic_acu.config import load_config  # noqa: E402
-from haptic_acu.recorder import EXTRA  # noqa: E402
+from haptic_acu.session import trajectory  # noqa: E402
+from haptic_acu.base.config import load_config  # noqa: E402
+from haptic_acu.session.recorder import EXTRA  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -105,7 +105,7 @@ OBLIQUE = np.array([np.sin(np.radians(45.0)), 0.0, -np.cos(np.radians(45.0))])  
 
 @pytest.mark.parametrize("grip_name, grip", [("loose", LOOSE_GRIP), ("firm", FIRM_GRIP)])
 def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp_path, grip_name, grip):
-    # Issue 12: a hand inserts at 45 deg from the skin's normal, the stylus held along that line (and
+    # A hand inserts at 45 deg from the skin's normal, the stylus held along that line (and
     # rolled a little, which must not tilt the axis), at 10 mm/s through the skin (0.8 mm) into the fat
     # (8.4 mm), 8 mm below the skin. The needle's axis is the stylus's: within 2 deg of the line, with
     # no clamped tick and a small lateral force. (With --travel-axis the same run, firm grip, ends
@@ -144,7 +144,7 @@ def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp
 
 
 def test_a_firm_grip_through_the_muscle_has_no_clamped_tick(emulator, tmp_path):
-    # Issue 13: a firm grip (2 N/mm) inserting straight down at 10 mm/s through skin, fat and the
+    # A firm grip (2 N/mm) inserting straight down at 10 mm/s through skin, fat and the
     # muscle's break to 20 mm. The coupling's compression at the muscle's break once reached the tissue
     # as a 0.35 m/s proxy jump: -8 N of viscous shaft friction, two ticks clamped at 3.3 N.
     down = np.array([0.0, 0.0, -1.0])
@@ -184,7 +184,7 @@ def test_without_the_stylus_axis_the_travel_decides(emulator, tmp_path, how):
 
 
 def test_the_roll_sign_is_the_workspace_s(emulator, tmp_path):
-    # Issue 14: the roll is + clockwise seen from the handle. OpenHaptics documents the third gimbal
+    # The roll is + clockwise seen from the handle. OpenHaptics documents the third gimbal
     # angle as "CW is +" without saying from which end; workspace.roll_sign (default 1) sets the sign.
     # The emulator turns its stylus 1 rad about the stylus (the transform's x axis turns the right-handed
     # way about the handle -> tip direction: clockwise seen from the handle): roll_deg +57.3 by default,
@@ -207,7 +207,7 @@ def test_the_roll_sign_is_the_workspace_s(emulator, tmp_path):
 
 
 def test_a_still_hand_on_the_skin_for_5_s_is_no_fault(emulator, tmp_path):
-    # Issue 13: a trainee presses the skin (1.2 mm down, short of puncture) and holds perfectly still
+    # A trainee presses the skin (1.2 mm down, short of puncture) and holds perfectly still
     # for 5 s: the stylus kinematic (a hand that does not move at all, not even by an encoder step),
     # so the position is bit-identical under a steady force for 5 s (the old guard stopped such a
     # session after 1 s). The session runs to its end. (A held stylus in the physical mode is never

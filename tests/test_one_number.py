@@ -1,4 +1,4 @@
-"""One name, one number (issue 16): a key that appears at several levels of summary.json and in the
+"""One name, one number: a key that appears at several levels of summary.json and in the
 batch tables means the same quantity and has the same value there. The oblique entry is the case
 that told them apart: its needle goes 25 mm into the tissue along a 30 degree axis while its tip is
 only about 21.5 mm below the rest skin (25 cos 30 deg = 21.65 mm less the dents), and the summary
@@ -52,7 +52,7 @@ def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
     assert rows["twirl frequency (Hz)"] == [f"{t['twirl']['frequency_hz']:.2f}" for t in techs]
     assert rows["thrust / lift resistance"] == [f"{t['lift_thrust_forces']['thrust_to_lift']:.2f}" for t in techs]
 
-    from haptic_acu.report import result_lines
+    from haptic_acu.session.report import result_lines
 
     summary = {"trajectory": "x.csv", "duration_s": 1.0, "ticks": 1000, "punctures": [], "max_force_n": 0.0,
                "max_tip_depth_mm": 25.0, "layers_reached": [],

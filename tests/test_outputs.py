@@ -1,4 +1,4 @@
-"""Replay outputs are exclusive and atomic, through the real CLI (issue 15).
+"""Replay outputs are exclusive and atomic, through the real CLI.
 
 A second replay to the same ``--out`` is refused while the first runs; a ``DIR.partial`` holding a
 user's files is never deleted; a stale one left by a killed replay is replaced; an interrupted

@@ -1,4 +1,4 @@
-"""Safety properties of the needle model (haptic_acu.needle) over random layer parameters and random
+"""Safety properties of the needle model (haptic_acu.servo.step) over random layer parameters and random
 tip trajectories (hypothesis): whatever the hand does, the force is finite, within the limit, the
 model's arrays stay finite, and there is no force while the needle is out of the tissue and pressing
 nothing.
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from haptic_acu.needle import PRESSING, NeedleModel
+from haptic_acu.servo.step import PRESSING, NeedleModel
 from physics_helpers import SPHERE_R_MM, replace, sphere_config, sphere_tissue, state_arrays
 
 R_SKIN = SPHERE_R_MM * 1e-3

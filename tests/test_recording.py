@@ -1,4 +1,4 @@
-"""Recordings and trajectory files you can trust, through the real CLI (issue 15).
+"""Recordings and trajectory files you can trust, through the real CLI.
 
 ``--record`` never destroys a file (an existing one, or the session's input) unless told
 ``--overwrite`` and creates nothing when the session cannot start; a full disk mid-session is a
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import trajectory as T
-from haptic_acu.errors import UserError
+from haptic_acu.session import trajectory as T
+from haptic_acu.base.errors import UserError
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "trajectories" / "default.csv"
@@ -308,8 +308,8 @@ def test_recorder_places_events_on_their_ticks(tmp_path):
     drained; an event on a row dropped for a repeated timestamp moves to the next row."""
     from types import SimpleNamespace
 
-    from haptic_acu.recorder import RecorderSink
-    from haptic_acu.samples import COL, NCOL
+    from haptic_acu.session.recorder import RecorderSink
+    from haptic_acu.servo.samples import COL, NCOL
 
     dev = SimpleNamespace(events=[])
     rec = RecorderSink(tmp_path / "r.csv", device=dev)

@@ -1,4 +1,4 @@
-"""haptic_acu.rendering against closed forms: a spring tissue in series with the coupling, a damper's
+"""haptic_acu.servo.rendering against closed forms: a spring tissue in series with the coupling, a damper's
 steady force c v, Coulomb stick-slip at the friction level, the continuous-force limit, the
 velocity estimate on quantised encoders, faults, and passivity over random closed paths
 (hypothesis): the work the rendered force does on the device never exceeds what a sampled spring of
@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from haptic_acu import rendering as R
+from haptic_acu.servo import rendering as R
 
 DT = 1e-3
 STEP = 0.055e-3
@@ -311,7 +311,7 @@ def test_tissue_from_diag_reads_the_diag_records_report():
     # into a TissueLocal through this one helper: every field lands in its place, the vectors copied
     import numba as nb
 
-    from haptic_acu.servostate import DIAG
+    from haptic_acu.servo.state import DIAG
 
     rng = np.random.default_rng(7)
     diag = np.zeros(1, DIAG)
@@ -341,8 +341,8 @@ def test_tissue_from_diag_reads_the_diag_records_report():
 # -- the servo's own report (DIAG r_* fields, needle.render_local) against independent evaluations ----
 @pytest.fixture(scope="module")
 def needle():
-    from haptic_acu.config import load_config
-    from haptic_acu.needle import NeedleModel
+    from haptic_acu.base.config import load_config
+    from haptic_acu.servo.step import NeedleModel
 
     return NeedleModel(load_config())
 
@@ -415,9 +415,9 @@ def test_a_puncture_is_reported_as_a_release(needle):
 
 
 def test_the_scripted_devices_model_renders_the_simulated_force_through_an_omnis_limits(needle):
-    # haptic_acu.devicemodel on a slow press into the skin: zero in the air, the simulated force
+    # haptic_acu.servo.devicemodel on a slow press into the skin: zero in the air, the simulated force
     # within 0.1 N while the hand moves smoothly, never above the OMNI's 3.3 N
-    from haptic_acu import devicemodel
+    from haptic_acu.servo import devicemodel
 
     m = needle
     z0 = _contact_z(m)

@@ -199,7 +199,7 @@ def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path):
 
 
 def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path):
-    """Issue 16: a batch's insertions.csv has one row per insertion with the trainee metrics of each
+    """A batch's insertions.csv has one row per insertion with the trainee metrics of each
     replay's summary.json, punctures.csv every puncture (not only the first per layer), and
     summaries.csv the session-level metrics; all with the header on line 1."""
     src = tmp_path / "trajs"

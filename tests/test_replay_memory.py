@@ -1,6 +1,6 @@
-"""Replay memory is bounded by the work, not the file (issue 15): the summary, the trainee metrics
-and the figure are streamed (haptic_acu.report.SummarySink without keep_rows,
-haptic_acu.metrics.SessionMetricsScan, haptic_acu.report.FigureRows).
+"""Replay memory is bounded by the work, not the file: the summary, the trainee metrics
+and the figure are streamed (haptic_acu.session.report.SummarySink without keep_rows,
+haptic_acu.analysis.metrics.SessionMetricsScan, haptic_acu.session.report.FigureRows).
 
 Each replay runs in a child process whose peak RSS (``VmHWM``) is the measurement; a
 trajectory four times longer must not raise it by more than a few MB (the whole-row summary grew by
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # spawned from a pytest process that has grown to 900 MB would report 900 MB whatever it did.
 CHILD = """
 import json, sys
-from haptic_acu.replay import replay_one
+from haptic_acu.session.replay import replay_one
 s = replay_one(sys.argv[1], sys.argv[2], rrd=False, progress=False)
 hwm = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:"))
 print(json.dumps({"maxrss_mb": hwm / 1024,
@@ -97,7 +97,7 @@ def single_insertion(minutes: float, out: Path) -> None:
 @pytest.mark.slow
 def test_one_long_insertion_does_not_grow_memory(tmp_path):
     """A single insertion held 10 minutes (lift-thrust in muscle) peaks as one held
-    2.5 minutes: its metrics are streamed in bounded state (haptic_acu/insertion_stream.py), not
+    2.5 minutes: its metrics are streamed in bounded state (haptic_acu/analysis/insertion_stream.py), not
     from its rows (before: 343 and 660 MB)."""
     res = {}
     for minutes in (2.5, 10.0):

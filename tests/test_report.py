@@ -18,10 +18,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from haptic_acu import samples as S
-from haptic_acu.config import load_config
-from haptic_acu.needle import NeedleModel
-from haptic_acu.report import CSV_FIELDS, SamplesCsvSink, SummarySink, plot_force_depth
+from haptic_acu.servo import samples as S
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.session.report import CSV_FIELDS, SamplesCsvSink, SummarySink, plot_force_depth
 
 PRESSING, PUNCTURED = 1, 2
 LAYER_NAMES = ("skin", "fat", "muscle")
@@ -208,8 +208,8 @@ def test_figure_rows_are_bounded_and_keep_every_extreme(session):
     ``cap`` rows kept whatever the length, and the kept rows hold exactly the extremes of the force
     along and across the normal and of the tip depth, every puncture, the first and last rows, and
     each kept row's insertion index equals insertion_index on all the rows."""
-    from haptic_acu.metrics import SessionMetricsScan
-    from haptic_acu.report import FigureRows, insertion_index, lateral_force_n, radial_force_n, tip_depth_m
+    from haptic_acu.analysis.metrics import SessionMetricsScan
+    from haptic_acu.session.report import FigureRows, insertion_index, lateral_force_n, radial_force_n, tip_depth_m
     tissue = session.model.tissue
     reps = [session.rows.copy() for _ in range(8)]
     n0 = len(session.rows)

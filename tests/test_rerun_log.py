@@ -21,13 +21,13 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
-from haptic_acu import samples as S
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.forcenet import dent_on_grid, lattice
-from haptic_acu.needle import NeedleModel
-from haptic_acu.rerun_log import RerunSink, lattice_rows
-from haptic_acu.springback import Springback
+from haptic_acu.servo import samples as S
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.forcenet import dent_on_grid, lattice
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.session.rerun_log import RerunSink, lattice_rows
+from haptic_acu.tissue.springback import Springback
 
 C = S.COL
 PRESSING, PUNCTURED = 1, 2
@@ -51,7 +51,7 @@ def frame_dents(model, theta, phi):
 
 
 def run_session(model, cfg, sink, z0=5e-3, z1=-30e-3, speed=0.01, dt=1e-3, frame_rows=17):
-    from haptic_acu.engine import PATCH_GRID
+    from haptic_acu.session.engine import PATCH_GRID
 
     model.reset(keep_holes=False)
     spring = Springback.from_config(model, cfg)

@@ -1,4 +1,4 @@
-"""The compiled, GIL-free real-time servo loop (haptic_acu.rtloop) behind Session(clock="realtime")
+"""The compiled, GIL-free real-time servo loop (haptic_acu.servo.rtloop) behind Session(clock="realtime")
 for devices that can be read ahead (the scripted device).
 
 Checked against independent references: the headless replay of the same trajectory (ticks of the
@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 
 from haptic_acu.devices.scripted import ScriptedDevice
-from haptic_acu import devicemodel, rtloop
-from haptic_acu.config import load_config
-from haptic_acu.engine import Session
-from haptic_acu.needle import NeedleModel
-from haptic_acu.servostate import TIMING, Ring, Timing
-from haptic_acu.servotick import call_driver, tick_table
-from haptic_acu.samples import COL
-from haptic_acu.tissue import Tissue
-from haptic_acu.trajectory import TrajectoryWriter
-from haptic_acu.sink import Sink
+from haptic_acu.servo import devicemodel, rtloop
+from haptic_acu.base.config import load_config
+from haptic_acu.session.engine import Session
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.servo.state import TIMING, Ring, Timing
+from haptic_acu.servo.tick import call_driver, tick_table
+from haptic_acu.servo.samples import COL
+from haptic_acu.tissue.body import Tissue
+from haptic_acu.session.trajectory import TrajectoryWriter
+from haptic_acu.session.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -273,7 +273,7 @@ def test_a_reset_model_answers_as_a_fresh_one(cfg, tissue):
     """needle.reset_servo (NeedleModel.reset, and what the compiled loop runs on a reset event), from
     a needle deep in the tissue with holes made, leaves a model that answers a new insertion exactly as
     a freshly built one does, tick for tick; ``keep_holes`` keeps the holes and the tracks."""
-    from haptic_acu.servotick import reset_servo
+    from haptic_acu.servo.tick import reset_servo
     model = NeedleModel(cfg, tissue)
     v = np.array([0.0, 0.0, -0.01])
     path = np.arange(5e-3, -15e-3, -1e-5)

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import trajectory
-from haptic_acu.recorder import EXTRA
+from haptic_acu.session import trajectory
+from haptic_acu.session.recorder import EXTRA
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -169,7 +169,7 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
     # the comparison covered real forces (the fine-needle defaults: skin ~0.5 N, muscle ~0.7 N peaks)
     assert tr.extra["fz_n"].max() > 0.4
 
-    # the recording carries what a modelled OMNI would have rendered (haptic_acu.devicemodel): the
+    # the recording carries what a modelled OMNI would have rendered (haptic_acu.servo.devicemodel): the
     # simulated force through the coupling, within its 3.3 N, near the simulated one (within 0.15 N)
     # away from the punctures, and zero before the needle touches the skin
     fr = np.stack([tr.extra[c] for c in ("fr_x_n", "fr_y_n", "fr_z_n")], axis=1)
@@ -213,7 +213,7 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
 
 
 def test_a_scripted_session_with_a_reset_runs_compiled_and_records_the_reset(tmp_path):
-    """Issue 15/16: a trajectory with an ``event`` column no longer falls back to the Python loop:
+    """A trajectory with an ``event`` column no longer falls back to the Python loop:
     the compiled loop gives fresh tissue at the reset (the skin breaks twice though the second pass
     goes down the same hole) and the recording carries the reset, so it replays the same way."""
     traj = tmp_path / "twice.csv"

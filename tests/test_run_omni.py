@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noqa: E402
 
-from haptic_acu import trajectory  # noqa: E402
-from haptic_acu.config import load_config  # noqa: E402
-from haptic_acu.recorder import EXTRA  # noqa: E402
+from haptic_acu.session import trajectory  # noqa: E402
+from haptic_acu.base.config import load_config  # noqa: E402
+from haptic_acu.session.recorder import EXTRA  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -121,7 +121,7 @@ def check_rows_match_frames(tr, frames, workspace):
 
 @pytest.mark.parametrize("servo, velocity", [("compiled", True), ("compiled", False), ("python", True)])
 def test_omni_press_through_the_cli(emulator, tmp_path, workspace, servo, velocity):
-    # compiled: the HD scheduler runs haptic_acu.omniloop's callback; velocity=False: the device
+    # compiled: the HD scheduler runs haptic_acu.servo.omniloop's callback; velocity=False: the device
     # reports none, so both paths filter position differences; python: the ctypes Python callback.
     proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), servo=servo, velocity=velocity)
     assert proc.returncode == 0, proc.stderr

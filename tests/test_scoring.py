@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import scoring
-from haptic_acu.scoring import INDICES
+from haptic_acu.analysis import scoring
+from haptic_acu.analysis.scoring import INDICES
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE_RATINGS = REPO / "config" / "scoring" / "example_ratings.csv"
@@ -412,7 +412,7 @@ def test_cli_subjective_and_delphi_are_exclusive(tmp_path):
 
 
 def test_cli_writes_numbers_without_float_noise(tmp_path):
-    """Issue 16: the example's MSM soft-tissue mean E is 7.89 (the mean of its ratings, two
+    """The example's MSM soft-tissue mean E is 7.89 (the mean of its ratings, two
     decimals each), written as 7.89, not 7.890000000000001; no number in the outputs carries more
     than 15 significant digits, and each still equals the exact value within 1e-11 of it."""
     out = tmp_path / "out"

@@ -11,7 +11,7 @@ import pytest
 
 from haptic_acu.devices.base import Device, DeviceState
 from haptic_acu.devices.scripted import ScriptedDevice
-from haptic_acu.errors import UserError
+from haptic_acu.base.errors import UserError
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "trajectories" / "default.csv"

@@ -1,4 +1,4 @@
-"""The servo's named data (haptic_acu.servostate) and the step's phases (haptic_acu.needle) on their own.
+"""The servo's named data (haptic_acu.servo.state) and the step's phases (haptic_acu.servo.step) on their own.
 
 The address tables are checked against NumPy (what compiled code unpacks is the arrays themselves);
 the phases against closed forms: Table 1 damping over the layers the needle is in (physical lengths
@@ -10,9 +10,10 @@ import numba as nb
 import numpy as np
 import pytest
 
-from haptic_acu import needle, postpuncture
-from haptic_acu import servostate as ss
-from haptic_acu.needle import NeedleModel
+from haptic_acu.servo import step as needle
+from haptic_acu.tissue import postpuncture
+from haptic_acu.servo import state as ss
+from haptic_acu.servo.step import NeedleModel
 from physics_helpers import sphere_config, sphere_tissue
 
 

@@ -1,11 +1,11 @@
-"""Real spherical harmonics and SH surfaces (haptic_acu.shf) against scipy, quadrature and geometry."""
+"""Real spherical harmonics and SH surfaces (haptic_acu.tissue.shf) against scipy, quadrature and geometry."""
 import math
 
 import numpy as np
 import pytest
 from scipy.special import sph_harm_y
 
-from haptic_acu import shf
+from haptic_acu.tissue import shf
 
 SQRT2 = math.sqrt(2.0)
 

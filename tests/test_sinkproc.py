@@ -1,4 +1,4 @@
-"""A sink run in a child process (haptic_acu.sinkproc) writes what the same sink writes in process."""
+"""A sink run in a child process (haptic_acu.session.sinkproc) writes what the same sink writes in process."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,11 +7,11 @@ import pytest
 from rerun.chunk import RrdReader
 
 from haptic_acu.devices.scripted import ScriptedDevice
-from haptic_acu.config import load_config
-from haptic_acu.engine import Session
-from haptic_acu.errors import UserError
-from haptic_acu.rerun_log import RerunSink
-from haptic_acu.sinkproc import ProcessSink, rerun_file_sink
+from haptic_acu.base.config import load_config
+from haptic_acu.session.engine import Session
+from haptic_acu.base.errors import UserError
+from haptic_acu.session.rerun_log import RerunSink
+from haptic_acu.session.sinkproc import ProcessSink, rerun_file_sink
 
 
 def force_series(path):
@@ -72,6 +72,6 @@ def test_child_failure_is_reported_once_in_the_parent(tmp_path):
 
 
 def test_unknown_sink_class_fails_cleanly():
-    sink = ProcessSink("haptic_acu.rerun_log", "NoSuchSink", None)
+    sink = ProcessSink("haptic_acu.session.rerun_log", "NoSuchSink", None)
     with pytest.raises(RuntimeError, match="NoSuchSink"):
         sink.warm_up()

@@ -1,4 +1,4 @@
-"""Skill metrics (haptic_acu.skill_metrics) against closed forms on synthetic paths."""
+"""Skill metrics (haptic_acu.analysis.skill_metrics) against closed forms on synthetic paths."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haptic_acu import skill_metrics as sm
+from haptic_acu.analysis import skill_metrics as sm
 
 # Minimum-jerk point-to-point movement x(tau) = A (10 tau^3 - 15 tau^4 + 6 tau^5), tau = t / T:
 # v = 30 A/T tau^2 (1 - tau)^2, v_peak = 15 A / (8 T), d2v/dt2 = A/T^3 (60 - 360 tau + 360 tau^2),

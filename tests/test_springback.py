@@ -1,4 +1,4 @@
-"""Springback (haptic_acu.springback, eq. 7-9, MODEL.md section 4): shape matching goals, the polar
+"""Springback (haptic_acu.tissue.springback, eq. 7-9, MODEL.md section 4): shape matching goals, the polar
 rotation against scipy, eta's two ends, and the net's return to rest with its centroid kept."""
 
 import numpy as np
@@ -8,10 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from haptic_acu.config import load_config
-from haptic_acu.forcenet import Net, NetParams, n_particles
-from haptic_acu.needle import N_LAYERS, N_SLOTS, NeedleModel
-from haptic_acu.springback import Springback, polar_rotation, shape_matching_goals, springback_step
+from haptic_acu.base.config import load_config
+from haptic_acu.tissue.forcenet import Net, NetParams, n_particles
+from haptic_acu.servo.step import N_LAYERS, N_SLOTS, NeedleModel
+from haptic_acu.tissue.springback import Springback, polar_rotation, shape_matching_goals, springback_step
 from physics_helpers import sh_sphere, sphere_config, sphere_tissue, straight_line
 
 R = 0.07

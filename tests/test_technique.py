@@ -1,11 +1,11 @@
-"""Technique metrics (haptic_acu.technique) on synthetic manipulations of known amplitude, frequency
+"""Technique metrics (haptic_acu.analysis.technique) on synthetic manipulations of known amplitude, frequency
 and speed: the answers are the closed forms of the signals."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from haptic_acu import technique as TQ
+from haptic_acu.analysis import technique as TQ
 
 DT = 1e-3
 

@@ -1,14 +1,14 @@
-"""The layered tissue (haptic_acu.tissue): nesting, acupoint depths and normal, locate, coefficient files."""
+"""The layered tissue (haptic_acu.tissue.body): nesting, acupoint depths and normal, locate, coefficient files."""
 import math
 import re
 
 import numpy as np
 import pytest
 
-from haptic_acu import shf
-from haptic_acu.config import DEFAULT_CONFIG, load_config
-from haptic_acu.errors import UserError
-from haptic_acu.tissue import BONE, FAT, MUSCLE, OUTSIDE, SKIN, Tissue, limb_radius, load_coefficients, save_coefficients
+from haptic_acu.tissue import shf
+from haptic_acu.base.config import DEFAULT_CONFIG, load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.tissue.body import BONE, FAT, MUSCLE, OUTSIDE, SKIN, Tissue, limb_radius, load_coefficients, save_coefficients
 
 
 @pytest.fixture(scope="module")

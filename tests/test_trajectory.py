@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import trajectory as T
-from haptic_acu.errors import UserError
+from haptic_acu.session import trajectory as T
+from haptic_acu.base.errors import UserError
 
 ROOT = Path(__file__).resolve().parent.parent
 BUNDLED_DIR = ROOT / "trajectories"

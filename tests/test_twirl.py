@@ -1,4 +1,4 @@
-"""Twirl kernels (haptic_acu.twirl): torque against angle (Han 2015's line and the closed form of a
+"""Twirl kernels (haptic_acu.tissue.twirl): torque against angle (Han 2015's line and the closed form of a
 relaxing twist), the pull-out protocols against Langevin 2001's ratios (stand-in: baseline friction
 times the grasp factor; the test through the real friction runs once the kernels are wired into
 the step), unwinding, encoder jitter, dilution, the roll unwrapping, and the kernels against a
@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from haptic_acu import twirl as T
+from haptic_acu.tissue import twirl as T
 
 LENGTHS = np.array([0.8e-3, 8.4e-3, 20.8e-3])  # 30 mm in skin, fat, muscle
 DT = 1e-3

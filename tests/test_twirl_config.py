@@ -1,4 +1,4 @@
-"""The twirl parameters as config keys (``[twirl]``, issue 14): parsed strictly, carried into the
+"""The twirl parameters as config keys (``[twirl]``): parsed strictly, carried into the
 servo Model's params, and acting there per twirl.py's closed forms (torque = k_twist L phi below the
 slip, phi = roll less half the play; grasp = 1 + grasp_coil |phi| / slip + grasp_engage e).
 
@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import twirl
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.needle import NeedleModel
+from haptic_acu.tissue import twirl
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.servo.step import NeedleModel
 
 ROOT = Path(__file__).resolve().parent.parent
 PRESETS = [ROOT / "config" / "tissue.toml", *sorted((ROOT / "config" / "presets").glob("*.toml"))]

@@ -1,5 +1,5 @@
 """The grasp through the real shaft friction: Langevin 2001's pull-out ratios with the stick-point
-Karnopp friction of haptic_acu.mechanics (issue 12, built in parallel). Skipped until that module
+Karnopp friction of haptic_acu.tissue.mechanics (built in parallel). Skipped until that module
 is merged; then it is the pull-out test of the kernels as they will be wired: the grasp factors
 multiply each layer's friction levels (its breakaway and Coulomb thresholds: ``shaft_thresholds``
 gets ``grasp * lengths``), not the viscous part.
@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from haptic_acu import twirl as T
+from haptic_acu.tissue import twirl as T
 
-mech = pytest.importorskip("haptic_acu.mechanics", reason="post-puncture mechanics not merged yet")
+mech = pytest.importorskip("haptic_acu.tissue.mechanics", reason="post-puncture mechanics not merged yet")
 
 DT = 1e-3
 LENGTHS = np.array([0.8e-3, 8.4e-3, 20.8e-3])  # tip 30 mm deep: skin, fat, muscle

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import twirl
-from haptic_acu.config import load_config
-from haptic_acu.needle import NeedleModel
-from haptic_acu.samples import COL
-from haptic_acu.sink import Sink
+from haptic_acu.tissue import twirl
+from haptic_acu.base.config import load_config
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.servo.samples import COL
+from haptic_acu.session.sink import Sink
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 1e-3
@@ -65,7 +65,7 @@ def test_roll_reaches_the_step_and_the_samples_columns(cfg):
     m = NeedleModel(cfg)
     m.step(np.array([0.0, 0.0, 5e-3]), np.zeros(3), math.radians(37.5))
     assert m.inp.roll[0] == pytest.approx(math.radians(37.5))
-    from haptic_acu.samples import write_sample
+    from haptic_acu.servo.samples import write_sample
     buf = np.zeros((1, len(COL)))
     write_sample(buf, 0, 0.0, 0, m.inp, m.state, m.out.diag, 0.0)
     assert buf[0, COL["roll_deg"]] == pytest.approx(37.5)
@@ -201,8 +201,8 @@ def test_session_dt_sets_the_relaxation_clock(cfg):
 @pytest.mark.parametrize("name", ["twirl_even", "twirl_reinforcing", "twirl_reducing"])
 def test_bundled_twirls_replay_with_their_roll(cfg, name):
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session
-    from haptic_acu import trajectory
+    from haptic_acu.session.engine import Session
+    from haptic_acu.session import trajectory
 
     class Keep(Sink):
         def __init__(self):
@@ -235,7 +235,7 @@ def test_bundled_twirls_replay_with_their_roll(cfg, name):
 def _synthetic_rows(roll_deg, t):
     """Sample rows of one insertion at the acupoint: skin punctured throughout, the tip 20 mm deep
     along -z, rolled by ``roll_deg``; a torque column proportional to the roll."""
-    from haptic_acu.samples import NCOL
+    from haptic_acu.servo.samples import NCOL
     rows = np.zeros((len(t), NCOL))
     rows[:, COL["t_s"]] = t
     rows[:, COL["tick"]] = np.arange(len(t))
@@ -250,7 +250,7 @@ def _synthetic_rows(roll_deg, t):
 def test_session_metrics_report_the_twirl_of_each_insertion(cfg):
     """A sinusoidal twirl of known amplitude and frequency in the sample rows: the per-insertion
     technique metrics read them back (closed forms: amplitude A, swing 2A, frequency f, N cycles)."""
-    from haptic_acu.metrics import session_metrics
+    from haptic_acu.analysis.metrics import session_metrics
     t = np.arange(0, 8.0, DT)
     A, f = 45.0, 0.5
     roll = np.where(t >= 2.0, A * np.sin(2 * np.pi * f * (t - 2.0)), 0.0)  # 3 cycles from t = 2 s
@@ -268,7 +268,7 @@ def test_session_metrics_report_the_twirl_of_each_insertion(cfg):
 @pytest.mark.parametrize("name, label", [("twirl_reinforcing", "reinforcing"), ("twirl_reducing", "reducing"),
                                          ("twirl_even", "even")])
 def test_replay_summary_has_technique_metrics_and_the_grasp_felt(cfg, tmp_path, name, label):
-    from haptic_acu.replay import replay_one
+    from haptic_acu.session.replay import replay_one
     s = replay_one(REPO / "trajectories" / f"{name}.csv", tmp_path / "out", rrd=False, progress=False, cfg=cfg)
     ins = s["metrics"]["per_insertion"]
     assert len(ins) == 1
@@ -287,8 +287,8 @@ def test_replay_summary_has_technique_metrics_and_the_grasp_felt(cfg, tmp_path, 
 
 
 def test_cohort_insertion_table_has_the_technique_columns(cfg):
-    from haptic_acu.cohort import INSERTION_COLUMNS, insertion_table
-    from haptic_acu.replay import replay_rows
+    from haptic_acu.cohort.sessions import INSERTION_COLUMNS, insertion_table
+    from haptic_acu.session.replay import replay_rows
     path = REPO / "trajectories" / "twirl_reducing.csv"
     rows, ref = replay_rows(path, cfg), replay_rows(path, cfg, roll=False)
     assert np.all(ref[:, COL["roll_deg"]] == 0.0) and np.all(ref[:, COL["torque_nmm"]] == 0.0)
@@ -309,10 +309,10 @@ def test_a_recording_replays_with_its_twirling(cfg, tmp_path):
     """A session recorded (RecorderSink) writes roll_deg; replaying the recording gives the same
     roll and the same torque, tick for tick."""
     from haptic_acu.devices.scripted import ScriptedDevice
-    from haptic_acu.engine import Session
-    from haptic_acu.recorder import EXTRA, RecorderSink
-    from haptic_acu.replay import replay_rows
-    from haptic_acu import trajectory
+    from haptic_acu.session.engine import Session
+    from haptic_acu.session.recorder import EXTRA, RecorderSink
+    from haptic_acu.session.replay import replay_rows
+    from haptic_acu.session import trajectory
 
     src = REPO / "trajectories" / "twirl_even.csv"
     rec = tmp_path / "rec.csv"

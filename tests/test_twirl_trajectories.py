@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import technique as TQ
-from haptic_acu import trajectory as T
+from haptic_acu.analysis import technique as TQ
+from haptic_acu.session import trajectory as T
 
 ROOT = Path(__file__).resolve().parent.parent
 DIR = ROOT / "trajectories"

@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu import progress
+from haptic_acu.base import progress
 from haptic_acu.cli import COMMANDS, build_parser
-from haptic_acu.config import load_config
-from haptic_acu.errors import UserError
-from haptic_acu.overrides import apply_overrides, parse_set
-from haptic_acu.samples import COL, NCOL
-from haptic_acu.status import format_status, loop_health
-from haptic_acu.viewer import NO_DISPLAY, NO_DISPLAY_REPLAY, has_display
+from haptic_acu.base.config import load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.base.overrides import apply_overrides, parse_set
+from haptic_acu.servo.samples import COL, NCOL
+from haptic_acu.session.status import format_status, loop_health
+from haptic_acu.session.viewer import NO_DISPLAY, NO_DISPLAY_REPLAY, has_display
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -198,7 +198,7 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
 
 
 def test_status_on_common_terminal_widths_keeps_what_the_trainee_acts_on():
-    """Issue 16's fields on a real terminal: the full line is over 200 columns, so what stays at 80
+    """The status line's fields on a real terminal: the full line is over 200 columns, so what stays at 80
     and 120 columns matters. Inside the tissue: the depth against the target and the force at 80
     (and the speed at 100), the roll at 120; in the air: the position against the acupoint."""
     r = _row(layer=2, states=(2, 2, 2), force=(0, 0, 0.3))
@@ -220,7 +220,7 @@ def test_status_on_common_terminal_widths_keeps_what_the_trainee_acts_on():
 
 
 def test_status_says_when_the_continuous_force_protection_eases_off():
-    from haptic_acu import rendering
+    from haptic_acu.servo import rendering
 
     r = _row(layer=2, states=(2, 2, 0), force=(0, 0, 0.9))
     assert "CONTINUOUS FORCE LIMIT" not in format_status(1.0, r, RATES, 0)
@@ -239,7 +239,7 @@ def test_rerun_is_found_beside_the_interpreter(monkeypatch, tmp_path):
     """An environment used without activating it: rerun is beside sys.executable, not on PATH."""
     import shutil
 
-    from haptic_acu import viewer
+    from haptic_acu.session import viewer
 
     bindir = tmp_path / "venv-bin"
     bindir.mkdir()
@@ -257,10 +257,10 @@ def test_rerun_is_found_beside_the_interpreter(monkeypatch, tmp_path):
 
 @pytest.mark.slow
 def test_precompile_fills_the_caches_and_leaves_nothing_behind(tmp_path):
-    """`python -m haptic_acu.precompile` (run by make after the install) runs to the end and removes
+    """`python -m haptic_acu.cli.precompile` (run by make after the install) runs to the end and removes
     its temporary replay folder."""
     env = dict(os.environ, TMPDIR=str(tmp_path))
-    r = subprocess.run([sys.executable, "-m", "haptic_acu.precompile"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "haptic_acu.cli.precompile"], capture_output=True, text=True,
                        timeout=900, env=env, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "caches ready" in r.stderr.splitlines()[-1]

@@ -20,8 +20,8 @@ import math
 import numpy as np
 from scipy.optimize import minimize
 
-from haptic_acu.calibrate_cmd import RiseFit, rise_report
-from haptic_acu.config import load_config
+from haptic_acu.cli.calibrate import RiseFit, rise_report
+from haptic_acu.base.config import load_config
 
 # Rise shape: Okamura, Simone and O'Leary 2004's f = a1 x + a2 x^2 before a puncture, with their
 # liver's curvature relative to the break (a2 x_b / a1 = 0.0061 * 16.7 / 0.048 = 2.12), scaled to each

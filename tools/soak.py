@@ -1,13 +1,13 @@
 """A live session's memory over a long run: ``haptic-acu run --device scripted`` with ``--record`` and
 ``--rrd`` on the default insertion repeated for ``--minutes``, the resident memory of the session and
-of its rerun logging child sampled every ``--every`` seconds from /proc (issue 15's soak).
+of its rerun logging child sampled every ``--every`` seconds from /proc.
 
     python tools/soak.py --minutes 10 [--every 10] [--out DIR] [--pin-cores] [--floor]
 
 The session records (``<out>/session/recording.csv``) and logs to rerun (``session.rrd``) as a live
 trainee's session does; its own loop line (ticks, missed ticks, period error) is printed at the end
 beside the host's hypervisor steal over the run (/proc/stat), so the same run is the 10-minute
-zero-missed-tick measurement of issue 13 (``--pin-cores``: servo thread and logging child apart).
+zero-missed-tick measurement (``--pin-cores``: servo thread and logging child apart).
 ``--floor`` then runs the compiled loop's floor for as long (``bench.measure.compiled_floor``: the
 same timing rule with no work, pinned alone on the servo's core): what the machine itself misses.
 

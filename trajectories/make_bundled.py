@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 try:
-    from haptic_acu.trajectory import TrajectoryWriter
+    from haptic_acu.session.trajectory import TrajectoryWriter
 except ImportError:  # run from a checkout without the package installed
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from haptic_acu.trajectory import TrajectoryWriter
+    from haptic_acu.session.trajectory import TrajectoryWriter
 
 RATE_HZ = 200
 RAMP_S = 0.2

@@ -72,7 +72,7 @@ def forearm() -> tuple[np.ndarray, np.ndarray]:
 
 def main(argv: list[str]) -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    from haptic_acu.objmesh import write_obj
+    from haptic_acu.tissue.objmesh import write_obj
 
     verts, faces = forearm()
     out = Path(argv[0]) if argv else Path(__file__).with_name("forearm.obj")

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 
 from haptic_acu.devices.base import Workspace  # noqa: E402
-from haptic_acu.errors import DeviceFault, UserError  # noqa: E402
+from haptic_acu.base.errors import DeviceFault, UserError  # noqa: E402
 
 
 class StepBoom(RuntimeError):

@@ -1,0 +1,597 @@
+"""One insertion's metrics streamed in bounded memory: :class:`InsertionStream`.
+
+:func:`haptic_acu.analysis.metrics.insertion_metrics` needs the insertion's rows; a 10-minute hold in muscle
+is 600,000 of them. This module computes the same dict from the rows as they arrive, keeping only:
+
+* running extremes and counts (entry, peaks per layer and of |F|, the tip's depth, lateral ticks,
+  the first tick at the target's lower bound, the deepest point and so the insertion direction u);
+* the depth's *records* (ticks deeper than every earlier one) not shallower than 90% of the
+  deepest so far: the insertion speed's end tick and the lift-thrust start are among them;
+* the reversals of the roll (twirling) and of the continuous depth (lift-thrust strokes) as found
+  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`), each
+  stroke's sums (moving samples, speed, force vector: the resistance is linear in u);
+* the troughs of the continuous depth with their prominences, found sample by sample with a stack
+  of open peaks (:class:`TroughScan`, the result of :func:`haptic_acu.analysis.metrics.find_troughs`);
+  troughs before the lift-thrust start are dropped at the end (the start is a depth record, before
+  which every sample is shallower, so it changes no later trough's prominence);
+* the withdrawal window's peak and mean resistances (only with a reference replay).
+
+Memory is bounded by the number of lift-thrust and twirl cycles, not the insertion's length. One
+quantity needs the final insertion direction u before the rows are seen: the continuous depth adds
+back the depth frame's steps at the fat and muscle punctures, each the tip's advance along u on
+that tick. So the first :data:`BUFFER_ROWS` rows (20 s at 1 kHz, ~1.6 MB) are kept; an insertion
+that ends within them is measured with its final u (exactly as :func:`insertion_metrics`); a
+longer one fixes u for the steps at that point. Its continuous depth then differs from the batch
+one only if the tip later goes deeper than ever before (changing u), by at most the step ticks'
+one-tick advance times the change of u: :attr:`InsertionStream.step_error_bound_m` (e.g. 10 um x
+0.05 rad = 0.5 um, below the metrics' 1 um rounding). Everything else is exact up to the order of
+floating-point sums (means of strokes and of the grasp window: relative 1e-13, far below the
+rounding of the outputs); tests/test_metrics_stream.py compares with the batch functions.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..servo.samples import COL
+from .common import dot3
+from .technique import DEPTH_MIN_STROKE_MM, MIN_SPEED_MM_S, ROLL_MIN_SWING_DEG, classify
+
+BUFFER_ROWS = 20_000  # rows kept before the continuous depth's steps are fixed (module docstring)
+PLATEAU_T_CAP = 4096  # times kept for the middle of a flat trough (beyond: interpolated, <1 tick off)
+
+_X, _F, _T, _TICK = COL["x_m"], COL["fx_n"], COL["t_s"], COL["tick"]
+_PUNCT, _DEPTH, _LAT = COL["puncture"], COL["depth_skin_m"], COL["f_lateral_n"]
+_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
+_ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
+NONE, NEW, REV = 0, 1, 2
+
+
+class ZigZag:
+    """:func:`haptic_acu.analysis.technique.turning_points` one sample at a time. :meth:`step` returns NEW when
+    the pending reversal (the running extreme, once the signal has moved ``min_swing`` from its
+    start) moves to this sample, REV when the pending one is confirmed (this sample becomes the next
+    pending one), else NONE."""
+
+    __slots__ = ("ms", "d", "xhi", "xlo", "started")
+
+    def __init__(self, min_swing: float):
+        self.ms = float(min_swing)
+        self.d = 0
+        self.xhi = self.xlo = 0.0
+        self.started = False
+
+    def step(self, v: float) -> int:
+        if not self.started:
+            self.started = True
+            self.xhi = self.xlo = v
+            return NONE
+        if self.d == 0:
+            if v > self.xhi:
+                self.xhi = v
+            if v < self.xlo:
+                self.xlo = v
+            if v - self.xlo >= self.ms:
+                self.d, self.xhi = 1, v
+                return NEW
+            if self.xhi - v >= self.ms:
+                self.d, self.xlo = -1, v
+                return NEW
+            return NONE
+        if self.d > 0:
+            if v > self.xhi:
+                self.xhi = v
+                return NEW
+            if self.xhi - v >= self.ms:
+                self.d, self.xlo = -1, v
+                return REV
+            return NONE
+        if v < self.xlo:
+            self.xlo = v
+            return NEW
+        if v - self.xlo >= self.ms:
+            self.d, self.xhi = 1, v
+            return REV
+        return NONE
+
+
+class TroughScan:
+    """Troughs of a depth signal with their prominences (:func:`haptic_acu.analysis.metrics.find_troughs`,
+    i.e. scipy's peak rules on minus the depth), sample by sample. Open peaks (no strictly higher
+    sample after them yet) sit on a stack, each with its left base and the minimum of the samples
+    from it to the next open peak; a peak is closed, and its prominence known, at the first
+    strictly higher sample or at :meth:`finish`. ``found``: (index, t, prominence) of those with at
+    least ``prominence``."""
+
+    def __init__(self, prominence: float):
+        self.prom = float(prominence)
+        self.stack: list[list] = [[math.inf, -1, 0.0, math.inf, math.inf]]  # x, index, t, left, seg min
+        self.prev: float | None = None
+        self.rising = False
+        self.ps = 0  # first index of the current plateau after a rise
+        self.pt: list[float] = []  # its times (up to PLATEAU_T_CAP)
+        self.pt_last = 0.0
+        self.found: list[tuple[int, float, float]] = []
+
+    def _mid_t(self, c: int, i_last: int) -> float:
+        k = c - self.ps
+        if k < len(self.pt):
+            return self.pt[k]
+        t0, n = self.pt[0], i_last - self.ps  # a very long flat trough: linear in the index
+        return t0 + (self.pt_last - t0) * k / n
+
+    def _push(self, xc: float, c: int, tc: float) -> None:
+        st = self.stack
+        acc = math.inf
+        j = len(st) - 1
+        while st[j][0] <= xc:  # equal peaks are not strictly higher: the base runs past them
+            acc = min(acc, st[j][4])
+            j -= 1
+        acc = min(acc, st[j][4])
+        st.append([xc, c, tc, acc, xc])
+
+    def _emit(self, e, right: float) -> None:
+        p = e[0] - max(e[3], right)
+        if p >= self.prom:
+            self.found.append((e[1], e[2], p))
+
+    def feed(self, i0: int, x: list, t: list) -> None:
+        """Samples ``x`` (minus the depth) at times ``t``; ``i0`` the first one's index."""
+        st = self.stack
+        prev = self.prev
+        for k, (v, tk) in enumerate(zip(x, t)):
+            i = i0 + k
+            if prev is not None:
+                if v > prev:
+                    self.rising, self.ps, self.pt, self.pt_last = True, i, [tk], tk
+                elif v < prev:
+                    if self.rising:
+                        c = (self.ps + i - 1) // 2
+                        self._push(prev, c, self._mid_t(c, i - 1))
+                        self.rising = False
+                elif self.rising:
+                    if len(self.pt) < PLATEAU_T_CAP:
+                        self.pt.append(tk)
+                    self.pt_last = tk
+            if st[-1][0] < v:
+                acc = math.inf
+                while st[-1][0] < v:
+                    e = st.pop()
+                    acc = min(acc, e[4])
+                    self._emit(e, acc)
+                top = st[-1]
+                top[4] = min(top[4], acc)
+            top = st[-1]
+            if v < top[4]:
+                top[4] = v
+            prev = v
+        self.prev = prev
+
+    def finish(self) -> list[tuple[int, float, float]]:
+        acc = math.inf
+        while len(self.stack) > 1:
+            e = self.stack.pop()
+            acc = min(acc, e[4])
+            self._emit(e, acc)
+        return sorted(self.found)
+
+
+class _Twirl:
+    """:func:`haptic_acu.analysis.technique.twirl_metrics` on a streamed roll: its reversals (roll, t and the
+    cumulative |roll increments| there), the first and last roll, the total rotation, peak torque."""
+
+    def __init__(self):
+        self.zz = ZigZag(ROLL_MIN_SWING_DEG)
+        self.revs: list[tuple[float, float, float]] = []
+        self.cand = (0.0, 0.0, 0.0)
+        self.first = self.last = None
+        self.total = 0.0
+        self.peak = 0.0
+
+    def feed(self, t: np.ndarray, roll: np.ndarray, torque: np.ndarray) -> None:
+        self.peak = max(self.peak, float(np.abs(torque).max()))
+        prev = roll[0] if self.last is None else self.last
+        if self.first is None:
+            self.first = float(roll[0])
+        steps = np.abs(np.diff(np.concatenate(([prev], roll))))
+        cum = self.total + np.cumsum(steps)
+        self.total = float(cum[-1])
+        self.last = float(roll[-1])
+        moved = np.flatnonzero(steps != 0.0)  # a repeated value never changes a zigzag
+        if self.zz.started:
+            idx = moved
+        else:
+            idx = np.concatenate(([0], moved[moved > 0]))
+        zz = self.zz
+        for j, v, tj, cj in zip(idx.tolist(), roll[idx].tolist(), t[idx].tolist(), cum[idx].tolist()):
+            ev = zz.step(v)
+            if ev == REV:
+                self.revs.append(self.cand)
+            if ev:
+                self.cand = (v, tj, cj)
+
+    def result(self) -> dict:
+        from .technique import _r
+        n = len(self.revs)
+        swing = freq = speed = None
+        if n >= 2:
+            r = np.array([x[0] for x in self.revs])
+            swing = float(np.abs(np.diff(r)).mean())
+            span = float(self.revs[-1][1] - self.revs[0][1])
+            if span > 0:
+                freq = (n - 1) / 2.0 / span
+                speed = (self.revs[-1][2] - self.revs[0][2]) / span
+        return {
+            "cycles": (n + 1) // 2,
+            "reversals": n,
+            "swing_deg": _r(swing, 2),
+            "amplitude_deg": _r(None if swing is None else swing / 2.0, 2),
+            "frequency_hz": _r(freq, 3),
+            "mean_speed_deg_s": _r(speed, 1),
+            "net_rotation_deg": _r(self.last - self.first, 2),
+            "total_rotation_deg": _r(self.total, 2),
+            "peak_torque_nmm": _r(self.peak, 4),
+        }
+
+
+class _Strokes:
+    """The lift-thrust strokes of :func:`haptic_acu.analysis.technique.stroke_forces` and the withdrawal window
+    of :func:`~haptic_acu.analysis.technique.grasp_felt`, on the streamed continuous depth (mm).
+
+    Per sample, for both signs of a stroke and both of numpy.gradient's formulas (uniform spacing
+    or not: known only at the end), the moving-sample count, speed sum and force-vector sum are
+    summed into running prefixes; a stroke between reversals a and b is then P(b) - Q(a) (Q: the
+    prefix before a sample)."""
+
+    def __init__(self, has_ref: bool):
+        self.zz = ZigZag(DEPTH_MIN_STROKE_MM)
+        self.carry = np.zeros(20)
+        self.cand = None  # (index, dcm, P row, Q row)
+        self.last_rev = None
+        self.strokes: list[tuple[float, np.ndarray]] = []  # (sign, its 10 sums: 5 per formula)
+        self.has_ref = has_ref
+        self.win_cand = self.win_conf = None  # [start dcm, max res, max ref, sum res, sum ref, n, closed]
+        self.last_dcm = None
+
+    @staticmethod
+    def _contrib(v_uni, v_non, f):
+        cols = []
+        for v in (v_uni, v_non):
+            for s in (1.0, -1.0):
+                sv = s * v
+                m = sv > MIN_SPEED_MM_S
+                cols += [m.astype(np.float64), np.where(m, sv, 0.0)]
+                cols += [np.where(m, f[:, j], 0.0) for j in range(3)]
+        return np.stack(cols, axis=1)  # (k, 20): formula-major, then sign, then (n, speed, fx, fy, fz)
+
+    def feed(self, i0, dcm, v_uni, v_non, f, res, rres) -> None:
+        c = self._contrib(v_uni, v_non, f)
+        P = np.cumsum(np.vstack([self.carry, c]), axis=0)
+        Q, P = P[:-1], P[1:]
+        self.carry = P[-1].copy()
+        zz = self.zz
+        has_ref = self.has_ref
+        dl = dcm.tolist()
+        rl = res.tolist() if has_ref else None
+        ql = rres.tolist() if has_ref else None
+        for k, v in enumerate(dl):
+            ev = zz.step(v)
+            if ev == REV:
+                if self.last_rev is not None:
+                    sgn = 1.0 if self.cand[1] > self.last_rev[1] else -1.0
+                    self.strokes.append((sgn, self.cand[2] - self.last_rev[3]))
+                self.last_rev = self.cand
+                if has_ref:
+                    self.win_conf = self.win_cand
+            if ev:
+                self.cand = (i0 + k, v, P[k], Q[k])
+                if has_ref:
+                    self.win_cand = [v, -math.inf, -math.inf, 0.0, 0.0, 0, False]
+            if has_ref:
+                for w in (self.win_cand, self.win_conf):
+                    if w is not None and not w[6]:
+                        w[1] = max(w[1], rl[k])
+                        w[2] = max(w[2], ql[k])
+                        w[3] += rl[k]
+                        w[4] += ql[k]
+                        w[5] += 1
+                        w[6] = v <= 0.0
+        if dl:
+            self.last_dcm = dl[-1]
+
+    def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
+        from .technique import summarise_strokes
+        off = 0 if uniform else 10
+        per = []
+        for sgn, sums in self.strokes:
+            j = off + (0 if sgn > 0 else 5)
+            n = sums[j]
+            if n <= 0:
+                continue
+            fsum = sums[j + 2:j + 5]
+            res = sgn * -float(fsum[0] * u[0] + fsum[1] * u[1] + fsum[2] * u[2]) / n
+            per.append((sgn, float(sums[j + 1]) / n, res))
+        return summarise_strokes(per)
+
+    def grasp_result(self) -> dict:
+        from .technique import _r
+        w = self.win_conf
+        if self.last_rev is None or w is None or self.last_dcm >= self.last_rev[1]:
+            return {"peak_ratio": None, "mean_ratio": None, "peak_n": None, "reference_peak_n": None}
+        peak, ref_peak = w[1], w[2]
+        mean, ref_mean = w[3] / w[5], w[4] / w[5]
+        return {
+            "peak_ratio": _r(peak / ref_peak, 3) if ref_peak > 0 else None,
+            "mean_ratio": _r(mean / ref_mean, 3) if ref_mean > 0 else None,
+            "peak_n": _r(peak, 4),
+            "reference_peak_n": _r(ref_peak, 4),
+        }
+
+
+class _Press:
+    """The skin's pressing run before a puncture: where it began and its window peaks so far."""
+
+    def __init__(self, index: int, row: np.ndarray):
+        self.index = index
+        self.t = float(row[_T])
+        self.entry = row[_X:_X + 3].copy()
+        self.layer_peak = [0.0, 0.0, 0.0]
+        self.f_peak = 0.0
+        self.tip_max = -math.inf
+
+    def feed(self, rows: np.ndarray, tip) -> None:
+        for j, c in enumerate(_LAYER_F):
+            self.layer_peak[j] = max(self.layer_peak[j], float(np.abs(rows[:, c]).max()))
+        f = rows[:, _F:_F + 3]
+        self.f_peak = max(self.f_peak, float(np.sqrt(np.einsum("ij,ij->i", f, f)).max()))
+        if tip is not None:
+            self.tip_max = max(self.tip_max, float(tip.max()))
+
+
+class InsertionStream:
+    """:func:`haptic_acu.analysis.metrics.insertion_metrics` of one insertion fed block by block (module
+    docstring). ``press``: its entry's pressing run (:class:`_Press`), opened at the run's first row
+    if it had none; ``inward``: the inward skin normal at the entry; ``ref_rows``: the session
+    replayed without rotation for the grasp felt, as (ticks, forces (n, 3)), or None."""
+
+    def __init__(self, press: _Press, target_mm, inward: np.ndarray, comfort_n: float, ref_rows=None):
+        self.press = press
+        self.entry = press.entry
+        self.lo = float(target_mm[0])
+        self.target = (float(target_mm[0]), float(target_mm[1]))
+        self.inward = inward
+        self.comfort = comfort_n
+        self.ref = ref_rows
+        self.ref_ok = ref_rows is not None
+        self.n = 0
+        self.t0 = self.t_last = 0.0
+        self.p0 = None
+        self.skin_punctured = False
+        self.lat_over, self.lat_max = 0, -math.inf
+        self.max_depth = -math.inf
+        self.p_deep = None
+        self.records: list[np.ndarray] = []  # rows (index, depth, t, px, py, pz), depth-pruned
+        self.k_lo = None  # (index, t) of the first tick at the target's lower bound
+        self.twirl = _Twirl()
+        self.strokes = _Strokes(ref_rows is not None)
+        self.troughs = TroughScan(1e-3)
+        self.buf: list[np.ndarray] = []
+        self.nbuf = 0
+        self.u_steps = None  # the direction the continuous depth's steps use, once fixed
+        self.step_rows: list[np.ndarray] = []  # (p, prev p) at the step ticks, for the error bound
+        self.s_carry = 0.0
+        self.tail = None  # the last two processed samples: (t, depth, axial, dcm rows)
+        self.dx0 = None  # the run's first tick interval, and whether every interval equals it
+        self.uniform = True  # (numpy.gradient's uniform formula then)
+        self.next_i = 0  # samples through the strokes and troughs so far
+        self.step_dp = 0.0  # summed |one-tick tip motion| at the step ticks
+        self.step_error_bound_m = 0.0
+        self.pend = None  # the sample waiting for its right neighbour
+        self.left = None  # (t, dcm) of the sample before it
+
+    # -- direction -------------------------------------------------------------------------------
+    def direction(self):
+        """(u, angle in degrees or None) from the entry to the deepest point so far."""
+        from .common import angle_deg as _angle_deg
+        direction = self.p_deep - self.entry
+        length = float(np.linalg.norm(direction))
+        if length > 1e-6:
+            u = direction / length
+            return u, _angle_deg(u, self.inward)
+        return self.inward, None
+
+    # -- feeding ---------------------------------------------------------------------------------
+    def feed(self, rows: np.ndarray, tip) -> None:
+        """Rows of the run (skin punctured), oldest first; ``tip``: their tip depth or None."""
+        k = len(rows)
+        if k == 0:
+            return
+        t = rows[:, _T]
+        depth = rows[:, _DEPTH]
+        i0 = self.n
+        if self.n == 0:
+            self.t0, self.p0 = float(t[0]), rows[0, _X:_X + 3].copy()
+            self.skin_punctured = bool(rows[0, _PUNCT] == 0)
+        d = np.diff(t) if self.n == 0 else np.diff(np.concatenate(([self.t_last], t)))
+        if d.size:
+            if self.dx0 is None:
+                self.dx0 = float(d[0])
+            self.uniform = self.uniform and bool((d == self.dx0).all())
+        self.n += k
+        self.t_last = float(t[-1])
+        self.press.feed(rows, tip)
+        lat = rows[:, _LAT]
+        self.lat_over += int(np.count_nonzero(lat > self.comfort))
+        self.lat_max = max(self.lat_max, float(lat.max()))
+        self._records(i0, t, depth, rows[:, _X:_X + 3])
+        if self.k_lo is None:
+            hit = np.flatnonzero(depth >= self.lo * 1e-3)
+            if hit.size:
+                self.k_lo = (i0 + int(hit[0]), float(t[hit[0]]))
+        self.twirl.feed(t, rows[:, _ROLL], rows[:, _TORQUE])
+        cols = [t, depth, rows[:, _X], rows[:, _X + 1], rows[:, _X + 2], rows[:, _F], rows[:, _F + 1],
+                rows[:, _F + 2], rows[:, _PUNCT]]
+        if self.ref is not None:
+            cols += list(self._ref_forces(rows[:, _TICK]).T)
+        block = np.stack(cols, axis=1)
+        if self.u_steps is None:
+            self.buf.append(block)
+            self.nbuf += k
+            if self.nbuf >= BUFFER_ROWS:
+                self._fix_steps()
+        else:
+            self._dc_block(block)
+
+    def _records(self, i0, t, depth, p) -> None:
+        prior = np.maximum.accumulate(np.concatenate(([self.max_depth], depth)))[:-1]
+        rec = np.flatnonzero(depth > prior)
+        if rec.size == 0:
+            return
+        self.max_depth = float(depth[rec[-1]])
+        self.p_deep = p[rec[-1]].copy()
+        new = np.column_stack([i0 + rec, depth[rec], t[rec], p[rec]])
+        keep = 0.9 * self.max_depth
+        old = [r[r[:, 1] >= keep] for r in self.records]
+        self.records = [r for r in old + [new[new[:, 1] >= keep]] if len(r)]
+        if len(self.records) > 64:
+            self.records = [np.concatenate(self.records)]
+
+    def _ref_forces(self, ticks: np.ndarray) -> np.ndarray:
+        """The reference replay's force rows on these ticks (zeros, and no grasp, if it lacks one)."""
+        ref_ticks, ref_f = self.ref
+        idx = np.searchsorted(ref_ticks, ticks)
+        ok = idx < len(ref_ticks)
+        if not ok.all() or not np.array_equal(ref_ticks[idx], ticks):
+            self.ref_ok = False
+            return np.zeros((len(ticks), 3))
+        return ref_f[idx]
+
+    def _fix_steps(self) -> None:
+        self.u_steps = self.direction()[0]
+        for b in self.buf:
+            self._dc_block(b)
+        self.buf, self.nbuf = [], 0
+
+    def _dc_block(self, b: np.ndarray) -> None:
+        """Continuous depth (module docstring) of buffered rows ``b``, then strokes and troughs."""
+        u = self.u_steps
+        depth, p = b[:, 1], b[:, 2:5]
+        axial = dot3(p - self.entry, u)
+        first = self.tail is None
+        if first:
+            jump = np.diff(axial) - np.diff(depth)
+            at = b[1:, 8] >= 1
+            step = np.concatenate(([0.0], np.where(at, np.maximum(jump, 0.0), 0.0)))
+            dp = np.diff(p, axis=0)[at]
+        else:
+            jump = np.diff(np.concatenate(([self.tail[0]], axial))) - np.diff(np.concatenate(([self.tail[1]], depth)))
+            at = b[:, 8] >= 1
+            step = np.where(at, np.maximum(jump, 0.0), 0.0)
+            dp = np.diff(np.vstack([self.tail[2], p]), axis=0)[at]
+        self.step_dp += float(np.linalg.norm(dp, axis=1).sum())
+        s = np.cumsum(np.concatenate(([self.s_carry], step)))[1:]
+        self.s_carry = float(s[-1])
+        self.tail = (float(axial[-1]), float(depth[-1]), p[-1].copy())
+        dc = depth + s
+        uc = self.direction()[0]
+        res = -(-dot3(b[:, 5:8], uc))  # a lift's resistance: minus the axial force -F . u
+        rres = -(-dot3(b[:, 9:12], uc)) if self.ref is not None else np.zeros(len(b))
+        new = np.column_stack([b[:, 0], dc, dc * 1e3, b[:, 5:8], res, rres])
+        self._process(new)
+
+    def _process(self, new: np.ndarray, final: bool = False) -> None:
+        """Strokes and troughs of every sample whose right neighbour is known (all, if ``final``)."""
+        a = new if self.pend is None else np.vstack([self.pend, new])
+        m = len(a) if final else len(a) - 1
+        if m <= 0:
+            self.pend = a
+            return
+        t, dcm = a[:, 0], a[:, 2]
+        left = self.left  # (t, dcm) of the sample before a[0], if any
+        te = np.concatenate(([np.nan if left is None else left[0]], t, [np.nan]))
+        fe = np.concatenate(([np.nan if left is None else left[1]], dcm, [np.nan]))
+        l_t, m_t, r_t = te[:m], te[1:m + 1], te[2:m + 2]
+        l_f, m_f, r_f = fe[:m], fe[1:m + 1], fe[2:m + 2]
+        dx1, dx2 = m_t - l_t, r_t - m_t
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ca = -(dx2) / (dx1 * (dx1 + dx2))
+            cb = (dx2 - dx1) / (dx1 * dx2)
+            cc = dx1 / (dx2 * (dx1 + dx2))
+            v_non = ca * l_f + cb * m_f + cc * r_f
+            v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
+        g0 = self.next_i
+        self.strokes.feed(g0, dcm[:m], v_uni, v_non, a[:m, 3:6], a[:m, 6], a[:m, 7])
+        self.troughs.feed(g0, (-a[:m, 1]).tolist(), t[:m].tolist())
+        self.next_i += m
+        self.left = (float(t[m - 1]), float(dcm[m - 1]))
+        self.pend = a[m:]
+
+    # -- the result ------------------------------------------------------------------------------
+    def result(self) -> dict:
+        """The insertion's dict as :func:`~haptic_acu.analysis.metrics.insertion_metrics` (with dt = 0: the
+        caller applies the session's tick period) and without its ``punctures``."""
+        from .common import LAYERS, SPEED_DEPTH_FRACTION, depth_verdict
+        from .common import round_json as _r
+        if self.u_steps is None:
+            self._fix_steps()
+        self._process(np.zeros((0, 8)), final=True)
+        u, angle = self.direction()
+        self.step_error_bound_m = self.step_dp * float(np.linalg.norm(u - self.u_steps))
+        lo, hi = self.target
+        max_depth = self.max_depth
+        rec = np.concatenate(self.records) if self.records else np.zeros((0, 6))
+        thr = SPEED_DEPTH_FRACTION * max_depth
+        hit = np.flatnonzero(rec[:, 1] >= thr)
+        k90 = int(rec[hit[0], 0]) if hit.size else 0
+        speed = None
+        if k90 > 0:
+            r = rec[hit[0]]
+            if r[2] > self.t0:
+                ax = dot3(np.vstack([r[3:6], self.p0]) - self.entry, u)
+                speed = (ax[0] - ax[1]) / (r[2] - self.t0) * 1e3
+        t_target = None if self.k_lo is None else float(self.k_lo[1] - self.press.t)
+        at_depth = min(lo * 1e-3, thr)
+        if at_depth == lo * 1e-3:
+            k_start = 0 if self.k_lo is None else self.k_lo[0]
+        else:
+            k_start = k90
+        out = {
+            "t_entry_s": _r(self.press.t, 4),
+            "t_inside_s": _r(self.t0, 4),
+            "t_exit_s": _r(self.t_last, 4),
+            "skin_punctured": self.skin_punctured,
+            "entry_mm": [_r(v * 1e3, 3) for v in self.entry],
+            "entry_offset_mm": _r(np.linalg.norm(self.entry) * 1e3, 3),
+            "angle_deg": _r(angle, 2),
+            "max_depth_mm": _r(max_depth * 1e3, 3),
+            "depth_verdict": depth_verdict(max_depth * 1e3, (lo, hi)),
+            "insertion_speed_mm_s": _r(speed, 3),
+            "time_to_target_s": _r(t_target, 4),
+            "peak_layer_force_n": {name: _r(v, 4) for name, v in zip(LAYERS, self.press.layer_peak)},
+            "peak_total_force_n": _r(self.press.f_peak, 4),
+            "lift_thrust": self._cycles(k_start),
+            "lateral": {"ticks_over": self.lat_over, "time_over_s": 0.0, "max_n": _r(self.lat_max, 4)},
+            "time_in_tissue_s": 0.0,
+        }
+        if self.press.tip_max > -math.inf:
+            out["max_tip_depth_mm"] = _r(max(self.press.tip_max, 0.0) * 1e3, 3)
+        tw = self.twirl.result()
+        st = self.strokes.stroke_result(self.uniform, u)
+        grasp = self.strokes.grasp_result() if self.ref_ok else None
+        out["technique"] = {"twirl": tw, "lift_thrust_forces": st, "grasp_felt": grasp,
+                            "classification": classify(tw, st)}
+        return out
+
+    def _cycles(self, k_start: int) -> dict:
+        from .common import round_json as _r
+        if self.n - k_start < 3:
+            return {"cycles": 0, "mean_amplitude_mm": None, "frequency_hz": None}
+        tr = [x for x in self.troughs.finish() if x[0] >= k_start]
+        n = len(tr)
+        amp = float(np.mean(np.array([x[2] for x in tr]))) * 1e3 if n else None
+        freq = None
+        if n >= 2:
+            span = float(tr[-1][1] - tr[0][1])
+            freq = (n - 1) / span if span > 0 else None
+        return {"cycles": n, "mean_amplitude_mm": _r(amp, 3), "frequency_hz": _r(freq, 3)}

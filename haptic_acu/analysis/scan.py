@@ -1,0 +1,141 @@
+"""Punctures, per-place time and peak force, and tip depths, scanned from the servo's sample rows
+(:mod:`haptic_acu.servo.samples`) in one streaming pass: what every output reports of a session.
+
+Tip depth. Every depth here is the tip's depth below the *rest* skin surface, measured radially from
+the body centre: ``r_skin(theta, phi) - |p - c|`` (m; negative above the skin); see
+:mod:`haptic_acu.session.report` for why.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..servo.samples import COL, NCOL
+from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401
+
+PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
+LAYERS = PLACES[1:4]
+
+_C_X = COL["x_m"]
+_C_F = COL["fx_n"]
+_C_T = COL["t_s"]
+_C_TICK = COL["tick"]
+_C_LAYER = COL["layer"]
+_C_STATE = COL["state_skin"]
+_C_PUNCT = COL["puncture"]
+
+
+def place_name(code: float) -> str:
+    """Name of a sample ``layer`` code: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone."""
+    return PLACES[int(code) + 1]
+
+
+def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
+    """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
+    negative above the skin."""
+    d = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) - tissue.centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    safe = np.where(rho > 0.0, rho, 1.0)
+    theta = np.arccos(np.clip(d[:, 2] / safe, -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return tissue.radius(0, theta, phi) - rho
+
+
+def radial_force_n(rows: np.ndarray, tissue) -> np.ndarray:
+    """F . u per row (N): the force along the outward radial direction at the tip (positive resists
+    insertion)."""
+    d = rows[:, _C_X:_C_X + 3] - tissue.centre
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    u = d / np.where(rho > 0.0, rho, 1.0)[:, None]
+    return np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], u)
+
+
+def _r(x: float, nd: int) -> float:
+    """Round for JSON, without negative zeros."""
+    return round(float(x), nd) + 0.0
+
+
+def puncture_records(events) -> list[dict]:
+    """:class:`SessionScan` punctures as reported everywhere (summary.json, metrics, text, figures):
+    layer, t_s (0.1 ms), tip_depth_mm (1 um), peak_force_n (0.1 mN). Computed and rounded once."""
+    return [{"layer": p["layer"], "t_s": _r(p["t_s"], 4), "tip_depth_mm": _r(p["tip_depth_m"] * 1e3, 3),
+             "peak_force_n": _r(p["peak_force_n"], 4)} for p in events]
+
+
+class SessionScan:
+    """Streaming scan of sample rows: punctures with their pressing-phase peak force, and per-place
+    time and peak force. Feed row blocks in order with :meth:`feed`; it keeps O(1) state.
+
+    A puncture is a row whose ``puncture`` column is a layer index. Its peak force is the largest
+    ``|F|`` over the rows of the uninterrupted run in which that layer's state was PRESSING just
+    before it (the run restarts if the tip lifts off and touches again); its depth is the tip's depth
+    (:func:`tip_depth_m`) at the puncture tick. Time in a place: each row's interval up to the next
+    row (t_{i+1} - t_i) counts for the place of row i.
+    """
+
+    def __init__(self, tissue):
+        self.tissue = tissue
+        self.ticks = 0
+        self.t_first: float | None = None
+        self.t_last: float | None = None
+        self.max_force = 0.0
+        self.max_depth = -np.inf
+        self.time_in = np.zeros(len(PLACES))
+        self.peak_in = np.zeros(len(PLACES))
+        self.ticks_in = np.zeros(len(PLACES), dtype=np.int64)
+        self.punctures: list[dict] = []
+        self.clamped_ticks = 0
+        self.fault_ticks = 0
+        self._prev_place = -1
+        self._prev_state = [0, 0, 0]
+        self._press_peak = [0.0, 0.0, 0.0]
+        self._press_peak_depth = [0.0, 0.0, 0.0]
+
+    def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> list[dict]:
+        """Scan a block of rows (k, NCOL); returns the punctures found in it (also kept). ``depth``:
+        the rows' :func:`tip_depth_m`, if the caller has it already."""
+        rows = np.asarray(rows)
+        k = rows.shape[0]
+        if k == 0:
+            return []
+        if rows.ndim != 2 or rows.shape[1] != NCOL:
+            raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
+        f = np.sqrt(np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], rows[:, _C_F:_C_F + 3]))
+        if depth is None:
+            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        t = rows[:, _C_T]
+        place = rows[:, _C_LAYER].astype(np.int64) + 1
+        # time: interval to the next row counts for the place of the earlier row
+        if self.t_last is not None:
+            self.time_in[self._prev_place] += t[0] - self.t_last
+        else:
+            self.t_first = float(t[0])
+        np.add.at(self.time_in, place[:-1], np.diff(t))
+        np.add.at(self.ticks_in, place, 1)
+        np.maximum.at(self.peak_in, place, f)
+        self._prev_place = int(place[-1])
+        self.t_last = float(t[-1])
+        self.ticks += k
+        self.max_force = max(self.max_force, float(f.max()))
+        self.max_depth = max(self.max_depth, float(depth.max()))
+        self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
+        self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
+        # pressing runs and punctures (a few rows per frame: a plain loop)
+        states = rows[:, _C_STATE:_C_STATE + N_LAYERS].astype(np.int64).tolist()
+        punct = rows[:, _C_PUNCT].tolist()
+        found = []
+        for i in range(k):
+            st = states[i]
+            for j in range(N_LAYERS):
+                if st[j] == PRESSING:
+                    if self._prev_state[j] != PRESSING or f[i] > self._press_peak[j]:
+                        self._press_peak[j] = float(f[i])
+                        self._press_peak_depth[j] = float(depth[i])
+                self._prev_state[j] = st[j]
+            if punct[i] >= 0:
+                j = int(punct[i])
+                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, _C_TICK]),
+                      "tip_depth_m": float(depth[i]), "peak_force_n": self._press_peak[j],
+                      "peak_depth_m": self._press_peak_depth[j]}
+                found.append(ev)
+        self.punctures.extend(found)
+        return found

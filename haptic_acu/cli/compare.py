@@ -1,0 +1,356 @@
+"""``haptic-acu compare A B [C ...]``: sessions side by side (say trainees' and an expert's).
+
+The trajectories are replayed headless on simulated time (the same engine and kernels as
+``haptic-acu replay``, no rerun recording) through one tissue built from the config. Their
+:mod:`haptic_acu.analysis.metrics` are printed as a table, one column per session: the session totals, then
+each insertion (``--insertion N``: only the N-th) with its punctures (the report's numbers:
+:func:`haptic_acu.session.report.puncture_records`). Written into the output folder:
+
+* ``compare.json``  every session's metrics; ``differences``: each later session minus the first, per
+  insertion (``first_insertion_b_minus_a`` too when there are two sessions);
+* ``compare.png``   the force along the outward normal ``F . u`` (N) against the tip's depth below
+  the rest skin (mm): the axes and force component of force_depth.png, over the same layer bands,
+  one colour per session, one panel per insertion, punctures marked.
+
+Identical input gives byte-identical files. The folder is built as ``<out>.partial`` and renamed when
+complete. Bad input is a one-line error naming the file (and line), exit status 2.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
+from ..base.errors import UserError
+from .options import add_config_args, config_from_args
+from ..base.progress import step
+from .replay import fresh_path
+from ..servo.samples import COL, NCOL
+from ..servo.state import PLACE_NAMES
+
+COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
+# per-insertion numbers whose difference from the first session goes into compare.json
+DIFF_KEYS = ("entry_offset_mm", "angle_deg", "max_depth_mm", "max_tip_depth_mm", "insertion_speed_mm_s",
+             "time_to_target_s", "peak_total_force_n", "time_in_tissue_s")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("compare", help="replay trajectories and compare their metrics and force-depth curves",
+                       description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm), say trainees' and an "
+                                   "expert's, headless through the same tissue; print their metrics side by side "
+                                   "(every insertion, or --insertion N) and write compare.json and compare.png "
+                                   "(force against depth, as in force_depth.png, one colour per session).")
+    p.add_argument("sessions", nargs="+", metavar="TRAJECTORY",
+                   help="trajectory CSVs, one per session (any number), or bundled trajectories by name ("
+                        + bundled_names() + ")")
+    add_config_args(p)
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
+                                                "if it exists)")
+    p.add_argument("--labels", nargs="+", metavar="NAME",
+                   help="a name for each session, in order (default: the file names)")
+    p.add_argument("--insertion", type=int, metavar="N",
+                   help="compare only each session's N-th insertion (1 = the first; default: all)")
+    p.set_defaults(func=run)
+
+
+def open_trajectory(path: Path, cfg):
+    """A ScriptedDevice on ``path``, opened (the whole file validated). UserError if bad."""
+    from haptic_acu.devices.scripted import ScriptedDevice
+
+    if not path.is_file():
+        raise UserError(f"{path}: trajectory file not found{not_found_hint()}")
+    dev = ScriptedDevice(path, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                         force_limit_n=cfg.safety.force_limit_n)
+    dev.open()
+    from ..session.replay import MAX_REPLAY_DURATION_S
+    if dev.duration_s > MAX_REPLAY_DURATION_S:
+        raise UserError(f"{path}: spans {dev.duration_s:.6g} s, more than a replay takes "
+                        f"({MAX_REPLAY_DURATION_S:g} s); split the file")
+    return dev
+
+
+def replay_session(device, path: Path, cfg, tissue) -> tuple[dict, list, tuple]:
+    """Play an opened device through a fresh model on simulated time: (its metrics, its punctures,
+    its :func:`session_curve`). Nothing grows with the session's length: the metrics are streamed
+    (:class:`haptic_acu.analysis.metrics.SessionMetricsScan`), the figure gets the bounded envelope of
+    :class:`haptic_acu.session.report.FigureRows` (every row of a session up to its cap, 50 s at 1 kHz)."""
+    from ..session.engine import Session
+    from ..servo.step import NeedleModel
+    from ..session.report import SummarySink, puncture_records
+
+    sink = SummarySink(cfg, keep_rows=False)
+    session = Session(cfg, device, [sink], clock="sim", model=NeedleModel(cfg, tissue), dents=False)
+    result = session.run()
+    device.close()
+    if result.fault:
+        raise UserError(f"{path}: replay stopped: {result.fault}", exit_status=3)
+    ev = puncture_records(sink.scan.punctures)
+    metrics = sink.metrics(ev)
+    rows, index = sink.figure_rows()
+    return metrics, ev, session_curve(rows, tissue, ev, index)
+
+
+# ---- the table --------------------------------------------------------------------------------
+def _fmt(x, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _tech(i, part: str, key: str):
+    """An insertion's ``technique`` number (docs/model.md s11), None where it has none."""
+    return ((i.get("technique") or {}).get(part) or {}).get(key)
+
+
+def _puncture_peak(layer: str):
+    def cell(i) -> str:
+        peaks = [f"{p['peak_force_n']:.3f}" for p in i.get("punctures", ()) if p["layer"] == layer]
+        return "/".join(peaks) or "-"
+    return cell
+
+
+INSERTION_ROWS = (
+    ("entry offset from acupoint (mm)", lambda i: f"{i['entry_offset_mm']:.2f}"),
+    ("angle to skin normal (deg)", lambda i: _fmt(i["angle_deg"], ".1f")),
+    ("needle depth in tissue (mm)", lambda i: f"{i['max_depth_mm']:.2f} {i['depth_verdict']}"),
+    ("tip below the rest skin (mm)", lambda i: _fmt(i.get("max_tip_depth_mm"), ".2f")),
+    ("insertion speed (mm/s)", lambda i: _fmt(i["insertion_speed_mm_s"], ".2f")),
+    ("time to target depth (s)", lambda i: _fmt(i["time_to_target_s"], ".3f")),
+    ("skin puncture: peak |F| (N)", _puncture_peak("skin")),
+    ("fat puncture: peak |F| (N)", _puncture_peak("fat")),
+    ("muscle puncture: peak |F| (N)", _puncture_peak("muscle")),
+    ("lift-thrust cycles", lambda i: str(i["lift_thrust"]["cycles"])),
+    ("mean lift amplitude (mm)", lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f")),
+    ("lift-thrust frequency (Hz)", lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f")),
+    ("max lateral force (N)", lambda i: f"{i['lateral']['max_n']:.3f}"),
+    ("twirl cycles", lambda i: str(_tech(i, "twirl", "cycles"))),
+    ("twirl swing (deg)", lambda i: _fmt(_tech(i, "twirl", "swing_deg"), ".0f")),
+    ("twirl frequency (Hz)", lambda i: _fmt(_tech(i, "twirl", "frequency_hz"), ".2f")),
+    ("thrust / lift resistance", lambda i: _fmt(_tech(i, "lift_thrust_forces", "thrust_to_lift"), ".2f")),
+    ("technique", lambda i: _tech(i, "classification", "label") or "-"),
+)
+
+
+def insertion_numbers(metrics, insertion: int | None) -> list[int]:
+    """The insertion indices (0-based) to show: ``insertion`` (1-based) or all of the longest session's."""
+    n = max((m["insertions"] for m in metrics), default=0)
+    if insertion is not None:
+        return [insertion - 1]
+    return list(range(n))
+
+
+def table_lines(labels, metrics, insertion: int | None = None) -> list[str]:
+    """The side-by-side table, one column per session: totals, then each insertion shown."""
+    bound = metrics[0]["lateral_comfort_n"]
+    lo, hi = metrics[0]["target_depth_mm"]
+    rows = [
+        ("insertions", [str(m["insertions"]) for m in metrics]),
+        ("skin punctures", [str(m["skin_punctures"]) for m in metrics]),
+        ("time in tissue (s)", [f"{m['time_in_tissue_s']:.3f}" for m in metrics]),
+        (f"lateral force > {bound:g} N (s)", [f"{m['lateral']['time_over_s']:.3f}" for m in metrics]),
+    ]
+    for k in insertion_numbers(metrics, insertion):
+        rows.append((f"insertion {k + 1} (target depth {lo:g}-{hi:g} mm):", None))
+        for name, fn in INSERTION_ROWS:
+            rows.append((f"  {name}", [fn(m["per_insertion"][k]) if k < len(m["per_insertion"]) else "-"
+                                       for m in metrics]))
+    w0 = max(len(name) for name, _ in rows)
+    widths = [max([len(lab)] + [len(cells[j]) for _, cells in rows if cells]) for j, lab in enumerate(labels)]
+    out = ["  ".join([f"{'':<{w0}}"] + [f"{lab:>{w}}" for lab, w in zip(labels, widths)])]
+    for name, cells in rows:
+        if cells is None:
+            out.append(name)
+        else:
+            out.append("  ".join([f"{name:<{w0}}"] + [f"{c:>{w}}" for c, w in zip(cells, widths)]).rstrip())
+    return out
+
+
+def differences(metrics) -> list[dict]:
+    """Each later session minus the first, per insertion index both have (None where either is None)."""
+    base = metrics[0]["per_insertion"]
+    out = []
+    for m in metrics[1:]:
+        per = []
+        for a, b in zip(base, m["per_insertion"]):
+            per.append({k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0
+                        for k in DIFF_KEYS})
+        out.append({"insertions": m["insertions"] - metrics[0]["insertions"], "per_insertion": per})
+    return out
+
+
+def first_insertion_diff(metrics) -> dict:
+    """B minus A for the first insertion's numbers (None where either is missing)."""
+    a, b = (m["per_insertion"][0] if m["per_insertion"] else {} for m in metrics[:2])
+    return {k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0 for k in DIFF_KEYS}
+
+
+# ---- the figure -------------------------------------------------------------------------------
+def session_curve(rows, tissue, punctures=None, index=None) -> tuple:
+    """One session's curve for :func:`plot_curves`: (tip depth below the rest skin in mm, ``F . u``
+    in N, insertion index per row, punctures, each puncture's insertion index). ``rows``: every row
+    or the bounded envelope of :class:`haptic_acu.session.report.FigureRows` with its ``index``."""
+    from ..session.report import SessionScan, insertion_index, puncture_records, radial_force_n, tip_depth_m, tissue_of
+
+    tissue = tissue_of(tissue)
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, NCOL)
+    depth = tip_depth_m(rows[:, COL["x_m"]:COL["x_m"] + 3], tissue)
+    if index is None:
+        index = insertion_index(rows) if len(rows) else np.zeros(0, np.int64)
+    idx = np.maximum(index, 0)
+    ev = punctures if punctures is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
+    t = rows[:, COL["t_s"]]
+    ev_idx = [int(idx[min(int(np.searchsorted(t, e["t_s"] - 5e-5)), len(idx) - 1)]) for e in ev]
+    return depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx
+
+
+def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion: int | None = None,
+                 dpi: int = 110) -> None:
+    """``F . u`` (N) against the tip's depth below the rest skin (mm) for every session, as in
+    force_depth.png (:func:`haptic_acu.session.report.tip_depth_m`, :func:`~haptic_acu.session.report.radial_force_n`,
+    the same layer bands), one colour per session, one panel per insertion (``insertion``, 1-based:
+    that one only; each session's approach is drawn with its first insertion), punctures marked
+    (``punctures_list``: each session's :func:`~haptic_acu.session.report.puncture_records`; else found here).
+    ``tissue``: a Tissue or a TissueConfig. PNG without a date or software stamp: identical input
+    gives identical bytes."""
+    curves = [session_curve(rows, tissue, None if punctures_list is None else punctures_list[j])
+              for j, rows in enumerate(rows_list)]
+    plot_curves(curves, labels, path, tissue, insertion, dpi)
+
+
+def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110) -> None:
+    """:func:`plot_compare` from each session's :func:`session_curve`."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    from ..session.report import _BAND_COLOURS, MAX_PANELS, tissue_of
+
+    tissue = tissue_of(tissue)
+    n_ins = max([int(c[2].max()) + 1 for c in curves if c[2].size] + [1])
+    shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
+    fig = Figure(figsize=(max(8.5, 3.4 * len(shown) + 2.8), 5.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, len(shown), 1)]
+    axes += [fig.add_subplot(1, len(shown), j + 1, sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
+    bounds = tissue.depths_at_acupoint() * 1e3
+    all_d = [d for d, *_ in curves if d.size]
+    lo = min([float(d.min()) for d in all_d] + [0.0])
+    hi = max([float(d.max()) for d in all_d] + [float(bounds[2])])
+    pad = 0.02 * (hi - lo)
+    x0, x1 = lo - pad, hi + pad
+    edges = [*bounds, max(x1, float(bounds[3]))]
+    handles = []
+    for name, a, b in zip(PLACE_NAMES[1:], edges[:-1], edges[1:]):
+        if b <= x0 or a >= x1:
+            continue
+        for ax in axes:
+            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.4, lw=0)
+        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.4, label=f"{name} (at rest)"))
+    f_all = [f for _, f, *_ in curves if f.size]
+    for p, (ax, k) in enumerate(zip(axes, shown)):
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        last = insertion is None and p == len(shown) - 1 and n_ins > len(shown)
+        for (d, f, idx, ev, ev_idx), colour in zip(curves, COLOURS * (1 + len(curves) // len(COLOURS))):
+            sel = idx >= k if last else idx == k
+            ax.plot(np.where(sel, d, np.nan), np.where(sel, f, np.nan), color=colour, lw=1.1)
+            for e, ki in zip(ev, ev_idx):
+                if ki == k or (last and ki >= k):
+                    ax.plot([e["tip_depth_mm"]], [e["peak_force_n"]], marker="v", ms=7, color=colour,
+                            mec="k", mew=0.5, ls="none")
+        ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9)
+        ax.set_xlabel("tip depth below the rest skin (mm)")
+        if p:
+            ax.tick_params(labelleft=False)
+    axes[0].set_xlim(x0, x1)
+    if f_all:
+        axes[0].set_ylim(min(-0.05, 1.1 * min(float(f.min()) for f in f_all)),
+                         max(0.1, 1.15 * max(float(f.max()) for f in f_all)))
+    axes[0].set_ylabel("force along the outward normal F . u (N)")
+    for label, colour in zip(labels, COLOURS * (1 + len(labels) // len(COLOURS))):
+        handles.append(Line2D([], [], color=colour, label=label))
+    handles.append(Line2D([], [], marker="v", ls="none", color="0.4", mec="k", mew=0.5,
+                          label="puncture (peak |F| while pressed)"))
+    fig.suptitle("Force against depth: " + " vs ".join(labels))
+    axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+
+
+# ---- the command ------------------------------------------------------------------------------
+def _labels(args, paths) -> list[str]:
+    if args.labels:
+        if len(args.labels) != len(paths):
+            raise UserError(f"--labels: give one name per session ({len(paths)}), got {len(args.labels)}")
+        return list(args.labels)
+    stems = [p.stem for p in paths]
+    if len(set(stems)) == len(stems):
+        return stems
+    return [f"{s} ({chr(65 + i) if i < 26 else i + 1})" for i, s in enumerate(stems)]
+
+
+def run(args) -> int:
+
+    cfg = config_from_args(args)
+    paths = [resolve_trajectory(p) for p in args.sessions]
+    if args.insertion is not None and args.insertion < 1:
+        raise UserError(f"--insertion: 1 is the first insertion, got {args.insertion}")
+    labels = _labels(args, paths)
+    devices = [open_trajectory(p, cfg) for p in paths]  # all validated before anything runs
+    if args.out:
+        out = Path(args.out)
+    else:
+        name = "-vs-".join(p.stem for p in paths[:3]) + ("-etc" if len(paths) > 3 else "")
+        out = fresh_path(Path("runs") / f"compare-{name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder; choose another --out")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"{out}: output folder exists and is not empty")
+
+    from ..session.replay import OutputFolder  # exclusive and atomic; a user's DIR.partial is never deleted
+
+    folder = OutputFolder(out)
+    partial = folder.claim()  # before the work: a folder it may not use is refused at once
+    try:
+        rows, labels, metrics = _compare_into(partial, args, cfg, devices, paths, labels)
+        folder.publish()
+    except OSError as e:
+        folder.discard()
+        raise UserError(f"{out}: cannot write the comparison's files: {e.strerror or e}") from None
+    except BaseException:
+        folder.discard()
+        raise
+    finally:
+        folder.release()
+    for line in table_lines(labels, metrics, args.insertion):
+        print(line)
+    print(f"files: {out}/", file=sys.stdout)
+    return 0
+
+
+def _compare_into(partial: Path, args, cfg, devices, paths, labels):
+    """Replay every session through one tissue, then write compare.json and compare.png into ``partial``."""
+    from ..tissue.body import Tissue
+
+    with step("building the tissue"):
+        tissue = Tissue.from_config(cfg)
+    curves, metrics = [], []
+    for dev, p in zip(devices, paths):
+        with step(f"replaying {p.name}"):
+            m, _, curve = replay_session(dev, p, cfg, tissue)
+        curves.append(curve)
+        metrics.append(m)
+    if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
+        raise UserError(f"--insertion {args.insertion}: no session has that many insertions "
+                        f"(they have {', '.join(str(m['insertions']) for m in metrics)})")
+    doc = {
+        "labels": labels,
+        "sessions": [{"label": lab, "trajectory": p.name, "metrics": m} for lab, p, m in zip(labels, paths, metrics)],
+        "differences": differences(metrics),
+    }
+    if len(metrics) == 2:
+        doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
+    (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
+    plot_curves(curves, labels, partial / "compare.png", tissue, args.insertion)
+    return curves, labels, metrics

@@ -1,0 +1,220 @@
+"""``haptic-acu replay``: headless replay of one or more trajectories (see :mod:`haptic_acu.session.replay`)."""
+from __future__ import annotations
+
+import csv
+import fcntl
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+
+from ..base.bundled import bundled_names
+from ..base.errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("replay", help="replay recorded trajectories headless (the main job)",
+                       description="Replay needle trajectories (CSV t_s,x_mm,y_mm,z_mm) through the simulator "
+                                   "on simulated time and write samples.csv, summary.json, force_depth.png and "
+                                   "recording.rrd. Without TRAJECTORY: the bundled default insertion.")
+    p.add_argument("trajectories", nargs="*", metavar="TRAJECTORY",
+                   help="CSV files, folders of them, or bundled trajectories by name from any folder ("
+                        + bundled_names() + ")")
+    from .options import add_config_args
+    add_config_args(p)
+    p.add_argument("--out", metavar="DIR", help="output folder (default: a new folder under runs/; must be empty "
+                                                "if it exists); for a batch, one sub-folder per trajectory")
+    p.add_argument("--realtime", action="store_true", help="pace the replay on the wall clock")
+    p.add_argument("--no-rrd", action="store_true", help="do not write recording.rrd")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file (needs a display)")
+    g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
+    p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
+    p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    p.set_defaults(func=run)
+
+
+def _stamp() -> str:
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+def fresh_path(path: Path) -> Path:
+    """``path``, or ``path-2``, ``path-3``... if it exists."""
+    if not path.exists():
+        return path
+    i = 2
+    while path.with_name(f"{path.name}-{i}").exists():
+        i += 1
+    return path.with_name(f"{path.name}-{i}")
+
+
+def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
+    from ..session.report import print_results
+    print_results(summary, out_dir, file=file, quiet=quiet)
+
+
+def _one(args_tuple):
+    traj, out_dir, config, rrd, overrides = args_tuple
+    from ..base.config import load_config
+    from ..session.replay import replay_one
+    try:
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides))
+        return str(traj), s, None
+    except UserError as e:
+        return str(traj), None, str(e)
+    except OSError as e:  # a full disk, a folder made read-only meanwhile
+        return str(traj), None, f"{e.filename or out_dir}: {e.strerror or e}"
+
+
+def _flat(summary: dict) -> dict:
+    """summaries.csv's row: the session's numbers (each the summary's, not a second estimate), the
+    first puncture of each layer, and the session-level trainee metrics."""
+    row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
+           "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
+           "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
+    for p in summary["punctures"]:
+        row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])
+        row.setdefault(f"{p['layer']}_peak_force_n", p["peak_force_n"])
+    m = summary.get("metrics") or {}
+    for key in ("insertions", "skin_punctures", "time_in_tissue_s"):
+        if key in m:
+            row[key] = m[key]
+    for key, v in (m.get("lateral") or {}).items():
+        row[f"lateral_{key}"] = v
+    return row
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    """A nested metrics dict as flat CSV columns: ``a.b`` -> ``a_b``; a list of three numbers
+    (a position) -> ``_x``, ``_y``, ``_z``; a list of dicts (the insertion's punctures) -> its
+    count; None -> an empty cell. New metrics get their columns without a change here."""
+    out = {}
+    for k, v in d.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, name + "_"))
+        elif isinstance(v, (list, tuple)):
+            if not v or all(isinstance(x, dict) for x in v):
+                out[name] = len(v)
+            elif len(v) == 3:
+                out.update({f"{name}_{c}": x for c, x in zip("xyz", v)})
+            else:
+                out[name] = " ".join(str(x) for x in v)
+        else:
+            out[name] = "" if v is None else v
+    return out
+
+
+def insertion_rows(summary: dict) -> list[dict]:
+    """insertions.csv's rows: one per insertion, its trainee metrics (summary.json's
+    ``metrics.per_insertion``, flattened by :func:`flatten`), numbered from 1."""
+    m = summary.get("metrics") or {}
+    return [{"trajectory": summary["trajectory"], "insertion": n, **flatten(ins)}
+            for n, ins in enumerate(m.get("per_insertion", []), 1)]
+
+
+def puncture_rows(summary: dict) -> list[dict]:
+    """punctures.csv's rows: every puncture of the session (summary.json's ``punctures``) with the
+    insertion it belongs to (empty if none: a puncture outside every insertion's window)."""
+    ins = (summary.get("metrics") or {}).get("per_insertion", [])
+    rows = []
+    for n, p in enumerate(summary["punctures"], 1):
+        owner = next((k for k, i in enumerate(ins, 1) if i["t_entry_s"] <= p["t_s"] <= i["t_exit_s"]), "")
+        rows.append({"trajectory": summary["trajectory"], "puncture": n, "insertion": owner, **p})
+    return rows
+
+
+def write_table(path: Path, rows: list[dict]) -> None:
+    """A CSV with the union of the rows' columns in first-seen order (header on line 1)."""
+    cols: list[str] = []
+    for r in rows:
+        cols += [c for c in r if c not in cols]
+    try:
+        with open(path, "w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=cols or ["trajectory"])
+            wr.writeheader()
+            wr.writerows(rows)
+    except OSError as e:
+        raise UserError(f"{path}: cannot write: {e.strerror or e}") from None
+
+
+def run(args) -> int:
+    from .options import config_from_args
+    from ..base.bundled import not_found_hint
+    from ..session.replay import replay_one, trajectories_from
+
+    if args.jobs < 0:
+        raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
+    cfg = config_from_args(args)  # a bad config fails before anything runs
+    if args.spawn:
+        from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
+        check_spawn(NO_DISPLAY_REPLAY)
+    paths = trajectories_from(args.trajectories)
+    for p in paths:
+        if not p.is_file():
+            raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
+    if len(paths) == 1:
+        traj = paths[0]
+        out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
+        summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
+                             spawn=args.spawn, connect=args.connect, cfg=cfg)
+        print_summary(summary, out, quiet=args.quiet)
+        return 0
+    if args.spawn or args.connect or args.realtime:
+        raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
+    base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
+    if base.exists() and not base.is_dir():
+        raise UserError(f"{base}: exists and is not a folder; choose another --out")
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
+    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(lock)
+        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
+                        "another --out") from None
+    try:
+        return _run_batch(args, paths, base)
+    finally:
+        os.close(lock)
+
+
+def _run_batch(args, paths, base: Path) -> int:
+    stems = [p.stem for p in paths]
+    if len(set(stems)) != len(stems):
+        raise UserError("batch trajectories must have distinct file names")
+    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
+    results = {}
+    from ..base import progress
+    with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \
+            ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+        futs = [ex.submit(_one, w) for w in work]
+        for f in as_completed(futs):
+            traj, summary, err = f.result()
+            results[traj] = (summary, err)
+            progress.note(f"{len(results)}/{len(paths)} done: {Path(traj).name}" + (" (failed)" if err else ""))
+    failed = 0
+    rows, insertions, punctures = [], [], []
+    for p, w in zip(paths, work):
+        summary, err = results[str(p)]
+        if err:
+            failed += 1
+            print(f"haptic-acu replay: error: {err}", file=sys.stderr)
+            continue
+        print_summary(summary, Path(w[1]), quiet=args.quiet)
+        rows.append(_flat(summary))
+        insertions += insertion_rows(summary)
+        punctures += puncture_rows(summary)
+    if rows:
+        write_table(base / "summaries.csv", rows)
+        write_table(base / "insertions.csv", insertions)
+        write_table(base / "punctures.csv", punctures)
+        print(f"batch: {len(rows)} replayed, {failed} failed; combined tables in {base}/: summaries.csv (per "
+              "trajectory), insertions.csv (trainee metrics per insertion), punctures.csv (every puncture)")
+    return 2 if failed else 0

@@ -1,0 +1,189 @@
+"""``haptic-acu run``: a live session on a device (OMNI, keyboard, or a trajectory in real time).
+
+A session ends like ``haptic-acu replay``: the punctures, the depth reached against the config's
+``scene.target_depth_mm`` and the per-insertion metrics are printed, and the session's report folder
+(``--out``, default a new folder under ``runs/``) holds
+
+* ``recording.csv``   the tip path (replay it with ``haptic-acu replay``; ``--record FILE`` puts it
+  elsewhere),
+* ``samples.csv``     one row per servo tick,
+* ``summary.json``    punctures, depths, peaks, metrics and the loop statistics,
+* ``force_depth.png`` force against depth and time,
+* ``recording.rrd``   the rerun recording, with ``--rrd`` (or ``--rrd FILE`` elsewhere).
+
+The report sinks are ordinary frame sinks: they run on the visual loop, never on the servo tick, and
+the recording and samples are flushed as the session runs, so a fault or Ctrl-C keeps every row up to
+it (the figure and summary are written after the session, also after a fault).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
+from ..base.errors import UserError
+from .options import add_config_args, config_from_args
+from ..base.progress import step
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="a live session on a haptic device (results and a report folder at the end)",
+                       description="Run the simulator live: a 1 kHz servo loop on the device and a 60 Hz visual "
+                                   "loop (springback, status line, optional rerun logging). At the end: the "
+                                   "punctures, the depth reached against scene.target_depth_mm and the "
+                                   "per-insertion metrics, and a report folder (--out) with recording.csv, "
+                                   "samples.csv, summary.json and force_depth.png, like `haptic-acu replay`.")
+    p.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True,
+                   help="omni: a Geomagic Touch / Phantom Omni through OpenHaptics (pyOpenHaptics, libHD.so); "
+                        "keyboard: move the needle with the keys (help on screen); scripted: play --trajectory "
+                        "in real time")
+    p.add_argument("--trajectory", metavar="FILE", help="trajectory CSV (t_s,x_mm,y_mm,z_mm) for --device scripted, "
+                   "or a bundled trajectory's name (" + bundled_names() + ")")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
+    p.add_argument("--out", metavar="DIR", help="report folder (default: a new folder runs/<device>-<time>/; "
+                                                "must be empty if it exists)")
+    p.add_argument("--record", metavar="FILE", help="write the replayable recording to FILE instead of "
+                                                    "<out>/recording.csv (an existing file is refused unless "
+                                                    "--overwrite; never the session's own --trajectory)")
+    p.add_argument("--overwrite", action="store_true", help="let --record replace an existing file")
+    add_config_args(p)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--rrd", metavar="FILE", nargs="?", const="",
+                   help="log to a rerun .rrd file (without FILE: <out>/recording.rrd)")
+    g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer (needs a display)")
+    g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer at ADDR (host:port)")
+    p.add_argument("--no-status", action="store_true", help="no live status line")
+    p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
+    p.add_argument("--python-servo", action="store_true",
+                   help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
+    p.add_argument("--pin-cores", action="store_true",
+                   help="pin the servo thread (the scripted device's, or the OMNI's HD scheduler thread) to one "
+                        "core and the rerun logging child to the others")
+    p.add_argument("--travel-axis", action="store_true",
+                   help="OMNI: ignore the stylus orientation; the needle axis is the direction of travel at entry "
+                        "(as for a device that does not know it)")
+    p.set_defaults(func=run)
+
+
+def make_device(args, cfg):
+    from haptic_acu.devices.base import Workspace
+
+    ws = Workspace.from_config(cfg.workspace)
+    limit = cfg.safety.force_limit_n
+    if args.device == "scripted":
+        if not args.trajectory:
+            raise UserError("--device scripted needs --trajectory FILE")
+        from haptic_acu.devices.scripted import ScriptedDevice
+        return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
+    if args.trajectory:
+        raise UserError(f"--trajectory is for --device scripted, not {args.device}")
+    if args.travel_axis and args.device != "omni":
+        raise UserError(f"--travel-axis is for --device omni, not {args.device}")
+    if args.device == "keyboard":
+        from haptic_acu.devices.keyboard import KeyboardDevice
+        return KeyboardDevice(workspace=ws, force_limit_n=limit, stdin=sys.stdin, out=sys.stderr)
+    from haptic_acu.devices.omni import OmniDevice, load_hd_library
+    load_hd_library()  # a missing pyOpenHaptics / libHD.so fails now, before the simulator warms up
+    return OmniDevice(ws, force_limit_n=limit, stylus_axis=not args.travel_axis)
+
+
+def out_folder(args) -> Path:
+    """The report folder: ``--out`` (empty or new), else a fresh ``runs/<device>-<time>``."""
+    from .replay import fresh_path
+
+    if args.out:
+        out = Path(args.out)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise UserError(f"{out}: output folder exists and is not empty")
+        return out
+    return fresh_path(Path("runs") / f"{args.device}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def _rerun_sink(args, out: Path):
+    # rerun logging runs in a child process (see haptic_acu.session.sinkproc): its calls would otherwise
+    # hold the GIL for hundreds of microseconds beside the servo thread
+    from ..session.sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
+    if args.spawn:
+        return rerun_spawn_sink()
+    if args.connect:
+        return rerun_connect_sink(args.connect)
+    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve())
+
+
+def run(args) -> int:
+    from ..session.engine import Session
+    from ..session.recorder import RecorderSink
+    from ..session.report import SamplesCsvSink, SummarySink
+
+    if args.duration is not None and not args.duration > 0:
+        raise UserError(f"--duration must be > 0, got {args.duration}")
+    cfg = config_from_args(args)
+    if args.spawn:
+        from ..session.viewer import check_spawn
+        check_spawn()  # no display: one line now, not half a minute of viewer errors
+    if args.trajectory:  # a file, or a bundled trajectory's name
+        traj = resolve_trajectory(args.trajectory)
+        if not traj.is_file():
+            raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
+        args.trajectory = str(traj)
+    if args.record:  # checked now, created only once the session can start (after device.open)
+        from ..session.recorder import check_target
+        rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])
+    device = make_device(args, cfg)
+    out = out_folder(args)
+    if not args.record:
+        rec = out / "recording.csv"
+    if args.rrd and not Path(args.rrd).resolve().parent.exists():
+        raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
+    out.mkdir(parents=True, exist_ok=True)
+    summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: a long session's memory stays flat
+    recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
+    sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
+    if args.rrd is not None or args.spawn or args.connect:
+        sinks.append(_rerun_sink(args, out))
+    if not args.no_status:
+        from ..session.status import StatusLine
+        sinks.append(StatusLine(stream=sys.stderr, target_mm=cfg.scene.target_depth_mm,
+                                force_limit_n=cfg.safety.force_limit_n, device=device))
+    # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
+    # time) starts in open(), and should not run for seconds with force output on and no servo.
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
+                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores)  # the compiled loop honours resets
+    with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
+        session.warm_up()
+    device.open()
+    try:
+        recorder.open()
+        result = session.run()
+    finally:
+        device.close()
+    st = result.stats
+    pe = st["period_error_us"]
+    print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
+          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
+          f"{st['servo_loop']} servo loop", file=sys.stderr)
+    try:
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet)
+        if args.record:
+            print(f"  recording: {rec}")
+    finally:  # the fault is reported even if the report could not be written
+        if result.fault:
+            print(f"haptic-acu run: stopped: {result.fault}", file=sys.stderr)
+    return 3 if result.fault else 0
+
+
+def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False) -> dict:
+    """summary.json and force_depth.png of a finished session into ``out``; print the results."""
+    from ..session.report import plot_force_depth, print_results
+
+    summary = summary_sink.summary()
+    summary["trajectory"] = name
+    summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    rows, index = summary_sink.figure_rows()
+    with step("drawing force_depth.png"):
+        plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary, index=index)
+    print_results(summary, out, quiet=quiet)
+    return summary

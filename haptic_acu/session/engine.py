@@ -1,0 +1,865 @@
+"""The real-time engine: a 1 kHz servo loop and a 60 Hz visual loop around one NeedleModel.
+
+Servo tick: :func:`haptic_acu.servo.tick.servo_tick` (the compiled step of
+:mod:`haptic_acu.servo.step` on the model's :class:`~haptic_acu.servo.state.Servo`, the tick's sample row
+into the lock-free :class:`~haptic_acu.servo.samples.SampleRing`, published), with the period error kept by
+:func:`haptic_acu.servo.tick.account`. Three drivers, which differ in who keeps the clock:
+
+* simulated clock (:meth:`Session._run_sim`): a visual frame's ticks per block, read ahead and run
+  by :func:`~haptic_acu.servo.tick.run_ticks` in one compiled call, or (a device without
+  ``read_block``) read and ticked one by one;
+* our timer (:meth:`Session._run_realtime`): :func:`haptic_acu.servo.rtloop.servo_loop` (compiled, no GIL)
+  for a device read ahead, else a Python loop on the same deadlines (:meth:`Session._timer_loop`);
+* the device's clock (:meth:`Session._run_device_clock`, the OMNI): its compiled callback
+  (:mod:`haptic_acu.servo.omniloop`) or a Python callback.
+
+Where the loop is Python, each tick is :meth:`Session._servo_tick`: the same ``servo_tick`` through
+its C entry point (:class:`haptic_acu.servo.tick.PythonTick`). No logging, no allocation beyond a
+few Python floats, no lock, no JIT in a tick (everything is compiled in :meth:`Session.warm_up`).
+
+Visual frame (:meth:`Session._visual_frame`): drain the ring, run springback on handed-over nets,
+evaluate each layer's dent on the patch grid around the acupoint, and hand a :class:`Frame` to
+every sink (recorder, rerun logger, replay summary, status line).
+
+Clocks:
+
+* ``"sim"`` (headless replay): one thread, simulated time. Servo ticks at exactly 1 ms, a visual
+  frame whenever simulated time crosses a multiple of 1/60 s. The same two functions as a live
+  session, interleaved deterministically: identical input gives identical output.
+* ``"realtime"``: a servo thread on absolute deadlines (hybrid sleep-then-spin), a visual thread,
+  ``sys.setswitchinterval(2e-4)``, ``gc.freeze()`` after warm-up, SCHED_FIFO for the servo thread
+  where the OS allows it. For a device that can be read ahead (``read_block``: the scripted device)
+  the servo thread runs the whole loop compiled and without the GIL (:mod:`haptic_acu.servo.rtloop`; the
+  visual thread's C calls cannot delay it); for the others (keyboard) the loop is Python. Devices
+  that drive the clock (the OMNI) call the servo tick from their own scheduler through
+  :meth:`devices.base.Device.run_servo`.
+
+Net ownership (see :mod:`haptic_acu.servo.step`): the servo owns a pressing net; at puncture it copies
+the displaced positions onto the curved surface and marks the slot owner 2, after which only the
+visual loop's springback writes it. The visual loop reads pressing nets without a lock (a torn read
+only affects one rendered frame).
+
+Faults: a device fault, a non-finite state, or an exception in either loop commands zero force at
+once, stops both loops, flushes every sink (the recording is complete up to the last tick), and is
+reported once as ``SessionResult.fault``. A sink that raises does not keep the others from getting
+the frame's rows. A device on our timer that stops updating is a fault too: its ``DeviceState.t_s``
+stuck for ``stale_s`` (50 ms) of session time while a force is commanded (a stale state; the
+drives-clock OMNI checks its own position instead), or no servo tick for ``servo_watchdog_s``
+(2 s; a read that blocks): the visual loop then commands zero force and the session ends when the
+read returns (a read that never returns cannot be interrupted: devices time out their own I/O). The
+watchdog is long because a loaded 2-core host can stall the whole process for most of a second
+with a healthy device; the timer-driven devices (keyboard, scripted) have no motor to hold a force.
+"""
+from __future__ import annotations
+
+import gc
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..servo import affinity, devicemodel
+from ..base.errors import DeviceFault
+from ..tissue.forcenet import dent_on_grid
+from ..servo.step import NeedleModel
+from ..servo.state import FREE, N_LAYERS, N_SLOTS, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing, net_index
+from ..servo.tick import SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
+from ..servo.samples import NCOL, SampleRing
+from .sink import Sink
+from ..tissue.springback import Springback
+
+
+@dataclass
+class Frame:
+    """What a sink sees once per visual frame."""
+
+    t_s: float  # session time of the frame (simulated in "sim", wall since start otherwise)
+    index: int
+    samples: np.ndarray  # (k, NCOL) rows written since the previous frame
+    model: NeedleModel
+    rates: dict  # {"servo_hz": measured, "visual_hz": measured}
+    dents: "Dents | dict" = field(default_factory=dict)  # layer -> (n_theta, n_phi) dent (m) on PATCH_GRID
+
+
+class Dents(Mapping):
+    """Layer -> radial dent (m) on :data:`PATCH_GRID`, for the layers with a live net; each grid is
+    computed on first access (only sinks that render pay for it) and cached for the frame."""
+
+    def __init__(self, model, skip_settled=None):
+        self._model = model
+        self._cache = {}
+        self._keys = [k for k in range(N_LAYERS) if any(
+            model.owner(net_index(k, s)) == SERVO_OWNS or (model.owner(net_index(k, s)) == VISUAL_OWNS and not (
+                skip_settled is not None and skip_settled[net_index(k, s)]))
+            for s in range(N_SLOTS))]
+
+    def __getitem__(self, k):
+        if k not in self._keys:
+            raise KeyError(k)
+        if k not in self._cache:
+            self._cache[k] = layer_dent(self._model, k, *PATCH_GRID)
+        return self._cache[k]
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self):
+        return len(self._keys)
+
+
+@dataclass
+class SessionResult:
+    ticks: int
+    duration_s: float
+    fault: str | None
+    stats: dict
+
+
+def patch_grid(half_angle: float = 0.5, n_theta: int = 24, n_phi: int = 48):
+    """Directions (theta, phi) of the rendered patch around the acupoint (the +z pole)."""
+    th = (np.arange(n_theta) + 0.5) * (half_angle / n_theta)
+    ph = np.arange(n_phi) * (2 * np.pi / n_phi)
+    return np.meshgrid(th, ph, indexing="ij")
+
+
+PATCH_GRID = patch_grid()
+
+
+def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
+    """Radial dent (m) of layer k's surface at directions (theta, phi), from every live net of layer k.
+
+    The deformed surface is r(theta, phi) = r_rest(theta, phi) - dent(theta, phi) (the paper's tie of
+    each particle's dZ to the SH radius), interpolated between particles.
+    """
+    th = np.ascontiguousarray(np.ravel(theta), dtype=np.float64)
+    ph = np.ascontiguousarray(np.ravel(phi), dtype=np.float64)
+    total = np.zeros(th.size)
+    tmp = np.empty(th.size)
+    support = 1.5 * model.params[k].spacing_m
+    for s in range(N_SLOTS):
+        idx = net_index(k, s)
+        if model.owner(idx) == FREE:
+            continue
+        pos = model.net_positions(idx)
+        dent_on_grid(th, ph, model.centre, model.X0[idx], pos, pos.shape[0], support, tmp)
+        total += tmp
+    return total.reshape(np.shape(theta))
+
+
+def percentiles_us(values_s: np.ndarray) -> dict:
+    if values_s.size == 0:
+        return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
+    v = np.abs(values_s) * 1e6
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
+            "p999": float(np.percentile(v, 99.9)), "max": float(v.max())}
+
+
+class Session:
+    """One simulation session: a model, a device, sinks, and the two loops.
+
+    ``run()`` blocks until the device is done (end of trajectory, quit key), ``duration_s`` of
+    session time has passed, :meth:`stop` is called (or SIGINT/SIGTERM arrives), or a fault occurs.
+
+    ``skip_after_ticks`` (the compiled real-time loop of a device read ahead): a tick later than this
+    many periods skips ahead to the present, the skipped ticks counted missed; ``None``: never skip,
+    run late ticks back to back so every tick of the trajectory is a row.
+    """
+
+    def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
+                 model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
+                 realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
+                 servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10,
+                 pin_cores: bool = False):
+        if clock not in ("sim", "realtime"):
+            raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
+        self.cfg = cfg
+        self.device = device
+        self.sinks = list(sinks)
+        for s in self.sinks:
+            if not isinstance(s, Sink):
+                raise TypeError(f"a session's outputs are haptic_acu.session.sink.Sink subclasses, got {type(s).__name__}")
+        self.clock = clock
+        self.duration_s = duration_s
+        self.model = model if model is not None else NeedleModel(cfg)
+        self.model.model.params[0]["dt"] = 1.0 / servo_hz  # the twirl's relaxation runs on this clock
+        self.springback = Springback.from_config(self.model, cfg)
+        self.servo_dt = 1.0 / servo_hz
+        self.frame_dt = 1.0 / visual_hz
+        self.realtime_priority = realtime_priority
+        self.want_dents = dents
+        self.stale_s = stale_s
+        self.servo_watchdog_s = servo_watchdog_s
+        if skip_after_ticks is not None and not (isinstance(skip_after_ticks, int) and skip_after_ticks >= 1):
+            raise ValueError(f"skip_after_ticks must be a whole number >= 1 or None, got {skip_after_ticks!r}")
+        self.skip_after_ticks = skip_after_ticks
+        # real time: the servo thread on one core, a logging child process on the others (affinity.py)
+        self.pin_cores = bool(pin_cores)
+        self.pinned = False
+        self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
+        self.tick = 0
+        self.frame_index = 0
+        self.fault: str | None = None
+        self._stop = threading.Event()
+        self._fault_lock = threading.Lock()
+        # servo period errors (s, the first 2^20 ticks kept), their count and the missed ticks
+        self._timing = Timing(np.zeros(1 << 20), np.zeros(1, TIMING))
+        self.rates = {"servo_hz": 0.0, "visual_hz": 0.0}
+        self._zero = np.zeros(3)
+        self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
+        self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
+        self._sim_table = None  # run_ticks' table (simulated time, a device read ahead)
+        self._warm = False
+        self._t_session = 0.0
+        self.sched_fifo = False
+        # Real time on a device that can be read ahead (read_block: the scripted device): the whole
+        # servo loop runs compiled, without the GIL (rtloop.py). False: the Python servo loop.
+        self.compiled_loop = bool(compiled_loop) and device.reads_ahead
+        # A device driving the clock whose servo callback can be compiled (the OMNI: omniloop.py).
+        self.compiled_servo_callback = bool(compiled_loop) and device.info.drives_clock
+        self._omni_callback = None
+        self._ctl = None  # the compiled loop's control words while it runs
+        self._tick_word = None  # a compiled servo's tick count while it runs: (control words, index)
+        self.t0_perf: float | None = None  # real time: time.perf_counter() of tick 0's deadline
+        # A live session of the scripted device records what an OMNI would have rendered on its path
+        # (haptic_acu.servo.devicemodel: the stylus model with an OMNI's limits); the replay and the
+        # keyboard (no force output) record none.
+        self.device_model = (devicemodel.new(self.servo_dt)
+                             if clock == "realtime" and device.info.name == "scripted" else None)
+
+    @property
+    def missed(self) -> int:
+        """Ticks later than a period (and ticks a stall skipped)."""
+        return int(self._timing.count[0]["missed"])
+
+    @property
+    def _n_err(self) -> int:
+        return int(self._timing.count[0]["n_err"])
+
+    # -- set-up -----------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Compile every kernel both loops call, warm the sinks, before any loop starts."""
+        self.model.warm_up()
+        if self.device_model is not None:
+            devicemodel.warm_up()
+        buf = np.zeros((1, NCOL))
+        m = self.model
+        if self.clock == "realtime" and self.compiled_loop:
+            self._warm_compiled_loop()
+        self._omni_callback = None
+        if self.clock == "realtime" and self.compiled_servo_callback:
+            from ..servo import omniloop
+
+            lib = self.device.servo_library()
+            if lib is not None:  # compiled (or loaded from the cache) here, before any loop
+                self._omni_callback = omniloop.build_callback(lib)
+        if self._python_ticks():
+            self._warm_python_tick()
+        if self.clock == "sim" and self.device.reads_ahead:
+            z = np.zeros((1, 3))
+            rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
+            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1), 0,
+                        tick_table(m.servo, rows, self._timing))
+            self.model.reset(keep_holes=False)
+        layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
+        # springback kernels: run once on a scratch copy of slot 0
+        from ..tissue.springback import springback_step
+        springback_step(self.model.x[0].copy(), self.model.X0[0].copy(), 1, 1.0, np.zeros_like(self.model.x[0]))
+        for s in self.sinks:
+            s.warm_up()
+        self._warm = True
+
+    def _python_ticks(self) -> bool:
+        """Whether this session's driver is a Python loop or callback (see the module docstring)."""
+        if self.clock == "sim":
+            return not self.device.reads_ahead
+        if self.device.info.drives_clock:
+            return self._omni_callback is None
+        return not self.compiled_loop
+
+    def _warm_python_tick(self) -> None:
+        """Load the servo tick's C entry point, check it on a scratch ring, bind it to the session's."""
+        m = self.model
+        scratch = PythonTick(m.servo, Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64)),
+                             Timing(np.zeros(1), np.zeros(1, TIMING)))
+        scratch(0.0, 0, 0.0, 1.0)  # a tick at the reset input (raises if its cache is stale)
+        m.reset(keep_holes=False)
+        self._tick = PythonTick(m.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
+
+    def _warm_compiled_loop(self) -> None:
+        """Load the compiled servo loop with a run that stops before its first tick."""
+        from ..servo import rtloop
+
+        rtloop.warm_up()
+        m = self.model
+        loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64),
+                           devicemodel.new(self.servo_dt, on=False))
+        loop.ctl["stop"] = 1
+        rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
+        feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan), np.zeros(1))
+        call_driver(rtloop.servo_loop, loop, 0, 1000000, 0, feed, tick_table(m.servo, rows, self._timing))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._ctl is not None:
+            self._ctl["stop"] = 1  # the compiled loop sees it at its next tick
+
+    def _set_fault(self, reason: str) -> None:
+        with self._fault_lock:
+            if self.fault is None:
+                self.fault = reason
+        self._stop.set()
+        try:
+            self.device.set_force(self._zero)
+        except Exception:  # the device may be the thing that failed
+            pass
+
+    def _state_fault(self, t: float, tick: int) -> None:
+        """The servo step latched a fault (a non-finite state) at session time ``t``, tick ``tick``:
+        the one message every driver reports it with."""
+        self._set_fault(f"non-finite needle state at t={t:.3f} s (tick {tick}); force set to zero")
+
+    # -- the two loop bodies (shared by every clock) --------------------------------------------
+    def _servo_tick(self, t: float, state, period_err: float = 0.0, period: float = 0.0,
+                    command: bool = True) -> np.ndarray:
+        """One servo tick from a Python driver (:func:`haptic_acu.servo.tick.servo_tick`; its period
+        error ``period_err`` accounted against ``period`` when that is positive); returns the force.
+        ``command=False`` (a device that drives the clock): the caller commands the returned force,
+        so ``device.set_force`` is not called."""
+        m = self.model
+        if state.reset:
+            m.reset(keep_holes=False)
+        m.inp.p[:] = state.position_m
+        m.inp.v[:] = state.velocity_m_s
+        m.inp.axis[:] = np.nan if state.axis is None else -state.axis  # DeviceState: tip -> handle
+        m.inp.roll[0] = state.roll_rad
+        if self.device_model is not None:  # the modelled device's rendered force, for the row
+            devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
+        ok = self._tick(t, self.tick, period_err, period)
+        self.tick += 1
+        if not ok:
+            self._state_fault(t, self.tick - 1)
+            return self._zero
+        if command:
+            self.device.set_force(self._force)
+        return self._force
+
+    def _visual_frame(self, t: float) -> None:
+        rows = self.ring.drain()
+        self.springback.frame()
+        dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
+        frame = Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents)
+        self.frame_index += 1
+        error = None
+        for s in self.sinks:  # every sink gets the drained rows, even if one of them fails
+            try:
+                s.on_frame(frame)
+            except Exception as e:
+                if error is None:
+                    error = e
+        if error is not None:
+            raise error
+
+    def _final_frame(self) -> None:
+        """Flush whatever the servo wrote after the last visual frame. A sink that fails here is a
+        fault (if none was reported yet), not an exception out of :meth:`run`."""
+        if self.ring.head != self.ring.tail:
+            try:
+                self._visual_frame(self._t_session)
+            except Exception as e:
+                self._set_fault(f"visual loop: {type(e).__name__}: {e}")
+
+    def _stats(self, wall_s: float) -> dict:
+        errs = self._timing.errs[: min(self._n_err, self._timing.errs.size)]
+        return {"clock": self.clock, "ticks": self.tick, "missed_ticks": self.missed,
+                "frames": self.frame_index, "dropped_rows": self.ring.dropped,
+                "wall_s": wall_s, "period_error_us": percentiles_us(errs),
+                "servo_hz": self.rates["servo_hz"], "visual_hz": self.rates["visual_hz"],
+                "sched_fifo": self.sched_fifo, "servo_loop": self._servo_kind(), "pinned": self.pinned}
+
+    def _servo_kind(self) -> str:
+        """How the servo tick ran: "simulated", "compiled" (no GIL: rtloop / omniloop) or "python"."""
+        if self.clock == "sim":
+            return "simulated"
+        if self.device.info.drives_clock:
+            return "compiled" if self._omni_callback is not None else "python"
+        return "compiled" if self.compiled_loop else "python"
+
+    # -- running ------------------------------------------------------------------------------------
+    def run(self) -> SessionResult:
+        if not self._warm:
+            self.warm_up()
+        for s in self.sinks:
+            s.start({"config": self.cfg, "model": self.model, "device": self.device.info, "clock": self.clock})
+        old_handlers = self._install_signals()
+        wall0 = time.perf_counter()
+        try:
+            if self.clock == "sim":
+                self._run_sim()
+            elif self.device.info.drives_clock:
+                self._run_device_clock()
+            else:
+                self._run_realtime()
+        except DeviceFault as e:
+            self._set_fault(f"device fault: {e}")
+        except BaseException as e:  # any exception in a loop: force zero, report once
+            self._set_fault(f"{type(e).__name__}: {e}")
+            if not isinstance(e, Exception):
+                raise
+        finally:
+            try:
+                self.device.set_force(self._zero)
+            except Exception:
+                pass
+            self._restore_signals(old_handlers)
+            try:
+                self._final_frame()
+            finally:
+                result = self._close_sinks(wall0)
+        return result
+
+    def _close_sinks(self, wall0: float) -> SessionResult:
+        """Close every sink (each one, even after another failed). A sink that cannot finish its
+        file (a full disk) is a fault of the session if none was reported yet, never an exception."""
+        result = SessionResult(self.tick, self._t_session, self.fault, self._stats(time.perf_counter() - wall0))
+        for s in self.sinks:
+            try:
+                s.close(result)
+            except Exception as e:
+                if self.fault is None:
+                    self._set_fault(f"closing the outputs: {e}")
+        if result.fault != self.fault:
+            result = SessionResult(result.ticks, result.duration_s, self.fault, result.stats)
+        return result
+
+    def _run_sim(self) -> None:
+        """Simulated time: ticks at exactly ``servo_dt``, a visual frame whenever session time
+        crosses a multiple of ``frame_dt``; each frame's ticks run as one block (:meth:`_sim_block`)."""
+        dt = self.servo_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        t0 = time.perf_counter()
+        next_frame = self.frame_dt
+        while not self._stop.is_set():
+            k0 = self.tick
+            if k0 * dt > limit + 1e-12:
+                break
+            k1 = max(k0, math.ceil((next_frame - 1e-12) / dt))  # the tick that reaches the frame time
+            k_lim = math.floor((limit + 1e-12) / dt) if limit != math.inf else k1
+            if not self._sim_block(k0, min(k1, k_lim)):  # the device ended, a fault, or stopped
+                break
+            t = self._t_session
+            if t + 1e-12 >= next_frame:
+                wall = time.perf_counter() - t0
+                if wall > 0:
+                    self.rates = {"servo_hz": self.tick / wall, "visual_hz": self.frame_index / wall}
+                self._visual_frame(t)
+                next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+
+    def _sim_block(self, k0: int, k1: int) -> bool:
+        """Ticks ``k0..k1`` on simulated time; False if they did not all run (end, fault, stop). A
+        device read ahead: one :func:`run_ticks` call per block (split at reset events); otherwise a
+        read and a :meth:`_servo_tick` per tick."""
+        dt = self.servo_dt
+        dev = self.device
+        if not dev.reads_ahead:
+            for k in range(k0, k1 + 1):
+                t = k * dt
+                state = dev.read_at(t)
+                if state.done or self._stop.is_set():
+                    return False
+                self._servo_tick(t, state)
+                self._t_session = t
+            return not self._stop.is_set()
+        T = np.arange(k0, k1 + 1) * dt
+        P, V, done = dev.read_block(T)
+        if done.any():
+            cut = int(np.argmax(done))
+            T, P, V = T[:cut], P[:cut], V[:cut]
+        if T.size:
+            if self._sim_table is None:  # the ring's and the model's arrays outlive it
+                self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
+            A = axis_block(dev, T)
+            R = roll_block(dev, T)
+            n = self._run_ticks_resetting(P, V, A, R, T, k0, dev.reset_ticks(T), self._sim_table)
+            self.tick += n
+            self._t_session = float(T[n - 1])
+            if self.model.diag["fault"] != 0.0:
+                self._state_fault(float(T[n - 1]), self.tick - 1)
+                return False
+            dev.set_force(self._force)
+        return T.size == k1 + 1 - k0
+
+    def _run_ticks_resetting(self, P, V, A, R, T, k0, cuts, table) -> int:
+        """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
+        ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
+        bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
+        n = 0
+        for j in range(len(bounds) - 1):
+            a, b = bounds[j], bounds[j + 1]
+            if j > 0:
+                self.model.reset(keep_holes=False)
+            if b > a:
+                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], R[a:b], T[a:b], k0 + a, table)
+                n += r
+                if r < b - a:  # a fault
+                    break
+        return n
+
+    # real time: our timer drives the servo thread
+    def _rt_setup(self):
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(2e-4)
+        gc.collect()
+        gc.freeze()
+        return old
+
+    def _rt_teardown(self, old_interval):
+        sys.setswitchinterval(old_interval)
+        gc.unfreeze()
+
+    def _pin_sinks(self):
+        """With ``pin_cores``: (servo core, other cores) from affinity.split, the sinks that run in a
+        child process (the rerun logger) pinned to the others; None when off or not possible."""
+        cores = affinity.split() if self.pin_cores and self.clock == "realtime" else None
+        if cores:
+            for s in self.sinks:
+                s.pin(cores[1])
+        return cores
+
+    def _pin_device_servo(self) -> None:
+        """With ``pin_cores`` and a device whose own scheduler runs the servo (OMNI): that thread on
+        one core (``Device.pin_servo_thread``, before the servo callback starts), the logging child
+        on the others; ``self.pinned`` says whether the device's thread took it."""
+        cores = self._pin_sinks()
+        if cores:
+            self.pinned = bool(self.device.pin_servo_thread({cores[0]}))
+
+    @contextmanager
+    def _realtime_threads(self, watchdog: bool):
+        """The frame of a Python driver on real time: :meth:`_rt_setup`, the visual thread from the
+        ``t0`` this yields (``time.perf_counter()``), and on the way out the session stopped, the
+        visual thread joined and the set-up undone."""
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        vis = threading.Thread(target=self._visual_loop, args=(t0, watchdog), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        try:
+            yield t0
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
+
+    def _try_fifo(self):
+        """Ask for SCHED_FIFO for the calling thread only (Linux: pid 0 is this thread), with
+        SCHED_RESET_ON_FORK so no child process inherits it. Returns the previous (policy, priority)
+        to hand to :meth:`_restore_sched`, or None if refused (then the loop runs as it is)."""
+        if not self.realtime_priority or not hasattr(os, "sched_setscheduler"):
+            return None
+        try:
+            prev = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(10))
+            return prev
+        except (PermissionError, OSError):
+            return None
+
+    @staticmethod
+    def _restore_sched(prev) -> None:
+        if prev is None:
+            return
+        try:
+            os.sched_setscheduler(0, prev[0], os.sched_param(prev[1]))
+        except (PermissionError, OSError):
+            pass
+
+    def _visual_loop(self, t0: float, watchdog: bool = False) -> None:
+        try:
+            next_t = t0 + self.frame_dt
+            last = time.perf_counter()
+            frames = 0
+            last_ticks = 0
+            seen_tick, seen_at = -1, last
+            while not self._stop.is_set():
+                now = time.perf_counter()
+                if watchdog:  # the servo thread is stuck in a tick (a device read that blocks)
+                    if self.tick != seen_tick:
+                        seen_tick, seen_at = self.tick, now
+                    elif now - seen_at > self.servo_watchdog_s:
+                        self._set_fault(f"no servo tick for {1e3 * (now - seen_at):.0f} ms after tick {seen_tick} "
+                                        f"(t={self._t_session:.3f} s): device read or servo step blocked; "
+                                        "force set to zero")
+                        break
+                if now < next_t:
+                    time.sleep(min(next_t - now, 0.005))
+                    continue
+                next_t += self.frame_dt
+                if next_t < now:
+                    next_t = now + self.frame_dt  # fell behind: do not try to catch up
+                frames += 1
+                word = self._tick_word  # a compiled servo counts its ticks in its control words
+                compiled = word is not None
+                if compiled:
+                    self.tick = int(word[0][word[1]])
+                if now - last >= 0.5:
+                    self.rates["visual_hz"] = frames / (now - last)
+                    if compiled:
+                        self.rates["servo_hz"] = (self.tick - last_ticks) / (now - last)
+                        last_ticks = self.tick
+                    frames = 0
+                    last = now
+                self._visual_frame(now - t0)
+        except BaseException as e:
+            self._set_fault(f"visual loop: {type(e).__name__}: {e}")
+
+    def _run_realtime_compiled(self) -> None:
+        """Real time with the servo loop compiled and GIL-free (:mod:`haptic_acu.servo.rtloop`): a servo
+        thread inside :func:`~haptic_acu.servo.rtloop.servo_loop` for the whole session, a feeder thread
+        reading the device ahead, the visual thread as usual, and this thread waiting in Python so
+        signals (Ctrl-C) are handled at once."""
+        from ..servo import rtloop
+
+        m = self.model
+        dt = self.servo_dt
+        ctl = np.zeros(1, rtloop.CTL)
+        ctl["end"] = rtloop.NO_END
+        ctl["skip_after"] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
+        fl = np.zeros(1, rtloop.FL)
+        feed = rtloop.Feed(self.device, ctl, dt)
+        feed.fill()  # the first second before the clock starts
+        k_limit = rtloop.NO_END
+        if self.duration_s is not None:
+            k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
+        period_ns = int(round(dt * 1e9))
+        rows = Ring(self.ring.buf, self.ring.ctr)
+        table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
+        dm = self.device_model if self.device_model is not None else devicemodel.new(dt, on=False)
+        outcome = {}
+        old = self._rt_setup()
+        self._ctl = ctl
+        self._tick_word = (ctl[0], "ran")
+        if self._stop.is_set():
+            ctl["stop"] = 1
+        t0_ns = time.perf_counter_ns() + 2_000_000  # CLOCK_MONOTONIC, the compiled loop's clock
+        t0 = t0_ns * 1e-9
+
+        cores = self._pin_sinks()
+
+        def servo():
+            prev = self._try_fifo()
+            self.sched_fifo = prev is not None
+            prev_cpus = affinity.pin_thread({cores[0]}) if cores else None
+            self.pinned = prev_cpus is not None
+            # the servo's core to itself: the process's other threads (main, visual, feed, sinks)
+            # and the ones they start on the other cores
+            others = affinity.pin_other_threads(cores[1], threading.get_native_id()) if self.pinned else {}
+            try:
+                outcome["status"] = call_driver(
+                    rtloop.servo_loop, rtloop.Loop(ctl, fl, np.zeros(2, np.int64), dm), t0_ns, period_ns, k_limit,
+                    feed.rows(), table)
+            except BaseException as e:
+                outcome["error"] = e
+            finally:
+                affinity.restore_threads(others)
+                affinity.restore(prev_cpus)
+                self._restore_sched(prev)
+                self._stop.set()
+
+        vis = threading.Thread(target=self._visual_loop, args=(t0, False), name="haptic-acu-visual", daemon=True)
+        th = threading.Thread(target=servo, name="haptic-acu-servo", daemon=True)
+        vis.start()
+        feed.start(self._stop)
+        th.start()
+        try:
+            while th.is_alive():
+                th.join(0.05)
+                if self._stop.is_set():
+                    ctl["stop"] = 1
+        finally:
+            ctl["stop"] = 1
+            th.join()
+            self._stop.set()
+            vis.join(timeout=2.0)
+            feed.join()
+            self._rt_teardown(old)
+            self._ctl = None
+            self._tick_word = None
+            c = ctl[0]
+            self.t0_perf = (int(c["t0"]) or t0_ns) * 1e-9
+            self.tick = int(c["ran"])  # ticks run (a stall's skipped ticks are not rows)
+            last_index = int(c["tick"]) - 1
+            if last_index >= 0:
+                self._t_session = last_index * dt
+            self.device.record_forces(c["forces"], fl[0]["maxf"], fl[0]["f"])
+        if "error" in outcome:
+            raise outcome["error"]
+        status = outcome.get("status")
+        if status == rtloop.FAULTED:
+            self._state_fault(self._t_session, last_index)
+        elif feed.error is not None and self.fault is None:  # the device failed: the feeder stopped the loop
+            e = feed.error
+            raise e if isinstance(e, DeviceFault) else DeviceFault(f"{self.device.info.name}: {type(e).__name__}: {e}")
+        elif status == rtloop.STARVED and self.fault is None:
+            raise DeviceFault(f"{self.device.info.name}: positions for tick {self.tick} were not read in time "
+                              "(the feeder fell 1 s behind the servo loop)")
+
+    def _run_realtime(self) -> None:
+        """Our timer drives the servo: the compiled loop for a device read ahead, else
+        :meth:`_timer_loop` on this thread (SCHED_FIFO where allowed, restored after)."""
+        if self.compiled_loop:
+            return self._run_realtime_compiled()
+        with self._realtime_threads(watchdog=True) as t0:
+            self.t0_perf = t0
+            prev = self._try_fifo()
+            self.sched_fifo = prev is not None
+            try:
+                self._timer_loop(t0)
+            finally:
+                self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
+
+    def _timer_loop(self, t0: float) -> None:
+        """Tick k at ``t0 + k * servo_dt`` (sleep, then spin), read the device then :meth:`_servo_tick`;
+        a device time stuck while a force is commanded is a fault."""
+        dev = self.device
+        dt = self.servo_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        perf = time.perf_counter
+        sleep = time.sleep
+        k = 0
+        count_start = perf()
+        count_ticks = 0
+        force = self._force  # the force the previous tick commanded (a view)
+        dev_t, dev_t_since = math.nan, 0.0
+        anchor = t0  # tick k's deadline is anchor + k * dt
+        while not self._stop.is_set():
+            deadline = anchor + k * dt
+            now = perf()
+            remaining = deadline - now
+            if remaining > SLEEP_AFTER_NS / 1e9:  # servotick's rule, as the compiled loop's
+                sleep(remaining - SPIN_NS / 1e9)
+            while perf() < deadline:
+                pass
+            start = perf()
+            err = start - deadline
+            t = start - t0
+            if t > limit:
+                break
+            state = dev.read_at(t)
+            if state.done or self._stop.is_set():  # stopped (or faulted) while the read ran
+                break
+            if state.t_s != dev_t:
+                dev_t, dev_t_since = state.t_s, t
+            elif t - dev_t_since > self.stale_s and (force[0] != 0.0 or force[1] != 0.0 or force[2] != 0.0):
+                raise DeviceFault(f"{dev.info.name}: device time stuck at {dev_t:.3f} s for "
+                                  f"{1e3 * (t - dev_t_since):.0f} ms while a force was commanded: "
+                                  "device stopped updating")
+            self._servo_tick(t, state, err, dt)
+            self._t_session = t
+            k += 1
+            if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor the deadlines instead of
+                anchor = perf() - k * dt  # bursting; session time (start - t0) still only moves on
+            count_ticks += 1
+            if start - count_start >= 0.5:
+                self.rates["servo_hz"] = count_ticks / (start - count_start)
+                count_start = start
+                count_ticks = 0
+
+    # the device's scheduler drives the servo step (OMNI)
+    def _run_device_clock_compiled(self) -> None:
+        """The OMNI with the whole tick compiled (:mod:`haptic_acu.servo.omniloop`): its scheduler thread
+        never takes the GIL."""
+        from ..servo import omniloop as ol
+
+        dev = self.device
+        m = self.model
+        omni = ol.make_arrays(dev.workspace, dev.servo_guard(), dev.info.force_limit_n, dev.info.rate_hz,
+                              self.servo_dt, self.duration_s if self.duration_s is not None else math.inf)
+        ictl, fctl = omni.ictl, omni.fctl
+        c = ictl[0]  # the control record (a view)
+        arrays = [omni, Ring(self.ring.buf, self.ring.ctr)]  # kept alive while the table is in use
+        table = ol.address_table(omni, m.servo, arrays[1], self._timing)
+        self._pin_device_servo()
+        old = self._rt_setup()
+        t0 = time.perf_counter()
+        t0_ns = time.perf_counter_ns()
+        c["t0_ns"] = t0_ns
+        c["last_ns"] = t0_ns
+        self.t0_perf = t0
+        self._tick_word = (c, "etick")
+        vis = threading.Thread(target=self._visual_loop, args=(t0,), name="haptic-acu-visual", daemon=True)
+        vis.start()
+        try:
+            dev.run_servo_compiled(self._omni_callback, table, ictl, fctl, self._stop)
+        finally:
+            self._stop.set()
+            vis.join(timeout=2.0)
+            self._rt_teardown(old)
+            self._tick_word = None
+            self.tick = int(c["etick"])
+            self._t_session = float(fctl[0]["t_session"])
+            arrays.clear()  # (the table's addresses are dead from here)
+        if c["done"] == ol.DONE_STATE and self.fault is None:
+            self._state_fault(self._t_session, self.tick - 1)
+        if c["done"] == ol.DONE_RENDER and self.fault is None:
+            self._set_fault(f"rendering layer: a non-finite position or tissue report at t={self._t_session:.3f} s "
+                            f"(tick {self.tick - 1}); force set to zero")
+
+    def _run_device_clock(self) -> None:
+        """The device's scheduler drives the servo: the compiled callback, or a Python step
+        (:meth:`_servo_tick`) called through :meth:`devices.base.Device.run_servo`."""
+        if self._omni_callback is not None:
+            return self._run_device_clock_compiled()
+        dt = self.servo_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        self._pin_device_servo()
+        with self._realtime_threads(watchdog=False) as t0:
+            last = [t0, 0, t0]  # previous tick time, ticks in the rate window, window start
+
+            def step(state):
+                now = time.perf_counter()
+                err = (now - last[0]) - dt
+                last[0] = now
+                t = state.t_s  # the device's own tick time; the wall clock gives only the period error
+                last[1] += 1
+                if now - last[2] >= 0.5:
+                    self.rates["servo_hz"] = last[1] / (now - last[2])
+                    last[1] = 0
+                    last[2] = now
+                if t > limit or state.done:
+                    self._stop.set()
+                    return self._zero
+                self._t_session = t
+                return self._servo_tick(t, state, err, dt, command=False)
+
+            self.device.run_servo(step, self._stop, render=(self.model.out.diag, self.model.inp))
+
+    # -- signals ------------------------------------------------------------------------------------
+    def _install_signals(self):
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        old = {}
+
+        def handler(signum, frame):
+            self.signal_received = signum  # replay reports an interrupted run (data issue)
+            self.stop()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                old[sig] = signal.signal(sig, handler)
+            except (ValueError, OSError):
+                pass
+        return old
+
+    def _restore_signals(self, old) -> None:
+        if not old:
+            return
+        for sig, h in old.items():
+            try:
+                signal.signal(sig, h)
+            except (ValueError, OSError):
+                pass

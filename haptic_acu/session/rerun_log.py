@@ -1,0 +1,485 @@
+"""Logging a session to rerun (https://rerun.io) as a frame sink: a .rrd file, a spawned viewer, or
+a running viewer over gRPC.
+
+Timelines: ``sim_time`` (a duration, s) and ``tick`` (the servo tick, a sequence).
+
+Servo-rate series, one value per tick, sent once per visual frame as columns (``send_columns``):
+
+    /force/total   |F|, fx, fy, fz (N)
+    /force/split   force attributed to skin, fat, muscle; surface, damping, lateral, bone parts (N)
+    /depth         tip depth below the rest skin surface (mm, haptic_acu.session.report.tip_depth_m),
+                   depth into the current layer (mm)
+    /twirl/roll    the needle's roll (deg, cumulative, + clockwise seen from the handle)
+    /twirl/torque  the twist torque of the tissue wound around the shaft (N*mm, haptic_acu.tissue.twirl)
+
+Per visual frame (``log`` at ~60 Hz), all positions in metres in the scene frame (+z up, the
+acupoint at the origin):
+
+    /world/tissue/<layer>/rest    boundary k's surface away from the acupoint (static, coarse)
+    /world/tissue/<layer>/patch   the fine patch around the acupoint: radius = rest radius - dent,
+                                  the dent from the live nets on haptic_acu.session.engine.PATCH_GRID
+                                  (frame.dents); re-logged only when it changes
+    /world/needle                 40 mm of needle from the tip back along the insertion axis
+    /world/twist                  a 6 mm bar across the needle's handle end that turns with its roll
+                                  (haptic_acu.tissue.twirl.twist_direction): the twirling, seen in 3D
+    /world/force                  the force on the needle as an arrow at the tip (10 mm per N)
+    /world/nets/<layer>/slot<s>   each live force net's particles and springs (the lattice's
+                                  neighbour pairs, drawn as its straight rows); re-logged when moved
+    /rates/servo_hz, visual_hz    the engine's measured loop rates (every 0.5 s)
+    /events                       punctures ("skin punctured at t=..., depth ..., peak ..."), faults
+
+A blueprint (3D view beside force, depth and rate plots and the event log) goes with the recording.
+``set_time`` is thread-local in rerun: every logging call sets its time in the calling thread.
+"""
+from __future__ import annotations
+
+import collections
+import socket
+import sys
+import time
+import urllib.parse
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from ..tissue import shf
+from ..base.errors import UserError
+from .report import LAYERS, SessionScan, tip_depth_m
+from ..servo.samples import COL
+from ..tissue.body import grid_triangles
+from ..tissue.twirl import twist_direction
+from ..servo.state import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, net_layer, net_slot
+from .sink import Sink
+
+APP_ID = "haptic-acu"
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+BOUNDARY_NAMES = PLACE_NAMES[1:]  # boundary k is the top of layer k (3: bone)
+NEEDLE_LENGTH_M = 0.040
+FORCE_ARROW_M_PER_N = 0.010
+_DENT_EPS_M = 5e-6  # re-log a patch when its dent changed by more than this (invisible below)
+_NET_EPS_M = 1e-6  # re-log a net when a particle moved by more than this
+_RATES_EVERY_S = 0.5
+
+_COLOURS = {"skin": (232, 180, 150), "fat": (245, 218, 120), "muscle": (190, 80, 80), "bone": (236, 232, 214)}
+_ALPHA = {"skin": 150, "fat": 200, "muscle": 255, "bone": 255}
+
+_C_X = COL["x_m"]
+_C_F = COL["fx_n"]
+_SPLIT_COLS = np.r_[COL["f_skin_n"]:COL["f_muscle_n"] + 1, COL["f_surface_n"]:COL["f_bone_n"] + 1]
+
+# entity -> (series names, colours, (rows, tip depth) -> (k, m) values); one send_columns each per frame
+SERIES = {
+    "force/total": (["|F|", "fx", "fy", "fz"], [(20, 20, 20), (214, 39, 40), (44, 160, 44), (31, 119, 180)],
+                    lambda r, d: np.column_stack([np.linalg.norm(r[:, _C_F:_C_F + 3], axis=1), r[:, _C_F:_C_F + 3]])),
+    "force/split": ([*LAYER_NAMES, "surface", "damping", "lateral", "bone"],
+                    [(215, 140, 100), (200, 160, 30), (170, 40, 40), (31, 119, 180), (255, 127, 14), (148, 103, 189),
+                     (140, 86, 75)],
+                    lambda r, d: r[:, _SPLIT_COLS]),
+    "depth": (["tip below rest skin (mm)", "into current layer (mm)"], [(20, 20, 20), (120, 120, 120)],
+              lambda r, d: np.column_stack([d * 1e3, r[:, COL["depth_m"]] * 1e3])),
+    "twirl/roll": (["roll (deg)"], [(31, 119, 180)], lambda r, d: r[:, COL["roll_deg"]:COL["roll_deg"] + 1]),
+    "twirl/torque": (["torque (N*mm)"], [(214, 39, 40)], lambda r, d: r[:, COL["torque_nmm"]:COL["torque_nmm"] + 1]),
+}
+TWIST_BAR_M = 0.006
+
+
+def twist_bar(tip, back, roll_deg: float) -> np.ndarray:
+    """The twist bar's two ends (2, 3): across the needle's handle end (``tip`` + 40 mm along
+    ``back``, the unit vector toward the handle), along :func:`haptic_acu.tissue.twirl.twist_direction`."""
+    handle = np.asarray(tip) + NEEDLE_LENGTH_M * np.asarray(back)
+    d = twist_direction(-np.asarray(back), np.radians(roll_deg)) * (0.5 * TWIST_BAR_M)
+    return np.stack([handle - d, handle + d])
+
+
+def blueprint() -> rrb.Blueprint:
+    """The default layout: the 3D scene on the left; force, depth, loop rates and events on the right."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="needle and tissue", origin="/world"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="force on the needle (N)", origin="/force/total"),
+                rrb.TimeSeriesView(name="force by layer and part (N)", origin="/force/split"),
+                rrb.TimeSeriesView(name="depth (mm)", origin="/depth"),
+                rrb.TimeSeriesView(name="roll (deg)", origin="/twirl/roll"),
+                rrb.TimeSeriesView(name="twist torque (N*mm)", origin="/twirl/torque"),
+                rrb.TimeSeriesView(name="loop rates (Hz)", origin="/rates"),
+                rrb.TextLogView(name="events", origin="/events"),
+                row_shares=[3, 2, 2, 1, 1, 1, 1],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline="sim_time"),
+        collapse_panels=False,
+    )
+
+
+def _check_reachable(url: str, timeout_s: float = 2.0) -> None:
+    """Raise OSError unless something accepts TCP connections at the URL's host and port."""
+    u = urllib.parse.urlparse(url)
+    if not u.hostname or not u.port:
+        raise OSError(f"not a rerun+http://HOST:PORT/proxy address: {url!r}")
+    try:
+        socket.create_connection((u.hostname, u.port), timeout=timeout_s).close()
+    except OSError as e:
+        raise OSError(f"no viewer listening ({e.strerror or e})") from None
+
+
+def _ns(t_s) -> np.ndarray:
+    """Seconds -> timedelta64[ns], rounded (rerun truncates float seconds)."""
+    return np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+
+
+def _grid_normals(v: np.ndarray) -> np.ndarray:
+    """Unit normals of a (n_theta, n_phi, 3) grid surface (theta down from +z, phi wrapping), outward for
+    a star-shaped surface."""
+    d_th = np.gradient(v, axis=0)
+    d_ph = np.roll(v, -1, axis=1) - np.roll(v, 1, axis=1)
+    n = np.cross(d_th, d_ph)
+    m = np.linalg.norm(n, axis=-1, keepdims=True)
+    return n / np.where(m > 0.0, m, 1.0)
+
+
+def _cap_triangles(n_theta: int, n_phi: int) -> np.ndarray:
+    """Triangles of a polar cap: a pole vertex (index n_theta * n_phi) fanned to row 0, then the grid."""
+    pole = n_theta * n_phi
+    j = np.arange(n_phi)
+    fan = np.stack([np.full(n_phi, pole), j, (j + 1) % n_phi], axis=1)
+    return np.concatenate([fan, grid_triangles(n_theta, n_phi)]).astype(np.uint32)
+
+
+def lattice_rows(lat, n: int) -> list[np.ndarray]:
+    """The springs between the first n particles of a hexagonal lattice as polylines: every maximal
+    straight row of neighbours along each of the three lattice directions. Together the rows hold
+    each neighbour pair exactly once (far fewer strips than pairs, so much cheaper to log)."""
+    nbr = lat.nbr[:n]
+    rows = []
+    for d in range(3):  # direction d and d + 3 are opposite (forcenet._HEX_DIRS)
+        for i in range(n):
+            back = nbr[i, d + 3]
+            if 0 <= back < n:
+                continue  # not the start of a row
+            row = [i]
+            j = nbr[i, d]
+            while 0 <= j < n:
+                row.append(int(j))
+                j = nbr[j, d]
+            if len(row) > 1:
+                rows.append(np.array(row, dtype=np.int64))
+    return rows
+
+
+class RerunSink(Sink):
+    """Frame sink that logs a session to rerun. Build it with :meth:`to_file`, :meth:`spawn`,
+    :meth:`connect` or :meth:`from_spec`; the engine then calls ``warm_up``, ``start``, ``on_frame``
+    (visual thread) and ``close``. ``frame_cost_s`` and ``frame_cpu_s`` keep the wall and thread CPU
+    time of every ``on_frame`` (rerun's own encoder and writer threads are not included)."""
+
+    def __init__(self, mode: str = "file", target: str | None = None, *, recording_id: str | None = None,
+                 rest_n_theta: int = 40, footer: bool = True):
+        self.mode = mode
+        self.target = target
+        self.rest_n_theta = rest_n_theta
+        self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        bp = blueprint()
+        try:
+            if mode == "file":
+                # The .rrd footer (a manifest of every chunk, for random access) is held in memory
+                # until the file closes: ~25 MB per minute of a live session, whose servo series
+                # make 180 chunks a second. A live session's file goes without it (flat memory;
+                # the viewer reads the file in order); headless replays, short and batched, keep it.
+                self.rec.save(str(target), default_blueprint=bp, write_footer=footer)
+            elif mode == "spawn":
+                self.rec.spawn(default_blueprint=bp)
+            elif mode == "connect":
+                _check_reachable(target)  # rerun itself would retry quietly for seconds
+                self.rec.connect_grpc(target, default_blueprint=bp)
+            else:
+                raise ValueError(f"unknown rerun mode {mode!r}")
+        except (OSError, RuntimeError) as e:
+            hint = " (start a viewer with `rerun`, or log to a FILE.rrd)" if mode == "connect" else ""
+            raise UserError(f"rerun {mode} {target or ''}: {e}{hint}".replace("  ", " ")) from None
+        # the last 100,000 frames (28 min at 60 Hz): bounded in a session of any length
+        self.frame_cost_s: collections.deque = collections.deque(maxlen=100_000)
+        self.frame_cpu_s: collections.deque = collections.deque(maxlen=100_000)
+        self._last_t = 0.0
+        self._warm = False
+        self._started = False
+        self._last_tick = 0
+        self._rates_next = -np.inf
+        # Servo-rate series go out every ``batch_frames`` visual frames (1: every frame, what a live
+        # viewer wants; headless replay writing a file sends fewer, larger batches: the SDK's
+        # per-call cost, not the data, dominated a replay).
+        self.batch_frames = 1
+        self._pending: list[np.ndarray] = []
+        self._frames_since_send = 0
+        # The SDK queues logged data for its encoder/writer thread without bound: when logging
+        # outpaces it (a loaded machine, a headless replay) the queue grew ~30 MB per minute of
+        # session. A flush every ``flush_frames`` frames waits for it, bounding the backlog to
+        # about one second of data; the wait is in this process (the logging child in a live
+        # session, whose pipe then holds the visual thread back; never the servo thread).
+        self.flush_frames = 60
+        self.flush_timeout_s = 5.0
+        self._frames_since_flush = 0
+
+    # -- constructors ---------------------------------------------------------------------------
+    @classmethod
+    def to_file(cls, path, **kw) -> "RerunSink":
+        """Write a .rrd file (headless)."""
+        return cls("file", str(path), **kw)
+
+    @classmethod
+    def to_file_live(cls, path, **kw) -> "RerunSink":
+        """Write a .rrd file from a live session of any length: no footer, so memory stays flat."""
+        return cls("file", str(path), footer=False, **kw)
+
+    @classmethod
+    def spawn(cls, **kw) -> "RerunSink":
+        """Start a rerun viewer and stream to it."""
+        return cls("spawn", None, **kw)
+
+    @classmethod
+    def connect(cls, addr: str | None = None, **kw) -> "RerunSink":
+        """Stream to a running viewer: a ``rerun+http://host:port/proxy`` URL or ``host:port``
+        (default: the local viewer's default address, port 9876)."""
+        if addr is None:
+            addr = DEFAULT_URL
+        elif "://" not in addr:
+            addr = f"rerun+http://{addr}/proxy"
+        return cls("connect", addr, **kw)
+
+    @classmethod
+    def from_spec(cls, spec: str, **kw) -> "RerunSink":
+        """``spawn``, ``connect[:ADDR]``, or a path ending in .rrd."""
+        if spec == "spawn":
+            return cls.spawn(**kw)
+        if spec == "connect" or spec.startswith("connect:"):
+            return cls.connect(spec.partition(":")[2] or None, **kw)
+        if spec.startswith("rerun+http://"):
+            return cls.connect(spec, **kw)
+        if not spec.endswith(".rrd"):
+            raise UserError(f"--rerun {spec!r}: give spawn, connect[:HOST:PORT] or a FILE.rrd")
+        return cls.to_file(spec, **kw)
+
+    # -- sink interface -------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Pay rerun's first-call costs before the loops start (the first ``send_columns`` takes tens
+        of ms, up to ~0.2 s): send each servo series its styling and an empty column batch."""
+        if self._warm:
+            return
+        rec = self.rec
+        for path, (names, colours, _) in SERIES.items():
+            rec.log(path, rr.SeriesLines(names=names, colors=colours, widths=[1.5] * len(names)), static=True)
+            empty = np.zeros((0, len(names)))
+            rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=_ns(empty[:, 0])),
+                                            rr.TimeColumn("tick", sequence=np.zeros(0, dtype=np.int64))],
+                             columns=rr.Scalars.columns(scalars=empty))
+        self._warm = True
+
+    def start(self, info: dict) -> None:
+        """Log the static scene: rest surfaces, patch topology, session description."""
+        self.warm_up()
+        from .engine import PATCH_GRID  # the grid frame.dents are evaluated on
+
+        model = info["model"]
+        self.model = model
+        self.tissue = tissue = model.tissue
+        self.scan = SessionScan(tissue)
+        rec = self.rec
+        rec.set_time("sim_time", duration=np.timedelta64(0, "ns"))
+        rec.set_time("tick", sequence=0)
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        dev = info.get("device")
+        cfg = info.get("config")
+        doc = [f"clock: {info.get('clock', '?')}"]
+        if dev is not None:
+            doc.append(f"device: {getattr(dev, 'name', '?')} ({getattr(dev, 'model', '')})")
+        if cfg is not None and getattr(cfg, "path", None):
+            doc.append(f"config: {cfg.path}")
+        rec.log("session", rr.TextDocument("\n".join(doc)), static=True)
+
+        th_p, ph_p = PATCH_GRID
+        n_th, n_ph = th_p.shape
+        self._patch_dirs = shf.unit_vectors(th_p, ph_p)
+        self._patch_tris = _cap_triangles(n_th, n_ph)
+        self._patch_rest = []
+        # The rest meshes start at the patch's last theta row (same phi columns): no seam, no overlap.
+        th_edge = float(th_p[-1, 0])
+        for k, name in enumerate(BOUNDARY_NAMES):
+            if k < 3:
+                th = np.linspace(th_edge, np.pi, self.rest_n_theta)
+            else:
+                th = np.linspace(0.0, np.pi, self.rest_n_theta)
+            T, P = np.meshgrid(th, ph_p[0], indexing="ij")
+            verts = tissue.centre + shf.unit_vectors(T, P) * tissue.radius(k, T, P)[..., None]
+            colour = (*_COLOURS[name], _ALPHA[name])
+            rec.log(f"world/tissue/{name}/rest", rr.Mesh3D(
+                vertex_positions=verts.reshape(-1, 3), vertex_normals=_grid_normals(verts).reshape(-1, 3),
+                triangle_indices=grid_triangles(*T.shape), albedo_factor=colour), static=True)
+            if k < 3:
+                r_rest = tissue.radius(k, th_p, ph_p)
+                r_pole = float(tissue.radius(k, np.zeros(1), np.zeros(1))[0])
+                self._patch_rest.append((r_rest, r_pole))
+                rec.log(f"world/tissue/{name}/patch", rr.Mesh3D.from_fields(
+                    triangle_indices=self._patch_tris, albedo_factor=colour), static=True)
+        self._patch_dent = [None, None, None]
+        for k in range(3):
+            self._log_patch(k, np.zeros(th_p.shape))
+        self._rows = [lattice_rows(lat, n) for lat, n in zip(model.lattices, model.n)]
+        self._net_last: dict[int, np.ndarray] = {}
+        rec.log("world/needle", rr.LineStrips3D.from_fields(radii=rr.Radius.ui_points(3.0), colors=[(90, 90, 100)]),
+                static=True)
+        rec.log("world/force", rr.Arrows3D.from_fields(radii=rr.Radius.ui_points(2.5), colors=[(220, 30, 30)]),
+                static=True)
+        rec.log("world/twist", rr.LineStrips3D.from_fields(radii=rr.Radius.ui_points(4.0), colors=[(31, 119, 180)]),
+                static=True)
+        self._started = True
+
+    def _send_series(self) -> None:
+        """Send the pending servo rows: one send_columns per series (one value per tick), and the
+        puncture events among them."""
+        if not self._pending:
+            return
+        rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+        self._pending = []
+        rec = self.rec
+        depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
+               rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
+        for path, (_, _, get) in SERIES.items():
+            rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=get(rows, depth)))
+        self._events(rows, depth)
+        rec.set_time("sim_time", duration=_ns(self._last_t))  # _events moved this thread's time
+        rec.set_time("tick", sequence=self._last_tick)
+
+    def on_frame(self, frame) -> None:
+        t_wall = time.perf_counter()
+        t_cpu = time.thread_time()
+        rec = self.rec
+        rows = frame.samples
+        k = len(rows)
+        if k:
+            self._pending.append(rows)
+            self._last_tick = int(rows[-1, COL["tick"]])
+        self._last_t = frame.t_s
+        self._frames_since_send += 1
+        if self._frames_since_send >= self.batch_frames:
+            self._frames_since_send = 0
+            self._send_series()
+        rec.set_time("sim_time", duration=_ns(frame.t_s))
+        rec.set_time("tick", sequence=self._last_tick)
+        model = frame.model
+        if k:
+            tip = rows[-1, _C_X:_C_X + 3]
+            back = -model.axis if model.inserted else np.array([0.0, 0.0, 1.0])
+            rec.log("world/needle", rr.LineStrips3D.from_fields(strips=[[tip, tip + NEEDLE_LENGTH_M * back]]))
+            rec.log("world/twist", rr.LineStrips3D.from_fields(strips=[twist_bar(tip, back, rows[-1, COL["roll_deg"]])]))
+            f = rows[-1, _C_F:_C_F + 3]
+            rec.log("world/force", rr.Arrows3D.from_fields(origins=[tip], vectors=[f * FORCE_ARROW_M_PER_N]))
+        rates = getattr(frame, "rates", None) or {}
+        if rates and frame.t_s >= self._rates_next:
+            self._rates_next = frame.t_s + _RATES_EVERY_S
+            for key in ("servo_hz", "visual_hz"):
+                if key in rates:
+                    rec.log(f"rates/{key}", rr.Scalars(float(rates[key])))
+        self._patches(frame)
+        self._nets(model)
+        self._frames_since_flush += 1
+        if self.flush_frames and self._frames_since_flush >= self.flush_frames:
+            self._frames_since_flush = 0
+            try:
+                rec.flush(timeout_sec=self.flush_timeout_s)
+            except RuntimeError:  # a viewer too slow to take it: the backlog waits for the next flush
+                pass
+        self.frame_cost_s.append(time.perf_counter() - t_wall)
+        self.frame_cpu_s.append(time.thread_time() - t_cpu)
+
+    def close(self, result=None) -> None:
+        if self._started:
+            self._send_series()
+        fault = getattr(result, "fault", None)
+        if fault and self._started:
+            self.rec.set_time("sim_time", duration=_ns(self._last_t))  # this thread's time (thread-local)
+            self.rec.set_time("tick", sequence=self._last_tick)
+            self.rec.log("events", rr.TextLog(f"session stopped: {fault}", level=rr.TextLogLevel.ERROR))
+        try:
+            self.rec.flush(timeout_sec=10.0)
+        except RuntimeError as e:  # a viewer that went away: report, but let the other sinks close
+            print(f"haptic-acu: rerun: {e}", file=sys.stderr)
+        if self.mode == "file":
+            self.rec.disconnect()  # finishes the file (footer)
+
+    # -- pieces ---------------------------------------------------------------------------------
+    def _events(self, rows: np.ndarray, depth: np.ndarray) -> None:
+        rec = self.rec
+        for ev in self.scan.feed(rows, depth):
+            rec.set_time("sim_time", duration=_ns(ev["t_s"]))
+            rec.set_time("tick", sequence=ev["tick"])
+            rec.log("events", rr.TextLog(
+                f"{ev['layer']} punctured at t={ev['t_s']:.3f} s, depth {ev['tip_depth_m'] * 1e3:.2f} mm, "
+                f"peak {ev['peak_force_n']:.3f} N", level=rr.TextLogLevel.INFO))
+        bad = np.nonzero(rows[:, COL["fault"]])[0]
+        if bad.size and not getattr(self, "_fault_logged", False):
+            i = bad[0]
+            rec.set_time("sim_time", duration=_ns(rows[i, COL["t_s"]]))
+            rec.set_time("tick", sequence=int(rows[i, COL["tick"]]))
+            rec.log("events", rr.TextLog("fault: non-finite needle state, force set to zero",
+                                         level=rr.TextLogLevel.ERROR))
+            self._fault_logged = True
+
+    def _log_patch(self, k: int, dent: np.ndarray) -> None:
+        r_rest, r_pole = self._patch_rest[k]
+        verts = self.tissue.centre + self._patch_dirs * (r_rest - dent)[..., None]
+        pole = self.tissue.centre + np.array([0.0, 0.0, r_pole - float(dent[0].mean())])
+        normals = _grid_normals(verts).reshape(-1, 3)
+        self.rec.log(f"world/tissue/{BOUNDARY_NAMES[k]}/patch", rr.Mesh3D.from_fields(
+            vertex_positions=np.vstack([verts.reshape(-1, 3), pole]).astype(np.float32),
+            vertex_normals=np.vstack([normals, [0.0, 0.0, 1.0]]).astype(np.float32)))
+        self._patch_dent[k] = dent
+
+    def _patches(self, frame) -> None:
+        dents = getattr(frame, "dents", None) or {}
+        model = frame.model
+        for k in range(3):
+            if k in dents:
+                dent = np.asarray(dents[k])
+            elif any(model.owner(net_index(k, s)) != FREE for s in range(N_SLOTS)):
+                continue  # a settled net: its dent has stopped changing, keep what was logged
+            else:
+                dent = None
+            last = self._patch_dent[k]
+            if dent is None:
+                if last is not None and np.any(last != 0.0):
+                    self._log_patch(k, np.zeros_like(last))
+                continue
+            if last is None or last.shape != dent.shape or np.max(np.abs(dent - last)) > _DENT_EPS_M:
+                self._log_patch(k, dent)
+
+    def _nets(self, model) -> None:
+        rec = self.rec
+        for idx in range(N_SLOTS * len(LAYERS)):
+            k, s = net_layer(idx), net_slot(idx)
+            path = f"world/nets/{LAYERS[k]}/slot{s}"
+            if model.owner(idx) == FREE:
+                if idx in self._net_last:
+                    rec.log(path, rr.Clear(recursive=True))
+                    del self._net_last[idx]
+                continue
+            pos = model.net_positions(idx)[: model.n[k]]
+            last = self._net_last.get(idx)
+            if last is not None and np.max(np.abs(pos - last)) <= _NET_EPS_M:
+                continue
+            self._net_last[idx] = pos
+            rec.log(f"{path}/particles", rr.Points3D(pos, radii=rr.Radius.ui_points(2.0),
+                                                      colors=[_COLOURS[LAYERS[k]]]))
+            rec.log(f"{path}/springs", rr.LineStrips3D([pos[r] for r in self._rows[k]],
+                                                        radii=rr.Radius.ui_points(0.75), colors=[(60, 60, 60)]))
+
+    # -- measurements ---------------------------------------------------------------------------
+    def frame_cost_ms(self, cpu: bool = False) -> dict:
+        """Median, 99th percentile and max of the on_frame wall (or thread CPU) time (ms)."""
+        c = np.asarray(self.frame_cpu_s if cpu else self.frame_cost_s) * 1e3
+        if c.size == 0:
+            return {"frames": 0, "p50": 0.0, "p99": 0.0, "max": 0.0}
+        return {"frames": int(c.size), "p50": float(np.percentile(c, 50)), "p99": float(np.percentile(c, 99)),
+                "max": float(c.max())}

@@ -1,0 +1,8 @@
+"""The tissue model, pure and compiled: the layered body between spherical-harmonic surfaces
+(:mod:`.shf`, :mod:`.body`), the mass-spring force nets and their tabulated responses
+(:mod:`.forcenet`, :mod:`.netresponse`), post-puncture mechanics (:mod:`.mechanics`,
+:mod:`.postpuncture`), twirling (:mod:`.twirl`), springback (:mod:`.springback`), and the vocabulary
+of places and layer states (:mod:`.layers`).
+
+May import: base.
+"""

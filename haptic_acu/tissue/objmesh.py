@@ -1,0 +1,75 @@
+"""Wavefront OBJ surface meshes: the vertex positions of a scanned or modelled body surface.
+
+Only geometric vertices matter here (``haptic-acu fit`` fits them as a radial SH surface); faces,
+normals, texture coordinates, groups, materials and every other record are skipped. A vertex line is
+``v x y z``, optionally followed by a homogeneous weight ``w`` and/or the common ``r g b`` colour
+extension, i.e. 3, 4, 6 or 7 numbers; only x, y, z are used. ``#`` starts a comment anywhere on a line.
+OBJ has no units: this project reads coordinates as millimetres and returns metres.
+
+Any problem raises :class:`~haptic_acu.base.errors.UserError` with one line naming the file (and the line
+number, for a bad vertex line).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..base.errors import UserError
+
+_VERTEX_COUNTS = (3, 4, 6, 7)  # x y z [w] [r g b]
+
+
+def read_vertices(path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of an OBJ file as (positions (n, 3) in metres, their 1-based line numbers (n,)).
+
+    The file's coordinates are taken to be millimetres.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"{path}: OBJ file not found") from None
+    except IsADirectoryError:
+        raise UserError(f"{path}: is a directory, not an OBJ file") from None
+    except OSError as e:
+        raise UserError(f"{path}: cannot read OBJ file: {e.strerror}") from None
+    if b"\0" in raw:
+        raise UserError(f"{path}: not a text OBJ file (contains NUL bytes)")
+    # OBJ is ASCII; names and comments in other encodings must not stop us reading the numbers.
+    text = raw.decode("utf-8", errors="replace")
+    coords: list[tuple[float, float, float]] = []
+    lines: list[int] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields or fields[0] != "v":
+            continue
+        values = fields[1:]
+        if len(values) not in _VERTEX_COUNTS:
+            raise UserError(f"{path}: line {lineno}: malformed vertex: expected 'v x y z' (optionally "
+                            f"followed by w and/or r g b), got {len(values)} values")
+        try:
+            xyz = tuple(float(v) for v in values[:3])
+            for v in values[3:]:
+                float(v)
+        except ValueError:
+            raise UserError(f"{path}: line {lineno}: malformed vertex: {line.strip()[:60]!r} "
+                            "is not 'v' followed by numbers") from None
+        if not all(math.isfinite(c) for c in xyz):
+            raise UserError(f"{path}: line {lineno}: vertex coordinates must be finite, got {' '.join(values[:3])}")
+        coords.append(xyz)
+        lines.append(lineno)
+    if not coords:
+        raise UserError(f"{path}: no vertices ('v x y z' lines) found")
+    return np.array(coords, dtype=np.float64) * 1e-3, np.array(lines, dtype=np.int64)
+
+
+def write_obj(path, vertices_mm, faces, header: str = "") -> None:
+    """Write vertices (n, 3) in mm and 0-based triangles (m, 3) as an OBJ file (1-based indices)."""
+    vertices_mm = np.asarray(vertices_mm, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    out = [f"# {h}" if h else "#" for h in header.splitlines()]
+    out += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices_mm]
+    out += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    Path(path).write_text("\n".join(out) + "\n", encoding="ascii")

@@ -1,0 +1,127 @@
+"""Springback of a punctured layer's surface: shape matching slowed by eq. 9 (eq. 7-9; MODEL.md s4).
+
+After a puncture the net's particles (and the undeformed margin rings around it, which keep the
+centroid from drifting) are matched to their rest shape each visual frame:
+
+    A   = sum_i M_i (p_i - p_cm)(p0_i - p0_cm)^T            (eq. 7, equal masses)
+    R   = rotation of A's polar decomposition A = R S        (eq. 8's "alpha / A", read as Mueller 2005)
+    g_i = R (p0_i - p0_cm) + p_cm                            (eq. 8)
+    g_i = g_i + eta (p_i - g_i),  eta <- max(eta_min, eta - eta_r)   (eq. 9)
+
+and the net's particles move to their goals; the margin particles stay at rest. With eta = 1 nothing
+moves; with eta_min = 0 the surface returns to its rest shape. R comes from an SVD with the
+reflection fixed (det R = +1), robust for any A including a degenerate (flat) one.
+
+This runs in the 60 Hz visual loop, on nets the servo has handed over (see :mod:`haptic_acu.servo.step`).
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .layers import VISUAL_OWNS, net_layer
+
+
+@nb.njit(cache=True, nogil=True)
+def polar_rotation(A):
+    """The rotation R of the polar decomposition A = R S (det R = +1)."""
+    U, s, Vt = np.linalg.svd(A)
+    R = U @ Vt
+    if np.linalg.det(R) < 0.0:
+        U2 = U.copy()
+        U2[:, 2] = -U2[:, 2]
+        R = U2 @ Vt
+    return R
+
+
+@nb.njit(cache=True, nogil=True)
+def shape_matching_goals(p, p0, goals):
+    """Goals g_i = R (p0_i - p0_cm) + p_cm for every particle (eq. 7-8, equal masses)."""
+    n = p.shape[0]
+    cm = np.zeros(3)
+    cm0 = np.zeros(3)
+    for i in range(n):
+        for k in range(3):
+            cm[k] += p[i, k]
+            cm0[k] += p0[i, k]
+    cm /= n
+    cm0 /= n
+    A = np.zeros((3, 3))
+    for i in range(n):
+        for a in range(3):
+            for b in range(3):
+                A[a, b] += (p[i, a] - cm[a]) * (p0[i, b] - cm0[b])
+    R = polar_rotation(A)
+    for i in range(n):
+        for a in range(3):
+            acc = cm[a]
+            for b in range(3):
+                acc += R[a, b] * (p0[i, b] - cm0[b])
+            goals[i, a] = acc
+
+
+@nb.njit(cache=True, nogil=True)
+def springback_step(x, X0, n_net, eta, goals):
+    """One visual frame: move particles ``[0, n_net)`` of ``x`` to their eta-slowed goals (eq. 9);
+    particles ``[n_net, len)`` (the undeformed margin) stay at rest. Returns the largest move (m)."""
+    n_all = x.shape[0]
+    for i in range(n_net, n_all):
+        for k in range(3):
+            x[i, k] = X0[i, k]
+    shape_matching_goals(x, X0, goals)
+    biggest = 0.0
+    for i in range(n_net):
+        m2 = 0.0
+        for k in range(3):
+            g = goals[i, k] + eta * (x[i, k] - goals[i, k])
+            d = g - x[i, k]
+            m2 += d * d
+            x[i, k] = g
+        if m2 > biggest:
+            biggest = m2
+    return np.sqrt(biggest)
+
+
+class Springback:
+    """Per-slot springback schedules for a :class:`~haptic_acu.servo.step.NeedleModel`.
+
+    Call :meth:`frame` once per visual frame. It runs only on slots the servo has handed over
+    (owner 2) and restarts a slot's eta at 1 whenever the slot's generation changes (a new
+    puncture, or the servo took the slot back for a new net).
+    """
+
+    def __init__(self, model, eta_rate: float, eta_min: float, settle_m: float = 1e-9):
+        self.model = model
+        self.eta_rate = float(eta_rate)
+        self.eta_min = float(eta_min)
+        self.settle_m = settle_m
+        n_slots = len(model.x)
+        self.eta = np.ones(n_slots)
+        self.gen = -np.ones(n_slots, dtype=np.int64)
+        self.settled = np.zeros(n_slots, dtype=bool)
+        self.goals = [np.zeros_like(x) for x in model.x]
+
+    @classmethod
+    def from_config(cls, model, cfg) -> "Springback":
+        return cls(model, cfg.springback.eta_rate_per_frame, cfg.springback.eta_min)
+
+    def frame(self) -> int:
+        """Advance every handed-over net by one frame; returns how many nets moved."""
+        m = self.model
+        moved = 0
+        for idx in range(len(m.x)):
+            if m.owner(idx) != VISUAL_OWNS:
+                continue
+            g = m.generation(idx)
+            if g != self.gen[idx]:
+                self.gen[idx] = g
+                self.eta[idx] = 1.0
+                self.settled[idx] = False
+            if self.settled[idx]:
+                continue
+            step = springback_step(m.x[idx], m.X0[idx], m.n[net_layer(idx)], self.eta[idx], self.goals[idx])
+            self.eta[idx] = max(self.eta_min, self.eta[idx] - self.eta_rate)
+            if self.eta[idx] <= self.eta_min and step < self.settle_m:
+                self.settled[idx] = True
+            moved += 1
+        return moved
