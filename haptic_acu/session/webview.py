@@ -129,6 +129,15 @@ def _rerun_exe() -> str:
     return exe
 
 
+def _die_with_parent() -> None:
+    """In the child before exec (Linux): SIGTERM when this process dies, even by SIGKILL."""
+    try:
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _wait_listening(port: int, child: subprocess.Popen, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -170,14 +179,17 @@ class WebView:
             raise UserError(f"port {self.file_port}: cannot serve the recording there: {e.strerror or e}") from None
         self.httpd.daemon_threads = True
         self.file_port = int(self.httpd.server_address[1])
-        self._thread = threading.Thread(target=self.httpd.serve_forever, name="haptic-acu-view-file", daemon=True)
-        self._thread.start()
         env = dict(os.environ, RERUN_ANALYTICS="0")
         try:
             self.child = subprocess.Popen(
                 [_rerun_exe(), "--serve-web", "--bind", HOST, "--web-viewer-port", str(self.web_port), self.file_url],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
-                start_new_session=True)  # Ctrl-C reaches us; we stop the child ourselves
+                start_new_session=True,  # Ctrl-C reaches us; we stop the child ourselves
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+            # the file server's thread only after the fork (preexec_fn runs in a copy of this process)
+            self._thread = threading.Thread(target=self.httpd.serve_forever, name="haptic-acu-view-file",
+                                            daemon=True)
+            self._thread.start()
             _wait_listening(self.web_port, self.child, START_TIMEOUT_S)
         except BaseException:
             self.stop()
@@ -203,7 +215,8 @@ class WebView:
                 self.child.stderr.close()
             self.child = None
         if self.httpd is not None:
-            self.httpd.shutdown()
+            if self._thread is not None:
+                self.httpd.shutdown()
             self.httpd.server_close()
             self.httpd = None
         if self._thread is not None:
