@@ -40,7 +40,11 @@ Motion (``read``): the commanded motion is integrated over the wall-clock time s
 read (``time.perf_counter``), at most ``max_step_s`` (20 ms) per read, so a stalled loop resumes
 without a jump (at 40 mm/s a 20 ms step is 0.8 mm, i.e. 0.8 m/s over one 1 ms tick, inside the 2 m/s
 hand-speed limit). ``DeviceState.t_s`` is the device's own time, the sum of those steps.
-``velocity_m_s`` is the commanded velocity from this read on. All in SI, scene frame.
+``velocity_m_s`` is the commanded velocity from this read on. In a session the engine reads with
+``read_at(t)`` on its servo clock instead: the motion is integrated over session time and the
+velocity is the last step's displacement over its duration, so a replay of the session's recording
+(which derives the velocity from the recorded positions) feeds the servo the same numbers. All in
+SI, scene frame.
 
 The keyboard has no physical frame, so it works in the scene frame directly: the ``workspace``
 argument (the mapping of a physical device's frame) is accepted for a uniform constructor and
@@ -205,6 +209,7 @@ class KeyboardDevice(Device):
             return
         self._tty_fd(self.stdin)  # still a tty?
         self._reset_motion()
+        self._last_session_t = None  # the engine's clock (read_at); a reset (`r`) does not restart it
         self._commands.clear()
         self._saved_attrs = termios.tcgetattr(self._fd)
         try:
@@ -258,6 +263,24 @@ class KeyboardDevice(Device):
         self._last_wall = now
         self._integrate(dt)
         self._t += dt
+        return self._state(self._velocity())
+
+    def read_at(self, t_s: float) -> DeviceState:
+        """The state at session time ``t_s`` (the engine's servo clock): the motion integrated over
+        the session time since the previous read (at most ``max_step_s``), and ``velocity_m_s`` the
+        tip's displacement over that step divided by it (0 on the first read), the velocity a
+        replay of the recording derives from the same positions (:mod:`devices.scripted`)."""
+        t_s = float(t_s)
+        last = getattr(self, "_last_session_t", None)
+        dt = 0.0 if last is None else min(max(t_s - last, 0.0), self.max_step_s)
+        self._last_session_t = t_s
+        p0 = self._p.copy()
+        self._integrate(dt)
+        self._t += dt
+        v = (self._p - p0) / dt if dt > 0.0 else np.zeros(3)
+        return self._state(v)
+
+    def _state(self, velocity) -> DeviceState:
         reset = False
         while self._commands:
             cmd = self._commands.popleft()
@@ -267,7 +290,7 @@ class KeyboardDevice(Device):
         if reset:
             self.events.append((self._reads, "reset"))
         self._reads += 1
-        return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=self._velocity(),
+        return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=velocity,
                            axis=np.array(AXIS), done=self._done, reset=reset, roll_rad=self._roll)
 
     def set_force(self, force_n) -> None:
