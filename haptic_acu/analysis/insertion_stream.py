@@ -227,7 +227,6 @@ class _Twirl:
             "cycles": (n + 1) // 2,
             "reversals": n,
             "swing_deg": _r(swing, 2),
-            "amplitude_deg": _r(None if swing is None else swing / 2.0, 2),
             "frequency_hz": _r(freq, 3),
             "mean_speed_deg_s": _r(speed, 1),
             "net_rotation_deg": _r(self.last - self.first, 2),

@@ -33,6 +33,7 @@ def register(sub) -> None:
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    p.add_argument("--verbose", action="store_true", help="also print timing statistics (how fast the replay ran)")
     p.set_defaults(func=run)
 
 
@@ -50,9 +51,9 @@ def fresh_path(path: Path) -> Path:
     return path.with_name(f"{path.name}-{i}")
 
 
-def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
+def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False, verbose: bool = False) -> None:
     from ..session.report import print_results
-    print_results(summary, out_dir, file=file, quiet=quiet)
+    print_results(summary, out_dir, file=file, quiet=quiet, verbose=verbose)
 
 
 def _one(args_tuple):
@@ -160,7 +161,7 @@ def run(args) -> int:
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
                              spawn=args.spawn, connect=args.connect, cfg=cfg)
-        print_summary(summary, out, quiet=args.quiet)
+        print_summary(summary, out, quiet=args.quiet, verbose=args.verbose)
         return 0
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
@@ -207,7 +208,7 @@ def _run_batch(args, paths, base: Path) -> int:
             failed += 1
             print(f"haptic-acu replay: error: {err}", file=sys.stderr)
             continue
-        print_summary(summary, Path(w[1]), quiet=args.quiet)
+        print_summary(summary, Path(w[1]), quiet=args.quiet, verbose=args.verbose)
         rows.append(_flat(summary))
         insertions += insertion_rows(summary)
         punctures += puncture_rows(summary)
