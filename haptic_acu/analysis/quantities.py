@@ -96,6 +96,21 @@ def fmt(m: dict, q: Quantity) -> str:
     return f"{v:.{q.decimals}f}"
 
 
+def decimals(name: str) -> int | None:
+    """The decimals the quantity (or ``mean_<quantity>``) is reported at; None if unknown."""
+    q = BY_NAME.get(name[5:] if name.startswith("mean_") and name[5:] in BY_NAME else name)
+    return None if q is None else q.decimals
+
+
+def at_resolution(name: str, v):
+    """``v`` rounded as the quantity is reported (Python's ``round`` to its decimals, as the JSON
+    outputs are); None and unknown quantities unchanged."""
+    d = decimals(name)
+    if v is None or d is None or not isinstance(v, (int, float)) or v != v:
+        return v
+    return round(float(v), d) + 0.0
+
+
 def resolution(name: str) -> float | None:
     """The resolution of the quantity (or of ``mean_<quantity>``), e.g. 0.01 for 2 decimals."""
     q = BY_NAME.get(name[5:] if name.startswith("mean_") and name[5:] in BY_NAME else name)

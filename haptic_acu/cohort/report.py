@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis.quantities import better, resolution
+from ..analysis.quantities import at_resolution, better, resolution
 from .sessions import _parse_date
 
 # (sessions-table column, axis label) of the metrics reported and plotted
@@ -66,12 +66,7 @@ def _sig(x, digits=4):
 
 def _at_resolution(col: str, v):
     """``v`` rounded to the metric's resolution (None stays None)."""
-    if v is None:
-        return None
-    res = resolution(col)
-    if res is None or not np.isfinite(v):
-        return v
-    return float(np.round(float(v) / res) * res)
+    return at_resolution(col, v)
 
 
 BETTER_WORDS = {"lower": "lower is better", "higher": "higher is better", "zero": "closer to 0 is better"}
