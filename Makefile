@@ -1,12 +1,13 @@
 # Two commands set everything up on a fresh machine:
-#   make demo   - create .venv, install, replay the bundled default insertion headless
-#   make test   - same environment, run the whole test suite
+#   make demo       - create .venv, install, replay the bundled default insertion headless
+#   make test       - same environment, run the whole test suite
+#   make test-fast  - every test but the slow ones and the real-time ones, while editing
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-cohort clean
+.PHONY: demo test test-fast bench bench-cohort clean
 
 $(STAMP): pyproject.toml
 	@echo "installing haptic-acu and its dependencies into $(VENV) (a minute or two)..."
@@ -19,15 +20,25 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/haptic-acu replay
 
+# Every test: those that measure nothing in real time two at a time (pytest-xdist), then the real-time
+# ones (marked serial in tests/conftest.py) alone; one closing line counts both runs.
+XDIST := -n 2 --dist loadfile
 test: $(STAMP)
-	$(PY) -m pytest -q
+	@mkdir -p runs
+	@rm -f runs/junit-*.xml
+	-$(PY) -m pytest -q $(XDIST) -m "not serial" --junitxml=runs/junit-parallel.xml
+	-$(PY) -m pytest -q -m serial --junitxml=runs/junit-serial.xml
+	@$(PY) tools/test_summary.py runs/junit-parallel.xml runs/junit-serial.xml
 
-# the full benchmark (issue 6), with pyshtools for the SH comparison rows
+test-fast: $(STAMP)
+	$(PY) -m pytest -q $(XDIST) -m "not slow and not serial"
+
+# the full benchmark, with pyshtools for the SH comparison rows (docs/performance.md)
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
 
-# issue 17's cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
+# the cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
 # (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
 bench-cohort: $(STAMP)
 	@mkdir -p runs

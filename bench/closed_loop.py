@@ -4,17 +4,17 @@ and the force the device renders, with or without :mod:`haptic_acu.servo.renderi
 The plant is :mod:`haptic_acu.servo.stylus`, the HD emulator's physical stylus in numba: a 45 g
 stylus held by a hand (a spring-damper to a scripted hand path), pushed by the commanded force
 held over each tick, its position reported quantised to the 0.055 mm encoder step. The tissue is
-today's :class:`haptic_acu.servo.step.NeedleModel`, driven through its public ``step``.
+the :class:`haptic_acu.servo.step.NeedleModel`, driven through its public ``step``.
 
 Modes:
-* ``naive``: today's OMNI path: the tissue step at the reported position with the device's
+* ``naive``: the force path without a rendering layer: the tissue step at the reported position with the device's
   velocity, the force clamped to the device's maximum. ``velocity="raw"`` is a one-tick difference
-  of quantised positions (what the issue measured), ``"hd"`` the HD API's filtered estimate (a
+  of quantised positions, ``"hd"`` the HD API's filtered estimate (a
   50 Hz first-order low-pass of it, as the emulator reports).
 * ``rendered``: the rendering layer: the tissue step runs at the proxy; the device feels the
   virtual coupling.
 
-The session (the issue's): the hand inserts at the acupoint to 25 mm at 10 mm/s, holds 2 s, makes
+The session: the hand inserts at the acupoint to 25 mm at 10 mm/s, holds 2 s, makes
 three 5 mm lift-thrust cycles at 1 Hz, holds 1 s, withdraws, moves 15 mm aside, presses 1 mm into
 intact skin and slides 10 mm along it at 10 mm/s, lifts off and returns to its start: a closed path.
 
@@ -122,12 +122,12 @@ def session_path(model: NeedleModel):
 
 
 class NeedleAdapter:
-    """Today's NeedleModel seen through :class:`haptic_acu.servo.rendering.TissueLocal` (read-only: from
+    """The NeedleModel seen through :class:`haptic_acu.servo.rendering.TissueLocal` (read-only: from
     its diagnostics and state after each step). The damping along the axis comes from the step's
     own damping force over the axial velocity it was given (exact, Table 1 is linear in v; kept
     while the proxy is still); a pressed net's stiffness is bounded above; the lateral constraint's
     and the bone's stiffnesses are the model's; a puncture (``diag["puncture"]``) is a release. Coulomb
-    friction: none in today's model."""
+    friction: none in this adapter."""
 
     def __init__(self, model: NeedleModel):
         self.m = model
@@ -190,7 +190,7 @@ class DiagTissue:
 
 def run(grip: Grip, mode: str, velocity: str = "hd", params: R.CouplingParams | None = None,
         cfg=None, limits: R.DeviceLimits = OMNI_LIMITS, tissue: str = "adapter", until: str | None = None) -> dict:
-    """The issue's session (:func:`session_path`) on today's tissue model; see :func:`closed_loop`.
+    """The closed-loop session (:func:`session_path`) on the tissue model; see :func:`closed_loop`.
     ``tissue``: "adapter" (:class:`NeedleAdapter`, reading the model from Python) or "diag"
     (:class:`DiagTissue`, the servo's own report); ``until``: the last phase to run (None: all)."""
     cfg = cfg if cfg is not None else load_config()

@@ -9,11 +9,11 @@ Pieces (each a function taking a :class:`Sizes`, returning part of the result di
   alone (numba's dispatch of the same step with its 22 arrays), and ticks run inside one compiled
   loop (:func:`haptic_acu.servo.tick.run_ticks`, blocks of :data:`BLOCK` ticks, per-tick means: no
   Python at all); and the same paths through :mod:`bench.numpy_reference`; and, for comparison, the
-  design before the table (``solver.servo_net = "sweeps"``: the net relaxed inside every tick).
+  research mode ``solver.servo_net = "sweeps"`` (the net relaxed inside every tick).
 * :func:`loop`: a real ``Session(clock="realtime")`` on a ``ScriptedDevice`` playing the default
   trajectory looped, with the visual loop doing springback, dent evaluation and rerun logging to a
   temporary .rrd file (the compiled servo loop, :mod:`haptic_acu.servo.rtloop`); in the full run also
-  without rerun, with rerun in this process, with the servo loop in Python (the design before), and
+  without rerun, with rerun in this process, with the servo loop in Python (``--python-servo``), and
   the machine's floor (a bare Python 1 kHz loop).
 * :func:`omni_loop` (full run): ``haptic-acu run --device omni`` against the HD API emulator, with
   the compiled servo callback and with the Python one.
@@ -93,7 +93,7 @@ QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0,
                             cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False,
                             closed_loop_quick=True)
 
-# The issue's targets: (label, how to read the value from the result, comparison, limit, unit)
+# The targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
 
 
@@ -245,7 +245,7 @@ def servo(sizes: Sizes, progress=False) -> dict:
             res["speedup_vs_numpy"][sc.name] = ratio(r["numpy"]["p50"], r["step"]["p50"])
             if not r["numpy_states_match"]:
                 notes.append(f"servo {sc.name}: the NumPy reference was not in the measured state")
-    # The design before the tabulated response, for comparison: the net relaxed by
+    # The research mode, for comparison: the net relaxed by
     # solver.sweeps_per_tick Gauss-Seidel-Newton sweeps inside every tick.
     res["servo_tick_sweeps_us"] = {}
     for sc in scen:
@@ -352,7 +352,7 @@ def realtime_session(cfg, trajectory, duration_s: float, rerun, tmp, progress=Fa
 
 
 def loop(sizes: Sizes, progress=False) -> dict:
-    """The issue's loop: real time, visual loop with springback, dents and rerun logging; and, if
+    """The live session's loop: real time, visual loop with springback, dents and rerun logging; and, if
     ``sizes.loop_plain_s``, a shorter run without rerun logging, to tell its share of the tail."""
     from haptic_acu.base.config import load_config
     from haptic_acu.session.replay import DEFAULT_TRAJECTORY
@@ -393,7 +393,7 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_pinned"] = {"duration_s": sizes.loop_plain_s, "period_error_us": pin["period_error_us"],
                               "ticks": int(pin["ticks"]), "missed_ticks": int(pin["missed_ticks"]),
                               "pinned": bool(pin.get("pinned")), "fault": pin["fault"], "steal": pin["steal"]}
-        # the design before rtloop.py, for comparison: the same session with the servo loop in Python
+        # for comparison: the same session with the servo loop in Python (--python-servo)
         with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
             py = realtime_session(cfg, traj, sizes.loop_plain_s, "process", tmp, progress, compiled_loop=False)
         out["loop_python_servo"] = {"duration_s": sizes.loop_plain_s, "period_error_us": py["period_error_us"],
@@ -453,7 +453,7 @@ _SESSION_LINE = re.compile(r"session: (\d+) ticks in [\d.]+ s, (\d+) missed; per
 
 def closed_loop_buzz(sizes: Sizes, progress=False) -> dict:
     """The closed-loop rows (bench/closed_loop.py): a 45 g stylus held by a loose (0.3 N/mm)
-    and a firm (2 N/mm) hand on the issue's session, the force rendered by the rendering layer from
+    and a firm (2 N/mm) hand on the closed-loop session, the force rendered by the rendering layer from
     the servo's own report (DIAG ``r_*``), as the OMNI path does: buzz (N RMS above 40 Hz) per phase,
     puncture drops, rendered vs simulated, energy into the hand; the full run adds the naive path
     (no rendering layer) for comparison. ``--quick``: the insertion and the hold only."""
@@ -816,7 +816,7 @@ def _get(res, *path):
 
 
 def targets(res: dict) -> list[dict]:
-    """The issue's targets, each with the measured value and pass / miss (None: not measured)."""
+    """The targets, each with the measured value and pass / miss (None: not measured)."""
     ticks = res.get("ticks") or 0
     missed = res.get("missed_ticks")
     rows = [

@@ -24,7 +24,7 @@ Safety, on every tick:
   position bit-for-bit identical for ``stall_s`` while the commanded force has changed by more than
   0.5 N since it froze (a hand, even a firm one, moves the stylus several encoder steps under such a
   change: the force/position relation). A position frozen under a steady force is a still hand, never
-  a fault by itself (a trainee may hold perfectly still on the skin; README, Faults), unless
+  a fault by itself (a trainee may hold perfectly still on the skin; docs/devices-and-omni.md, Faults), unless
   ``still_s`` asks for a limit. A stylus at rest in free space (no force) may be still for ever.
 
 The stylus orientation (HD_CURRENT_TRANSFORM's rotation: the stylus along the end-effector's -z,

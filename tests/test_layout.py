@@ -1,7 +1,7 @@
 """The package layout is the architecture: every import (module-level or inside a function) of
 haptic_acu's modules, devices/ and bench/ is read from the source and checked against the direction
 
-    cli -> cohort -> session -> analysis -> servo -> tissue -> base
+    cli -> cohort | study -> session -> analysis -> servo -> tissue -> base
 
 (a package may import itself and the packages to its right), with ``devices`` between session and
 servo (a device may import base, servo and the trajectory format), and with no import circle between
@@ -18,6 +18,8 @@ CHAIN = ["cli", "cohort", "session", "analysis", "servo", "tissue", "base"]
 ALLOWED = {pkg: set(CHAIN[i:]) for i, pkg in enumerate(CHAIN)}
 ALLOWED["cli"] |= {"devices", "bench", "study"}
 ALLOWED["cohort"] |= {"devices"}
+ALLOWED["study"] = ALLOWED["cohort"] - {"cohort"}  # the blinded user study: beside cohort
+ALLOWED["study"] = {"study"} | set(CHAIN[2:])  # beside cohort: session and the packages to its right
 ALLOWED["session"] |= {"devices"}
 ALLOWED["devices"] = {"devices", "base", "servo"}
 DEVICE_EXCEPTIONS = {"haptic_acu.session.trajectory"}  # the recorded-path format a scripted device reads

@@ -128,6 +128,25 @@ class WorkspaceParams:
     roll_sign: float  # +1 or -1: the OMNI's third gimbal angle times this is the roll (+ clockwise from the handle)
 
 
+MODEL_KINDS = ("forcenet", "msm", "fem", "bem", "shf")  # model.kind: the tissue model before a layer breaks
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Which tissue model resists the needle before a layer breaks (:mod:`haptic_acu.tissue.baselines`,
+    docs/model.md section 12): today's force net or one of the four baselines. Per-layer values are
+    lists in layer order (skin, fat, muscle)."""
+
+    kind: str  # "forcenet" (the force net), "msm", "fem", "bem" or "shf"
+    young_modulus_kpa: tuple[float, float, float]  # MSM, FEM, BEM: each layer's Young's modulus
+    poisson_ratio: tuple[float, float, float]  # MSM (fixed at 1/4 by its lattice), FEM, BEM
+    puncture_depth_mm: tuple[float, float, float]  # FEM, BEM: indentation at which the layer breaks
+    shf_stiffness_n_per_mm: tuple[float, float, float]  # SHF: penalty stiffness along the surface normal
+    shf_puncture_force_n: tuple[float, float, float]  # SHF: force at which the layer breaks
+    msm_spacing_mm: float  # MSM: the lattice's spacing
+    msm_puncture_strain: tuple[float, float, float]  # MSM: strain of a spring at the tip at which the layer breaks
+
+
 @dataclass(frozen=True)
 class TissueConfig:
     path: str
@@ -143,6 +162,7 @@ class TissueConfig:
     safety: SafetyParams
     scene: SceneParams
     workspace: WorkspaceParams
+    model: ModelParams
 
     @property
     def layers(self) -> tuple[LayerParams, LayerParams, LayerParams]:
@@ -152,7 +172,8 @@ class TissueConfig:
 # Keys whose value must be > 0 (by field name, in any section).
 _POSITIVE = {
     "thickness_mm", "k_virtual_n_per_mm", "spring_length_mm", "k_surface_n_per_mm",
-    "puncture_threshold_um", "lateral_stiffness_n_per_mm",
+    "puncture_threshold_um", "lateral_stiffness_n_per_mm", "young_modulus_kpa", "puncture_depth_mm",
+    "shf_stiffness_n_per_mm", "shf_puncture_force_n", "msm_spacing_mm", "msm_puncture_strain",
     "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
     "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
     "diameter_mm", "length_mm", "stick_stiffness_n_per_mm", "stiction_ratio",
@@ -189,10 +210,13 @@ _BOUNDS = {
     "engage_tau_s": (1e-3, 1e6), "play_deg": (0.0, 90.0),
     # rupture speed dependence: ratio in (0, 1] (1: off), speeds up to 10 m/s
     "high_speed_ratio": (1e-3, 1.0), "speed_scale_mm_s": (1e-3, 1e4), "reference_speed_mm_s": (0.0, 1e4),
+    # baseline tissue models: moduli from a soft gel (0.1 kPa) to cartilage (100 MPa); nu in [0, 0.5)
+    "young_modulus_kpa": (0.1, 1e5), "poisson_ratio": (0.0, 0.4999), "puncture_depth_mm": (1e-3, 100.0),
+    "shf_stiffness_n_per_mm": (1e-6, 1_000.0), "shf_puncture_force_n": (1e-3, 100.0),
+    "msm_spacing_mm": (0.1, 5.0), "msm_puncture_strain": (1e-3, 100.0),
 }
-# Keys that were once required and are no longer read: a file that still has one is accepted with a
-# one-line warning on stderr (the key changed nothing any more, so an old config means what it
-# meant); the message says why it went.
+# Retired keys, not read: a file that still has one is accepted with a one-line warning on stderr
+# (the key has no effect on the model, so such a config means what it says); the message says why.
 _REMOVED = {
     "needle.hole_radius_mm": "re-entry is decided by the insertion tracks, whose damage decays over the "
                              "needle's radius (docs/model.md section 9.2)",
@@ -200,8 +224,11 @@ _REMOVED = {
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,
     "needle": NeedleParams, "twirl": TwirlingParams, "rupture": RuptureParams, "springback": SpringbackParams, "solver": SolverParams,
-    "safety": SafetyParams, "scene": SceneParams, "workspace": WorkspaceParams,
+    "safety": SafetyParams, "scene": SceneParams, "workspace": WorkspaceParams, "model": ModelParams,
 }
+# Sections a config file may leave out: taken whole from the bundled config/tissue.toml (a config
+# written before the section existed means what it meant: the force net).
+_OPTIONAL_SECTIONS = ("model",)
 
 
 def _fail(path: Path, key: str, msg: str) -> typing.NoReturn:
@@ -303,11 +330,18 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
         _fail(path, "springback.eta_min", f"must be < 1, got {cfg.springback.eta_min}")
     if cfg.solver.servo_net not in ("table", "sweeps"):
         _fail(path, "solver.servo_net", f"must be \"table\" or \"sweeps\", got {cfg.solver.servo_net!r}")
+    if cfg.model.kind not in MODEL_KINDS:
+        _fail(path, "model.kind", f"must be one of {', '.join(MODEL_KINDS)}, got {cfg.model.kind!r}")
     if cfg.workspace.roll_sign not in (1.0, -1.0):
         _fail(path, "workspace.roll_sign", f"must be 1 or -1, got {cfg.workspace.roll_sign}")
     lo, hi = cfg.scene.target_depth_mm
     if not 0 <= lo < hi:
         _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")
+
+
+def _bundled_section(name: str) -> dict:
+    """Section ``name`` of the bundled config/tissue.toml (for a file that leaves it out)."""
+    return dict(tomllib.loads(DEFAULT_CONFIG.read_text(encoding="utf-8"))[name])
 
 
 def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
@@ -326,6 +360,9 @@ def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
         raise UserError(f"{path}: not a UTF-8 text file") from None
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: invalid TOML: {e}") from None
+    for name in _OPTIONAL_SECTIONS:
+        if name not in data and path.resolve() != DEFAULT_CONFIG.resolve():
+            data[name] = _bundled_section(name)
     if overrides:
         data = apply_overrides(data, overrides)
     for key in data:

@@ -24,6 +24,7 @@ COMMANDS = {
     "bench": "haptic_acu.cli.bench",
     "calibrate": "haptic_acu.cli.calibrate",
     "cohort": "haptic_acu.cli.cohort",
+    "study": "haptic_acu.cli.study",
     "view": "haptic_acu.cli.view",
 }
 

@@ -12,7 +12,12 @@ each insertion (``--insertion N``: only the N-th) with its punctures (the report
   the rest skin (mm): the axes and force component of force_depth.png, over the same layer bands,
   one colour per session, one panel per insertion, punctures marked.
 
-Identical input gives byte-identical files. The folder is built as ``<out>.partial`` and renamed when
+``--models forcenet,msm,fem,bem,shf`` replays each trajectory once through each tissue model
+(``model.kind``, docs/model.md s12), one column and one colour per model; compare.json's ``models``
+then gives each model's precomputation time (``build_s``) and its replay's wall time per servo tick
+(``us_per_tick``: the servo step with the engine around it, the same engine for every model).
+
+Identical input gives byte-identical files (except ``models``' timings). The folder is built as ``<out>.partial`` and renamed when
 complete. Bad input is a one-line error naming the file (and line), exit status 2.
 """
 from __future__ import annotations
@@ -25,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
+from ..base.config import MODEL_KINDS
 from ..base.errors import UserError
 from .options import add_config_args, config_from_args
 from ..base.progress import step
@@ -52,6 +58,9 @@ def register(sub) -> None:
                                                 "if it exists)")
     p.add_argument("--labels", nargs="+", metavar="NAME",
                    help="a name for each session, in order (default: the file names)")
+    p.add_argument("--models", metavar="KIND,...",
+                   help="replay each trajectory through each of these tissue models (model.kind: "
+                        + ", ".join(MODEL_KINDS) + ")")
     p.add_argument("--insertion", type=int, metavar="N",
                    help="compare only each session's N-th insertion (1 = the first; default: all)")
     p.set_defaults(func=run)
@@ -71,6 +80,26 @@ def open_trajectory(path: Path, cfg):
         raise UserError(f"{path}: spans {dev.duration_s:.6g} s, more than a replay takes "
                         f"({MAX_REPLAY_DURATION_S:g} s); split the file")
     return dev
+
+
+def parse_models(text: str | None) -> list[str]:
+    """``--models a,b,...`` -> the model kinds, in order (UserError naming the option if bad)."""
+    if text is None:
+        return []
+    kinds = [k.strip() for k in text.split(",") if k.strip()]
+    for k in kinds:
+        if k not in MODEL_KINDS:
+            raise UserError(f"--models: unknown model {k!r} (known: {', '.join(MODEL_KINDS)})")
+    if not kinds or len(set(kinds)) != len(kinds):
+        raise UserError(f"--models: give distinct models separated by commas, got {text!r}")
+    return kinds
+
+
+def with_kind(cfg, kind: str):
+    """``cfg`` with ``model.kind`` set to ``kind``."""
+    import dataclasses
+
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind))
 
 
 def replay_session(device, path: Path, cfg, tissue) -> tuple[dict, list, tuple]:
@@ -375,7 +404,16 @@ def run(args) -> int:
     paths = [resolve_trajectory(p) for p in args.sessions]
     if args.insertion is not None and args.insertion < 1:
         raise UserError(f"--insertion: 1 is the first insertion, got {args.insertion}")
-    labels = _labels(args, paths)
+    kinds = parse_models(args.models)
+    if kinds:  # every trajectory through every model
+        pairs = [(p, k) for p in paths for k in kinds]
+        labels = list(args.labels) if args.labels else [k if len(paths) == 1 else f"{p.stem} {k}" for p, k in pairs]
+        if len(labels) != len(pairs):
+            raise UserError(f"--labels: give one name per replay ({len(pairs)}), got {len(labels)}")
+        paths = [p for p, _ in pairs]
+    else:
+        labels = _labels(args, paths)
+    args.kinds = [k for _, k in pairs] if kinds else [None] * len(paths)
     devices = [open_trajectory(p, cfg) for p in paths]  # all validated before anything runs
     if args.out:
         out = Path(args.out)
@@ -408,16 +446,32 @@ def run(args) -> int:
     return 0
 
 
+def _precompute(cfg) -> float:
+    """Build (or load) ``cfg``'s tissue model's precomputation; its build time in seconds (0 from the cache)."""
+    from ..tissue.baselines import contact_for
+
+    c = contact_for(cfg)
+    return 0.0 if c is None else c.build_s
+
+
 def _compare_into(partial: Path, args, cfg, devices, paths, labels):
     """Replay every session through one tissue, then write compare.json and compare.png into ``partial``."""
     from ..tissue.body import Tissue
 
     with step("building the tissue"):
         tissue = Tissue.from_config(cfg)
-    curves, metrics = [], []
-    for dev, p in zip(devices, paths):
-        with step(f"replaying {p.name}"):
-            m, _, curve = replay_session(dev, p, cfg, tissue)
+    curves, metrics, costs = [], [], []
+    for dev, p, kind in zip(devices, paths, args.kinds):
+        c = cfg if kind is None else with_kind(cfg, kind)
+        with step(f"replaying {p.name}" + (f" through {kind}" if kind else "")):
+            t0 = time.perf_counter()
+            build_s = _precompute(c)
+            t1 = time.perf_counter()
+            m, _, curve = replay_session(dev, p, c, tissue)
+            t2 = time.perf_counter()
+        ticks = max(int(round(dev.duration_s * 1000)), 1)
+        costs.append({"model": kind, "build_s": round(build_s if build_s else t1 - t0, 3),
+                      "us_per_tick": round((t2 - t1) / ticks * 1e6, 2)})
         curves.append(curve)
         metrics.append(m)
     if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
@@ -428,6 +482,8 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
         "sessions": [{"label": lab, "trajectory": p.name, "metrics": m} for lab, p, m in zip(labels, paths, metrics)],
         "differences": differences(metrics),
     }
+    if any(args.kinds):
+        doc["models"] = [dict(cost, label=lab) for cost, lab in zip(costs, labels)]
     if len(metrics) == 2:
         doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
     (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")

@@ -2,7 +2,7 @@
 the rerun logging child and every other thread of the session's process on the others, so neither
 the logger's bursts nor the visual loop, the feed or the recorder can take the servo's core. What
 the machine itself still takes is measured by the compiled loop's floor (``bench.measure.compiled_floor``:
-the same pinning and timing with no work); the README's Pinning paragraph has the figures.
+the same pinning and timing with no work; docs/performance.md).
 
 Used by :class:`haptic_acu.session.engine.Session` when ``pin_cores`` is on; a host with one usable core,
 or without ``sched_setaffinity``, runs unpinned (:func:`split` returns None).

@@ -140,7 +140,7 @@ LAYOUT_KEY = ss.LAYOUT_KEY ^ zlib.crc32(repr(ss.SPEC[OmniArrays]).encode())
 # A frozen position is a stalled device, with a rendering layer, once the commanded force has changed
 # by this much since it froze (and for the guard's stall window): a hand holding the stylus, even a
 # firm 2-5 N/mm grip, moves it 0.1-0.25 mm (2-4 encoder steps) under such a change, while a still
-# hand under a steady force leaves every encoder bit-for-bit still (see the README, Faults).
+# hand under a steady force leaves every encoder bit-for-bit still (docs/devices-and-omni.md, Faults).
 STALL_DF_N = 0.5
 ENCODER_STEP_MM = 0.055  # the OMNI's encoder step (device frame): the velocity estimate's tolerance
 

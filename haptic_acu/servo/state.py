@@ -52,11 +52,14 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
     ("cut", "f8"),  # N: cutting force at the tip advancing into uncut tissue (this needle's diameter)
     ("fs", "f8"), ("fc", "f8"),  # N/m: breakaway and Coulomb shaft friction per m of needle in the layer
     ("visc", "f8"),  # N*s/m per m of needle: viscous shaft friction
+    ("bl_k", "f8"),  # a baseline model's contact stiffness along grad(-d) (N/m; tissue.baselines)
+    ("bl_crit", "f8"),  # its break depth at the reference speed (m)
 ])
 PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("lmax", "i8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
     ("force_limit", "f8"), ("sweeps", "i8"),
     ("mechanics", "i8"),  # RICH or TABLE1
+    ("kind", "i8"),  # the tissue model before a layer breaks (tissue.baselines.KIND_CODES; 0: the force net)
     ("needle_radius", "f8"), ("needle_length", "f8"),  # m
     ("k_stick", "f8"),  # N/m: the friction's stick-point spring
     ("decay", "f8"),  # the stick force's relaxation per tick (1: none)

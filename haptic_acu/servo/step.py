@@ -75,6 +75,7 @@ from ..tissue.netresponse import table_for
 from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
+from ..tissue.baselines import KIND_CODES, baseline_response, baseline_slope, contact_for
 from ..tissue.body import Tissue, boundary_radii
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params
@@ -516,13 +517,18 @@ def press(inp, m, s, d, k):
         tip_on_net(s, X0f, ax)
     wk.dz1 = dep
     depth_gradient(m, s, k)
-    if use_table:
-        fn, rw = table_response(m, s, k, idx)
+    if m.params[0].kind != 0:  # a baseline model (docs/model.md s12); the net is only drawn
+        fn, broke = baseline_response(inp, m, s, k, idx, dep, ax)
+        rw = 0.0
     else:
-        fn, rw = sweep_net(m, s, k, idx, sweeps)
+        if use_table:
+            fn, rw = table_response(m, s, k, idx)
+        else:
+            fn, rw = sweep_net(m, s, k, idx, sweeps)
+        broke = rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0])
     d.ringw = rw
     d.dz1 = dep
-    if rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0]):
+    if broke:
         puncture(inp, m, s, d, k, idx, use_table)
     else:
         surface_force(s, d, k, fn)
@@ -674,6 +680,8 @@ def pressed_slope(m, s, k, idx):
     """The pressed surface's stiffness along grad(-d) (N/m) at the tip: the tabulated response's
     slope over one row ahead (the nets stiffen with depth, so ahead is the larger) times |grad d|^2,
     or :data:`SWEPT_K_ALONG` for a swept net."""
+    if m.params[0].kind != 0:
+        return baseline_slope(m, s, k)
     if m.tmeta[k].nr <= 0:
         return SWEPT_K_ALONG
     wk = s.work[0]
@@ -874,6 +882,10 @@ class NeedleModel:
                                 ("thickness", layer.thickness_mm * 1e-3), ("cut", mp.cut[k]), ("fs", mp.fs[k]),
                                 ("fc", mp.fc[k]), ("visc", mp.b[k])):
                 r[name] = value
+        contact = contact_for(cfg)  # a baseline model's per-layer contact (None: the force net)
+        if contact is not None:
+            lp["bl_k"] = contact.stiffness
+            lp["bl_crit"] = contact.crit_depth
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:
@@ -886,6 +898,7 @@ class NeedleModel:
                             ("k_bone", nd.bone_stiffness_n_per_mm * 1e3), ("force_limit", cfg.safety.force_limit_n),
                             ("sweeps", cfg.solver.sweeps_per_tick),
                             ("mechanics", ss.TABLE1 if nd.mechanics == "table1" else ss.RICH),
+                            ("kind", KIND_CODES[cfg.model.kind]),
                             ("needle_radius", mp.radius), ("needle_length", mp.length), ("k_stick", mp.k_stick),
                             ("decay", mp.decay), ("dt", SERVO_DT_S)):
             r[name] = value

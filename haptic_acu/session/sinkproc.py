@@ -2,7 +2,7 @@
 
 Why: rerun's calls hold the GIL for hundreds of microseconds, and with rerun logging in the visual
 thread the real-time servo loop's period error had a long tail and missed ticks (the bench's loop
-rows measure it: README, Performance). A :class:`ProcessSink` moves the sink (the rerun logger) into a child process: the visual thread only
+rows measure it: docs/performance.md). A :class:`ProcessSink` moves the sink (the rerun logger) into a child process: the visual thread only
 pickles a small snapshot of each frame (sample rows, dents, live net positions; tens of kB) into a
 pipe, and the child calls the real sink. In headless replay the child also runs on the other core.
 

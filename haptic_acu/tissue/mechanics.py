@@ -30,7 +30,7 @@ Parts (Okamura, Simone and O'Leary 2004 split the force the same way):
 Cost: every call between compiled functions that passes arrays (or tuples of them) pays numba's
 reference counting (atomic increments and decrements), and every ``tuple.field`` access of an array
 is one more; kernels therefore bind each array to a local once and take plain arrays and scalars
-below :func:`post_puncture_force` (the tick's cost is measured by ``bench/``: README, Performance).
+below :func:`post_puncture_force` (the tick's cost is measured by ``bench/``: docs/performance.md).
 
 The needle's diameter scales cutting and friction linearly (config keys are per mm of diameter:
 docs/model.md cites the measurements); :func:`mech_params` does that conversion.

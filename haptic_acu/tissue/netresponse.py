@@ -9,7 +9,7 @@ flat by construction), not the history (the static problem has one solution). So
 is a function of two numbers per layer, computed once per set of net parameters and read by the servo
 with one bilinear interpolation, instead of relaxing 271 particles every millisecond (two
 Gauss-Seidel-Newton sweeps per tick cost tens of times more and track the static solution only
-within 0.4%; ``bench/`` times both: README, Performance).
+within 0.4%; ``bench/`` times both: docs/performance.md).
 
 The servo reads the first column only (rho = 0, N1 pushed straight in to the tip's depth below the
 rest surface: docs/model.md s2.3, which makes the intact surface's force a function of the tip's

@@ -1,0 +1,393 @@
+"""``haptic-acu study``: a blinded, counterbalanced user study of tissue models (the paper's
+section 4.2), end to end. See docs/study.md.
+
+* ``study plan``     a Williams-square schedule, the system codes and the key (STUDY/key.json)
+* ``study trial``    a participant's next (or given) trial with the hidden model, then its ratings
+* ``study rate``     enter or correct a trial's ratings afterwards (the old row is kept)
+* ``study status``   what is done and what is left (never the key)
+* ``study replay``   a trial's recording replayed headless with its model (from the key)
+* ``study analyze``  the key is read: the paper's scores and the statistics, the objective side
+* ``study example``  the bundled synthetic study (plan, synthetic ratings, scripted sessions)
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from ..base.errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("study", help="a blinded, counterbalanced user study of tissue models (plan, trial, rate, "
+                                     "status, replay, analyze, example)",
+                       description="Run the paper's user study (section 4.2) blind: plan a counterbalanced "
+                                   "schedule with hidden models, run each participant's trials, collect the seven "
+                                   "ratings, and analyze (the comprehensive score and the statistics). docs/study.md.")
+    ss = p.add_subparsers(dest="study_command", metavar="SUBCOMMAND", parser_class=type(p))
+    ss.required = True
+
+    q = ss.add_parser("plan", help="a new study: Williams-square schedule, system codes, the key",
+                      description="Write a new study folder: study.json, plan.csv (participant,trial,system: "
+                                  "codes only), ratings.csv (empty) and key.json (which system is which model; keep "
+                                  "it from participants and from whoever runs the sessions).")
+    q.add_argument("--participants", type=int, required=True, metavar="N")
+    q.add_argument("--models", required=True, metavar="M1,M2,...",
+                   help="2-8 models: model.kind values (forcenet, msm, fem, bem, shf) on --config, or "
+                        "NAME=FILE.toml for a config of its own")
+    q.add_argument("--out", required=True, metavar="STUDY", help="the study folder (new or empty)")
+    q.add_argument("--seed", type=int, metavar="S", help="random seed (default: a fresh one, recorded)")
+    q.add_argument("--trials-per-model", type=int, default=1, metavar="K",
+                   help="times each participant meets each model (default 1)")
+    q.add_argument("--codes-per-participant", action="store_true",
+                   help="a different numbering of the systems for each participant (default: one for all)")
+    from .options import add_config_args
+    add_config_args(q)
+    q.set_defaults(func=cmd_plan)
+
+    q = ss.add_parser("trial", help="run a participant's next (or given) trial with the hidden model",
+                      description="Run one trial: a live session with the hidden model (everything shown names "
+                                  "the system code only), into STUDY/sessions/P-T/, then the seven ratings on the "
+                                  "terminal, appended to STUDY/ratings.csv. End the session with Ctrl-C (the "
+                                  "keyboard: q; a scripted path: its end).")
+    q.add_argument("study", metavar="STUDY")
+    q.add_argument("--participant", required=True, metavar="P")
+    q.add_argument("--trial", type=int, metavar="T", help="the trial number (default: the participant's next)")
+    q.add_argument("--device", choices=("omni", "keyboard", "scripted"), required=True)
+    q.add_argument("--trajectory", metavar="FILE", help="for --device scripted: the path to play (a file or a "
+                                                        "bundled trajectory's name)")
+    q.add_argument("--duration", type=float, metavar="S", help="end the session after S seconds")
+    q.add_argument("--redo", action="store_true",
+                   help="run a trial that was already run or rated (the earlier files are kept; new ratings "
+                        "replace the old row, which stays in ratings.csv as a comment)")
+    q.add_argument("--ratings-later", action="store_true", help="do not ask the ratings now (`study rate` later)")
+    q.add_argument("--rrd", action="store_true", help="also write the rerun recording (recording.rrd)")
+    q.add_argument("--no-status", action="store_true", help="no live status line")
+    q.add_argument("--pin-cores", action="store_true", help="as `run --pin-cores`")
+    q.add_argument("--travel-axis", action="store_true", help="as `run --travel-axis` (OMNI)")
+    q.add_argument("--python-servo", action="store_true", help="as `run --python-servo`")
+    q.set_defaults(func=cmd_trial)
+
+    q = ss.add_parser("rate", help="enter or correct a trial's ratings",
+                      description="Enter a trial's seven ratings (asked one by one, or --values), or correct "
+                                  "them: the replaced row stays in ratings.csv as a # comment line.")
+    q.add_argument("study", metavar="STUDY")
+    q.add_argument("--participant", required=True, metavar="P")
+    q.add_argument("--trial", type=int, required=True, metavar="T")
+    q.add_argument("--values", metavar="V1,...,V7", help="the seven ratings, comma separated, in the order of "
+                                                         "docs/study.md (instead of the prompts)")
+    q.set_defaults(func=cmd_rate)
+
+    q = ss.add_parser("status", help="what is done and what is left, per participant (never the key)")
+    q.add_argument("study", metavar="STUDY")
+    q.set_defaults(func=cmd_status)
+
+    q = ss.add_parser("replay", help="replay a trial's recording headless with its model (read from the key)")
+    q.add_argument("study", metavar="STUDY")
+    q.add_argument("--participant", required=True, metavar="P")
+    q.add_argument("--trial", type=int, required=True, metavar="T")
+    q.add_argument("--attempt", type=int, metavar="K", help="which session of the trial (default: the latest)")
+    q.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty)")
+    q.set_defaults(func=cmd_replay)
+
+    q = ss.add_parser("analyze", help="unblind and analyze: the paper's scores, Friedman/Wilcoxon, order check, "
+                                      "the objective side",
+                      description="Read the key and analyze the ratings: the paper's comprehensive weighted score "
+                                  "(exactly `haptic-acu score` on ratings_by_model.csv), per index Friedman with "
+                                  "Kendall's W, pairwise Wilcoxon with Holm's correction, medians and IQRs, the "
+                                  "order and carry-over check; each model on a common scripted path and the "
+                                  "sessions' metrics per model.")
+    q.add_argument("study", metavar="STUDY")
+    q.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty)")
+    src = q.add_mutually_exclusive_group()
+    src.add_argument("--subjective", metavar="WEIGHTS.csv", help="as `haptic-acu score --subjective`")
+    src.add_argument("--delphi", metavar="ROUNDS.csv", help="as `haptic-acu score --delphi`")
+    q.add_argument("--bound", type=float, default=0.1, help="as `haptic-acu score --bound` (default %(default)s)")
+    q.add_argument("--mu", type=float, default=0.4, help="as `haptic-acu score --mu` (default %(default)s)")
+    q.add_argument("--path", default="default", metavar="TRAJECTORY",
+                   help="the common scripted path of the objective side (default: the bundled default)")
+    q.add_argument("--no-objective", action="store_true", help="skip the objective side (no replays)")
+    q.set_defaults(func=cmd_analyze)
+
+    q = ss.add_parser("example", help="write the bundled synthetic study (plan, ratings, scripted sessions)",
+                      description="Write the bundled synthetic study into a new folder: 20 participants x 5 "
+                                  "models (forcenet, msm, fem, bem, shf), the synthetic ratings of "
+                                  "config/scoring/example_ratings.csv under each participant's codes, and each "
+                                  "trial's session on a bundled scripted path, replayed headless.")
+    q.add_argument("--out", required=True, metavar="STUDY")
+    q.add_argument("--no-sessions", action="store_true", help="plan and ratings only (no replays)")
+    q.set_defaults(func=cmd_example)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _study(path):
+    from ..study.store import Study
+    return Study(path)
+
+
+def _new_folder(arg: str) -> Path:
+    d = Path(arg)
+    if d.exists() and (not d.is_dir() or any(d.iterdir())):
+        raise UserError(f"--out {arg}: exists and is not an empty folder")
+    return d
+
+
+def cmd_plan(args) -> int:
+    from ..study.plan import make_plan
+    from ..study.store import parse_models
+
+    specs = parse_models(args.models, args.config, args.overrides)
+    doc = make_plan(args.out, specs, args.participants, args.seed, args.trials_per_model,
+                    args.codes_per_participant)
+    out = Path(args.out)
+    b = doc["balance"]
+    print(f"{out}: {len(doc['participants'])} participants x {len(specs) * args.trials_per_model} trials "
+          f"of {len(specs)} systems")
+    print(f"  {doc['design']}, {b['design_rows']} rows; seed {doc['seed']}")
+    if "note" in b:
+        print(f"haptic-acu study: note: {b['note']}", file=sys.stderr)
+    print("  plan.csv: the schedule (system codes only); ratings.csv: the ratings")
+    print("  key.json: WHICH SYSTEM IS WHICH MODEL. Keep it from the participants and from")
+    print("  whoever runs the sessions (only study trial, replay and analyze read it).")
+    print(f"next: haptic-acu study trial {out} --participant {doc['participants'][0]} --device omni")
+    return 0
+
+
+def _pick_trial(study, args):
+    from ..study import overview
+
+    p = study.participant(args.participant)
+    st = overview.states(study)
+    if args.trial is None:
+        trial = overview.next_trial(study, p, st)
+        if trial is None:
+            rate = [t for t in range(1, study.n_trials + 1) if st[p, t].state == overview.TO_RATE]
+            tail = f"; to rate: trial(s) {', '.join(map(str, rate))}" if rate else ""
+            raise UserError(f"{p}: every trial has been run{tail} (--trial T --redo runs one again)")
+        return trial, st[p, trial.trial]
+    if not 1 <= args.trial <= study.n_trials:
+        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    trial = study.plan[p, args.trial]
+    s = st[p, args.trial]
+    if s.state in (overview.RATED, overview.TO_RATE) and not args.redo:
+        what = "is done (rated)" if s.state == overview.RATED else "was run (not rated yet: `study rate`)"
+        raise UserError(f"{p} trial {args.trial} {what}; --redo runs it again and keeps the earlier files")
+    first = overview.next_trial(study, p, st)
+    if s.state in (overview.TO_RUN, overview.INTERRUPTED) and first is not None and first.trial < args.trial:
+        print(f"haptic-acu study: note: {p}'s trial {first.trial} comes first in the plan; running trial "
+              f"{args.trial} out of order", file=sys.stderr)
+    return trial, s
+
+
+def cmd_trial(args) -> int:
+    import signal
+
+    from ..base.bundled import not_found_hint, resolve_trajectory
+    from ..study import overview
+    from ..study.trial import run_session
+    from .run import make_device
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise UserError(f"--duration must be > 0, got {args.duration}")
+    study = _study(args.study)
+    trial, state = _pick_trial(study, args)
+    key = study.key()
+    model = study.model_of(key, trial)
+    cfg = _blind_config(study, key, model, trial)
+    if args.trajectory:
+        traj = resolve_trajectory(args.trajectory)
+        if not traj.is_file():
+            raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
+        args.trajectory = str(traj)
+    device = make_device(args, cfg)
+    res = run_session(study, trial, cfg, device, device_name=args.device, duration_s=args.duration, rrd=args.rrd,
+                      status=not args.no_status, compiled=not args.python_servo, pin_cores=args.pin_cores)
+    name = res.folder.name
+    if res.status == "fault":
+        print(f"haptic-acu study: stopped: {res.fault}; trial not done (its files: {res.folder})", file=sys.stderr)
+        return 3
+    if res.status == "interrupted":
+        print(f"haptic-acu study: {name} interrupted (SIGTERM); the recording is complete up to the signal; "
+              f"the trial is not done: run it again", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    if args.ratings_later:
+        print(f"{name}: session recorded; ratings later: haptic-acu study rate {study.folder} --participant "
+              f"{trial.participant} --trial {trial.trial}")
+        return 0
+    return _ask_and_record(study, trial, redo=state.state in (overview.RATED, overview.TO_RATE))
+
+
+def _blind_config(study, key, model, trial):
+    """The model's config for a trial; an error names the system code, never the model or its file."""
+    try:
+        return study.checked_config(key, model)
+    except UserError:
+        raise UserError(f"{study.json_path}: the config of {trial.participant}'s {trial.system} no longer matches "
+                        "the plan's config hash (or no longer loads); the study's supervisor can see which "
+                        "with `haptic-acu study analyze`") from None
+
+
+def _ask_and_record(study, trial, redo: bool, previous=None) -> int:
+    from ..study.ratings import RatingsAbandoned, ask
+
+    later = (f"haptic-acu study rate {study.folder} --participant {trial.participant} --trial {trial.trial}")
+    try:
+        values = ask(trial.system, study.scale, read=input, write=print, previous=previous)
+    except KeyboardInterrupt:
+        print(f"\nno ratings recorded for {trial.participant} trial {trial.trial}; enter them with: {later}",
+              file=sys.stderr)
+        return 130
+    except RatingsAbandoned as e:
+        raise UserError(f"ratings: {e}; nothing recorded; enter them with: {later}") from None
+    old = study.record_ratings(trial, values, "redo of the trial" if redo else "corrected by study rate")
+    print(f"ratings of {trial.participant} trial {trial.trial} ({trial.system}) saved in {study.ratings_path}"
+          + (" (the earlier row kept as a comment)" if old is not None else ""))
+    return 0
+
+
+def cmd_rate(args) -> int:
+    from ..study import overview
+    from ..study.ratings import check_row
+
+    study = _study(args.study)
+    p = study.participant(args.participant)
+    if not 1 <= args.trial <= study.n_trials:
+        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    trial = study.plan[p, args.trial]
+    st = overview.states(study)[p, args.trial]
+    if st.state in (overview.TO_RUN, overview.INTERRUPTED):
+        raise UserError(f"{p} trial {args.trial} has no completed session yet; run it with `study trial`")
+    prev = study.rated().get((p, args.trial))
+    if args.values is not None:
+        try:
+            values = check_row(args.values.split(","), study.scale)
+        except ValueError as e:
+            raise UserError(f"--values: {e}") from None
+        old = study.record_ratings(trial, values, "corrected by study rate")
+        print(f"ratings of {p} trial {args.trial} ({trial.system}) saved"
+              + (" (the earlier row kept as a comment)" if old is not None else ""))
+        return 0
+    return _ask_and_record(study, trial, redo=False, previous=None if prev is None else prev.values)
+
+
+def cmd_status(args) -> int:
+    from ..study import overview
+
+    study = _study(args.study)
+    for line in overview.table(study):
+        print(line)
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from ..session.replay import replay_one
+
+    study = _study(args.study)
+    p = study.participant(args.participant)
+    if not 1 <= args.trial <= study.n_trials:
+        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    mine = [a for a in study.attempts_of(p, args.trial) if (a.folder / "recording.csv").is_file()]
+    if args.attempt is not None:
+        mine = [a for a in mine if a.number == args.attempt]
+    if not mine:
+        raise UserError(f"{p} trial {args.trial}: no recorded session" +
+                        (f" (attempt {args.attempt})" if args.attempt else ""))
+    a = mine[-1]
+    out = _new_folder(args.out)
+    trial = study.plan[p, args.trial]
+    key = study.key()
+    cfg = _blind_config(study, key, study.model_of(key, trial), trial)
+    summary = replay_one(a.folder / "recording.csv", out, rrd=False, progress=False, cfg=cfg)
+    print(f"{a.folder.name} replayed headless with its model (from the study's key): "
+          f"{len(summary['punctures'])} punctures, max force {summary['max_force_n']:.3f} N; files: {out}/")
+    return 0
+
+
+def _subjective(args):
+    import numpy as np
+
+    from ..analysis import scoring
+    from . import score as score_cmd
+
+    if not (math.isfinite(args.mu) and 0.0 < args.mu < 1.0):
+        raise UserError(f"--mu {args.mu}: must satisfy 0 < mu < 1")
+    if not (math.isfinite(args.bound) and args.bound > 0):
+        raise UserError(f"--bound {args.bound}: must be a positive number")
+    if args.delphi:
+        rounds, _ = score_cmd.read_delphi(args.delphi)
+        return scoring.delphi(rounds, args.bound).weights
+    if args.subjective:
+        return score_cmd.read_subjective(args.subjective)
+    return np.array(scoring.PAPER_SUBJECTIVE_WEIGHTS)
+
+
+def cmd_analyze(args) -> int:
+    import json
+
+    from ..base.bundled import not_found_hint, resolve_trajectory
+    from ..base.progress import step
+    from ..study.analyze import analyze, objective
+    from . import score as score_cmd
+
+    study = _study(args.study)
+    alpha = _subjective(args)  # a bad weights file fails before anything is written
+    path = None
+    if not args.no_objective:
+        path = resolve_trajectory(args.path)
+        if not path.is_file():
+            raise UserError(f"--path {args.path}: trajectory file not found{not_found_hint()}")
+    out = _new_folder(args.out)
+    report = analyze(study, out, alpha, args.mu)
+    # the paper's scoring: `haptic-acu score` itself on the unblinded ratings
+    score_args = argparse.Namespace(ratings=str(out / "ratings_by_model.csv"), subjective=args.subjective,
+                                    delphi=args.delphi, bound=args.bound, mu=args.mu, out=str(out / "score"))
+    print("the paper's comprehensive weighted score (haptic-acu score on ratings_by_model.csv):")
+    if report["scores"]:
+        score_cmd.run(score_args)
+    if path is not None:
+        with step(f"replaying {path.name} with each of the {len(study.models)} models"):
+            report["objective"] = objective(study, out, path)
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    _print_analysis(report)
+    print(f"wrote {out}/: report.json, ratings_by_model.csv, friedman.csv, wilcoxon.csv,")
+    print("  descriptives.csv, order.csv, indices.png, order.png" + (", score/" if report["scores"] else "")
+          + (", objective/" if path is not None else ""))
+    return 0
+
+
+def _print_analysis(report) -> None:
+    import textwrap
+
+    print(f"{report['rated_trials']} of {report['planned_trials']} trials rated; "
+          f"{report['complete_participants']} participants rated every model")
+    if report["ranking"]:
+        print(textwrap.fill("ranking by mean comprehensive score: " + ", ".join(
+            f"{m} {report['scores'][m]['mean_score']:.2f}" for m in report["ranking"]), 80,
+            subsequent_indent="  "))
+    for m, why in report["not_scored"].items():
+        print(f"  {m}: not scored: {why}")
+    print(f"{'index':<22}{'Friedman p':>11}{'W':>6}{'order p':>9}{'carry p':>9}")
+    for name, e in report["indices"].items():
+        fr = e["friedman"]
+        o = e.get("order", {})
+        cells = [fr["p"], fr["kendall_w"], o.get("position_friedman", {}).get("p"), o.get("carry_over", {}).get("p")]
+        txt = ["-" if v is None else f"{v:.2g}" for v in cells]
+        print(f"{name[:21]:<22}{txt[0]:>11}{txt[1]:>6}{txt[2] if o else '':>9}{txt[3] if o else '':>9}".rstrip())
+        sig = [f"{q['a']} > {q['b']}" if (q["median_difference"] or 0) > 0 else f"{q['b']} > {q['a']}"
+               for q in e["pairwise"] if q["p_holm"] is not None and q["p_holm"] < 0.05]
+        if sig:
+            print(textwrap.fill("Holm p < 0.05: " + ", ".join(sig), 80, initial_indent="  ",
+                                subsequent_indent="    "))
+
+
+def cmd_example(args) -> int:
+    from ..study.example import write_example
+
+    out = _new_folder(args.out)
+    write_example(out, sessions=not args.no_sessions)
+    print(f"{out}: the synthetic example study; try: haptic-acu study status {out}; "
+          f"haptic-acu study analyze {out} --out {out}-analysis")
+    return 0

@@ -1,0 +1,106 @@
+"""One trial of a study: a live session with the hidden model, then its seven ratings.
+
+Blinding: everything the participant (or the person running the session) sees names the system
+code only: the terminal's lines, the status line, the session folder (``sessions/P01-T3``), the
+files in it, the rerun recording's entities and the summary's name. The model's config is loaded
+from the key (checked against the plan's config hash) and never printed; an error about it names
+the system code, not the file.
+
+End of a session: the device's own end (the scripted path's end, the keyboard's ``q``),
+``--duration``, or Ctrl-C (SIGINT: the usual way to end an OMNI session) complete the trial. A
+SIGTERM (the process is being shut down) interrupts it: the recording is flushed and complete up
+to that tick, the trial is marked ``interrupted`` and not done, no ratings are asked. A fault
+(exit 3) is marked ``fault``. Ratings are then asked on the terminal (:func:`ratings.ask`), and
+recorded in ratings.csv only once all seven are given; Ctrl-C there records nothing.
+"""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from .. import __version__
+from ..base.progress import step
+from .store import Study, Trial, now, write_trial_json
+
+
+@dataclass
+class TrialResult:
+    folder: Path
+    attempt: int
+    status: str  # complete | interrupted | fault
+    fault: str | None
+    summary: dict | None
+
+
+def session_name(trial: Trial) -> str:
+    """The name of the session in its summary and figure: the system code only."""
+    return f"{trial.participant} trial {trial.trial}: {trial.system}"
+
+
+def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, duration_s=None, rrd=False,
+                status=True, compiled=True, pin_cores=False, err=None, out=None) -> TrialResult:
+    """Run the trial's session on ``device`` (made by the caller, not opened) with the model's
+    ``cfg`` into a new session folder; returns how it ended. Never reveals the model."""
+    from ..session.engine import Session
+    from ..session.recorder import RecorderSink
+    from ..session.report import SamplesCsvSink, SummarySink, plot_force_depth, print_results
+
+    err = sys.stderr if err is None else err
+    out = sys.stdout if out is None else out
+    folder, attempt = study.new_session_folder(trial)
+    doc = {"participant": trial.participant, "trial": trial.trial, "system": trial.system, "attempt": attempt,
+           "status": "running", "device": device_name, "started": now(), "tool_version": __version__}
+    write_trial_json(folder, doc)
+    summary_sink = SummarySink(cfg, keep_rows=False)
+    recorder = RecorderSink(folder / "recording.csv", device=device)
+    sinks = [recorder, SamplesCsvSink(folder / "samples.csv"), summary_sink]
+    if rrd:
+        from ..session.sinkproc import rerun_file_sink
+        sinks.append(rerun_file_sink((folder / "recording.rrd").resolve()))
+    if status:
+        from ..session.status import StatusLine
+        sinks.append(StatusLine(stream=err, target_mm=cfg.scene.target_depth_mm,
+                                force_limit_n=cfg.safety.force_limit_n, device=device))
+    session = Session(cfg, device, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled,
+                      pin_cores=pin_cores)
+    with step("preparing the simulator"):
+        session.warm_up()
+    print(f"{trial.participant}, trial {trial.trial} of {study.n_trials}: {trial.system}. "
+          "End the session with Ctrl-C" + (" (or q)" if device_name == "keyboard" else "") + ".", file=err)
+    try:
+        device.open()
+    except BaseException as e:  # no device (a missing library, an OMNI not connected): no session
+        doc.update(status="fault", ended=now(), fault=f"the device did not open: {e}")
+        write_trial_json(folder, doc)
+        raise
+    try:
+        recorder.open()
+        result = session.run()
+    finally:
+        device.close()
+    sig = getattr(session, "signal_received", None)
+    state = "fault" if result.fault else ("interrupted" if sig == signal.SIGTERM else "complete")
+    summary = None
+    try:
+        summary = summary_sink.summary()
+        summary["trajectory"] = session_name(trial)
+        summary["metrics"] = summary_sink.metrics(summary["punctures"])
+        (folder / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        rows, index = summary_sink.figure_rows()
+        with step("drawing force_depth.png"):
+            plot_force_depth(rows, folder / "force_depth.png", summary_sink.tissue, summary=summary, index=index)
+        print(f"session: {result.duration_s:.1f} s, {result.ticks} ticks, {result.stats['missed_ticks']} missed",
+              file=err)
+        print_results(summary, folder, file=out, quiet=True)
+    finally:
+        doc.update(status=state, ended=now(), duration_s=round(result.duration_s, 3), ticks=result.ticks,
+                   missed_ticks=result.stats.get("missed_ticks"), recording_rows=recorder.rows)
+        if result.fault:
+            doc["fault"] = result.fault
+        if sig is not None:
+            doc["signal"] = signal.Signals(sig).name
+        write_trial_json(folder, doc)
+    return TrialResult(folder, attempt, state, result.fault, summary)

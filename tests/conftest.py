@@ -1,0 +1,24 @@
+"""Test-session set-up shared by every test module.
+
+``serial``: modules whose tests run real-time threads, device emulators, terminals or timing
+measurements. `make test` runs every other test in parallel (pytest-xdist) and these afterwards, alone,
+so no test's timing depends on another test running beside it. The marker is given here by module so
+that a new test in one of these modules is serial without thinking about it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SERIAL_MODULES = {
+    "test_affinity", "test_bench", "test_engine", "test_hd_physical", "test_keyboard", "test_omni",
+    "test_omni_closed_loop", "test_omni_stylus", "test_rtloop", "test_run_cli", "test_run_omni",
+    "test_sinkproc", "test_study", "test_ux",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if Path(str(item.fspath)).stem in SERIAL_MODULES:
+            item.add_marker(pytest.mark.serial)
