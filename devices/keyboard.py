@@ -39,7 +39,10 @@ them in :meth:`KeyboardDevice.read` and never waits on the terminal.
 Motion (``read``): the commanded motion is integrated over the wall-clock time since the previous
 read (``time.perf_counter``), at most ``max_step_s`` (20 ms) per read, so a stalled loop resumes
 without a jump (at 40 mm/s a 20 ms step is 0.8 mm, i.e. 0.8 m/s over one 1 ms tick, inside the 2 m/s
-hand-speed limit). ``DeviceState.t_s`` is the device's own time, the sum of those steps.
+hand-speed limit). ``DeviceState.t_s`` is the device's own time, the sum of those steps. The
+insertion advances only while the force on the needle does not push it back out at the device's
+force limit (``set_force``'s last force, +z at :data:`HELD_BACK_SHARE` of ``force_limit_n``): against
+bone, or with the handle on the skin, the needle stops as a hand limited to that force would.
 ``velocity_m_s`` is the commanded velocity from this read on. In a session the engine reads with
 ``read_at(t)`` on its servo clock instead: the motion is integrated over session time and the
 velocity is the last step's displacement over its duration, so a replay of the session's recording
@@ -150,6 +153,9 @@ class KeyParser:
         if len(self._buf) > 32:  # a runaway sequence: give up on it
             self._buf = b""
         return out
+
+
+HELD_BACK_SHARE = 0.999  # of the force limit: the insertion key pushes no further against it
 
 
 class KeyboardDevice(Device):
@@ -318,7 +324,9 @@ class KeyboardDevice(Device):
             self._roll += self._twirl * math.radians(self.twirl_rate_deg_s) * turn
             if self._t + dt >= self._twirl_until:
                 self._twirl = 0
-        if self._axial:
+        if self._axial > 0 and self._held_back():
+            pass  # the hand cannot push harder than the device's limit: the needle goes no deeper
+        elif self._axial:
             z = self._p[2] - self._axial * self.speed_m_s * dt
             lo, hi = -DEPTH_LIMIT_M, HEIGHT_LIMIT_M
             if z <= lo or z >= hi:
@@ -336,6 +344,13 @@ class KeyboardDevice(Device):
                 d = left * (move / m)
                 self._p[:2] += d
                 left -= d
+
+    def _held_back(self) -> bool:
+        """The force on the needle pushes it back out (+z) at the device's force limit: an insertion
+        into bone or with the handle on the skin stops there, as a hand limited to that force would."""
+        lim = float(self.info.force_limit_n)
+        f = getattr(self, "last_force_n", None)
+        return f is not None and lim > 0.0 and float(f[2]) >= HELD_BACK_SHARE * lim
 
     def _apply(self, cmd: str) -> None:
         if cmd == "insert":

@@ -33,6 +33,7 @@ import textwrap
 ENTRY_TOLERANCE_MM = 2.0
 ANGLE_TOLERANCE_DEG = 10.0
 WINDING_DEG = 180.0
+FULLY_IN_MM = 0.005  # a needle this close to its whole length in the tissue has its handle on the skin
 SEVERITIES = ("danger", "fault", "note", "good")
 _RANK = {s: i for i, s in enumerate(SEVERITIES)}
 
@@ -56,7 +57,7 @@ def _depth(m: dict, target, needle_mm) -> list[dict]:
     if d is None:
         return []
     out = []
-    if needle_mm is not None and m.get("needle_fully_in"):
+    if needle_mm is not None and (m.get("needle_fully_in") or d >= needle_mm - FULLY_IN_MM):
         out.append(_finding("danger", f"the whole {_f(needle_mm)} mm needle went in: the handle met the skin",
                             "stop well before the handle reaches the skin; never sink the whole shaft"))
     if d > hi:

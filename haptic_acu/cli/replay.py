@@ -109,11 +109,23 @@ def flatten(d: dict, prefix: str = "") -> dict:
 
 
 def insertion_rows(summary: dict) -> list[dict]:
-    """insertions.csv's rows: one per insertion, its trainee metrics (summary.json's
-    ``metrics.per_insertion``, flattened by :func:`flatten`), numbered from 1."""
+    """insertions.csv's rows: one per insertion, numbered from 1: its trainee metrics (summary.json's
+    ``metrics.per_insertion``), each quantity of :mod:`haptic_acu.analysis.quantities` under its one
+    name (the cohort's column), every other number flattened by :func:`flatten`."""
+    from ..analysis.quantities import QUANTITIES, value
+
+    named = [q for q in QUANTITIES if q.path]
+    taken = {"_".join(q.path) for q in named}
     m = summary.get("metrics") or {}
-    return [{"trajectory": summary["trajectory"], "insertion": n, **flatten(ins)}
-            for n, ins in enumerate(m.get("per_insertion", []), 1)]
+    rows = []
+    for n, ins in enumerate(m.get("per_insertion", []), 1):
+        row = {"trajectory": summary["trajectory"], "insertion": n}
+        for q in named:
+            v = value(ins, q)
+            row[q.name] = "" if v is None else v
+        row.update({k: v for k, v in flatten(ins).items() if k not in taken})
+        rows.append(row)
+    return rows
 
 
 def puncture_rows(summary: dict) -> list[dict]:

@@ -542,7 +542,7 @@ def technique_text(tech) -> str:
     if tw.get("cycles"):
         swing = "-" if tw.get("swing_deg") is None else f"{tw['swing_deg']:.0f}"
         frq = "-" if tw.get("frequency_hz") is None else f"{tw['frequency_hz']:.2f}"
-        out += f"; {tw['cycles']} twirl cycles ({swing} deg, {frq} Hz)"
+        out += f"; {tw['cycles']} twirl cycles ({swing} deg swing, peak to peak, {frq} Hz)"
     label = (tech.get("classification") or {}).get("label")
     if label:
         out += f"; technique: {label}"
