@@ -269,7 +269,7 @@ class KeyboardDevice(Device):
         self._last_wall = now
         self._integrate(dt)
         self._t += dt
-        return self._state(self._velocity())
+        return self._state(None)  # the commanded velocity, after this read's keys
 
     def read_at(self, t_s: float) -> DeviceState:
         """The state at session time ``t_s`` (the engine's servo clock): the motion integrated over
@@ -287,6 +287,7 @@ class KeyboardDevice(Device):
         return self._state(v)
 
     def _state(self, velocity) -> DeviceState:
+        """Apply the queued keys; the state with ``velocity`` (None: the commanded one, after the keys)."""
         reset = False
         while self._commands:
             cmd = self._commands.popleft()
@@ -296,6 +297,8 @@ class KeyboardDevice(Device):
         if reset:
             self.events.append((self._reads, "reset"))
         self._reads += 1
+        if velocity is None:
+            velocity = self._velocity()
         return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=velocity,
                            axis=np.array(AXIS), done=self._done, reset=reset, roll_rad=self._roll)
 

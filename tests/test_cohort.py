@@ -428,6 +428,7 @@ def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
     assert main(["cohort", str(man), "--out", str(tmp_path / "out"), "--jobs", "1", "--quiet"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2 and all(ln.startswith(f"haptic-acu cohort: error: {man}: line ") for ln in lines)
+    assert not (tmp_path / "out").exists()  # every session failed: no output folder left behind
     by_session = {("g1" if "'g1'" in ln else "gone"): ln for ln in lines}
     assert "line 2:" in by_session["g1"] and "garbled.csv: line 3" in by_session["g1"]
     assert "line 3:" in by_session["gone"] and "not found" in by_session["gone"]

@@ -20,6 +20,7 @@ def _rows(depth_mm, force_n, roll=None):
     r[:, COL["z_m"]] = -np.asarray(depth_mm) * 1e-3
     r[:, COL["fz_n"]] = force_n
     r[:, COL["state_skin"]] = np.where(np.asarray(depth_mm) > 0, 2, 1)
+    r[:, COL["puncture"]] = -1  # no puncture on any tick (the curves alone carry the colours)
     if roll is not None:
         r[:, COL["roll_deg"]] = roll
     return r

@@ -136,7 +136,8 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
     if all_failed:
         import shutil
         shutil.rmtree(out, ignore_errors=True)
-        print(f"haptic-acu cohort: every session failed: nothing written (no {out}/ left)", file=stream)
+        if not quiet:
+            print(f"haptic-acu cohort: every session failed: nothing written (no {out}/ left)", file=stream)
         return 2
     if stats is not None:
         stats.update(replayed=len(todo), skipped=skipped, replay_s=run_s, total_s=time.perf_counter() - t0)

@@ -51,7 +51,7 @@ def fresh_path(path: Path) -> Path:
     return path.with_name(f"{path.name}-{i}")
 
 
-def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False, verbose: bool = False) -> None:
+def print_summary(summary: dict, out_dir: Path, file=None, quiet: bool = False, verbose: bool = False) -> None:
     from ..session.report import print_results
     print_results(summary, out_dir, file=file, quiet=quiet, verbose=verbose)
 
