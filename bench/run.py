@@ -258,6 +258,36 @@ def servo(sizes: Sizes, progress=False) -> dict:
     return res
 
 
+def models(sizes: Sizes, progress=False) -> dict:
+    """Each tissue model (model.kind): the compiled tick pressing the skin and inside the muscle
+    (microseconds per tick, p50/p99 of :data:`BLOCK`-tick means), the precomputation's build time
+    (the baselines' contact, uncached; the force net's three response tables) and its tables' memory."""
+    from haptic_acu.base.config import MODEL_KINDS, load_config
+    from haptic_acu.tissue import baselines, netresponse
+    from haptic_acu.tissue.forcenet import NetParams
+
+    out = {"model_tick_us": {}, "model_build_s": {}, "model_table_bytes": {}}
+    base = load_config()
+    for kind in MODEL_KINDS:
+        cfg = scenarios.with_kind(base, kind)
+        _log(progress, f"tissue model {kind}: precomputation")
+        t0 = time.perf_counter()
+        if kind == "forcenet":
+            tol = cfg.solver.static_tolerance_um * 1e-6
+            tabs = [netresponse.build(NetParams.from_layer(layer), tol) for layer in cfg.layers]
+            nbytes = sum(t.F.nbytes + t.R.nbytes + t.D.nbytes for t in tabs)
+        else:
+            nbytes = baselines.build_contact(cfg).table_bytes
+        out["model_build_s"][kind] = round(time.perf_counter() - t0, 3)
+        out["model_table_bytes"][kind] = int(nbytes)
+        ticks = {}
+        for sc in (scenarios.press(sizes.servo_ticks, layer=0, base=cfg), scenarios.inside_muscle(sizes.servo_ticks, base=cfg)):
+            _log(progress, f"tissue model {kind}: {sc.name}")
+            ticks[sc.name.split("_w")[0]] = servo_scenario(sc, sizes.servo_ticks, ways=("compiled",)).get("compiled")
+        out["model_tick_us"][kind] = ticks
+    return {"models": out}
+
+
 def net_tables(sizes: Sizes, progress=False) -> dict:
     """Solving each net's static-response table (netresponse.build, no cache): what the first
     session with a new set of net parameters pays once, before its first tick."""
@@ -869,6 +899,7 @@ def collect(sizes: Sizes, progress=False) -> dict:
     tissue = scenarios.tissue_for(load_config())
     pieces = [("net_tables", lambda: net_tables(sizes, progress)),
               ("servo", lambda: servo(sizes, progress)),
+              ("models", lambda: models(sizes, progress)),
               ("sh", lambda: sh(sizes, tissue.coeffs[:3], progress)),
               ("springback", lambda: springback(sizes, progress)),
               ("scaling", lambda: scaling(sizes, progress)),
@@ -902,6 +933,21 @@ def _fmt(x, digits=3):
     if x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
         return f"{x:.2e}"
     return f"{x:.{digits}g}"
+
+
+def model_lines(md) -> list:
+    """One row per tissue model (model.kind): compiled tick pressing the skin and inside the muscle
+    (p50 / p99, us), precomputation time and table memory."""
+    if not md:
+        return []
+    lines = ["tissue models (model.kind): compiled tick, us (p50 / p99); precomputation; tables",
+             f"  {'':10s}{'press skin':>16s}{'inside muscle':>16s}{'build s':>10s}{'tables kB':>11s}"]
+    for kind, ticks in md["model_tick_us"].items():
+        cells = "".join(f"{(_fmt(t['p50']) + ' / ' + _fmt(t['p99'])) if t else '-':>16s}"
+                        for t in (ticks.get("press_skin"), ticks.get("inside_muscle")))
+        lines.append(f"  {kind:10s}{cells}{_fmt(md['model_build_s'][kind]):>10s}"
+                     f"{_fmt(md['model_table_bytes'][kind] / 1e3):>11s}")
+    return lines
 
 
 def closed_loop_lines(cl) -> list:
@@ -1031,6 +1077,7 @@ def _table_loops(res: dict, lines: list) -> None:
             else:
                 lines.append(f"OMNI via the HD emulator, {servo} callback: failed ({r.get('error')})")
     lines += closed_loop_lines(res.get("closed_loop"))
+    lines += model_lines(res.get("models"))
 
 
 def _table_kernels(res: dict, lines: list) -> None:

@@ -40,12 +40,24 @@ def config_copy(base=None, layer: int | None = None, w: int | None = None, never
         if never_puncture:
             changes["puncture_threshold_um"] = HUGE_THRESHOLD_UM
         cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(getattr(cfg, key), **changes)})
+        if never_puncture:  # the baseline models' break criteria too (model.kind)
+            def huge(values, big):
+                return tuple(big if j == layer else v for j, v in enumerate(values))
+            md = cfg.model
+            cfg = dataclasses.replace(cfg, model=dataclasses.replace(
+                md, puncture_depth_mm=huge(md.puncture_depth_mm, 1e6), shf_puncture_force_n=huge(md.shf_puncture_force_n, 1e6),
+                msm_puncture_strain=huge(md.msm_puncture_strain, 1e9)))
     if solver:
         cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, **solver))
     return cfg
 
 
 _TISSUES: dict = {}
+
+
+def with_kind(cfg, kind: str):
+    """``cfg`` with ``model.kind`` set to ``kind`` (a baseline tissue model, or the force net)."""
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind))
 
 
 def tissue_for(cfg) -> Tissue:

@@ -22,7 +22,10 @@ def cli(*args, cwd, timeout=300):
 
 
 def test_names_are_the_bundled_files_stems():
-    files = sorted(p.name for p in (ROOT / "trajectories").glob("*.csv"))
+    # the bundled trajectories and the atlas points' (trajectories/points/, replayed with --point)
+    files = sorted(p.name for p in (ROOT / "trajectories").glob("*.csv")) + sorted(
+        p.name for p in (ROOT / "trajectories" / "points").glob("*.csv"))
+    files.sort()
     assert sorted(f"{n}.csv" for n in bundled_trajectories()) == files
     assert "default" in bundled_trajectories() and "lateral_sweep" in bundled_trajectories()
 

@@ -112,3 +112,29 @@ def test_stiff_stick_slip_friction_in_closed_loop(grip):
     assert np.linalg.norm(res["rendered"][hold], axis=1).mean() > 0.3  # it does hold the stylus
     naive = C.metrics(C.closed_loop(grip, H, phases, tissue, "naive"))
     assert naive["buzz_n"]["hold"] > 0.3
+
+
+@pytest.fixture(scope="module")
+def baseline_sessions():
+    """The same closed-loop session through each baseline tissue model (model.kind), both grips."""
+    from haptic_acu.base.config import load_config
+
+    out = {}
+    for kind in ("msm", "fem", "bem", "shf"):
+        cfg = load_config(overrides=[f"model.kind={kind}"])
+        for grip in (C.LOOSE, C.FIRM):
+            out[kind, grip.name] = C.metrics(C.run(grip, "rendered", cfg=cfg))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("grip", ["loose", "firm"])
+@pytest.mark.parametrize("kind", ["msm", "fem", "bem", "shf"])
+def test_each_baseline_model_meets_the_closed_loop_targets(baseline_sessions, kind, grip):
+    m = baseline_sessions[kind, grip]
+    assert max(m["buzz_n"].values()) <= 0.02, m["buzz_n"]
+    assert sorted(set(p["layer"] for p in m["punctures"])) == [0, 1, 2]
+    assert all(e <= 0.0 for e in m["energy_into_hand_j"]["lift_thrust_cycles"])
+    assert m["energy_into_hand_j"]["closed_session"] <= 0.0
+    assert m["max_force_n"] <= 3.3
+    assert m["render_minus_sim_lag1_max_n"] <= 0.1

@@ -91,3 +91,36 @@ def test_example_analysis_scores_as_score_on_the_bundled_ratings(example, tmp_pa
         assert got["scores"] == {raters[r]: v for r, v in s["scores"].items()}
     # the paper's finding in these synthetic ratings: the force net first
     assert rep["ranking"][0] == "forcenet"
+
+
+@pytest.mark.slow  # twenty headless replays
+def test_example_sessions(tmp_path, monkeypatch):
+    """The example's scripted sessions (here for its first 4 participants): complete, named by the
+    code only, each recording the path it played; analyze finds them by model."""
+    if not kinds_available():
+        pytest.skip("the config has no model.kind yet")
+    spec, path = bundled_spec()
+    full = example_mod.example_ratings(spec, path)
+    keep = {f"D{k:02d}" for k in range(1, 5)}
+    monkeypatch.setattr(example_mod, "example_spec", lambda: (dict(spec, participants=4), path))
+    monkeypatch.setattr(example_mod, "example_ratings",
+                        lambda s, p: {k: v for k, v in full.items() if k[0] in keep})
+    out = tmp_path / "demo"
+    assert main(["study", "example", "--out", str(out)]) == 0
+    study = Study(out)
+    folders = sorted(p.name for p in study.sessions.iterdir())
+    assert folders == sorted(f"{p}-T{t}" for p in study.participants for t in range(1, 6))
+    for name in folders:
+        doc = json.loads((study.sessions / name / "trial.json").read_text())
+        assert doc["status"] == "complete"
+        for f in ("recording.csv", "samples.csv", "summary.json", "force_depth.png"):
+            assert (study.sessions / name / f).is_file()
+        for m in study.models:
+            assert m not in name and m not in (study.sessions / name / "summary.json").read_text()
+    # P01 played the first bundled path in every trial
+    first = bundled_dir("trajectories") / f"{spec['sessions']['paths'][0]}.csv"
+    assert (study.sessions / "P01-T3" / "recording.csv").read_bytes() == first.read_bytes()
+    assert main(["study", "analyze", str(out), "--out", str(tmp_path / "a"), "--path", "fast_insertion"]) == 0
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert rep["objective"]["sessions"] == 20
+    assert all(r["sessions"] == 4 for r in rep["objective"]["metrics_by_model"])

@@ -19,8 +19,10 @@ def bundled_dir(name: str) -> Path:
 
 
 def bundled_trajectories() -> dict[str, Path]:
-    """The bundled trajectories by name (the file's stem: ``default``, ``lateral_sweep``, ...)."""
-    return {p.stem: p for p in sorted(bundled_dir("trajectories").glob("*.csv"))}
+    """The bundled trajectories by name (the file's stem: ``default``, ``lateral_sweep``, ...; the
+    atlas points' from ``trajectories/points/``: ``GB21_pleura``, ...)."""
+    d = bundled_dir("trajectories")
+    return {p.stem: p for p in sorted(d.glob("*.csv")) + sorted((d / "points").glob("*.csv"))}
 
 
 def resolve_trajectory(arg) -> Path:

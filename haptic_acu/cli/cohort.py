@@ -27,6 +27,8 @@ def register(sub) -> None:
                    help="also write each replayed session's samples.csv, summary.json and force_depth.png "
                         "under DIR/sessions/")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    from ..session.point import add_point_args
+    add_point_args(p)  # every session at this point, unless the manifest's `point` column names one
     p.set_defaults(func=run)
 
 
@@ -41,12 +43,36 @@ def run(args) -> int:
     cfg = config_from_args(args)
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0, got {args.jobs}")
+    points = session_points(manifest, cfg, args.point, args.patient)  # bad names: one line, before any work
     return run_cohort(manifest, Path(args.out), cfg, jobs=args.jobs, scheduler=args.scheduler,
-                      force=args.force, quiet=args.quiet, session_files=args.session_files)
+                      force=args.force, quiet=args.quiet, session_files=args.session_files, points=points)
+
+
+def session_points(manifest, cfg, point=None, patient=None) -> dict:
+    """session -> (point, patient) text for the sessions graded against a point: the manifest's
+    `point` and `patient` columns where they have a value, else ``--point`` and ``--patient``. Each
+    is checked now (a bad name or value: one line naming the manifest's line)."""
+    from ..session.point import setup
+    out = {}
+    for e in manifest.entries:
+        pt = (e.cells.get("point") or "").strip() or point
+        pa = (e.cells.get("patient") or "").strip() or patient
+        if pt and pa and pa.strip() == "random":
+            raise UserError(f"{manifest.path}: line {e.line}: patient: give random:SEED in a cohort (a session "
+                            f"replayed again must meet the same patient)")
+        where = f"{manifest.path}: line {e.line}: point"
+        try:
+            setup(cfg, pt, pa, source=f"{manifest.path}: line {e.line}: patient")
+        except UserError as err:
+            raise UserError(f"{where}: {err}" if "unknown point" in str(err) else str(err)) from None
+        if pt:
+            out[e.session] = (pt, pa)
+    return out
 
 
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
-               quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False) -> int:
+               quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False,
+               points: dict | None = None) -> int:
     """Run the cohort (see the module); returns the exit status: 0, or 2 when a session failed.
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
@@ -57,15 +83,15 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
     # reach the cluster before the output folder is made or locked: a wrong address leaves nothing
     client = connect(scheduler) if isinstance(scheduler, str) else scheduler
     try:
-        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files)
+        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, points or {})
     finally:
         if isinstance(scheduler, str):
             client.close()
 
 
-def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files) -> int:
+def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, points) -> int:
     from ..cohort import report as cohort_report, tables as cohort_tables
-    from ..cohort.sessions import CohortDir, Job, config_hash, file_sha256, record_name, up_to_date
+    from ..cohort.sessions import CohortDir, Job, config_hash, file_sha256, point_hash, record_name, up_to_date
     from ..cohort.run import ProgressLine, run_dask, run_local
 
     csha = config_hash(cfg)
@@ -83,14 +109,17 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
                                       "input_sha256": None, "config_sha256": csha}
                 failed_lines.append(msg)
                 continue
+            pt = points.get(e.session)
+            csha_s = point_hash(csha, pt)  # a session at a point: its record follows the point and patient too
             rec = cd.load(e.session)
             sdir = (out / "sessions" / record_name(e.session)[:-5]).resolve()
             # asked for the session files: a session replayed earlier without them runs again
             files_ok = not session_files or (sdir / "summary.json").is_file()
-            if not force and up_to_date(rec, isha, csha) and files_ok:
+            if not force and up_to_date(rec, isha, csha_s) and files_ok:
                 records[e.session] = rec
             else:
-                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha, str(sdir) if session_files else None))
+                todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha_s, str(sdir) if session_files else None,
+                                *(pt or (None, None))))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
         progress = ProgressLine(len(todo), skipped, stream=stream, quiet=quiet)
         for line in failed_lines:

@@ -15,7 +15,8 @@ each insertion (``--insertion N``: only the N-th) with its punctures (the report
 ``--models forcenet,msm,fem,bem,shf`` replays each trajectory once through each tissue model
 (``model.kind``, docs/model.md s12), one column and one colour per model; compare.json's ``models``
 then gives each model's precomputation time (``build_s``) and its replay's wall time per servo tick
-(``us_per_tick``: the servo step with the engine around it, the same engine for every model).
+(``tick_us``: p50 and p99 of one servo step, ``NeedleModel.step``, over 2 s of pressing the skin
+at 0.5 mm/s: the cost a model adds, measured the same way for each).
 
 Identical input gives byte-identical files (except ``models``' timings). The folder is built as ``<out>.partial`` and renamed when
 complete. Bad input is a one-line error naming the file (and line), exit status 2.
@@ -63,6 +64,8 @@ def register(sub) -> None:
                         + ", ".join(MODEL_KINDS) + ")")
     p.add_argument("--insertion", type=int, metavar="N",
                    help="compare only each session's N-th insertion (1 = the first; default: all)")
+    from ..session.point import add_point_args
+    add_point_args(p)
     p.set_defaults(func=run)
 
 
@@ -102,9 +105,10 @@ def with_kind(cfg, kind: str):
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind))
 
 
-def replay_session(device, path: Path, cfg, tissue) -> tuple[dict, list, tuple]:
+def replay_session(device, path: Path, cfg, tissue, point=None) -> tuple[dict, list, tuple]:
     """Play an opened device through a fresh model on simulated time: (its metrics, its punctures,
-    its :func:`session_curve`). Nothing grows with the session's length: the metrics are streamed
+    its :func:`session_curve`); with ``point`` (a --point PointSetup) each insertion's metrics gain its
+    grading against the point. Nothing grows with the session's length: the metrics are streamed
     (:class:`haptic_acu.analysis.metrics.SessionMetricsScan`), the figure gets the bounded envelope of
     :class:`haptic_acu.session.report.FigureRows` (every row of a session up to its cap, 50 s at 1 kHz)."""
     from ..session.engine import Session
@@ -112,13 +116,23 @@ def replay_session(device, path: Path, cfg, tissue) -> tuple[dict, list, tuple]:
     from ..session.report import SummarySink, puncture_records
 
     sink = SummarySink(cfg, keep_rows=False)
-    session = Session(cfg, device, [sink], clock="sim", model=NeedleModel(cfg, tissue), dents=False)
+    sinks = [sink]
+    if point is not None:
+        from ..session.point import GradeSink
+        grade = GradeSink(point)
+        sinks.append(grade)
+    model = point.model(tissue) if point is not None else NeedleModel(cfg, tissue)
+    session = Session(cfg, device, sinks, clock="sim", model=model, dents=False)
     result = session.run()
     device.close()
     if result.fault:
         raise UserError(f"{path}: replay stopped: {result.fault}", exit_status=3)
     ev = puncture_records(sink.scan.punctures)
     metrics = sink.metrics(ev)
+    if point is not None:
+        from ..session.point import MERGED
+        for ins, g in zip(metrics["per_insertion"], grade.result()):
+            ins.update({k: g[k] for k in MERGED})
     rows, index = sink.figure_rows()
     return metrics, ev, session_curve(rows, tissue, ev, index)
 
@@ -162,8 +176,25 @@ def insertion_numbers(metrics, insertion: int | None) -> list[int]:
     return list(range(n))
 
 
+def _closest(i) -> str:
+    """An insertion's smallest margin to a danger structure (--point): 'name mm'."""
+    m = {k: v for k, v in (i.get("danger_margin_mm") or {}).items() if v is not None}
+    if not m:
+        return "-"
+    k = min(m, key=m.get)
+    return f"{k} {m[k]:.1f}"
+
+
+POINT_ROWS = (  # with --point
+    ("angle error (deg)", lambda i: _fmt(i.get("angle_error_deg"), ".1f")),
+    ("closest structure (mm)", _closest),
+    ("critical errors", lambda i: ", ".join(e["structure"] for e in i.get("critical_errors", ())) or "none"),
+)
+
+
 def table_lines(labels, metrics, insertion: int | None = None) -> list[str]:
-    """The side-by-side table, one column per session: totals, then each insertion shown."""
+    """The side-by-side table, one column per session: totals, then each insertion shown (with
+    --point, its grading against the point too)."""
     bound = metrics[0]["lateral_comfort_n"]
     lo, hi = metrics[0]["target_depth_mm"]
     rows = [
@@ -174,7 +205,8 @@ def table_lines(labels, metrics, insertion: int | None = None) -> list[str]:
     ]
     for k in insertion_numbers(metrics, insertion):
         rows.append((f"insertion {k + 1} (target depth {lo:g}-{hi:g} mm):", None))
-        for name, fn in INSERTION_ROWS:
+        graded = any("critical_errors" in i for m in metrics for i in m["per_insertion"])
+        for name, fn in INSERTION_ROWS + (POINT_ROWS if graded else ()):
             rows.append((f"  {name}", [fn(m["per_insertion"][k]) if k < len(m["per_insertion"]) else "-"
                                        for m in metrics]))
     w0 = max(len(name) for name, _ in rows)
@@ -401,6 +433,10 @@ def _labels(args, paths) -> list[str]:
 def run(args) -> int:
 
     cfg = config_from_args(args)
+    from ..session.point import setup_from_args
+    args.point_setup = setup_from_args(cfg, args)  # --point: every session at the point, graded
+    if args.point_setup is not None:
+        cfg = args.point_setup.cfg
     paths = [resolve_trajectory(p) for p in args.sessions]
     if args.insertion is not None and args.insertion < 1:
         raise UserError(f"--insertion: 1 is the first insertion, got {args.insertion}")
@@ -446,6 +482,27 @@ def run(args) -> int:
     return 0
 
 
+def tick_cost(cfg, tissue, ticks: int = 2000) -> dict:
+    """p50 and p99 (us) of one servo step of ``cfg``'s model pressing the skin: straight down the
+    z axis at 0.5 mm/s from 0.2 mm above the acupoint (1 mm in 2000 ticks: short of every model's
+    break), on a warmed-up model."""
+    from ..servo.step import NeedleModel
+
+    model = NeedleModel(cfg, tissue)
+    model.warm_up()
+    z0 = 2e-4  # the acupoint is the skin's point at the origin, its outward normal +z
+    v = np.array([0.0, 0.0, -0.5e-3])
+    p = np.zeros(3)
+    t = np.empty(ticks)
+    clock = time.perf_counter_ns
+    for i in range(ticks):
+        p[2] = z0 - 0.5e-6 * i
+        t0 = clock()
+        model.step(p, v)
+        t[i] = clock() - t0
+    return {"p50": round(float(np.percentile(t, 50)) * 1e-3, 2), "p99": round(float(np.percentile(t, 99)) * 1e-3, 2)}
+
+
 def _precompute(cfg) -> float:
     """Build (or load) ``cfg``'s tissue model's precomputation; its build time in seconds (0 from the cache)."""
     from ..tissue.baselines import contact_for
@@ -467,11 +524,10 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
             t0 = time.perf_counter()
             build_s = _precompute(c)
             t1 = time.perf_counter()
-            m, _, curve = replay_session(dev, p, c, tissue)
-            t2 = time.perf_counter()
-        ticks = max(int(round(dev.duration_s * 1000)), 1)
-        costs.append({"model": kind, "build_s": round(build_s if build_s else t1 - t0, 3),
-                      "us_per_tick": round((t2 - t1) / ticks * 1e6, 2)})
+            m, _, curve = replay_session(dev, p, c, tissue, point=getattr(args, "point_setup", None))
+        if kind is not None:
+            costs.append({"model": kind, "build_s": round(build_s if build_s else t1 - t0, 3),
+                          "tick_us": tick_cost(c, tissue)})
         curves.append(curve)
         metrics.append(m)
     if args.insertion is not None and all(m["insertions"] < args.insertion for m in metrics):
@@ -486,6 +542,9 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
         doc["models"] = [dict(cost, label=lab) for cost, lab in zip(costs, labels)]
     if len(metrics) == 2:
         doc["first_insertion_b_minus_a"] = first_insertion_diff(metrics)
+    ps = getattr(args, "point_setup", None)
+    if ps is not None:
+        doc.update(point=ps.point.code, patient=ps.patient.as_dict(), anatomy=ps.anatomy.as_dict())
     (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
     plot_curves(curves, labels, partial / "compare.png", tissue, args.insertion,
                 target_mm=tuple(cfg.scene.target_depth_mm), force_limit_n=cfg.safety.force_limit_n)

@@ -33,6 +33,8 @@ def register(sub) -> None:
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    from ..session.point import add_point_args
+    add_point_args(p)
     p.add_argument("--verbose", action="store_true", help="also print timing statistics (how fast the replay ran)")
     p.set_defaults(func=run)
 
@@ -57,11 +59,14 @@ def print_summary(summary: dict, out_dir: Path, file=None, quiet: bool = False, 
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd, overrides = args_tuple
+    traj, out_dir, config, rrd, overrides, point = args_tuple
     from ..base.config import load_config
+    from ..session.point import setup
     from ..session.replay import replay_one
     try:
-        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=load_config(config, overrides=overrides))
+        cfg = load_config(config, overrides=overrides)
+        s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=cfg,
+                       point=setup(cfg, *point) if point else None)
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -84,6 +89,10 @@ def _flat(summary: dict) -> dict:
             row[key] = m[key]
     for key, v in (m.get("lateral") or {}).items():
         row[f"lateral_{key}"] = v
+    if "point" in summary:  # --point: the point, the patient and the grading's totals
+        g = summary["point_grading"]
+        row.update(point=summary["point"], patient_sex=summary["patient"]["sex"], patient_bmi=summary["patient"]["bmi"],
+                   in_range=g["in_range"], on_target=g["on_target"], critical_errors=g["critical_errors"])
     return row
 
 
@@ -161,6 +170,8 @@ def run(args) -> int:
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
+    from ..session.point import setup_from_args
+    ps = setup_from_args(cfg, args)  # a bad point or patient too
     if args.spawn:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
@@ -172,7 +183,7 @@ def run(args) -> int:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg)
+                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps)
         print_summary(summary, out, quiet=args.quiet, verbose=args.verbose)
         return 0
     if args.spawn or args.connect or args.realtime:
@@ -192,17 +203,20 @@ def run(args) -> int:
         raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
                         "another --out") from None
     try:
-        return _run_batch(args, paths, base)
+        return _run_batch(args, paths, base, ps)
     finally:
         os.close(lock)
 
 
-def _run_batch(args, paths, base: Path) -> int:
+def _run_batch(args, paths, base: Path, ps=None) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
     jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None) for p in paths]
+    # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
+    point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
+              args.feedback) if args.point else None)
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point) for p in paths]
     results = {}
     from ..base import progress
     with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \

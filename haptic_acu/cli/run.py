@@ -63,6 +63,8 @@ def register(sub) -> None:
     p.add_argument("--pin-cores", action="store_true",
                    help="pin the servo thread (the scripted device's, or the OMNI's HD scheduler thread) to one "
                         "core and the rerun logging child to the others")
+    from ..session.point import add_point_args
+    add_point_args(p)
     p.add_argument("--travel-axis", action="store_true",
                    help="OMNI: ignore the stylus orientation; the needle axis is the direction of travel at entry "
                         "(as for a device that does not know it)")
@@ -122,6 +124,10 @@ def run(args) -> int:
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
     cfg = config_from_args(args)
+    from ..session.point import setup_from_args
+    ps = setup_from_args(cfg, args)  # --point: the tissue at the point, its structures, the grading
+    if ps is not None:
+        cfg = ps.cfg
     if args.spawn:
         from ..session.viewer import check_spawn
         check_spawn()  # no display: one line now, not half a minute of viewer errors
@@ -143,16 +149,22 @@ def run(args) -> int:
     summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: a long session's memory stays flat
     recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
     sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
+    grade = None
+    if ps is not None:
+        from ..session.point import GradeSink
+        grade = GradeSink(ps)
+        sinks.append(grade)
     if args.rrd is not None or args.spawn or args.connect:
         sinks.append(_rerun_sink(args, out))
     if not args.no_status:
         from ..session.status import StatusLine
         sinks.append(StatusLine(stream=sys.stderr, target_mm=cfg.scene.target_depth_mm,
-                                force_limit_n=cfg.safety.force_limit_n, device=device))
+                                force_limit_n=cfg.safety.force_limit_n, device=device, point=ps))
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores)  # the compiled loop honours resets
+                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
+                      model=ps.model() if ps is not None else None)  # the compiled loop honours resets
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
@@ -171,7 +183,8 @@ def run(args) -> int:
         print(f"note: this computer was often late with the force ({100.0 * st['missed_ticks'] / max(result.ticks, 1):.1f}% "
               "of the servo ticks): the feel may have been rough; --verbose gives the timing", file=sys.stderr)
     try:
-        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, recording=rec)
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, point=ps, grade=grade,
+                     recording=rec)
         if args.record:
             print(f"  recording: {rec}")
     finally:  # the fault is reported even if the report could not be written
@@ -183,15 +196,20 @@ def run(args) -> int:
 LATE_SHARE_SAID = 0.01  # without --verbose the loop's timing is mentioned only when this share of ticks was late
 
 
-def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, recording=None) -> dict:
+def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, point=None, grade=None,
+                 recording=None) -> dict:
     """summary.json, debrief.md and force_depth.png of a finished session into ``out``; print the
-    results and the debrief. ``recording``: the session's recording, for the grasp felt of an
-    insertion that twirled (:func:`grasp_from_recording`)."""
+    results and the debrief (``point``, ``grade``: a --point session's setup and grading sink;
+    ``recording``: the session's recording, for the grasp felt of an insertion that twirled,
+    :func:`grasp_from_recording`)."""
     from ..session.report import add_debrief, plot_force_depth, print_results, write_debrief_md
 
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    if point is not None:
+        from ..session.point import add_to_summary
+        add_to_summary(summary, point, grade.result())
     if recording is not None and summary.get("fault") is None:
         grasp_from_recording(summary["metrics"], Path(recording), cfg)
     add_debrief(summary, cfg)

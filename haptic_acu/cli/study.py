@@ -344,16 +344,19 @@ def cmd_analyze(args) -> int:
     # the paper's scoring: `haptic-acu score` itself on the unblinded ratings
     score_args = argparse.Namespace(ratings=str(out / "ratings_by_model.csv"), subjective=args.subjective,
                                     delphi=args.delphi, bound=args.bound, mu=args.mu, out=str(out / "score"))
-    print("the paper's comprehensive weighted score (haptic-acu score on ratings_by_model.csv):")
-    if report["scores"]:
+    scored = bool(report["scores"]) and not report["not_scored"]
+    if scored:
+        print("the paper's comprehensive weighted score (haptic-acu score on ratings_by_model.csv):")
         score_cmd.run(score_args)
+    else:
+        print("score/ not written: `haptic-acu score` needs every model rated by 2 or more participants")
     if path is not None:
         with step(f"replaying {path.name} with each of the {len(study.models)} models"):
             report["objective"] = objective(study, out, path)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     _print_analysis(report)
     print(f"wrote {out}/: report.json, ratings_by_model.csv, friedman.csv, wilcoxon.csv,")
-    print("  descriptives.csv, order.csv, indices.png, order.png" + (", score/" if report["scores"] else "")
+    print("  descriptives.csv, order.csv, indices.png, order.png" + (", score/" if scored else "")
           + (", objective/" if path is not None else ""))
     return 0
 

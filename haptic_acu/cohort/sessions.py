@@ -123,6 +123,16 @@ def _tech(part, key):
     return get
 
 
+def _min_margin(c):
+    m = [v for v in (c.m.get("danger_margin_mm") or {}).values() if v is not None]
+    return min(m) if m else None
+
+
+def _critical(c, f):
+    e = c.m.get("critical_errors")
+    return None if e is None else f(e)
+
+
 # One entry per column of insertions.parquet after the manifest's columns and `insertion`. Add a
 # metric (e.g. twirling) by adding one Column here; sessions.parquet gets its mean automatically.
 INSERTION_COLUMNS: list[Column] = [
@@ -178,6 +188,14 @@ INSERTION_COLUMNS: list[Column] = [
     Column("skin_punctured", "", "the insertion broke intact skin (false: re-entry through a hole)",
            lambda c: c.m["skin_punctured"], "bool"),
     Column("depth_verdict", "", "\"in range\", \"too shallow\" or \"too deep\"", lambda c: c.m["depth_verdict"], "string"),
+    # graded against an atlas point (--point or the manifest's `point`; empty without one: docs/atlas.md)
+    Column("angle_error_deg", "deg", "angle between the insertion direction and the point's prescribed direction",
+           lambda c: c.m.get("angle_error_deg")),
+    Column("danger_margin_min_mm", "mm", "smallest distance from the tip to any danger structure of the point "
+           "(negative: past it)", _min_margin),
+    Column("critical_errors", "", "danger structures the tip reached", lambda c: _critical(c, len), "int64"),
+    Column("critical_structures", "", "their names, space-separated",
+           lambda c: _critical(c, lambda e: " ".join(x["structure"].replace(" ", "_") for x in e)), "string"),
 ]
 
 # sessions.parquet: after the manifest's columns. Then `mean_<name>` for every numeric insertion
@@ -191,6 +209,8 @@ SESSION_COLUMNS: list[Column] = [
     Column("max_force_n", "N", "largest |F| over the session"),
     Column("max_tip_depth_mm", "mm", "deepest tip point below the rest skin surface"),
     Column("lateral_time_s", "s", "time with the lateral force above the comfort bound, summed over insertions"),
+    Column("graded_point", "", "the atlas point the session was graded against (empty: none)", dtype="string"),
+    Column("graded_patient", "", "its patient (--patient text; empty: the default)", dtype="string"),
 ]
 HASH_COLUMNS: list[Column] = [
     Column("input_sha256", "", "SHA-256 of the trajectory file replayed", dtype="string"),
@@ -340,6 +360,17 @@ def config_hash(cfg) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=list).encode()).hexdigest()
 
 
+def point_hash(csha: str, point) -> str:
+    """The configuration hash of a session at an atlas point ((point, patient) text; None: ``csha``
+    itself): the point file's bytes and the patient join the configuration's."""
+    if not point:
+        return csha
+    from ..tissue.atlas import load_point
+    pt, pa = point
+    data = Path(load_point(pt).path).read_bytes()
+    return hashlib.sha256(csha.encode() + b"\0" + data + b"\0" + (pa or "").encode()).hexdigest()
+
+
 def record_name(session: str) -> str:
     """A file name for a session id: its safe characters plus a short hash (ids may hold anything)."""
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", session)[:60]
@@ -361,18 +392,20 @@ class Job:
     input_sha256: str
     config_sha256: str
     session_dir: str | None = None  # also write the replay's samples.csv, summary.json, force_depth.png here
+    point: str | None = None  # --point / the manifest's `point`: the session at that atlas point, graded
+    patient: str | None = None  # its patient (--patient text)
 
 
 _TISSUE: dict = {}  # config hash -> Tissue (a worker builds it once, not per session)
 
 
-def _tissue(job: Job):
+def _tissue(job: Job, cfg=None):
     from ..tissue.body import Tissue
 
     t = _TISSUE.get(job.config_sha256)
     if t is None:
         _TISSUE.clear()
-        t = _TISSUE[job.config_sha256] = Tissue.from_config(job.cfg)
+        t = _TISSUE[job.config_sha256] = Tissue.from_config(cfg if cfg is not None else job.cfg)
     return t
 
 
@@ -462,10 +495,15 @@ def _replay(job: Job) -> dict:
     from ..session.report import SummarySink
 
     cfg = job.cfg
+    ps = None
+    if job.point:  # the session at an atlas point: its tissue, structures and grading
+        from ..session.point import GradeSink, setup
+        ps = setup(cfg, job.point, job.patient)
+        cfg = ps.cfg
     device = ScriptedDevice(job.file, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
                             realtime=False, force_limit_n=cfg.safety.force_limit_n)
     device.open()
-    tissue = _tissue(job)
+    tissue = _tissue(job, cfg)
     reference = None
     if device.has_roll:  # the grasp felt: the same replay without rotation (its ticks and forces)
         from ..session.replay import reference_forces
@@ -475,6 +513,10 @@ def _replay(job: Job) -> dict:
     from ..session.pathstream import TrackFile
     track = TrackFile()  # t, x, y, z, state, depth per row: on disk, for the path columns
     sinks = [sink, track]
+    grade = None
+    if ps is not None:
+        grade = GradeSink(ps)
+        sinks.append(grade)
     partial = None
     if job.session_dir:
         from ..session.report import SamplesCsvSink
@@ -484,7 +526,8 @@ def _replay(job: Job) -> dict:
         partial.mkdir(parents=True)
         sinks.append(SamplesCsvSink(partial / "samples.csv"))
     try:
-        session = Session(cfg, device, sinks, clock="sim", model=NeedleModel(cfg, tissue))
+        model = ps.model(tissue) if ps is not None else NeedleModel(cfg, tissue)
+        session = Session(cfg, device, sinks, clock="sim", model=model)
         session.warm_up()
         result = session.run()
         device.close()
@@ -494,6 +537,13 @@ def _replay(job: Job) -> dict:
             raise Interrupted(f"{job.file}: replay interrupted at {result.duration_s:.3f} s of {device.duration_s:.3f} s")
         summary = sink.summary()
         sm = sink.metrics(summary["punctures"])
+        if ps is not None:  # each insertion's grading against the point joins its metrics
+            from ..session.point import MERGED, add_to_summary
+            graded = grade.result()
+            for ins, g in zip(sm["per_insertion"], graded):
+                ins.update({k: g[k] for k in MERGED})
+            summary["metrics"] = sm
+            add_to_summary(summary, ps, graded)
         insertions = streamed_insertion_rows(sm, track, cfg)
         if partial is not None:
             _session_files(partial, Path(job.session_dir), summary, sm, sink.figure_rows(), tissue, job)
@@ -505,7 +555,8 @@ def _replay(job: Job) -> dict:
         "insertions": sm["insertions"], "skin_punctures": sm["skin_punctures"],
         "session_duration_s": summary["duration_s"], "time_in_tissue_s": sm["time_in_tissue_s"],
         "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
-        "lateral_time_s": sm["lateral"]["time_over_s"]},
+        "lateral_time_s": sm["lateral"]["time_over_s"], "graded_point": job.point or "",
+        "graded_patient": job.patient or ""},
         "insertions": insertions}
 
 

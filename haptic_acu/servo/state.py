@@ -35,6 +35,7 @@ from numba.np.arrayobj import make_array, populate_array
 
 from ..base.config import LAYER_NAMES, MAX_RINGS
 from ..tissue.netresponse import TMETA
+from .danger import DANGER  # a point's danger structures (servo/danger.py)
 
 # the model's vocabulary (places, layer states, net slots and owners), declared in tissue/layers.py
 from ..tissue.layers import (  # noqa: F401 (re-exported)
@@ -111,6 +112,7 @@ WORK = np.dtype([  # the step's scratch: values one phase hands the next within 
     ("dz1", "f8"), ("s_p", "f8"),
     ("gd", "f8", 3),  # grad(-d) of the tip's depth d below the pressed layer's rest surface (needle.depth_gradient)
     ("wr", "f8", MAX_RINGS), ("cnt", "f8", MAX_RINGS),
+    ("k_danger", "f8"),  # the stiffest danger structure the tip touches this tick (N/m; danger.py)
 ])
 DIAG = np.dtype([  # one tick's output
     ("force", "f8", 3),  # the force on the needle (N)
@@ -154,6 +156,7 @@ class Model(NamedTuple):
     plane: np.ndarray
     tab: np.ndarray  # tabulated net responses (netresponse.pack)
     tmeta: np.ndarray  # (N_LAYERS,) netresponse.TMETA: where each layer's table lies in ``tab``
+    danger: np.ndarray  # (MAX_DANGER,) danger.DANGER: a point's structures (all NONE without a point)
 
 
 class State(NamedTuple):
@@ -169,6 +172,7 @@ class State(NamedTuple):
     tr_lo: np.ndarray  # (MAX_TRACKS, N_LAYERS) arc-length range already cut per layer: start
     tr_hi: np.ndarray  # (MAX_TRACKS, N_LAYERS) end
     tr_count: np.ndarray  # (1,) int64: tracks ever begun
+    dstate: np.ndarray  # (MAX_DANGER,) 1.0 where a danger structure has given way (danger.py)
 
 
 class TickIn(NamedTuple):
@@ -207,10 +211,11 @@ class Servo(NamedTuple):
 
 SPEC = {  # (dtype, ndim) of every field
     Model: dict(coeffs=("f8", 2), centre=("f8", 1), layer=(LAYER, 1), params=(PARAMS, 1), layout=(LAYOUT, 1),
-                nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1)),
+                nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1),
+                danger=(DANGER, 1)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1), tr_entry=("f8", 2), tr_axis=("f8", 2), tr_lo=("f8", 2), tr_hi=("f8", 2),
-                tr_count=("i8", 1)),
+                tr_count=("i8", 1), dstate=("f8", 1)),
     TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1), axis=("f8", 1), roll=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),

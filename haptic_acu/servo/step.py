@@ -6,7 +6,8 @@ sequence of named phases, each a small kernel of its own:
     check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
     sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
     handle_stop (the handle on the skin: no more than the needle's length goes in) ->
-    twirl_phase (winding: torque, grasp) -> bone_wall -> locate -> clamp
+    twirl_phase (winding: torque, grasp) -> bone_wall -> danger_phase -> locate -> clamp
+    -> render_local -> danger_render   (the danger phases: a point's structures, servo/danger.py)
 
 Every phase takes the NamedTuples of :mod:`haptic_acu.servo.state` (``inp``: TickIn, ``m``: Model,
 ``s``: State, ``d``: the DIAG record) plus at most a layer or slot index; values one phase hands the
@@ -67,6 +68,7 @@ from ..tissue import shf
 from .clamp import clamp_force
 from .cptr import address_of as _address_of
 from .cptr import i64p as _i64p
+from .danger import DANGER, MAX_DANGER, danger_phase, danger_render, structure_rows
 from ..tissue.forcenet import (NetArrays, NetParams, Springs, Surface, Topology, build_net, force_on, lattice,
                        n_particles, relax, ring_w_mean_deflection, sync_curved)
 from ..tissue.mechanics import UNCUT, mech_params, puncture_threshold, rupture_fields
@@ -779,9 +781,11 @@ def step_kernel(inp, m, s, out):
         handle_stop(m, s, d)
     twirl_phase(inp, m, s, d)
     bone_wall(m, s, d)
+    danger_phase(inp, m, s, d)
     locate(s, d)
     clamp(m, s, d)
     render_local(m, s, d)
+    danger_render(s, d)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -872,11 +876,11 @@ class NeedleModel:
                            nbr=np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices])),
                            ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
                            plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
-                           tab=tab, tmeta=tmeta)
+                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER))
         tr = (ss.MAX_TRACKS, 3)
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
-                              tr_hi=tr)
+                              tr_hi=tr, dstate=(MAX_DANGER,))
         self.state.axes[:, 2] = 1.0
         self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan
@@ -974,6 +978,15 @@ class NeedleModel:
         """Needle out, every layer untouched; holes kept unless ``keep_holes`` is False
         (:func:`reset_servo`, the one reset the compiled drivers run too)."""
         reset_servo(self.servo, bool(keep_holes))
+
+    def set_structures(self, anatomy) -> None:
+        """A point's danger structures (:func:`haptic_acu.tissue.patient.realise`) into
+        ``model.danger`` (in place: a C entry point's table stays valid); None removes them."""
+        if anatomy is None:
+            self.model.danger[:] = np.zeros(1, DANGER)[0]
+        else:
+            structure_rows(anatomy, self.cfg.needle.bone_stiffness_n_per_mm, out=self.model.danger)
+        self.state.dstate[:] = 0.0
 
     def kernel_args(self) -> tuple:
         """Everything :func:`step_kernel` takes: (inp, model, state, diag)."""

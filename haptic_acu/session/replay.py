@@ -230,15 +230,19 @@ class _Guarded(Sink):
 
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
-               spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None) -> dict:
+               spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None,
+               point=None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
-    input (nothing is left in ``out_dir``) and on a fault during the replay."""
+    input (nothing is left in ``out_dir``) and on a fault during the replay. ``point``: a
+    :class:`~haptic_acu.session.point.PointSetup` (``--point``: its tissue, structures and grading)."""
     from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
     from .report import SamplesCsvSink, SummarySink, add_debrief, plot_force_depth, write_debrief_md
 
     cfg = cfg if cfg is not None else load_config(config_path)
+    if point is not None:
+        cfg = point.cfg
     trajectory = Path(trajectory)
     device = ScriptedDevice(trajectory, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
                             realtime=realtime, force_limit_n=cfg.safety.force_limit_n)
@@ -270,7 +274,13 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                 sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))
-        session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim")
+        grade = None
+        if point is not None:
+            from .point import GradeSink
+            grade = GradeSink(point)
+            sinks.append(grade)
+        session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim",
+                          model=point.model() if point is not None else None)
         session.warm_up()
         wall0 = time.perf_counter()
         result = session.run()
@@ -293,6 +303,9 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         summary = summary_sink.summary()
         summary["trajectory"] = trajectory.name
         summary["metrics"] = summary_sink.metrics(summary["punctures"])
+        if point is not None:
+            from .point import add_to_summary
+            add_to_summary(summary, point, grade.result())
         add_debrief(summary, cfg)
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
         write_debrief_md(summary, partial)

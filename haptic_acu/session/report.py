@@ -18,6 +18,7 @@ perpendicular insertion that is the axial force. The summary's forces are magnit
 from __future__ import annotations
 
 import csv
+import math
 import sys
 from pathlib import Path
 
@@ -446,6 +447,9 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     hi = max(float(depth_mm.max()), bounds[1]) if rows.size else bounds[2]
     pad = 0.02 * (hi - lo)
     x0, x1 = lo - pad, hi + pad
+    structures = structure_depths(summary)  # --point: the danger structures below the point
+    if structures:
+        x1 = max(x1, max(d for _, d in structures) + 2.0)
     edges = [*bounds, max(x1, bounds[3])]
     handles = []
     for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
@@ -491,6 +495,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     if events:
         handles.append(Line2D([], [], marker="v", ls="none", color="0.3", mec="k", mew=0.5,
                               label="puncture (peak |F| while pressed)"))
+    handles += _draw_structures(panels, ax_t, structures, summary)
     panels[0].set_xlim(x0, x1)
     if rows.size:
         panels[0].set_ylim(min(-0.05, 1.1 * float(f_ax.min())), max(0.1, 1.3 * float(f_ax.max())))
@@ -507,24 +512,71 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
 
     tspan = (float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3) if rows.size else (0.0, 1.0)
     if ax_lat is not None:
-        ax_lat.set_ylabel("lateral |F| (N)")
-        ax_lat.set_xlim(*tspan)
-        ax_lat.set_title("force across the needle (lateral)", fontsize=9)
-        ax_lat.tick_params(labelbottom=False)
-        # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
-        # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
-        tw = ax_lat.twinx()
-        tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
-        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
-        tw.tick_params(axis="y", colors=OFFSET_COLOUR)
-        tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
-        ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
+        _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan)
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
     ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9)
     ax_t.set_xlim(*tspan)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+
+
+def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) -> None:
+    """force_depth.png's lateral panel: the force across the needle and, on its own scale, the tip's
+    offset from the acupoint's axis."""
+    ax_lat.set_ylabel("lateral |F| (N)")
+    ax_lat.set_xlim(*tspan)
+    ax_lat.set_title("force across the needle (lateral)", fontsize=9)
+    ax_lat.tick_params(labelbottom=False)
+    # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
+    # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
+    tw = ax_lat.twinx()
+    tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
+    tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
+    tw.tick_params(axis="y", colors=OFFSET_COLOUR)
+    tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
+    ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
+
+
+STRUCTURE_COLOUR = "#b2182b"
+
+
+def structure_depths(summary) -> list[tuple[str, float]]:
+    """(name, depth in mm below the point along its normal) of each danger structure a --point
+    session's summary lists that lies on that line: a plane facing it, a cylinder across it (at
+    rest, before breathing)."""
+    out = []
+    for st in ((summary or {}).get("anatomy") or {}).get("structures", ()):
+        if "toward" in st:
+            tz = -st["toward"][2]
+            if tz > 0.2:  # a plane facing the needle line (not a wall beside it)
+                out.append((st["name"], st["depth_mm"] / tz))
+        else:
+            c = st["centre_mm"]
+            if math.hypot(c[0], c[1]) <= st["radius_mm"] + 5.0:  # a cylinder near the line
+                out.append((st["name"], -c[2] - st["radius_mm"]))
+    return out
+
+
+def _draw_structures(panels, ax_t, structures, summary) -> list:
+    """A --point session's danger structures on force_depth.png: a dashed line at each one's depth
+    below the point, and each critical error's time on the time panel; the legend's handles."""
+    if not structures:
+        return []
+    from matplotlib.lines import Line2D
+    for name, d in structures:
+        for ax in panels:
+            ax.axvline(d, color=STRUCTURE_COLOUR, lw=1.2, ls="--")
+        panels[-1].annotate(f"{name} {d:.1f} mm", (d, 1.0), xycoords=("data", "axes fraction"), xytext=(-3, -3),
+                            textcoords="offset points", rotation=90, ha="right", va="top", fontsize=7,
+                            color=STRUCTURE_COLOUR)
+    errors = [e for i in (summary.get("point_grading") or {}).get("per_insertion", ()) for e in i["critical_errors"]]
+    for e in errors:
+        ax_t.axvline(e["t_s"], color=STRUCTURE_COLOUR, lw=1.2)
+    out = [Line2D([], [], color=STRUCTURE_COLOUR, ls="--", label=f"{summary['point']}: danger structure (at rest)")]
+    if errors:
+        out.append(Line2D([], [], color=STRUCTURE_COLOUR, label="critical error (time panel)"))
+    return out
 
 
 RESULT_FORCE = "{:.3f}"  # N: every text output shows forces, depths and times with these decimals
@@ -579,7 +631,8 @@ def result_lines(summary: dict) -> list[str]:
             out.append(f"  insertion {n}: needle {D(i['max_depth_mm'])} mm into the tissue{tip}: {i['depth_verdict']}; "
                        f"entry {D(i['entry_offset_mm'])} mm off the acupoint at {ang} deg to the normal; "
                        f"{spd} mm/s; {cyc}{technique_text(i.get('technique'))}")
-    return out
+    from .point import point_lines
+    return out + point_lines(summary)  # with --point: the grading against the point
 
 
 def add_debrief(summary: dict, cfg) -> dict:

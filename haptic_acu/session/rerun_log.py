@@ -92,6 +92,45 @@ def twist_bar(tip, back, roll_deg: float) -> np.ndarray:
     return np.stack([handle - d, handle + d])
 
 
+STRUCTURE_COLOURS = {"membrane": (178, 24, 43, 110), "bone": (235, 225, 200, 200), "nerve": (240, 200, 30, 255),
+                     "artery": (200, 30, 30, 255)}
+PLANE_HALF_M = 0.015  # a plane structure is drawn as a 30 mm square around the needle line
+
+
+def _quat_z_to(a) -> list[float]:
+    """The rotation (x, y, z, w) taking +z to the unit vector ``a``."""
+    a = np.asarray(a, dtype=float)
+    c = float(a[2])
+    if c < -1.0 + 1e-9:
+        return [1.0, 0.0, 0.0, 0.0]
+    v = np.cross([0.0, 0.0, 1.0], a)
+    q = np.array([v[0], v[1], v[2], 1.0 + c])
+    return (q / np.linalg.norm(q)).tolist()
+
+
+def log_structures(rec, anatomy) -> None:
+    """A --point session's danger structures in the 3D view (static, at rest): a membrane or bone as a
+    square of the plane around the needle line, a nerve or artery as its cylinder."""
+    for st in anatomy.structures:
+        path = f"world/structures/{st.name.replace(' ', '_')}"
+        colour = STRUCTURE_COLOURS[st.kind]
+        if st.toward is not None:
+            n = np.asarray(st.toward, dtype=float)
+            centre = n * st.depth_mm * 1e-3
+            t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            t1 /= np.linalg.norm(t1)
+            t2 = np.cross(n, t1)
+            h = PLANE_HALF_M
+            verts = np.array([centre + h * (sa * t1 + sb * t2) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+            rec.log(path, rr.Mesh3D(vertex_positions=verts, triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                                    albedo_factor=colour), static=True)
+        else:
+            rec.log(path, rr.Cylinders3D(lengths=[0.04], radii=[st.radius_mm * 1e-3],
+                                         centers=[np.asarray(st.centre_mm) * 1e-3],
+                                         quaternions=[_quat_z_to(st.axis)], colors=[colour[:3]],
+                                         fill_mode="solid"), static=True)
+
+
 def blueprint() -> rrb.Blueprint:
     """The default layout: the 3D scene on the left; force, depth, loop rates and events on the right."""
     return rrb.Blueprint(
@@ -296,6 +335,10 @@ class RerunSink(Sink):
             doc.append(f"device: {getattr(dev, 'name', '?')} ({getattr(dev, 'model', '')})")
         if cfg is not None and getattr(cfg, "path", None):
             doc.append(f"config: {cfg.path}")
+        anatomy = getattr(model, "anatomy", None)  # --point: the atlas point and its patient
+        if anatomy is not None:
+            p = anatomy.patient
+            doc.append(f"point: {anatomy.point.code} {anatomy.point.name}; patient {p.sex}, BMI {p.bmi:g}, age {p.age:g}")
         rec.log("session", rr.TextDocument("\n".join(doc)), static=True)
 
         th_p, ph_p = PATCH_GRID
@@ -327,6 +370,8 @@ class RerunSink(Sink):
             self._log_patch(k, np.zeros(th_p.shape))
         self._rows = [lattice_rows(lat, n) for lat, n in zip(model.lattices, model.n)]
         self._net_last: dict[int, np.ndarray] = {}
+        if anatomy is not None:
+            log_structures(rec, anatomy)
         rec.log("world/needle", rr.LineStrips3D.from_fields(radii=rr.Radius.ui_points(3.0), colors=[(90, 90, 100)]),
                 static=True)
         rec.log("world/force", rr.Arrows3D.from_fields(radii=rr.Radius.ui_points(2.5), colors=[(220, 30, 30)]),

@@ -82,12 +82,13 @@ FLASH_S = 1.5  # a puncture is announced this long (session time) after it happe
 
 def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, *, ticks: int | None = None,
                   tip_depth_mm: float | None = None, target_mm=None, last_puncture: dict | None = None,
-                  speed_set_mm_s: float | None = None) -> list[tuple[int, str]]:
+                  speed_set_mm_s: float | None = None, warning: str = "") -> list[tuple[int, str]]:
     """The status fields, in display order, each with its priority (0 most important) for when the
     terminal is too narrow for all of them. ``row`` is a sample row (:data:`haptic_acu.servo.samples.COLUMNS`).
     Optional: ``tip_depth_mm`` (below the rest skin; negative above it), ``target_mm`` (the scene's
     target depth range), ``last_puncture`` (layer and peak_force_n), ``speed_set_mm_s`` (the
-    keyboard's set axial speed), ``ticks`` (for the late fraction)."""
+    keyboard's set axial speed), ``ticks`` (for the late fraction), ``warning`` (``--point`` with
+    guided feedback: a danger structure near the tip)."""
     layer = int(row[_C_LAYER])
     x_mm, y_mm = row[_C_X] * 1e3, row[_C_X + 1] * 1e3
     # priorities (0 stays longest): what the trainee acts on (where the tip is against the target,
@@ -128,6 +129,8 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
         fields.append((2, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.3f} N"))
     if layer == _BONE:
         fields.insert(0, (0, "ON BONE: withdraw"))
+    if warning:
+        fields.append((0, warning))
     if row[_C_CLAMP]:
         fields.insert(0, (0, "FORCE LIMIT"))
     if int(row[_C_RSTAT]) & _LIMITING:  # the rendering layer's continuous-force protection
@@ -161,8 +164,9 @@ class StatusLine(Sink):
     """Status-line sink writing to ``stream`` (default stderr). See the module doc."""
 
     def __init__(self, stream=None, force: bool = False, max_hz: float = 10.0, target_mm=None,
-                 force_limit_n: float | None = None, device=None):
+                 force_limit_n: float | None = None, device=None, point=None):
         self.stream = sys.stderr if stream is None else stream
+        self.point = point  # --point: a PointSetup whose guided feedback warns of its structures
         self.target_mm = target_mm
         self.force_limit_n = force_limit_n
         self.device = device  # for the keyboard's set speed (``speed_m_s``), if it has one
@@ -232,6 +236,8 @@ class StatusLine(Sink):
             extra["tip_depth_mm"] = float(tip_depth_m(self._row[_C_X:_C_X + 3], self.tissue)[0]) * 1e3
         if self._scan is not None and self._scan.punctures:
             extra["last_puncture"] = self._scan.punctures[-1]
+        if self.point is not None:
+            extra["warning"] = self.point.warning(self._row[_C_X:_C_X + 3] * 1e3, self._t)
         speed = getattr(self.device, "speed_m_s", None)
         if isinstance(speed, (int, float)):
             extra["speed_set_mm_s"] = speed * 1e3

@@ -348,7 +348,7 @@ def objective(study: Study, out: Path, path, progress=None) -> dict:
         curves[m] = _curve(odir / m / "samples.csv")
         if progress:
             progress(m)
-    plot_curves(odir / "force_depth.png", curves, Path(path).name)
+    plot_curves(odir / "force_depth.png", curves, Path(path).name, per_model)
     rows = session_metrics(study, key)
     _write_dicts(odir / "sessions.csv", rows)
     by_model = metrics_by_model(rows, study.models)
@@ -366,18 +366,27 @@ def _curve(samples: Path):
     return np.array(t), np.array(depth), np.array(f)
 
 
-def plot_curves(path: Path, curves: dict, name: str) -> None:
+def plot_curves(path: Path, curves: dict, name: str, per_model: dict | None = None) -> None:
+    """Left: force against depth over the first advance (to the deepest point), zoomed to the
+    punctures, where the models differ; right: force against time over the whole path."""
     plt = _plt()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.2))
     styles = ["-", "--", "-.", ":", (0, (5, 1)), (0, (3, 1, 1, 1)), (0, (1, 2)), (0, (8, 3))]
+    reach = 0.0
     for k, (m, (t, d, f)) in enumerate(curves.items()):
-        a1.plot(d, f, lw=1.2, ls=styles[k % len(styles)], label=m)
+        first = int(np.argmax(d)) + 1 if d.size else 0
+        a1.plot(d[:first], f[:first], lw=1.2, ls=styles[k % len(styles)], label=m)
         a2.plot(t, f, lw=1.2, ls=styles[k % len(styles)], label=m)
+        for q in (per_model or {}).get(m, {}).get("punctures", []):
+            reach = max(reach, float(np.interp(q["t_s"], t, d)))
+    if reach > 0:
+        a1.set_xlim(-1.0, reach + 3.0)
     a1.set_xlabel("tip depth below the skin (mm)")
     a1.set_ylabel("force on the needle (N)")
-    a1.set_title("force against depth", fontsize=10)
+    a1.set_title("force against depth, first advance" + (" (to the last puncture + 3 mm)" if reach else ""),
+                 fontsize=10)
     a2.set_xlabel("time (s)")
-    a2.set_title("force against time", fontsize=10)
+    a2.set_title("force against time, the whole path", fontsize=10)
     for a in (a1, a2):
         a.grid(alpha=0.3)
         a.legend(fontsize=8)

@@ -81,9 +81,11 @@ def ask(code: str, scale: dict, read=input, write=print, previous=None) -> list[
     ``previous``: ratings already recorded (shown, for a correction)."""
     write(f"Please rate {code} on each of {len(INDICES)} points ({scale_text(scale)}; "
           f"{scale['max']:g} is best).")
-    if previous is not None:
-        write("Recorded so far: " + ", ".join(f"{LABELS[n]} {fmt_score(v)}" for n, v in zip(INDICES, previous)))
     width = max(len(v) for v in LABELS.values())
+    if previous is not None:
+        write("Recorded so far:")
+        for n, v in zip(INDICES, previous):
+            write(f"  {LABELS[n]:<{width}}   {fmt_score(v)}")
     try:
         while True:
             values = []
@@ -95,7 +97,9 @@ def ask(code: str, scale: dict, read=input, write=print, previous=None) -> list[
                         break
                     except ValueError as e:
                         write(f"    {e}; please give a number {scale_text(scale)}")
-            write(f"{code}: " + ", ".join(f"{LABELS[n]} {fmt_score(v)}" for n, v in zip(INDICES, values)))
+            write(f"Your ratings of {code}:")
+            for n, v in zip(INDICES, values):
+                write(f"  {LABELS[n]:<{width}}   {fmt_score(v)}")
             while True:
                 answer = read("  Save these ratings? [y = save, n = rate again] ").strip().lower()
                 if answer in ("y", "yes"):

@@ -14,8 +14,8 @@ it breaks at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` c
   layers from the pressed one down (edge and face-diagonal springs, ``k_spring = 2 E h / 5`` summed
   over the cubes a spring borders: the isotropic central-force cubic lattice, E exact, nu = 1/4),
   the bottom fixed, the node under the tip pushed in; ``k`` is the reaction per unit push (the
-  lattice's static response: its fastest mode, ~10 kHz, is far above the servo's 1 kHz, so an
-  implicit step at 1 ms lands on it); breaks when a spring at that node reaches a strain.
+  lattice at equilibrium, its inertia left out, as the FEM and BEM are elastostatic); breaks when a
+  spring at that node reaches a strain.
 * **FEM** (linear elastostatics on tetrahedra, DiMaio & Salcudean 2005; Bro-Nielsen 1998): a
   structured tetrahedral mesh of the layers from the pressed one down (quarter-symmetric block,
   graded toward the tip, layer interfaces on element faces), P1 elements assembled with

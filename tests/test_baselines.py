@@ -1,0 +1,236 @@
+"""The four baseline tissue models (model.kind = msm, fem, bem, shf; haptic_acu.tissue.baselines),
+held to closed forms and published rules, then run through the servo on every bundled trajectory.
+
+FEM against Sneddon's flat punch F = 2 a E d / (1 - nu^2) and Boussinesq's surface displacement
+u(r) = F (1 - nu^2) / (pi E r) on a thick homogeneous body, with a refinement study; BEM against
+the FEM; the MSM lattice's Young's modulus from a simulated compression test; the SHF's break at
+its configured force.
+"""
+from __future__ import annotations
+
+import filecmp
+import math
+
+import numpy as np
+import pytest
+
+from haptic_acu.base.config import MODEL_KINDS, load_config
+from haptic_acu.base.errors import UserError
+from haptic_acu.cli import main
+from haptic_acu.tissue import baselines as B
+
+A = 0.125e-3  # the default needle's radius (0.25 mm diameter)
+E = 30e3
+NU = 0.3  # linear tetrahedra lock as nu -> 0.5; the closed forms hold for any nu
+SNEDDON = 2 * A * E / (1 - NU ** 2)  # N per m of indentation
+BASELINES = [k for k in MODEL_KINDS if k != "forcenet"]
+
+
+# ---- config ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("item, key", [
+    ("model.kind=tetra", "model.kind"),
+    ("model.poisson_ratio=[0.5,0.45,0.45]", "model.poisson_ratio"),
+    ("model.young_modulus_kpa=[-420,3.25,30]", "model.young_modulus_kpa"),
+    ("model.msm_spacing_mm=0", "model.msm_spacing_mm"),
+])
+def test_a_bad_model_config_is_one_line_naming_the_key(item, key, capsys, tmp_path):
+    with pytest.raises(UserError, match=rf"key '{key}'"):
+        load_config(overrides=[item])
+    assert main(["replay", "default", "--set", item, "--out", str(tmp_path / "o"), "--no-rrd", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and key in err[0], err
+
+
+def test_a_config_without_the_model_section_is_the_force_net(tmp_path):
+    text = (B.__file__ and load_config().path)
+    src = open(text, encoding="utf-8").read()
+    cut = src[:src.index("[model]")]
+    (tmp_path / "old.toml").write_text(cut)
+    cfg = load_config(tmp_path / "old.toml")
+    assert cfg.model.kind == "forcenet"
+    assert load_config(tmp_path / "old.toml", ["model.kind=fem"]).model.kind == "fem"
+
+
+# ---- MSM: Young's modulus of the lattice ----------------------------------------------------------
+
+@pytest.mark.parametrize("E_pa, h", [(420e3, 0.5e-3), (3.25e3, 1e-3), (30e3, 0.25e-3)])
+def test_msm_lattice_compression_gives_the_young_modulus_it_was_built_from(E_pa, h):
+    # a free cube between rolling plates, 0.1% strain: stress / strain within 10% of E
+    assert B.msm_compression_modulus(E_pa, h, cells=5) == pytest.approx(E_pa, rel=0.10)
+
+
+def test_msm_springs_follow_the_rule_and_sum_at_layer_interfaces():
+    # inside a homogeneous lattice every spring is 2 E h / 5; an edge spring on a face between two
+    # materials gets half from each side
+    h = 1e-3
+    n = 4
+    cube = np.full((n - 1, n - 1, n - 1), 1e3)
+    i, j, k, nv = B.msm_springs(n, n, n, h, cube)
+    inner_edge = (i == 21) & (j == 22)  # node (1,1,1) -> (1,1,2): an edge inside
+    assert k[inner_edge][0] == pytest.approx(0.4 * 1e3 * h)
+    cube[:, :, 1:] = 3e3  # the upper two cube layers stiffer
+    i, j, k, nv = B.msm_springs(n, n, n, h, cube)
+    flat_edge = (i == 1 * 16 + 1 * 4 + 1) & (j == 2 * 16 + 1 * 4 + 1)  # along x in the plane z = 1
+    assert k[flat_edge][0] == pytest.approx(0.1 * h * (2 * 1e3 + 2 * 3e3))
+
+
+# ---- FEM against closed forms; BEM against the FEM ------------------------------------------------
+
+@pytest.fixture(scope="module")
+def fem_refinement():
+    """The flat punch on a 16 mm homogeneous block at three refinements (elements across the tip)."""
+    return {n: B.fem_flat_punch([E], [NU], [16e-3], A, n_in=n, ratio=r, half_width=16e-3, depth=16e-3)
+            for n, r in ((1, 1.5), (2, 1.45), (3, 1.35))}
+
+
+@pytest.mark.slow
+def test_fem_flat_punch_meets_sneddon(fem_refinement):
+    assert fem_refinement[3].stiffness == pytest.approx(SNEDDON, rel=0.15)
+
+
+@pytest.mark.slow
+def test_fem_force_converges_under_refinement(fem_refinement):
+    err = [abs(fem_refinement[n].stiffness / SNEDDON - 1) for n in (1, 2, 3)]
+    assert err[0] > err[1] > err[2], err
+    steps = [fem_refinement[1].stiffness - fem_refinement[2].stiffness,
+             fem_refinement[2].stiffness - fem_refinement[3].stiffness]
+    assert steps[0] > steps[1] > 0, steps  # the changes shrink: converging from above
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("r_mm", [1.5, 2.0])
+def test_fem_surface_displacement_falls_off_as_boussinesq(fem_refinement, r_mm):
+    res = fem_refinement[3]
+    i = int(np.argmin(abs(res.profile_r - r_mm * 1e-3)))
+    r = res.profile_r[i]
+    expect = res.stiffness * (1 - NU ** 2) / (math.pi * E * r)  # per metre of indentation
+    assert res.profile_u[i] == pytest.approx(expect, rel=0.20)
+
+
+@pytest.mark.slow
+def test_bem_contact_force_is_the_fems_within_10_percent(fem_refinement):
+    assert B.bem_flat_punch(E, NU, A) == pytest.approx(fem_refinement[3].stiffness, rel=0.10)
+
+
+def test_bem_meets_sneddon():
+    for nu in (0.0, 0.3, 0.45):
+        assert B.bem_flat_punch(E, nu, A) == pytest.approx(2 * A * E / (1 - nu ** 2), rel=0.03)
+
+
+def test_fem_condensed_patch_is_symmetric_positive_definite():
+    res = B.fem_flat_punch([E], [NU], [8e-3], A, n_in=1, ratio=1.6, half_width=8e-3, depth=8e-3)
+    assert np.allclose(res.schur, res.schur.T)
+    assert np.linalg.eigvalsh(res.schur).min() > 0
+
+
+# ---- through the servo ------------------------------------------------------------------------------
+
+def _press_straight_down(kind, overrides=()):
+    from haptic_acu.servo.step import NeedleModel
+
+    cfg = load_config(overrides=[f"model.kind={kind}", *overrides])
+    nm = NeedleModel(cfg)
+    v = np.array([0.0, 0.0, -0.01])
+    rows = []
+    for i in range(2500):  # 10 mm/s, 25 mm down
+        z = 1e-3 - i * 1e-5
+        f = nm.step(np.array([0.0, 0.0, z]), v)
+        rows.append((z, float(np.linalg.norm(f)), float(nm.diag["puncture"])))
+    return cfg, nm, np.array(rows)
+
+
+@pytest.mark.parametrize("kind", BASELINES)
+def test_each_baseline_breaks_every_layer_pressing_straight_in(kind):
+    cfg, nm, rows = _press_straight_down(kind)
+    assert nm.states == (2, 2, 2)
+    assert np.isfinite(rows[:, 1]).all() and rows[:, 1].max() <= cfg.safety.force_limit_n
+    broke = rows[rows[:, 2] >= 0]
+    assert list(broke[:, 2]) == [0, 1, 2]
+    # the skin broke at its configured criterion (the reference speed is this press's 10 mm/s)
+    z_skin = broke[0, 0]
+    m = cfg.model
+    contact = B.contact_for(cfg)
+    if kind == "shf":
+        before = rows[np.nonzero(rows[:, 2] == 0)[0][0] - 1, 1]
+        assert before == pytest.approx(m.shf_puncture_force_n[0], abs=m.shf_stiffness_n_per_mm[0] * 1e3 * 2e-5)
+    elif kind in ("fem", "bem"):
+        assert -z_skin == pytest.approx(m.puncture_depth_mm[0] * 1e-3, abs=2e-5)
+    else:
+        assert contact.crit_depth[0] * B.msm_press(
+            [v * 1e3 for v in m.young_modulus_kpa], [layer.thickness_mm * 1e-3 for layer in cfg.layers],
+            m.msm_spacing_mm * 1e-3)[1] == pytest.approx(m.msm_puncture_strain[0])
+
+
+def test_the_baselines_differ_where_their_sources_do():
+    # skin's contact stiffness (N/m): the half-space of skin (BEM) is stiffer than the layered FEM body
+    # (skin on soft fat), and SHF's is its configured secant
+    ks = {k: B.contact_for(load_config(overrides=[f"model.kind={k}"])).stiffness for k in BASELINES}
+    assert ks["bem"][0] > ks["fem"][0]
+    assert ks["shf"][0] == pytest.approx(333.3)
+    # fat on muscle: FEM and MSM within a factor 2 of each other and of the half-space of fat
+    assert 0.5 < ks["fem"][1] / ks["msm"][1] < 2 and 0.5 < ks["fem"][1] / ks["bem"][1] < 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", BASELINES)
+def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path):
+    import json
+
+    from haptic_acu.base.bundled import bundled_trajectories
+
+    limit = load_config().safety.force_limit_n
+    for name, traj in bundled_trajectories().items():
+        outs = []
+        for rep in (1, 2):
+            out = tmp_path / f"{name}-{rep}"
+            assert main(["replay", str(traj), "--set", f"model.kind={kind}", "--out", str(out), "--no-rrd",
+                         "--quiet", "--jobs", "1"]) == 0
+            outs.append(out)
+        assert filecmp.cmp(outs[0] / "samples.csv", outs[1] / "samples.csv", shallow=False), name
+        assert filecmp.cmp(outs[0] / "summary.json", outs[1] / "summary.json", shallow=False), name
+        summary = json.loads((outs[0] / "summary.json").read_text())
+        assert summary["fault"] in (None, "", False), name
+        assert math.isfinite(summary["max_force_n"]) and summary["max_force_n"] <= limit, name
+        if name == "default":
+            assert summary["clamped_ticks"] == 0
+            assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
+
+
+def test_compare_models_replays_one_trajectory_through_each(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "cmp"
+    assert main(["compare", "default", "--models", "forcenet,shf", "--out", str(out)]) == 0
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["labels"] == ["forcenet", "shf"]
+    assert [m["model"] for m in doc["models"]] == ["forcenet", "shf"]
+    assert all(0 < m["tick_us"]["p50"] <= m["tick_us"]["p99"] for m in doc["models"])
+    skin = [next(p for p in s["metrics"]["per_insertion"][0]["punctures"] if p["layer"] == "skin")
+            for s in doc["sessions"]]
+    # SHF's skin breaks at its configured 0.5 N; the force net's at its fitted target, within 10%
+    assert skin[1]["peak_force_n"] == pytest.approx(0.5, abs=0.01)
+    assert skin[0]["peak_force_n"] == pytest.approx(0.5, rel=0.10)
+    assert (out / "compare.png").stat().st_size > 0
+    assert main(["compare", "default", "--models", "forcenet,tetra", "--out", str(tmp_path / "bad")]) == 2
+    assert "--models" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_live_session_runs_a_baseline_with_rerun_logging_and_its_recording_replays(tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    rec = tmp_path / "session.csv"
+    assert main(["run", "--device", "scripted", "--trajectory", "default", "--duration", "2.5", "--set",
+                 "model.kind=bem", "--out", str(out), "--record", str(rec), "--rrd", str(tmp_path / "s.rrd"),
+                 "--no-status", "--quiet"]) == 0
+    live = json.loads((out / "summary.json").read_text())
+    skin = [p for p in live["punctures"] if p["layer"] == "skin"]
+    # the half-space of skin's stiffness (0.133 N/mm) at its 1.5 mm break: 0.2 N, not the force net's 0.5 N
+    assert len(skin) == 1 and skin[0]["peak_force_n"] == pytest.approx(0.2, abs=0.03)
+    assert (tmp_path / "s.rrd").stat().st_size > 0
+    assert main(["replay", str(rec), "--set", "model.kind=bem", "--out", str(tmp_path / "rep"), "--no-rrd",
+                 "--quiet"]) == 0
+    again = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    assert [p["layer"] for p in again["punctures"]] == [p["layer"] for p in live["punctures"]]
