@@ -60,5 +60,5 @@ def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
                            "per_insertion": [doc["sessions"][1]["metrics"]["per_insertion"][0]]}}
     tw = techs[1]["twirl"]
     line = result_lines(summary)[-1]
-    assert line.endswith(f"; {tw['cycles']} twirl cycles ({tw['swing_deg']:.0f} deg, {tw['frequency_hz']:.2f} Hz); "
+    assert line.endswith(f"; {tw['cycles']} twirl cycles ({tw['swing_deg']:.0f} deg swing, peak to peak, {tw['frequency_hz']:.2f} Hz); "
                          "technique: reducing"), line

@@ -70,6 +70,12 @@ QUANTITIES: tuple[Quantity, ...] = (
     Quantity("technique", ("technique", "classification", "label"), "technique", "", 0, ""),
     Quantity("skin_punctured", ("skin_punctured",), None, "", 0, ""),
     Quantity("depth_verdict", ("depth_verdict",), "depth against the target", "", 0, ""),
+    # graded against an atlas point (--point; docs/atlas.md): the cohort derives the last three from
+    # the insertion's danger_margin_mm and critical_errors
+    Quantity("angle_error_deg", None, None, "deg", 1, "lower"),  # summary.json: per insertion with --point
+    Quantity("danger_margin_min_mm", None, None, "mm", 2, "higher"),
+    Quantity("critical_errors", None, None, "", 0, "lower"),
+    Quantity("critical_structures", None, None, "", 0, ""),
 )
 BY_NAME = {q.name: q for q in QUANTITIES}
 
