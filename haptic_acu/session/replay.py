@@ -238,7 +238,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
-    from .report import SamplesCsvSink, SummarySink, add_debrief, plot_force_depth, write_debrief_md
+    from .report import (SamplesCsvSink, SummarySink, add_debrief, plot_force_depth, preload_figure_modules,
+                         write_debrief_md)
 
     cfg = cfg if cfg is not None else load_config(config_path)
     if point is not None:
@@ -282,6 +283,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim",
                           model=point.model() if point is not None else None)
         session.warm_up()
+        if not realtime:
+            preload_figure_modules()  # matplotlib's import overlaps the session's compiled ticks
         wall0 = time.perf_counter()
         result = session.run()
         wall = time.perf_counter() - wall0
