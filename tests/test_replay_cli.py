@@ -223,7 +223,8 @@ def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path
         for row, ins in zip(mine, m["per_insertion"]):
             assert float(row["max_depth_mm"]) == ins["max_depth_mm"]
             assert float(row["entry_mm_x"]) == ins["entry_mm"][0]
-            assert float(row["peak_layer_force_n_fat"]) == ins["peak_layer_force_n"]["fat"]
+            assert float(row["peak_force_fat_n"]) == ins["peak_layer_force_n"]["fat"]  # one name per quantity
+            assert "peak_layer_force_n_fat" not in row
             assert int(row["lift_thrust_cycles"]) == ins["lift_thrust"]["cycles"]
             assert row["depth_verdict"] == ins["depth_verdict"]
             assert int(row["punctures"]) == len(ins["punctures"])

@@ -165,6 +165,7 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
     csha = config_hash(cfg)
     records, todo, failed_lines = {}, [], []
     t0 = time.perf_counter()
+    fresh = not out.exists()  # made by this run: removed again if every session fails
     with CohortDir(out) as cd:
         for e in manifest.entries:
             try:
@@ -218,15 +219,26 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
         finally:
             progress.close()
         run_s = time.perf_counter() - t_run
-        tables = cohort_tables.write(out, manifest, records)
-        ses_rows = tables["sessions"].to_pylist()
-        failed = sum(1 for r in ses_rows if r["error"])
-        extra = {"manifest": str(manifest.path), "sessions": len(ses_rows), "failed": failed,
-                 "insertions": sum(r["insertions"] or 0 for r in ses_rows), "config": cfg.path,
-                 "config_sha256": csha, "columns": cohort_tables.columns_doc()}
-        report = cohort_report.write_report(out, ses_rows, extra)
-        from ..cohort.sessions import write_atomic
-        write_atomic(out / "report.json", cohort_tables.dumps(report).encode())
+        if fresh and records and all(r.get("error") for r in records.values()):
+            all_failed = True  # nothing to show: the folder this run made goes again
+        else:
+            all_failed = False
+            tables = cohort_tables.write(out, manifest, records)
+        if not all_failed:
+            ses_rows = tables["sessions"].to_pylist()
+            failed = sum(1 for r in ses_rows if r["error"])
+            extra = {"manifest": str(manifest.path), "sessions": len(ses_rows), "failed": failed,
+                     "insertions": sum(r["insertions"] or 0 for r in ses_rows), "config": cfg.path,
+                     "config_sha256": csha, "columns": cohort_tables.columns_doc()}
+            report = cohort_report.write_report(out, ses_rows, extra)
+            from ..cohort.sessions import write_atomic
+            write_atomic(out / "report.json", cohort_tables.dumps(report).encode())
+    if all_failed:
+        import shutil
+        shutil.rmtree(out, ignore_errors=True)
+        if not quiet:
+            print(f"haptic-acu cohort: every session failed: nothing written (no {out}/ left)", file=stream)
+        return 2
     if stats is not None:
         stats.update(replayed=len(todo), skipped=skipped, replay_s=run_s, total_s=time.perf_counter() - t0)
     if not quiet:

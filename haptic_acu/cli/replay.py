@@ -39,6 +39,7 @@ def register(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
     from ..session.point import add_point_args
     add_point_args(p)
+    p.add_argument("--verbose", action="store_true", help="also print timing statistics (how fast the replay ran)")
     p.set_defaults(func=run)
 
 
@@ -46,9 +47,9 @@ def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
-def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
+def print_summary(summary: dict, out_dir: Path, file=None, quiet: bool = False, verbose: bool = False) -> None:
     from ..session.report import print_results
-    print_results(summary, out_dir, file=file, quiet=quiet)
+    print_results(summary, out_dir, file=file, quiet=quiet, verbose=verbose)
 
 
 def _one(args_tuple):
@@ -111,11 +112,23 @@ def flatten(d: dict, prefix: str = "") -> dict:
 
 
 def insertion_rows(summary: dict) -> list[dict]:
-    """insertions.csv's rows: one per insertion, its trainee metrics (summary.json's
-    ``metrics.per_insertion``, flattened by :func:`flatten`), numbered from 1."""
+    """insertions.csv's rows: one per insertion, numbered from 1: its trainee metrics (summary.json's
+    ``metrics.per_insertion``), each quantity of :mod:`haptic_acu.analysis.quantities` under its one
+    name (the cohort's column), every other number flattened by :func:`flatten`."""
+    from ..analysis.quantities import QUANTITIES, value
+
+    named = [q for q in QUANTITIES if q.path]
+    taken = {"_".join(q.path) for q in named}
     m = summary.get("metrics") or {}
-    return [{"trajectory": summary["trajectory"], "insertion": n, **flatten(ins)}
-            for n, ins in enumerate(m.get("per_insertion", []), 1)]
+    rows = []
+    for n, ins in enumerate(m.get("per_insertion", []), 1):
+        row = {"trajectory": summary["trajectory"], "insertion": n}
+        for q in named:
+            v = value(ins, q)
+            row[q.name] = "" if v is None else v
+        row.update({k: v for k, v in flatten(ins).items() if k not in taken})
+        rows.append(row)
+    return rows
 
 
 def puncture_rows(summary: dict) -> list[dict]:
@@ -169,7 +182,7 @@ def run(args) -> int:
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
                              spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
-        print_summary(summary, out, quiet=args.quiet)
+        print_summary(summary, out, quiet=args.quiet, verbose=args.verbose)
         return 0
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
@@ -220,7 +233,7 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
             failed += 1
             print(f"haptic-acu replay: error: {err}", file=sys.stderr)
             continue
-        print_summary(summary, Path(w[1]), quiet=args.quiet)
+        print_summary(summary, Path(w[1]), quiet=args.quiet, verbose=args.verbose)
         rows.append(_flat(summary))
         insertions += insertion_rows(summary)
         punctures += puncture_rows(summary)

@@ -60,7 +60,9 @@ def register(sub) -> None:
     from .options import add_layout_arg
     add_layout_arg(p, "trainee")
     p.add_argument("--no-status", action="store_true", help="no live status line")
-    p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
+    p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print the servo loop's timing statistics (always in summary.json's loop)")
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
     p.add_argument("--pin-cores", action="store_true",
@@ -208,11 +210,16 @@ def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
         device.close()
     st = result.stats
     pe = st["period_error_us"]
-    print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
-          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
-          f"{st['servo_loop']} servo loop", file=sys.stderr)
+    if args.verbose:
+        print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
+              f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
+              f"{st['servo_loop']} servo loop", file=sys.stderr)
+    elif st["missed_ticks"] > LATE_SHARE_SAID * max(result.ticks, 1):
+        print(f"note: this computer was often late with the force ({100.0 * st['missed_ticks'] / max(result.ticks, 1):.1f}% "
+              "of the servo ticks): the feel may have been rough; --verbose gives the timing", file=sys.stderr)
     try:
-        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, point=ps, grade=grade)
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, point=ps, grade=grade,
+                     recording=rec)
         if args.record:
             print(f"  recording: {rec}")
     finally:  # the fault is reported even if the report could not be written
@@ -221,10 +228,16 @@ def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
     return 3 if result.fault else 0
 
 
-def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, point=None, grade=None) -> dict:
-    """summary.json and force_depth.png of a finished session into ``out``; print the results
-    (``point``, ``grade``: a --point session's setup and grading sink)."""
-    from ..session.report import plot_force_depth, print_results
+LATE_SHARE_SAID = 0.01  # without --verbose the loop's timing is mentioned only when this share of ticks was late
+
+
+def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, point=None, grade=None,
+                 recording=None) -> dict:
+    """summary.json, debrief.md and force_depth.png of a finished session into ``out``; print the
+    results and the debrief (``point``, ``grade``: a --point session's setup and grading sink;
+    ``recording``: the session's recording, for the grasp felt of an insertion that twirled,
+    :func:`grasp_from_recording`)."""
+    from ..session.report import add_debrief, plot_force_depth, print_results, write_debrief_md
 
     summary = summary_sink.summary()
     summary["trajectory"] = name
@@ -236,9 +249,45 @@ def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, p
     if point is not None:
         from ..session.point import add_to_summary
         add_to_summary(summary, point, grade.result())
+    if recording is not None and summary.get("fault") is None:
+        grasp_from_recording(summary["metrics"], Path(recording), cfg)
+    add_debrief(summary, cfg)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    write_debrief_md(summary, out)
     rows, index = summary_sink.figure_rows()
     with step("drawing force_depth.png"):
         plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary, index=index)
     print_results(summary, out, quiet=quiet)
     return summary
+
+
+def grasp_from_recording(metrics: dict, recording: Path, cfg) -> None:
+    """The grasp felt of each insertion that turned the needle, as ``haptic-acu replay`` finds it:
+    the withdrawal's resistance against the same session without rotation. The live session cannot
+    run that reference beside itself, so its recording is replayed twice headless (with and
+    without its roll: the same ticks as the session) and each insertion's ``grasp_felt`` taken
+    from there. Nothing happens when no insertion turned (there is no grasp to measure)."""
+    per = metrics.get("per_insertion") or []
+    if not any((m["technique"]["twirl"].get("total_rotation_deg") or 0.0) > 0.0 for m in per):
+        return
+    if not recording.is_file():
+        return
+    from ..devices.scripted import ScriptedDevice
+    from ..session.engine import Session
+    from ..session.replay import reference_forces
+    from ..session.report import SummarySink
+
+    with step("measuring the grasp felt on withdrawal (the session replayed with and without its twirl)"):
+        ref = reference_forces(recording, cfg)
+        if ref is None:
+            return
+        sink = SummarySink(cfg, keep_rows=False, reference_rows=ref)
+        with ScriptedDevice(recording, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                            force_limit_n=cfg.safety.force_limit_n) as device:
+            result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+        if result.fault:
+            return
+        again = sink.metrics(sink.summary()["punctures"])["per_insertion"]
+    for m, r in zip(per, again):
+        if m["t_entry_s"] == r["t_entry_s"]:
+            m["technique"]["grasp_felt"] = r["technique"]["grasp_felt"]

@@ -42,7 +42,7 @@ from ..base.errors import UserError
 from ..base.outputs import FolderLock
 
 # Bump when a metric's definition changes: every cached session is then replayed again.
-METRICS_VERSION = 3  # 3: the technique columns (twirling, grasp felt, reinforcing / reducing / even)
+METRICS_VERSION = 4  # 4: one name per quantity (analysis/quantities.py), bone and force-limit times
 REQUIRED = ("session", "trainee", "file")
 OPTIONAL = ("level", "date")
 STATE_DIR = ".cohort"
@@ -149,9 +149,9 @@ INSERTION_COLUMNS: list[Column] = [
     Column("entry_offset_mm", "mm", "distance of the entry point from the acupoint", lambda c: c.m["entry_offset_mm"]),
     Column("angle_deg", "deg", "angle between the insertion direction and the inward skin normal at the entry",
            lambda c: c.m["angle_deg"]),
-    Column("depth_reached_mm", "mm", "largest depth below the skin entry (compressed tissue's frame)",
+    Column("max_depth_mm", "mm", "the needle's largest depth in the tissue, along it from the skin entry",
            lambda c: c.m["max_depth_mm"]),
-    Column("depth_error_mm", "mm", "signed distance of depth_reached_mm from the target range "
+    Column("depth_error_mm", "mm", "signed distance of max_depth_mm from the target range "
            "(0 inside, negative too shallow, positive too deep)", _depth_error),
     Column("insertion_speed_mm_s", "mm/s", "mean axial speed from the puncture to 90% of the max depth",
            lambda c: c.m["insertion_speed_mm_s"]),
@@ -162,6 +162,9 @@ INSERTION_COLUMNS: list[Column] = [
     Column("peak_force_muscle_n", "N", "largest force attributed to the muscle",
            lambda c: c.m["peak_layer_force_n"]["muscle"]),
     Column("peak_total_force_n", "N", "largest |F| over the insertion", lambda c: c.m["peak_total_force_n"]),
+    Column("time_on_bone_s", "s", "time with the tip in bone", lambda c: c.m["time_on_bone_s"]),
+    Column("time_at_force_limit_s", "s", "time with the force held at the device's limit (safety.force_limit_n)",
+           lambda c: c.m["time_at_force_limit_s"]),
     Column("lateral_time_s", "s", "time with the lateral-constraint force above the comfort bound",
            lambda c: c.m["lateral"]["time_over_s"]),
     Column("lateral_max_n", "N", "largest lateral-constraint force", lambda c: c.m["lateral"]["max_n"]),
@@ -169,8 +172,8 @@ INSERTION_COLUMNS: list[Column] = [
     Column("lift_thrust_amplitude_mm", "mm", "mean lift-thrust stroke", _lt("mean_amplitude_mm")),
     Column("lift_thrust_frequency_hz", "Hz", "lift-thrust frequency", _lt("frequency_hz")),
     Column("twirl_cycles", "", "twirling cycles (roll reversals with 5 deg hysteresis)", _tech("twirl", "cycles"), "int64"),
-    Column("twirl_amplitude_deg", "deg", "twirl amplitude: half the mean angle between roll reversals",
-           _tech("twirl", "amplitude_deg")),
+    Column("twirl_swing_deg", "deg", "twirl swing, peak to peak: the mean angle between roll reversals",
+           _tech("twirl", "swing_deg")),
     Column("twirl_frequency_hz", "Hz", "twirling frequency", _tech("twirl", "frequency_hz")),
     Column("twirl_net_rotation_deg", "deg", "roll at the insertion's end minus at its start",
            _tech("twirl", "net_rotation_deg")),
@@ -323,7 +326,12 @@ def read_manifest(path) -> Manifest:
             problems.append(f"{path}: line {start}: date '{cells['date']}' is not an ISO date (YYYY-MM-DD[THH:MM])")
             continue
         f = Path(cells["file"]).expanduser()
-        m.entries.append(Entry(start, cells, f if f.is_absolute() else base / f))
+        f = f if f.is_absolute() else base / f
+        if not f.exists():  # a bundled trajectory's name (every other command takes them)
+            from ..base.bundled import resolve_trajectory
+            b = resolve_trajectory(cells["file"])
+            f = b if b.is_file() and b != Path(cells["file"]) else f
+        m.entries.append(Entry(start, cells, f))
     if problems:
         raise ManifestError(problems)
     if not m.entries:

@@ -7,6 +7,8 @@ same visual-frame code as a live session) and writes, into one output folder:
 * ``samples.csv``     one row per servo tick,
 * ``summary.json``    punctures, peaks, depths, per-layer time and peak force, session metrics,
 * ``force_depth.png`` force against depth (layers shaded, punctures marked) and against time,
+* ``debrief.md``      the debrief: per insertion what was right and wrong, worst first
+  (:mod:`haptic_acu.analysis.debrief`; also in summary.json as ``debrief``),
 * ``recording.rrd``   the rerun recording (unless ``rrd=False``).
 
 The folder is built as ``<out>.partial`` and renamed only when everything is written, so a failed
@@ -35,7 +37,7 @@ DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
 MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it)
 MARKER = ".haptic-acu-replay"  # in every DIR.partial a replay makes: the folder is ours
 OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd", "compare.json",
-             "compare.png"}
+             "compare.png", "debrief.md"}
 
 
 class OutputFolder:
@@ -266,7 +268,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
-    from .report import SamplesCsvSink, SummarySink, plot_force_depth, preload_figure_modules
+    from .report import (SamplesCsvSink, SummarySink, add_debrief, plot_force_depth, preload_figure_modules,
+                         write_debrief_md)
 
     cfg = cfg if cfg is not None else load_config(config_path)
     if point is not None:
@@ -340,7 +343,9 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         if point is not None:
             from .point import add_to_summary
             add_to_summary(summary, point, grade.result())
+        add_debrief(summary, cfg)
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        write_debrief_md(summary, partial)
         fig_rows, fig_index = summary_sink.figure_rows()
         plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
                          index=fig_index)
