@@ -22,7 +22,7 @@ demo: $(STAMP)
 
 # Every test: those that measure nothing in real time two at a time (pytest-xdist), then the real-time
 # ones (marked serial in tests/conftest.py) alone; one closing line counts both runs.
-XDIST := -n 2 --dist loadfile
+XDIST := -n 2 --dist worksteal
 test: $(STAMP)
 	@mkdir -p runs
 	@rm -f runs/junit-*.xml
