@@ -14,7 +14,7 @@ Two small compiled phases of the step (:mod:`haptic_acu.servo.step`), both a no-
     the broken membrane the tip cuts nothing (the post-puncture phase's cutting force, ``d.f_cut``
     along the axis, is taken back out: lung, brain and bowel offer no cutting resistance worth
     the name to a fine needle);
-  - ``BONE``: the same plane spring, never breaking (a wall);
+  - ``BONE_PLANE`` (a bone surface): the same plane spring, never breaking (a wall);
   - ``NERVE`` / ``ARTERY``: a cylinder (centre ``p``, axis ``n``, ``radius``): a tip inside it is
     pushed out radially by ``k`` times the penetration until that exceeds ``f_break`` (the
     epineurium or the vessel wall gives: the needle has pierced it; no force after).
@@ -34,8 +34,8 @@ import math
 import numba as nb
 import numpy as np
 
-NONE, MEMBRANE, BONE, NERVE, ARTERY = 0, 1, 2, 3, 4
-KIND_CODES = {"membrane": MEMBRANE, "bone": BONE, "nerve": NERVE, "artery": ARTERY}
+NONE, MEMBRANE, BONE_PLANE, NERVE, ARTERY = 0, 1, 2, 3, 4
+KIND_CODES = {"membrane": MEMBRANE, "bone": BONE_PLANE, "nerve": NERVE, "artery": ARTERY}
 MAX_DANGER = 4  # structures per point at most (the atlas loader enforces it)
 # The springs (N/mm) and the force (N) at which each kind gives way: ours, no measurement for a fine
 # acupuncture needle was found (docs/atlas.md, "Structures in the physics"). A membrane tents about
@@ -43,7 +43,7 @@ MAX_DANGER = 4  # structures per point at most (the atlas loader enforces it)
 # (the config's needle.bone_stiffness_n_per_mm, the bone wall's).
 SPRINGS = {"membrane": (0.5, 0.6), "nerve": (0.3, 0.3), "artery": (0.2, 0.15)}
 DANGER = np.dtype([  # one structure (Model.danger[i]), SI units, scene frame
-    ("kind", "i8"),  # NONE, MEMBRANE, BONE, NERVE, ARTERY
+    ("kind", "i8"),  # NONE, MEMBRANE, BONE_PLANE, NERVE, ARTERY
     ("p", "f8", 3),  # a cylinder's centre (m)
     ("n", "f8", 3),  # a plane's normal into the body (toward), a cylinder's axis (unit)
     ("u", "f8", 3),  # the direction breathing moves a cylinder's centre away from (unit, into the body)
@@ -111,7 +111,7 @@ def danger_phase(inp, m, s, d):
         if st.kind == NONE:
             break
         lift = 0.5 * st.amp * (1.0 - math.cos(st.omega * t))
-        if st.kind == MEMBRANE or st.kind == BONE:
+        if st.kind == MEMBRANE or st.kind == BONE_PLANE:
             pen = p[0] * st.n[0] + p[1] * st.n[1] + p[2] * st.n[2] - (st.depth - lift)
             if pen <= 0.0:
                 continue

@@ -478,24 +478,30 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
 
     tspan = (float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3) if rows.size else (0.0, 1.0)
     if ax_lat is not None:
-        ax_lat.set_ylabel("lateral |F| (N)")
-        ax_lat.set_xlim(*tspan)
-        ax_lat.set_title("force across the needle (lateral)", fontsize=9)
-        ax_lat.tick_params(labelbottom=False)
-        # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
-        # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
-        tw = ax_lat.twinx()
-        tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
-        tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
-        tw.tick_params(axis="y", colors=OFFSET_COLOUR)
-        tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
-        ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
+        _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan)
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
     ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9)
     ax_t.set_xlim(*tspan)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+
+
+def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) -> None:
+    """force_depth.png's lateral panel: the force across the needle and, on its own scale, the tip's
+    offset from the acupoint's axis."""
+    ax_lat.set_ylabel("lateral |F| (N)")
+    ax_lat.set_xlim(*tspan)
+    ax_lat.set_title("force across the needle (lateral)", fontsize=9)
+    ax_lat.tick_params(labelbottom=False)
+    # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
+    # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
+    tw = ax_lat.twinx()
+    tw.plot(t, offset_mm, color=OFFSET_COLOUR, lw=0.9, ls=":")
+    tw.set_ylabel("tip offset from the acupoint (mm, dotted)", fontsize=8, color=OFFSET_COLOUR)
+    tw.tick_params(axis="y", colors=OFFSET_COLOUR)
+    tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
+    ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
 
 
 STRUCTURE_COLOUR = "#b2182b"
