@@ -33,10 +33,12 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(PY) -m pytest -q $(XDIST) -m "not slow and not serial"
 
-# the full benchmark, with pyshtools for the SH comparison rows (docs/performance.md)
+# the full benchmark, with pyshtools for the SH comparison rows; docs/performance.md rendered from its JSON
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
+	@mkdir -p runs
 	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+	$(PY) tools/perf_page.py runs/bench.json --out docs/performance.md  # the page's figures, from that JSON
 
 # the cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
 # (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)

@@ -81,6 +81,9 @@ class Sizes:
     cohort_session_s: float = 10.0  # trajectory seconds per session
     cohort_dask: bool = True  # also on a Dask LocalCluster (its overhead against the local pool)
     first_run: bool = True  # the first replay with empty numba and table caches
+    end_to_end_runs: int = 3  # `haptic-acu replay` commands timed per mode (with / without .rrd; 0: not measured)
+    end_to_end_batch: int = 4  # copies of the trajectory in the one batch command timed
+    wheel_first_run: bool = True  # build the wheel, install it into a fresh venv, time its first command
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -91,7 +94,7 @@ QUICK = dataclasses.replace(FULL, servo_ticks=2000, numpy_ticks=200, loop_s=5.0,
                             springback_calls=1000, replay_runs=1, cold_runs=1, cold_full_process=False,
                             scaling_ticks=1000, numpy_scenarios=("press_skin_w10", "inside_muscle"), omni_s=0.0,
                             cohort_sessions=4, cohort_session_s=5.0, cohort_dask=False,
-                            closed_loop_quick=True)
+                            closed_loop_quick=True, end_to_end_runs=1, end_to_end_batch=2, wheel_first_run=False)
 
 # The targets: (label, how to read the value from the result, comparison, limit, unit)
 SERVO_HEADLINE = "press_skin_w10"
@@ -709,6 +712,119 @@ def replay(sizes: Sizes, progress=False) -> dict:
     return {"replay_speed_x": {**med, "runs": runs, "trajectory": Path(traj).name}, "notes": notes}
 
 
+def end_to_end(sizes: Sizes, progress=False) -> dict:
+    """The replay command as a user waits for it: the wall time of ``python -m haptic_acu replay TRAJ
+    --quiet --out DIR`` (a child process, warm caches), with its .rrd (as ``make demo``) and with
+    ``--no-rrd`` (the median of ``sizes.end_to_end_runs`` each), the replay's ticks (its
+    summary.json), and one batch command of ``sizes.end_to_end_batch`` copies of the trajectory
+    (``--jobs 1``: the start-up shared, not the cores), per file. :func:`ratios` sets them against
+    the compiled tick."""
+    if not sizes.end_to_end_runs:
+        return {"end_to_end": None}
+    import shutil
+
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
+
+    traj = Path(sizes.trajectory or DEFAULT_TRAJECTORY)
+    env = dict(os.environ)
+    runs = {"rrd": [], "no_rrd": []}
+    ticks = None
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-e2e-") as tmp:
+        tmp = Path(tmp)
+        for i in range(sizes.end_to_end_runs):
+            for mode in ("rrd", "no_rrd"):
+                _log(progress, f"replay command, {mode.replace('_', ' ')}, run {i + 1}")
+                out = tmp / f"{mode}-{i}"
+                cmd = [sys.executable, "-m", "haptic_acu", "replay", str(traj), "--quiet", "--out", str(out)]
+                runs[mode].append(_timed_child(cmd + (["--no-rrd"] if mode == "no_rrd" else []), env, tmp))
+                ticks = json.loads((out / "summary.json").read_text())["ticks"]
+        batch = None
+        if sizes.end_to_end_batch > 1:
+            _log(progress, f"replay command, a batch of {sizes.end_to_end_batch}")
+            src = tmp / "batch-in"
+            src.mkdir()
+            for j in range(sizes.end_to_end_batch):
+                shutil.copy(traj, src / f"{traj.stem}-{j}.csv")
+            cmd = [sys.executable, "-m", "haptic_acu", "replay", str(src), "--quiet", "--jobs", "1", "--out",
+                   str(tmp / "batch-out")]
+            batch = _timed_child(cmd, env, tmp) / sizes.end_to_end_batch
+    med = {k: float(np.median(v)) for k, v in runs.items()}
+    return {"end_to_end": {"trajectory": traj.name, "ticks": ticks, "cli_s": med, "runs": runs,
+                           "batch_files": sizes.end_to_end_batch, "batch_per_file_s": batch,
+                           "method": "wall time of `python -m haptic_acu replay TRAJ --quiet --out DIR` in a child "
+                                     "process (caches warm), with the .rrd and with --no-rrd; the batch: one command "
+                                     "on a folder of copies, --jobs 1, wall time over the files"}}
+
+
+def wheel_first_run(sizes: Sizes, progress=False) -> dict:
+    """The first command after installing the wheel: ``pip wheel`` of this source tree (its build
+    compiles the kernels into the wheel, setup.py), installed with ``--no-deps`` into a fresh venv
+    whose dependencies come from this environment through a path line, then ``haptic-acu replay
+    TRAJ --quiet`` timed twice in it with an empty ``HAPTIC_ACU_CACHE``: ``first`` and ``warm``.
+    None (with a note) outside a source tree."""
+    if not sizes.wheel_first_run:
+        return {"wheel_first_run_s": None}
+    import sysconfig
+
+    from haptic_acu.session.replay import DEFAULT_TRAJECTORY
+
+    root = Path(__file__).resolve().parent.parent
+    if not (root / "pyproject.toml").is_file() or not (root / "haptic_acu").is_dir():
+        return {"wheel_first_run_s": None, "notes": ["wheel first run: not a source tree, nothing to build"]}
+    traj = str(sizes.trajectory or DEFAULT_TRAJECTORY)
+    with tempfile.TemporaryDirectory(prefix="haptic-acu-wheel-") as tmp:
+        tmp = Path(tmp)
+        _log(progress, "wheel first run: building the wheel (its kernels compile now)")
+        env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "PYTHONPATH")}
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp / "dist"), str(root)],
+                       check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        build_s = time.perf_counter() - t
+        (wheel,) = (tmp / "dist").glob("haptic_acu-*.whl")
+        venv = tmp / "venv"
+        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+        subprocess.run([sys.executable, "-m", "pip", "--python", str(venv / "bin" / "python"), "install", "-q",
+                        "--no-deps", "--no-index", str(wheel)], check=True, env=env, stdout=subprocess.DEVNULL)
+        site = subprocess.run([str(venv / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                              check=True, capture_output=True, text=True).stdout.strip()
+        (Path(site) / "zz_bench_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+        env = dict(env, HAPTIC_ACU_CACHE=str(tmp / "tables"), PATH=str(venv / "bin") + os.pathsep + env.get("PATH", ""))
+        out = {}
+        for key in ("first", "warm"):
+            _log(progress, f"wheel first run: {key}")
+            cmd = [str(venv / "bin" / "haptic-acu"), "replay", traj, "--quiet", "--out", str(tmp / key)]
+            out[key] = _timed_child(cmd, env, tmp)
+    out.update(build_s=build_s, trajectory=Path(traj).name, method=(
+        "pip wheel of this tree (setup.py compiles the kernels into it), installed --no-deps into a fresh venv, "
+        "then `haptic-acu replay TRAJ --quiet` (with .rrd) twice with an empty HAPTIC_ACU_CACHE"))
+    return {"wheel_first_run_s": out}
+
+
+def ratios(res: dict) -> dict:
+    """The figures a user meets, as ratios within this run: the replay command against its ticks'
+    compute bound (ticks x the compiled tick's p50 pressing the skin), the replay's speed against
+    that tick's (1 ms of simulated time per tick), a batch's file against one file's command, the
+    first run against the warm one, Dask against the local pool. None where a part was not measured."""
+    p50 = _get(res, "servo_compiled_us", SERVO_HEADLINE, "p50")
+    e2e = res.get("end_to_end") or {}
+    out = {}
+    if p50 and e2e.get("ticks"):
+        bound = e2e["ticks"] * p50 * 1e-6
+        e2e.update(tick_p50_us=p50, bound_s=bound, tick_bound_x=1e3 / p50)
+        out["replay_cli_rrd_vs_bound"] = e2e["cli_s"]["rrd"] / bound
+        out["replay_cli_no_rrd_vs_bound"] = e2e["cli_s"]["no_rrd"] / bound
+    if e2e.get("batch_per_file_s"):
+        out["batch_per_file_vs_single"] = e2e["batch_per_file_s"] / e2e["cli_s"]["rrd"]
+    speed = _get(res, "replay_speed_x", "no_rrd")
+    out["replay_speed_vs_tick_bound"] = speed * p50 * 1e-3 if speed and p50 else None
+    fr = res.get("first_run_s") or {}
+    out["first_run_vs_warm"] = ratio(fr["empty_caches"], fr["after_install"]) if fr.get("after_install") else None
+    wf = res.get("wheel_first_run_s") or {}
+    out["wheel_first_vs_warm"] = ratio(wf["first"], wf["warm"]) if wf.get("warm") else None
+    out["dask_vs_local"] = _get(res, "cohort", "dask", "overhead_x")
+    return out
+
+
 def cold_start(sizes: Sizes, progress=False) -> dict:
     """Process start to the first servo tick of ``python -m haptic_acu replay --no-rrd --quiet``,
     with a warm numba cache (:func:`collect` runs it after :func:`replay`, whose runs load or
@@ -863,6 +979,13 @@ def targets(res: dict) -> list[dict]:
         ("replay with .rrd (x real time)", _get(res, "replay_speed_x", "rrd"), ">=", 10.0),
         ("cold start to first tick (s)", _get(res, "cold_start_s", "first_tick"), "<=", 5.0),
         ("first make demo replay after install (s)", _get(res, "first_run_s", "after_install"), "<=", 10.0),
+        ("replay command with .rrd / its ticks' compute bound (x)", _get(res, "ratios", "replay_cli_rrd_vs_bound"),
+         "<=", 20.0),
+        ("replay command --no-rrd / its ticks' compute bound (x)", _get(res, "ratios", "replay_cli_no_rrd_vs_bound"),
+         "<=", 8.0),
+        ("replay speed / the compiled tick's (frac)", _get(res, "ratios", "replay_speed_vs_tick_bound"), ">=", 0.7),
+        ("first command after a wheel install / warm (x)", _get(res, "ratios", "wheel_first_vs_warm"), "<=", 4.0),
+        ("cohort on Dask / the local pool (x)", _get(res, "ratios", "dask_vs_local"), "<=", 1.1),
     ]
     cl = res.get("closed_loop") or {}
     for grip in ("loose", "firm"):
@@ -885,7 +1008,7 @@ REQUIRED_KEYS = ("machine", "servo_tick_us", "servo_kernel_us", "servo_dispatch_
                  "loop_no_rerun", "machine_floor", "compiled_floor", "shf_eval_ms", "shf_fit_ms",
                  "pyshtools_eval_ms", "pyshtools_fit_ms", "shf_speedup_vs_pyshtools", "sh_agreement_m",
                  "springback_us", "replay_speed_x", "cold_start_s", "scaling", "closed_loop", "targets", "notes",
-                 "cohort", "first_run_s")
+                 "cohort", "first_run_s", "end_to_end", "wheel_first_run_s", "ratios")
 
 
 def collect(sizes: Sizes, progress=False) -> dict:
@@ -905,6 +1028,8 @@ def collect(sizes: Sizes, progress=False) -> dict:
               ("scaling", lambda: scaling(sizes, progress)),
               ("replay", lambda: replay(sizes, progress)),
               ("cold_start", lambda: cold_start(sizes, progress)),  # after replay: warm numba cache
+              ("end_to_end", lambda: end_to_end(sizes, progress)),
+              ("wheel_first_run", lambda: wheel_first_run(sizes, progress)),
               ("first_run", lambda: first_run(sizes, progress)),  # its own empty caches
               ("cohort", lambda: cohort(sizes, progress)),
               ("loop", lambda: loop(sizes, progress)),
@@ -920,6 +1045,7 @@ def collect(sizes: Sizes, progress=False) -> dict:
     res["machine"]["pyshtools"] = res.pop("pyshtools_version", None)
     res["machine"]["load_average_end"] = measure.load_average()
     res["notes"] = notes
+    res["ratios"] = ratios(res)
     res["targets"] = targets(res)
     res["bench_wall_s"] = time.perf_counter() - t0
     return res
@@ -1109,6 +1235,19 @@ def _table_kernels(res: dict, lines: list) -> None:
     if fr:
         lines.append(f"first run of make demo ({fr['trajectory']}, .rrd included): {_fmt(fr['empty_caches'])} s with "
                      f"empty numba and table caches, {_fmt(fr['after_install'])} s once they are filled (after install)")
+    wf = res.get("wheel_first_run_s")
+    if wf:
+        lines.append(f"first command after installing the wheel into a fresh venv: {_fmt(wf['first'])} s, then "
+                     f"{_fmt(wf['warm'])} s warm (the wheel built, kernels compiled into it, in {_fmt(wf['build_s'])} s)")
+    e2e, r = res.get("end_to_end"), res.get("ratios") or {}
+    if e2e:
+        lines.append(f"replay command ({e2e['trajectory']}, {e2e['ticks']} ticks): {_fmt(e2e['cli_s']['rrd'])} s with "
+                     f".rrd, {_fmt(e2e['cli_s']['no_rrd'])} s without: {_fmt(r.get('replay_cli_rrd_vs_bound'))}x and "
+                     f"{_fmt(r.get('replay_cli_no_rrd_vs_bound'))}x the ticks' compiled bound "
+                     f"({_fmt(e2e.get('bound_s'))} s); a batch of {e2e['batch_files']}: "
+                     f"{_fmt(e2e['batch_per_file_s'])} s per file")
+    if r.get("replay_speed_vs_tick_bound") is not None:
+        lines.append(f"replay speed against the compiled tick's bound: {_fmt(r['replay_speed_vs_tick_bound'])}")
     co = res.get("cohort")
     if co:
         loc = co["local"]

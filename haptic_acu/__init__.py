@@ -13,12 +13,22 @@ import os as _os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
-from importlib.metadata import PackageNotFoundError, version as _version  # noqa: E402
 
-try:
-    __version__ = _version("haptic-acu")
-except PackageNotFoundError:  # running from a source tree without install
-    __version__ = "0.0.0+src"
+
+def __getattr__(name):
+    """``__version__``, looked up on first use (importlib.metadata scans the installed packages: a
+    cost every command would pay for a number only ``--version`` prints)."""
+    if name == "__version__":
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            v = version("haptic-acu")
+        except PackageNotFoundError:  # running from a source tree without install
+            v = "0.0.0+src"
+        globals()["__version__"] = v
+        return v
+    raise AttributeError(f"module 'haptic_acu' has no attribute {name!r}")
+
 
 from .base.errors import UserError  # noqa: E402
 

@@ -282,7 +282,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     assert set(res["scaling"]["servo_tick_us"]) == {"3", "4"} and set(res["scaling"]["sh_eval_ms"]) == {"2", "4"}
     assert set(res["scaling"]["servo_tick_sweeps_us"]) == {"3", "4"}
     assert res["cohort"] is None and res["first_run_s"] is None  # not asked for (measured below)
-    assert len(res["targets"]) == 17 and all(t["pass"] in (True, False, None) for t in res["targets"])
+    assert len(res["targets"]) == 22 and all(t["pass"] in (True, False, None) for t in res["targets"])
     if res["pyshtools_eval_ms"] is not None:
         assert res["sh_agreement_m"]["fit_surface_max_abs"] < 1e-10
     table = run.format_table(res)

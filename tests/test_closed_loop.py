@@ -134,6 +134,8 @@ def test_each_baseline_model_meets_the_closed_loop_targets(baseline_sessions, ki
     m = baseline_sessions[kind, grip]
     assert max(m["buzz_n"].values()) <= 0.02, m["buzz_n"]
     assert sorted(set(p["layer"] for p in m["punctures"])) == [0, 1, 2]
+    for p in m["punctures"]:
+        assert p["min_within_20ms_n"] <= 0.5 * p["before_n"], p
     assert all(e <= 0.0 for e in m["energy_into_hand_j"]["lift_thrust_cycles"])
     assert m["energy_into_hand_j"]["closed_session"] <= 0.0
     assert m["max_force_n"] <= 3.3

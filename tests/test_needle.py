@@ -123,7 +123,9 @@ def test_pressing_skin_is_the_net_alone(cfg, insertion):
     pressing = phase(insertion, (PRESSING, UNTOUCHED, UNTOUCHED))
     assert len(pressing) > 100
     for t in pressing:
-        assert t.force[0] == 0 and t.force[1] == 0
+        # straight down the pole of the fitted sphere: no lateral force beyond the fit's rounding
+        # (its coefficients carry ~1e-19 m of asymmetry; the surface's gradient is exact)
+        assert abs(t.force[0]) < 1e-15 and abs(t.force[1]) < 1e-15
         assert t.force[2] == pytest.approx(t.diag["f_surface"], abs=1e-12) and t.force[2] > 0
 
 

@@ -275,3 +275,62 @@ def test_eval_direction_agrees_with_scipy_anywhere_and_at_the_poles(lmax):
     scale = rng.uniform(1e-3, 1e3, size=len(u))
     got = np.array([shf.eval_direction(coeffs, lmax, *(v * k)) for v, k in zip(u, scale)])
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10 * np.abs(coeffs).sum())
+
+
+def scipy_real_basis_derivatives(lmax, theta, phi):
+    """d/dtheta and d/dphi of :func:`scipy_real_basis` from SciPy's own derivatives (diff_n=1)."""
+    dth = np.empty((theta.size, (lmax + 1) ** 2))
+    dph = np.empty_like(dth)
+    for l in range(lmax + 1):
+        for m in range(0, l + 1):
+            _, d = sph_harm_y(l, m, theta, phi, diff_n=1)
+            yt, yp = d[..., 0], d[..., 1]
+            if m == 0:
+                dth[:, l * l + l] = yt.real
+                dph[:, l * l + l] = yp.real
+            else:
+                dth[:, l * l + l + m], dth[:, l * l + l - m] = SQRT2 * yt.real, SQRT2 * yt.imag
+                dph[:, l * l + l + m], dph[:, l * l + l - m] = SQRT2 * yp.real, SQRT2 * yp.imag
+    return dth, dph
+
+
+@pytest.mark.parametrize("lmax", [2, 15, 30])
+def test_eval_point4_grad_values_bit_for_bit_and_derivatives_against_scipy(lmax):
+    """The four surfaces' radii exactly as eval_point gives them, and one surface's dr/dtheta and
+    (dr/dphi) / sin(theta) against SciPy's derivatives of its harmonics, away from the poles."""
+    rng = np.random.default_rng(40 + lmax)
+    coeffs = np.ascontiguousarray(rng.normal(size=(4, (lmax + 1) ** 2)))
+    theta, phi, _ = random_directions(200, seed=41)
+    theta = np.concatenate([theta, [1e-3, np.pi - 1e-3, np.pi / 2]])
+    phi = np.concatenate([phi, [0.4, 2.2, 5.0]])
+    dth, dph = scipy_real_basis_derivatives(lmax, theta, phi)
+    out = np.empty(4)
+    grad = np.empty(3)
+    tol = 1e-10 * np.abs(coeffs).sum(axis=1).max() * max(1, lmax) ** 2
+    for i, (t, p) in enumerate(zip(theta, phi)):
+        for k in range(4):
+            shf.eval_point4_grad(coeffs, lmax, t, p, out, k, grad)
+            assert [out[j] == shf.eval_point(coeffs[j], lmax, t, p) for j in range(4)] == [True] * 4
+            assert abs(grad[0] - dth[i] @ coeffs[k]) < tol
+            assert abs(grad[1] - dph[i] @ coeffs[k] / math.sin(t)) < tol
+
+
+@pytest.mark.parametrize("lmax", [3, 15])
+def test_eval_point4_grad_at_the_poles_is_the_limit_of_its_neighbours(lmax):
+    """At theta = 0 and pi, where (dr/dphi) / sin(theta) is 0/0, the surface gradient it gives equals
+    the one SciPy gives a hair away from the pole (the field is continuous there)."""
+    rng = np.random.default_rng(50 + lmax)
+    coeffs = np.ascontiguousarray(rng.normal(size=(4, (lmax + 1) ** 2)))
+    out = np.empty(4)
+    grad = np.empty(3)
+    for pole in (0.0, np.pi):
+        for p in (0.0, 1.1, -2.5):
+            shf.eval_point4_grad(coeffs, lmax, pole, p, out, 2, grad)
+            # the same tangent vector in Cartesian form, ours at the pole and SciPy's 1e-7 rad away
+            # along the meridian phi = p (e_theta, e_phi are continuous along it)
+            eps = 1e-7 if pole == 0.0 else np.pi - 1e-7
+            dth, dph = scipy_real_basis_derivatives(lmax, np.array([eps]), np.array([p]))
+            ref = (dth[0] @ coeffs[2], dph[0] @ coeffs[2] / math.sin(eps))
+            scale = np.abs(coeffs[2]).sum() * lmax ** 2
+            assert abs(grad[0] - ref[0]) < 1e-5 * scale
+            assert abs(grad[1] - ref[1]) < 1e-5 * scale

@@ -225,3 +225,39 @@ def test_codes_per_participant_and_repeated_trials(configs, tmp_path):
         assert rep["scores"][s["name"]]["scores"] == s["scores"]
     assert rep["ranking"][0] == "Zetamodel"
     assert len(rep["indices"]["real_time"]["order"]["position_mean"]) == 6
+
+
+def test_ratings_writes_are_atomic_and_locked(configs, tmp_path, monkeypatch):
+    """A write that fails before its rename leaves ratings.csv as it was (no partial row, no
+    temporary file); writers at the same time (threads, each with its own lock) lose no row."""
+    import os
+    import threading
+
+    study, key = make_study(tmp_path / "s", configs, 6, 1)
+    trials = [t for p in study.participants for t in study.trials_of(p)]
+    study.record_ratings(trials[0], [5.0] * 7, "x")
+    before = study.ratings_path.read_bytes()
+
+    def boom(src, dst):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        study.record_ratings(trials[1], [6.0] * 7, "x")
+    monkeypatch.undo()
+    assert study.ratings_path.read_bytes() == before
+    assert [p.name for p in study.folder.iterdir() if p.name.endswith(".tmp")] == []
+
+    errors = []
+
+    def rate(t):
+        try:
+            Study(study.folder).record_ratings(t, [7.0] * 7, "x")
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+    threads = [threading.Thread(target=rate, args=(t,)) for t in trials[1:]]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors
+    assert len(Study(study.folder).rated()) == len(trials)

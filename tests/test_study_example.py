@@ -93,16 +93,16 @@ def test_example_analysis_scores_as_score_on_the_bundled_ratings(example, tmp_pa
     assert rep["ranking"][0] == "forcenet"
 
 
-@pytest.mark.slow  # twenty headless replays
+@pytest.mark.slow  # ten headless replays
 def test_example_sessions(tmp_path, monkeypatch):
-    """The example's scripted sessions (here for its first 4 participants): complete, named by the
+    """The example's scripted sessions (here for its first 2 participants): complete, named by the
     code only, each recording the path it played; analyze finds them by model."""
     if not kinds_available():
         pytest.skip("the config has no model.kind yet")
     spec, path = bundled_spec()
     full = example_mod.example_ratings(spec, path)
-    keep = {f"D{k:02d}" for k in range(1, 5)}
-    monkeypatch.setattr(example_mod, "example_spec", lambda: (dict(spec, participants=4), path))
+    keep = {f"D{k:02d}" for k in range(1, 3)}
+    monkeypatch.setattr(example_mod, "example_spec", lambda: (dict(spec, participants=2), path))
     monkeypatch.setattr(example_mod, "example_ratings",
                         lambda s, p: {k: v for k, v in full.items() if k[0] in keep})
     out = tmp_path / "demo"
@@ -122,5 +122,5 @@ def test_example_sessions(tmp_path, monkeypatch):
     assert (study.sessions / "P01-T3" / "recording.csv").read_bytes() == first.read_bytes()
     assert main(["study", "analyze", str(out), "--out", str(tmp_path / "a"), "--path", "fast_insertion"]) == 0
     rep = json.loads((tmp_path / "a" / "report.json").read_text())
-    assert rep["objective"]["sessions"] == 20
-    assert all(r["sessions"] == 4 for r in rep["objective"]["metrics_by_model"])
+    assert rep["objective"]["sessions"] == 10
+    assert all(r["sessions"] == 2 for r in rep["objective"]["metrics_by_model"])

@@ -43,7 +43,7 @@ def kinds_study(tmp_path_factory):
     from haptic_acu.session import status as status_mod
 
     d = tmp_path_factory.mktemp("kinds")
-    path = write_path(d / "path.csv", t_end=1.5)
+    path = write_path(d / "path.csv", t_end=1.0)
     out = d / "s"
     assert main(["study", "plan", "--participants", "1", "--models", ",".join(KINDS), "--out", str(out),
                  "--seed", "3"]) == 0

@@ -202,3 +202,34 @@ def test_tissue_from_a_coefficient_file_of_a_sphere(tmp_path):
     cfg_bad = load_config(_config_with_skin_file(tmp_path, "sphere.npz", lmax + 1))
     with pytest.raises(UserError, match="body.lmax"):
         Tissue.from_config(cfg_bad)
+
+
+def test_fitted_body_is_cached_by_its_keys(cfg, tissue, tmp_path, monkeypatch):
+    """The default body's fit is stored once in HAPTIC_ACU_CACHE and read back identical to a fresh
+    fit; another bulge has another key; a damaged entry is fitted again."""
+    import dataclasses
+
+    from haptic_acu.tissue import body
+
+    monkeypatch.setenv("HAPTIC_ACU_CACHE", str(tmp_path))
+    monkeypatch.setattr(body, "_FITS", {})
+    fresh = body.Tissue._fit(cfg)
+    t1 = Tissue.from_config(cfg)
+    files = sorted(tmp_path.glob("body-*.npz"))
+    assert len(files) == 1
+    monkeypatch.setattr(body, "_FITS", {})
+    calls = []
+    monkeypatch.setattr(body.Tissue, "_fit", staticmethod(lambda c: calls.append(c) or fresh))
+    t2 = Tissue.from_config(cfg)  # from the file: no fit
+    assert calls == []
+    for t in (t1, t2):
+        assert np.array_equal(t.coeffs, fresh[0]) and np.array_equal(t.centre, fresh[1])
+        assert np.array_equal(t.fit_rms_m, fresh[3]) and t.lmax == cfg.body.lmax
+    # another process's fit (the module's, maybe read from the user's cache) agrees to rounding
+    np.testing.assert_allclose(tissue.coeffs, fresh[0], rtol=0, atol=1e-15)
+    other = dataclasses.replace(cfg, body=dataclasses.replace(cfg.body, bulge=cfg.body.bulge / 2))
+    assert body.fit_key(other) != body.fit_key(cfg)
+    files[0].write_bytes(b"not an npz")
+    monkeypatch.setattr(body, "_FITS", {})
+    t3 = Tissue.from_config(cfg)  # damaged: fitted again (the stub records it)
+    assert calls == [cfg] and np.array_equal(t3.coeffs, fresh[0])

@@ -11,7 +11,6 @@ import argparse
 import importlib
 import sys
 
-from .. import __version__
 from ..base.errors import DeviceFault, UserError
 
 # name -> module providing register(subparsers); imported only when needed.
@@ -29,6 +28,19 @@ COMMANDS = {
 }
 
 
+class _Version(argparse.Action):
+    """``--version``: the installed version, looked up only when asked for."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from .. import __version__
+
+        print(f"haptic-acu {__version__}")
+        parser.exit()
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own errors: one line, status 2
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -41,7 +53,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
                      epilog="Run `haptic-acu COMMAND --help` for a command's options. Every command that takes "
                             "--config also takes --set section.key=value (repeatable). Bad input: one line on "
                             "stderr, exit status 2; a fault during a session: exit status 3.")
-    parser.add_argument("--version", action="version", version=f"haptic-acu {__version__}")
+    parser.add_argument("--version", action=_Version, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, module in COMMANDS.items():
         if only is not None and name != only:

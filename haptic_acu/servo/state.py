@@ -111,6 +111,7 @@ WORK = np.dtype([  # the step's scratch: values one phase hands the next within 
     ("r", "f8", 3),  # tip relative to N1's rest position
     ("dz1", "f8"), ("s_p", "f8"),
     ("gd", "f8", 3),  # grad(-d) of the tip's depth d below the pressed layer's rest surface (needle.depth_gradient)
+    ("gs", "f8", 3),  # the front layer's rest surface: its gradient on the unit sphere at the tip's direction (tip_radii)
     ("wr", "f8", MAX_RINGS), ("cnt", "f8", MAX_RINGS),
     ("k_danger", "f8"),  # the stiffest danger structure the tip touches this tick (N/m; danger.py)
 ])

@@ -78,7 +78,7 @@ from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
 from ..tissue.baselines import KIND_CODES, baseline_response, baseline_slope, contact_for
-from ..tissue.body import Tissue, boundary_radii
+from ..tissue.body import Tissue, boundary_radii_grad
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params
 
@@ -237,17 +237,20 @@ def track_entry(inp, s):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def tip_radii(m, s):
-    """Every boundary's radius toward the lifted tip (``s.radii``) and the tip's own (``work.rho``).
+def tip_radii(m, s, k):
+    """Every boundary's radius toward the lifted tip (``s.radii``) and the tip's own (``work.rho``);
+    for a layer ``k`` < N_LAYERS (the front layer, the one a tick can press) also its rest surface's
+    gradient on the unit sphere there (``work.gs``), from the same evaluation of the four surfaces.
     The centre itself has no direction (the contact point and the bone wall's push would divide by
     rho = 0): a tip exactly there is moved 1e-12 m onto the +z pole, the direction
     ``shf.direction_of`` gives the centre."""
     wk = s.work[0]
     lmax = m.params[0].lmax
-    rho = boundary_radii(m.coeffs, lmax, m.centre, wk.q, s.radii)
+    kg = k if k < N_LAYERS else -1
+    rho = boundary_radii_grad(m.coeffs, lmax, m.centre, wk.q, s.radii, kg, wk.gs)
     if rho == 0.0:
         wk.q[2] = m.centre[2] + 1e-12
-        rho = boundary_radii(m.coeffs, lmax, m.centre, wk.q, s.radii)
+        rho = boundary_radii_grad(m.coeffs, lmax, m.centre, wk.q, s.radii, kg, wk.gs)
     wk.rho = rho
 
 
@@ -370,31 +373,18 @@ def recentre(m, s, k, idx, use_table):
                 xf[i, c] = X0f[i, c] - dz * ax[c]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def depth_gradient(m, s, k):
     """The tip's depth below layer ``k``'s rest surface, d(q) = r_k(u) - |q - c| (radial, about the
     body's centre c; u the tip's direction), and the gradient of -d into ``work.gd``:
-    grad(-d) = u - grad_S r_k(u) / |q - c|, grad_S the surface gradient on the unit sphere, from
-    central differences along two tangents (h = 1e-4 rad: O(h^2) = 1e-8 relative, no pole
-    singularity). Needs ``tip_radii`` (``s.radii``, ``work.rho``); returns d. The intact surface's
-    force f(d) * grad(-d) is then the gradient of the potential -int_0^d f: conservative."""
+    grad(-d) = u - grad_S r_k(u) / |q - c|, grad_S r_k the surface gradient on the unit sphere, which
+    ``tip_radii`` evaluated analytically with the radii (``work.gs``; ``k`` is the front layer).
+    Returns d. The intact surface's force f(d) * grad(-d) is then the gradient of the potential
+    -int_0^d f: conservative."""
     wk = s.work[0]
-    lmax = m.params[0].lmax
-    ck = m.coeffs[k]
     rho = wk.rho
-    ux = (wk.q[0] - m.centre[0]) / rho
-    uy = (wk.q[1] - m.centre[1]) / rho
-    uz = (wk.q[2] - m.centre[2]) / rho
-    t1x, t1y, t1z, t2x, t2y, t2z = tangents(ux, uy, uz)
-    h = 1e-4
-    two_a = 2.0 * math.atan(h)  # u +- h t are +-atan(h) from u along the great circle through t
-    g1 = (shf.eval_direction(ck, lmax, ux + h * t1x, uy + h * t1y, uz + h * t1z)
-          - shf.eval_direction(ck, lmax, ux - h * t1x, uy - h * t1y, uz - h * t1z)) / two_a
-    g2 = (shf.eval_direction(ck, lmax, ux + h * t2x, uy + h * t2y, uz + h * t2z)
-          - shf.eval_direction(ck, lmax, ux - h * t2x, uy - h * t2y, uz - h * t2z)) / two_a
-    wk.gd[0] = ux - (g1 * t1x + g2 * t2x) / rho
-    wk.gd[1] = uy - (g1 * t1y + g2 * t2y) / rho
-    wk.gd[2] = uz - (g1 * t1z + g2 * t2z) / rho
+    for c in range(3):
+        wk.gd[c] = (wk.q[c] - m.centre[c]) / rho - wk.gs[c] / rho
     return s.radii[k] - rho
 
 
@@ -474,7 +464,7 @@ def puncture(inp, m, s, d, k, idx, use_table):
     if comp > 0.0:
         sv.offset += comp
     lift_tip(inp, s)
-    tip_radii(m, s)
+    tip_radii(m, s, N_LAYERS)
     wk.front = k + 1
 
 
@@ -752,8 +742,8 @@ def step_kernel(inp, m, s, out):
     if not check_input(inp, s, d):
         return
     track_entry(inp, s)
-    tip_radii(m, s)
     front_layer(s)
+    tip_radii(m, s, s.work[0].front)
     if s.work[0].front < N_LAYERS:
         front_contact(inp, m, s, d)
     if s.servo[0].inserted != 0:

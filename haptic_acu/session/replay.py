@@ -236,7 +236,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
     from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
-    from .report import SamplesCsvSink, SummarySink, plot_force_depth
+    from .report import SamplesCsvSink, SummarySink, plot_force_depth, preload_figure_modules
 
     cfg = cfg if cfg is not None else load_config(config_path)
     if point is not None:
@@ -280,6 +280,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim",
                           model=point.model() if point is not None else None)
         session.warm_up()
+        if not realtime:
+            preload_figure_modules()  # matplotlib's import overlaps the session's compiled ticks
         wall0 = time.perf_counter()
         result = session.run()
         wall = time.perf_counter() - wall0

@@ -372,6 +372,25 @@ def _insertion_handles(n_ins: int) -> list:
     return out
 
 
+def preload_figure_modules():
+    """Import matplotlib's figure and Agg canvas on a daemon thread and return it: a replay starts
+    this before its session, whose compiled ticks release the GIL, so the import (a good part of the
+    figure's cost) overlaps the simulation instead of following it. :func:`plot_force_depth`'s own
+    imports then find the modules loaded (or wait for the thread's import to finish)."""
+    import threading
+
+    def load():
+        try:
+            import matplotlib.backends.backend_agg  # noqa: F401
+            import matplotlib.figure  # noqa: F401
+        except Exception:  # noqa: BLE001 - the plot's own import reports any problem
+            pass
+
+    t = threading.Thread(target=load, name="haptic-acu-preload-figure", daemon=True)
+    t.start()
+    return t
+
+
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).

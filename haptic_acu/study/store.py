@@ -29,6 +29,7 @@ import io
 import json
 import os
 import re
+import threading
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +56,7 @@ def now() -> str:
 def write_atomic(path: Path, text: str, exclusive: bool = False) -> None:
     """``path`` becomes ``text`` all at once (``exclusive``: only if it does not exist yet)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
         with open(tmp, "w", encoding="utf-8", newline="") as f:
             f.write(text)

@@ -48,7 +48,7 @@ from ..base.config import MODEL_KINDS
 from .mechanics import puncture_threshold
 from .netresponse import cache_dir
 
-VERSION = 1  # bump when a precomputation changes (invalidates the cache)
+VERSION = 2  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -187,17 +187,26 @@ def fem_flat_punch(E, nu, thick, a, n_in=FEM_N_IN, ratio=FEM_RATIO, half_width=F
 
 # ---- BEM ----------------------------------------------------------------------------------------
 
+def _bem_grid(a, n_in):
+    s = a / n_in
+    g = (np.arange(-n_in, n_in) + 0.5) * s
+    X, Y = np.meshgrid(g, g)
+    keep = np.hypot(X, Y) <= a
+    return s, np.stack([X[keep], Y[keep]], axis=1)
+
+
+def bem_elements(n_in=BEM_N_IN) -> int:
+    """The number of boundary elements on the tip's disc."""
+    return len(_bem_grid(1.0, n_in)[1])
+
+
 def bem_flat_punch(E, nu, a, n_in=BEM_N_IN) -> float:
     """Stiffness (N/m) of a flat tip of radius ``a`` on a half-space (E Pa, nu) by boundary elements:
     the disc in squares of side a / n_in; the displacement at element i of a unit load on element j
     is Boussinesq's (1 - nu^2) / (pi E r_ij), on itself that of its equal-area disc under uniform
     pressure at the centre, 2 (1 - nu^2) / (pi E R) with pi R^2 the element's area; the forces for
     a unit indentation are the compliance matrix's inverse (the capacitance matrix) times ones."""
-    s = a / n_in
-    g = (np.arange(-n_in, n_in) + 0.5) * s
-    X, Y = np.meshgrid(g, g)
-    keep = np.hypot(X, Y) <= a
-    xy = np.stack([X[keep], Y[keep]], axis=1)
+    s, xy = _bem_grid(a, n_in)
     c = (1.0 - nu * nu) / (math.pi * E)
     r = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
     R = s / math.sqrt(math.pi)
@@ -373,7 +382,7 @@ def build_contact(cfg) -> Contact:
         elif m.kind == "bem":
             k[j] = bem_flat_punch(E[0], nu[0], a)
             crit[j] = m.puncture_depth_mm[j] * 1e-3
-            nbytes += (np.pi * BEM_N_IN ** 2) ** 2 * 8
+            nbytes += bem_elements(BEM_N_IN) ** 2 * 8  # the compliance matrix
         elif m.kind == "msm":
             stiff, strain_per_m = msm_press(E, thick, m.msm_spacing_mm * 1e-3)
             k[j] = stiff

@@ -13,7 +13,9 @@ Everything here is SI (metres).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numba as nb
 import numpy as np
@@ -52,6 +54,29 @@ def boundary_radii(coeffs, lmax, centre, p, out):
 
 
 @nb.njit(cache=True, nogil=True)
+def boundary_radii_grad(coeffs, lmax, centre, p, out, k, grad):
+    """:func:`boundary_radii` (the same radii, bit for bit) and, for 0 <= ``k`` < 4, boundary k's
+    surface gradient on the unit sphere at the direction of ``p`` into ``grad[3]`` (a tangent vector,
+    m per radian: dr/dtheta e_theta + (dr/dphi) / sin(theta) e_phi), from the same evaluation
+    (:func:`shf.eval_point4_grad`). Returns |p - centre|."""
+    theta, phi, rho = shf.direction_of(p[0], p[1], p[2], centre[0], centre[1], centre[2])
+    if k < 0 or k >= coeffs.shape[0] or coeffs.shape[0] != 4:
+        shf.eval_point_many(coeffs, lmax, theta, phi, out)
+        return rho
+    shf.eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad)  # grad[:2]: the (theta, phi) parts
+    gt = grad[0]
+    gp = grad[1]
+    ct = math.cos(theta)
+    st = math.sin(theta)
+    cp = math.cos(phi)
+    sp = math.sin(phi)
+    grad[0] = gt * ct * cp - gp * sp
+    grad[1] = gt * ct * sp + gp * cp
+    grad[2] = -gt * st
+    return rho
+
+
+@nb.njit(cache=True, nogil=True)
 def locate_kernel(coeffs, lmax, centre, p, radii):
     """(layer, depth below that layer's top surface) for point ``p``; fills ``radii[4]``.
 
@@ -69,6 +94,68 @@ def locate_kernel(coeffs, lmax, centre, p, radii):
     return nb_ - 1, radii[nb_ - 1] - rho
 
 
+FIT_VERSION = 1  # bump when the fitted body's content changes in a way the key below does not see
+_FITS: dict[str, tuple] = {}
+
+
+def fit_key(cfg: TissueConfig) -> str:
+    """The cache key of ``cfg``'s fitted body: everything the fit reads."""
+    import hashlib
+
+    body = cfg.body
+    h = hashlib.sha256(repr((FIT_VERSION, tuple(body.semi_axes_mm), float(body.bulge), int(body.lmax),
+                             int(body.fit_samples), [float(layer.thickness_mm) for layer in cfg.layers],
+                             np.__version__)).encode())
+    for f in (Path(__file__), Path(shf.__file__)):  # the fitting code itself
+        h.update(f.read_bytes())
+    if body.skin_coefficients:
+        try:
+            h.update(Path(body.skin_coefficients).read_bytes())
+        except OSError:
+            h.update(b"unreadable")  # the fit reports it (load_coefficients)
+    return h.hexdigest()[:24]
+
+
+def _fit_path(key: str):
+    from .netresponse import cache_dir
+
+    d = cache_dir()
+    return d / f"body-{key}.npz" if d is not None else None
+
+
+def _load_fit(key: str):
+    from .netresponse import cached_file
+
+    path = cached_file(f"body-{key}.npz")
+    if path is None:
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return (np.ascontiguousarray(z["coeffs"]), z["centre"].copy(), z["thick"].copy(), z["rms"].copy(),
+                    z["mx"].copy(), int(z["lmax"]))
+    except (OSError, ValueError, KeyError):
+        return None  # unreadable: fit again
+
+
+def _save_fit(key: str, fit: tuple) -> None:
+    """Write atomically; a cache that cannot be written is not an error."""
+    import os
+    import tempfile
+
+    path = _fit_path(key)
+    if path is None:
+        return
+    coeffs, centre, thick, rms, mx, lmax = fit
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, coeffs=coeffs, centre=centre, thick=thick, rms=rms, mx=mx, lmax=lmax)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
 @dataclass
 class Tissue:
     """Four nested SH boundaries about ``centre`` (m); ``coeffs[k]`` is boundary k's expansion (m)."""
@@ -82,6 +169,24 @@ class Tissue:
 
     @classmethod
     def from_config(cls, cfg: TissueConfig) -> "Tissue":
+        """The body of ``cfg``: fitted once per body (its keys, the layers' thicknesses, the skin
+        coefficients file's bytes, the fitting code and numpy's version), then read from this
+        process's memo or the cache directory (``HAPTIC_ACU_CACHE``, as the net tables) in
+        milliseconds; a fit that cannot be cached is simply kept in memory."""
+        key = fit_key(cfg)
+        hit = _FITS.get(key)
+        if hit is None:
+            hit = _load_fit(key)
+        if hit is None:
+            hit = cls._fit(cfg)
+            _save_fit(key, hit)
+        _FITS[key] = hit
+        coeffs, centre, thick, rms, mx, lmax = hit
+        return cls(coeffs.copy(), centre.copy(), lmax, thick.copy(), rms.copy(), mx.copy())
+
+    @staticmethod
+    def _fit(cfg: TissueConfig) -> tuple:
+        """(coeffs, centre, thicknesses, fit rms, fit max, lmax) of the least-squares fit (eq. 4)."""
         body = cfg.body
         lmax = body.lmax
         thick = np.array([layer.thickness_mm for layer in cfg.layers]) * 1e-3
@@ -114,7 +219,7 @@ class Tissue:
         # The acupoint is the +z pole of the fitted skin surface: put it at the origin.
         r_pole = shf.evaluate(coeffs[0], np.array([0.0]), np.array([0.0]))[0]
         centre = np.array([0.0, 0.0, -r_pole])
-        return cls(np.ascontiguousarray(coeffs), centre, lmax, thick, rms, mx)
+        return np.ascontiguousarray(coeffs), centre, thick, rms, mx, lmax
 
     # -- queries -------------------------------------------------------------------------------
     def locate(self, p_m) -> tuple[int, float]:

@@ -242,6 +242,20 @@ def cache_dir() -> Path | None:
     return Path(d) if d else Path.home() / ".cache" / "haptic-acu"
 
 
+# The tables an installed wheel carries (setup.py solves them at build time; read-only, looked at
+# after the cache directory); absent in a source tree.
+BUNDLED_TABLES = Path(__file__).resolve().parent.parent / "_bundled" / "tables"
+
+
+def cached_file(name: str) -> Path | None:
+    """``name`` in the cache directory, else among the wheel's bundled tables, else None."""
+    d = cache_dir()
+    for folder in ((d, BUNDLED_TABLES) if d is not None else ()):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
 _MEMO: dict[str, ResponseTable] = {}
 _LOCK = threading.Lock()
 
@@ -318,10 +332,11 @@ def table_for(p: NetParams, tol_m: float) -> ResponseTable:
             return _MEMO[key]
         d = cache_dir()
         path = d / f"net-{key}.npz" if d is not None else None
+        found = cached_file(f"net-{key}.npz")
         table = None
-        if path is not None and path.is_file():
+        if found is not None:
             try:
-                with np.load(path) as z:
+                with np.load(found) as z:
                     table = ResponseTable(z["F"], z["R"], z["D"], float(z["h"]), float(z["rho_max"]), key)
                 if table.D.shape[1] != n_particles(p.w) or table.F.shape[0] != COLUMNS:
                     table = None
