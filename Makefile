@@ -37,7 +37,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[bench]'
 	@mkdir -p runs
-	$(VENV)/bin/haptic-acu bench --json runs/bench.json
+	$(VENV)/bin/haptic-acu bench --json runs/bench.json --overwrite
 	$(PY) tools/perf_page.py runs/bench.json --out docs/performance.md  # the page's figures, from that JSON
 
 # the cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster

@@ -1289,9 +1289,10 @@ def format_table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def write_json(res: dict, path) -> None:
-    path = Path(path)
-    path.write_text(json.dumps(res, indent=2, sort_keys=False, default=float) + "\n")
+def write_json(res: dict, path, overwrite: bool = True) -> None:
+    from haptic_acu.base.outputs import write_new
+
+    write_new(Path(path), json.dumps(res, indent=2, sort_keys=False, default=float) + "\n", overwrite=overwrite)
 
 
 def check_json_path(path) -> None:
@@ -1307,10 +1308,10 @@ def check_json_path(path) -> None:
         raise UserError(f"{p}: --json folder {p.parent} is not writable")
 
 
-def main(quick: bool = False, json_path=None, progress: bool = True, out=None) -> int:
+def main(quick: bool = False, json_path=None, progress: bool = True, out=None, overwrite: bool = True) -> int:
     check_json_path(json_path)
     res = collect(QUICK if quick else FULL, progress=progress)
     print(format_table(res), file=out or sys.stdout)
     if json_path is not None:
-        write_json(res, json_path)
+        write_json(res, json_path, overwrite=overwrite)
     return 0

@@ -39,8 +39,15 @@ them in :meth:`KeyboardDevice.read` and never waits on the terminal.
 Motion (``read``): the commanded motion is integrated over the wall-clock time since the previous
 read (``time.perf_counter``), at most ``max_step_s`` (20 ms) per read, so a stalled loop resumes
 without a jump (at 40 mm/s a 20 ms step is 0.8 mm, i.e. 0.8 m/s over one 1 ms tick, inside the 2 m/s
-hand-speed limit). ``DeviceState.t_s`` is the device's own time, the sum of those steps.
-``velocity_m_s`` is the commanded velocity from this read on. All in SI, scene frame.
+hand-speed limit). ``DeviceState.t_s`` is the device's own time, the sum of those steps. The
+insertion advances only while the force on the needle does not push it back out at the device's
+force limit (``set_force``'s last force, +z at :data:`HELD_BACK_SHARE` of ``force_limit_n``): against
+bone, or with the handle on the skin, the needle stops as a hand limited to that force would.
+``velocity_m_s`` is the commanded velocity from this read on. In a session the engine reads with
+``read_at(t)`` on its servo clock instead: the motion is integrated over session time and the
+velocity is the last step's displacement over its duration, so a replay of the session's recording
+(which derives the velocity from the recorded positions) feeds the servo the same numbers. All in
+SI, scene frame.
 
 The keyboard has no physical frame, so it works in the scene frame directly: the ``workspace``
 argument (the mapping of a physical device's frame) is accepted for a uniform constructor and
@@ -148,6 +155,9 @@ class KeyParser:
         return out
 
 
+HELD_BACK_SHARE = 0.999  # of the force limit: the insertion key pushes no further against it
+
+
 class KeyboardDevice(Device):
     """Keys in the terminal on ``stdin`` move the needle; see the module doc for the keys and the
     motion model. ``out`` receives the one-line help at open. ``force_limit_n`` is reported in
@@ -205,6 +215,7 @@ class KeyboardDevice(Device):
             return
         self._tty_fd(self.stdin)  # still a tty?
         self._reset_motion()
+        self._last_session_t = None  # the engine's clock (read_at); a reset (`r`) does not restart it
         self._commands.clear()
         self._saved_attrs = termios.tcgetattr(self._fd)
         try:
@@ -258,6 +269,25 @@ class KeyboardDevice(Device):
         self._last_wall = now
         self._integrate(dt)
         self._t += dt
+        return self._state(None)  # the commanded velocity, after this read's keys
+
+    def read_at(self, t_s: float) -> DeviceState:
+        """The state at session time ``t_s`` (the engine's servo clock): the motion integrated over
+        the session time since the previous read (at most ``max_step_s``), and ``velocity_m_s`` the
+        tip's displacement over that step divided by it (0 on the first read), the velocity a
+        replay of the recording derives from the same positions (:mod:`devices.scripted`)."""
+        t_s = float(t_s)
+        last = getattr(self, "_last_session_t", None)
+        dt = 0.0 if last is None else min(max(t_s - last, 0.0), self.max_step_s)
+        self._last_session_t = t_s
+        p0 = self._p.copy()
+        self._integrate(dt)
+        self._t += dt
+        v = (self._p - p0) / dt if dt > 0.0 else np.zeros(3)
+        return self._state(v)
+
+    def _state(self, velocity) -> DeviceState:
+        """Apply the queued keys; the state with ``velocity`` (None: the commanded one, after the keys)."""
         reset = False
         while self._commands:
             cmd = self._commands.popleft()
@@ -267,7 +297,9 @@ class KeyboardDevice(Device):
         if reset:
             self.events.append((self._reads, "reset"))
         self._reads += 1
-        return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=self._velocity(),
+        if velocity is None:
+            velocity = self._velocity()
+        return DeviceState(t_s=self._t, position_m=self._p.copy(), velocity_m_s=velocity,
                            axis=np.array(AXIS), done=self._done, reset=reset, roll_rad=self._roll)
 
     def set_force(self, force_n) -> None:
@@ -295,7 +327,9 @@ class KeyboardDevice(Device):
             self._roll += self._twirl * math.radians(self.twirl_rate_deg_s) * turn
             if self._t + dt >= self._twirl_until:
                 self._twirl = 0
-        if self._axial:
+        if self._axial > 0 and self._held_back():
+            pass  # the hand cannot push harder than the device's limit: the needle goes no deeper
+        elif self._axial:
             z = self._p[2] - self._axial * self.speed_m_s * dt
             lo, hi = -DEPTH_LIMIT_M, HEIGHT_LIMIT_M
             if z <= lo or z >= hi:
@@ -313,6 +347,13 @@ class KeyboardDevice(Device):
                 d = left * (move / m)
                 self._p[:2] += d
                 left -= d
+
+    def _held_back(self) -> bool:
+        """The force on the needle pushes it back out (+z) at the device's force limit: an insertion
+        into bone or with the handle on the skin stops there, as a hand limited to that force would."""
+        lim = float(self.info.force_limit_n)
+        f = getattr(self, "last_force_n", None)
+        return f is not None and lim > 0.0 and float(f[2]) >= HELD_BACK_SHARE * lim
 
     def _apply(self, cmd: str) -> None:
         if cmd == "insert":

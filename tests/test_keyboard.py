@@ -448,7 +448,7 @@ def test_status_line_content_missed_ticks_and_fault():
     assert "roll" not in line  # never rolled: no roll field
     s2 = StatusLine(stream=io.StringIO(), force=True)
     s2.on_frame(_frame([_row(t=1.0, layer=2, roll_deg=-123.4, torque_nmm=-0.2864, states=(2, 2, 2))]))
-    assert "| roll -123 deg -0.286 N*mm |" in s2.stream.getvalue()
+    assert "| roll -123 deg | -0.286 N*mm |" in s2.stream.getvalue()  # the roll kept longer than the torque
     assert "servo 998 Hz visual 59 Hz" in line and line.endswith("host late 6.0%, missed 3")  # 3 of 50 ticks
     assert fault == "fault: device fault: cable pulled" and text.endswith("\n")
     # nothing drawn, nothing printed, when the stream is not a terminal

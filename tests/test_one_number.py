@@ -48,7 +48,7 @@ def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
     rows = {line[:38].strip(): line[38:].split() for line in r.stdout.splitlines() if line.startswith("  ")}
     assert rows["technique"] == ["reinforcing", "reducing"]
     assert rows["twirl cycles"] == [str(t["twirl"]["cycles"]) for t in techs]
-    assert rows["twirl swing (deg)"] == [f"{t['twirl']['swing_deg']:.0f}" for t in techs]
+    assert rows["twirl swing, peak to peak (deg)"] == [f"{t['twirl']['swing_deg']:.0f}" for t in techs]
     assert rows["twirl frequency (Hz)"] == [f"{t['twirl']['frequency_hz']:.2f}" for t in techs]
     assert rows["thrust / lift resistance"] == [f"{t['lift_thrust_forces']['thrust_to_lift']:.2f}" for t in techs]
 
@@ -60,5 +60,5 @@ def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
                            "per_insertion": [doc["sessions"][1]["metrics"]["per_insertion"][0]]}}
     tw = techs[1]["twirl"]
     line = result_lines(summary)[-1]
-    assert line.endswith(f"; {tw['cycles']} twirl cycles ({tw['swing_deg']:.0f} deg, {tw['frequency_hz']:.2f} Hz); "
+    assert line.endswith(f"; {tw['cycles']} twirl cycles ({tw['swing_deg']:.0f} deg swing, peak to peak, {tw['frequency_hz']:.2f} Hz); "
                          "technique: reducing"), line

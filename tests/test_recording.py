@@ -332,7 +332,9 @@ def test_recorder_places_events_on_their_ticks(tmp_path):
         rows = list(csv.DictReader(f))
     got = {r["t_s"]: r["event"] for r in rows if r["event"]}
     assert got == {"0.002000": "reset", "0.006000": "reset", "0.007000": "reset"}
-    assert len(rows) == 8 and rows[0]["layer"] == "outside"
+    # the 8 kept ticks, then the end row half a tick after the last (the position held, no event)
+    assert len(rows) == 9 and rows[0]["layer"] == "outside"
+    assert rows[-1]["t_s"] == "0.008500" and rows[-1]["event"] == "" and rows[-1]["z_mm"] == rows[-2]["z_mm"]
 
 
 def test_live_scripted_session_honours_a_reset(tmp_path):

@@ -141,7 +141,7 @@ def test_default_replay_outputs_and_rrd(tmp_path):
             values += rb.column("Scalars:scalars").to_pylist()
     order = np.argsort(ticks, kind="stable")
     assert list(np.array(ticks)[order]) == list(range(s["ticks"]))
-    fz_rrd = np.array(values)[order][:, 3]
+    fz_rrd = np.array(values)[order][:, 0]  # the force along the needle: +fz for this vertical needle
     fz_csv = np.array([float(x["fz_n"]) for x in rows])
     assert np.allclose(fz_rrd, fz_csv, atol=6e-6)  # the csv keeps 5 decimals
     verify = subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "verify", str(out / "recording.rrd")],
@@ -223,7 +223,8 @@ def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path
         for row, ins in zip(mine, m["per_insertion"]):
             assert float(row["max_depth_mm"]) == ins["max_depth_mm"]
             assert float(row["entry_mm_x"]) == ins["entry_mm"][0]
-            assert float(row["peak_layer_force_n_fat"]) == ins["peak_layer_force_n"]["fat"]
+            assert float(row["peak_force_fat_n"]) == ins["peak_layer_force_n"]["fat"]  # one name per quantity
+            assert "peak_layer_force_n_fat" not in row
             assert int(row["lift_thrust_cycles"]) == ins["lift_thrust"]["cycles"]
             assert row["depth_verdict"] == ins["depth_verdict"]
             assert int(row["punctures"]) == len(ins["punctures"])

@@ -26,7 +26,7 @@ from haptic_acu.base.config import load_config
 from haptic_acu.base.errors import UserError
 from haptic_acu.tissue.forcenet import dent_on_grid, lattice
 from haptic_acu.servo.step import NeedleModel
-from haptic_acu.session.rerun_log import RerunSink, lattice_rows
+from haptic_acu.session.rerun_log import F_ZERO_N, RerunSink, lattice_rows
 from haptic_acu.tissue.springback import Springback
 
 C = S.COL
@@ -103,40 +103,69 @@ def columns(store, entity, component, static=False):
     return np.array(ticks, dtype=np.int64), np.array(times, dtype=np.int64), values
 
 
+def series(store, entity):
+    """(ticks, sim_time ns, values (k, m)) of a Scalars entity, in tick order."""
+    ticks, times, values = columns(store, entity, "Scalars:scalars")
+    order = np.argsort(ticks, kind="stable")
+    vals = np.array(values, dtype=np.float64)
+    return ticks[order], times[order], (vals.reshape(len(ticks), -1) if len(ticks) else vals)[order]
+
+
 def test_force_series_hold_exactly_one_value_per_tick(recording):
     rows = recording.rows
-    ticks, times, values = columns(recording.store, "/force/total", "Scalars:scalars")
-    order = np.argsort(ticks, kind="stable")
-    assert list(ticks[order]) == list(range(len(rows)))  # every tick once, none twice
-    vals = np.array(values)[order]
+    ticks, times, vals = series(recording.store, "/force/total")
+    assert list(ticks) == list(range(len(rows)))  # every tick once, none twice
     f = rows[:, C["fx_n"]:C["fz_n"] + 1]
-    assert np.array_equal(vals[:, 1:4], f)  # float64 through and back: exact
-    assert np.array_equal(vals[:, 0], np.sqrt(f[:, 0] ** 2 + f[:, 1] ** 2 + f[:, 2] ** 2))
-    assert np.array_equal(times[order], np.round(rows[:, C["t_s"]] * 1e9).astype(np.int64))
+    # straight down: the force along the needle (+ pushing it back, toward the handle) is +fz
+    np.testing.assert_allclose(vals[:, 0], f[:, 2], atol=1e-12)
+    assert np.array_equal(times, np.round(rows[:, C["t_s"]] * 1e9).astype(np.int64))
+    # the scene components are sent from the tick before they first are neither zero nor the force
+    # along the needle; one that stays so (here fz, the along-force itself) is never sent: it would
+    # be a second line drawn under the first
+    for j, name in enumerate("xyz"):
+        t_c, _, fc = series(recording.store, f"/force/total/f{name}")
+        nz = np.nonzero(np.minimum(np.abs(f[:, j]), np.abs(np.abs(f[:, j]) - np.abs(vals[:, 0]))) > F_ZERO_N)[0]
+        if not nz.size:
+            assert not len(t_c), name
+            continue
+        assert list(t_c) == list(range(max(nz[0] - 1, 0), len(rows))), name
+        assert np.array_equal(fc[:, 0], f[t_c, j])
+    assert not np.any(np.abs(f[:, 1]) > F_ZERO_N)  # the needle moves along z: fy stays out of the plot
+    assert not len(series(recording.store, "/force/total/fz")[0])
 
 
-def test_split_and_depth_series(recording):
+def test_layer_and_part_series_share_one_sign_convention(recording):
+    """By layer and by part, + pushes the needle back: each split adds up to the force along the
+    needle (with no bone and no lateral force here) at every tick after it starts."""
     rows = recording.rows
-    ticks, _, values = columns(recording.store, "/force/split", "Scalars:scalars")
-    vals = np.array(values)[np.argsort(ticks, kind="stable")]
-    assert len(vals) == len(rows)
-    assert np.array_equal(vals[:, 0:3], rows[:, C["f_skin_n"]:C["f_muscle_n"] + 1])
-    assert np.array_equal(vals[:, 3], rows[:, C["f_surface_n"]])
-    assert np.array_equal(vals[:, 4], rows[:, C["f_damp_n"]])
-    ticks, _, values = columns(recording.store, "/depth", "Scalars:scalars")
-    vals = np.array(values)[np.argsort(ticks, kind="stable")]
-    # Straight down the acupoint (the skin's +z pole at the origin): depth below the skin is -z.
-    np.testing.assert_allclose(vals[:, 0], -rows[:, C["z_m"]] * 1e3, atol=1e-6)
-    np.testing.assert_allclose(vals[:, 1], rows[:, C["depth_m"]] * 1e3, atol=1e-12)
+    t_l, _, by_layer = series(recording.store, "/force/layer")
+    t_p, _, by_part = series(recording.store, "/force/part")
+    along = rows[:, C["fz_n"]]
+    np.testing.assert_allclose(by_layer.sum(axis=1), along[t_l], atol=1e-9)
+    np.testing.assert_allclose(by_part.sum(axis=1), along[t_p], atol=1e-9)
+    assert by_layer.min() > -1e-9 and by_part.min() > -1e-9  # going in: the tissue resists, every part
+
+
+def test_depth_series_downward_with_target_and_boundaries(recording):
+    rows = recording.rows
+    ticks, _, vals = series(recording.store, "/depth/tip")
+    assert list(ticks) == list(range(len(rows)))
+    # straight down the acupoint (the skin's +z pole at the origin): the depth below the skin is -z,
+    # drawn downward (the plotted value is minus the depth)
+    np.testing.assert_allclose(vals[:, 0], rows[:, C["z_m"]] * 1e3, atol=2e-3)
+    _, _, marks = series(recording.store, "/depth/marks")
+    lo, hi = recording.model.cfg.scene.target_depth_mm
+    want = -np.concatenate([[lo, hi], recording.model.tissue.depths_at_acupoint()[1:] * 1e3])
+    np.testing.assert_allclose(marks[-1], want, atol=0.3)  # the boundaries along the needle, 0.25 mm steps
 
 
 def test_twirl_series_and_the_twist_bar(recording):
     rows = recording.rows
-    for entity, col in (("/twirl/roll", "roll_deg"), ("/twirl/torque", "torque_nmm")):
-        ticks, _, values = columns(recording.store, entity, "Scalars:scalars")
-        order = np.argsort(ticks, kind="stable")
-        assert list(ticks[order]) == list(range(len(rows)))
-        assert np.array_equal(np.array(values)[order][:, 0], rows[:, C[col]])
+    ticks, _, vals = series(recording.store, "/twirl/series")
+    first = int(np.nonzero(rows[:, C["roll_deg"]])[0][0])
+    assert list(ticks) == list(range(max(first - 1, 0), len(rows)))
+    assert np.array_equal(vals[:, 0], rows[ticks, C["roll_deg"]])
+    assert np.array_equal(vals[:, 1], rows[ticks, C["torque_nmm"]])
     assert np.abs(rows[:, C["torque_nmm"]]).max() > 0.01  # the twirl wound tissue once inside
     # the twist bar: across the needle's handle end, turned by the roll about the needle (-z down the
     # acupoint: seen from the handle, +x turned clockwise by the roll goes toward -y)
@@ -178,7 +207,10 @@ def test_scene_entities_exist(recording):
     for entity, component in (("/world/needle", "LineStrips3D:strips"), ("/world/force", "Arrows3D:vectors"),
                               ("/world/nets/skin/slot0/particles", "Points3D:positions"),
                               ("/world/nets/skin/slot0/springs", "LineStrips3D:strips"),
-                              ("/rates/servo_hz", "Scalars:scalars")):
+                              ("/rates/servo_hz", "Scalars:scalars"),
+                              ("/section/scene/needle", "LineStrips3D:strips"), ("/section/scene/tip", "Points3D:positions"),
+                              ("/section/scene/layers/skin", "Mesh3D:vertex_positions"), ("/verdict", "TextDocument:text"),
+                              ("/gauge/tip", "Arrows3D:origins"), ("/twirl/dial/pointer", "Arrows2D:vectors")):
         ticks, _, values = columns(store, entity, component)
         assert len(values) > 0, entity
     assert recording.reader.blueprints(), "the blueprint goes with the recording"
@@ -304,3 +336,107 @@ def test_connect_without_a_viewer_is_a_one_line_user_error():
     with pytest.raises(UserError, match="start a viewer") as e:
         RerunSink.connect(f"127.0.0.1:{_free_port()}")
     assert "\n" not in str(e.value)
+
+
+# -- the trainee's view --------------------------------------------------------------------------
+
+def _rows_by_tick(store, entity, component, static=False):
+    ticks, _, values = columns(store, entity, component, static=static)
+    return dict(zip(ticks.tolist(), values))
+
+
+def test_section_draws_the_needle_and_its_tip_where_the_samples_put_them(recording):
+    """The section through a vertical needle at the acupoint is the x-z plane: the tip is drawn at
+    (x, z) in mm (in front of the bands), labelled with its depth, the needle 40 mm up from it."""
+    rows = recording.rows
+    tips = _rows_by_tick(recording.store, "/section/scene/tip", "Points3D:positions")
+    labels = _rows_by_tick(recording.store, "/section/scene/tip", "Points3D:labels")
+    needles = _rows_by_tick(recording.store, "/section/scene/needle", "LineStrips3D:strips")
+    assert len(tips) > 100
+    for tick, pos in tips.items():
+        x, z = rows[tick, C["x_m"]] * 1e3, rows[tick, C["z_m"]] * 1e3
+        p = np.array(pos[0])
+        np.testing.assert_allclose([p[0], p[2]], [x, z], atol=1e-9)
+        assert p[1] < 0.0  # in front of the bands (the camera looks along +y)
+        strip = np.array(needles[tick][0])
+        np.testing.assert_allclose(strip[1] - strip[0], [0.0, 0.0, 40.0], atol=1e-9)
+        if z < -0.5 and rows[tick, C["layer"]] >= 0:
+            assert labels[tick][0] == f"tip {rows[tick, C['depth_skin_m']] * 1e3:.1f} mm"
+
+
+def test_section_bands_follow_the_dented_skin(recording):
+    """While the tip presses the skin, the skin band's top at the needle's column is pressed in
+    (below its rest at 0, not below the tip); once through, the bands come back to rest."""
+    rows = recording.rows
+    bands = _rows_by_tick(recording.store, "/section/scene/layers/skin", "Mesh3D:vertex_positions")
+    pressed = []
+    for tick, verts in bands.items():
+        v = np.array(verts)
+        top = v[: len(v) // 2]
+        i = int(np.argmin(np.abs(top[:, 0])))  # the column at u = 0
+        if rows[tick, C["state_skin"]] == PRESSING and -rows[tick, C["z_m"]] > 0.3e-3:
+            assert rows[tick, C["z_m"]] * 1e3 - 1e-3 <= top[i, 2] < 0.0
+            pressed.append(top[i, 2])
+    assert len(pressed) >= 3
+    last = np.array(bands[max(bands)])
+    assert abs(last[np.argmin(np.abs(last[: len(last) // 2, 0])), 2]) < 0.02  # back at rest
+
+
+def test_verdict_gauge_and_dial(recording):
+    rows = recording.rows
+    lo, hi = recording.model.cfg.scene.target_depth_mm
+    texts = _rows_by_tick(recording.store, "/verdict", "TextDocument:text")
+    last_tick = max(texts)
+    depth = rows[last_tick, C["depth_skin_m"]] * 1e3
+    text = texts[last_tick][0]
+    words = "in range" if lo <= depth <= hi else f"past the target by {depth - hi:.1f} mm"
+    assert text.startswith(f"## Tip in muscle: {words}")
+    assert f"**Depth {depth:.1f} mm** along the needle" in text
+    assert "N pushing the needle back" in text
+    firsts = [t for t, v in texts.items() if v[0].startswith("## Tip in the air")]
+    assert firsts and min(texts) == min(firsts)
+    # the gauge's pointer ends at minus the tip's depth; the dial's pointer turns with the roll
+    arrows = _rows_by_tick(recording.store, "/gauge/tip", "Arrows3D:origins")
+    for tick, o in arrows.items():
+        if rows[tick, C["layer"]] >= 0:
+            assert o[0][2] == pytest.approx(-rows[tick, C["depth_skin_m"]] * 1e3, abs=1e-6)
+    dial = _rows_by_tick(recording.store, "/twirl/dial/pointer", "Arrows2D:vectors")
+    for tick, v in dial.items():
+        r = np.radians(rows[tick, C["roll_deg"]])
+        np.testing.assert_allclose(v[0], [0.95 * np.sin(r), -0.95 * np.cos(r)], atol=1e-6)
+
+
+def test_punctures_are_marked_in_the_section_and_the_gauge(recording):
+    rows = recording.rows
+    _, _, texts = columns(recording.store, "/events", "TextLog:text")
+    n = len(texts)
+    assert n >= 2
+    _, _, labels = columns(recording.store, "/section/scene/punctures", "Points3D:labels")
+    assert len(labels[-1]) == n and labels[-1][0].startswith("skin punctured")
+    _, _, marks = columns(recording.store, "/gauge/punctures", "Points3D:positions")
+    assert len(marks[-1]) == n
+    assert all(-m[2] > 0.0 for m in marks[-1])
+
+
+def test_the_recording_carries_its_layout(recording):
+    """A replay's file carries the instructor's layout: its views, read back from the recording."""
+    from haptic_acu.session.blueprints import view_origins
+    reader = recording.reader
+    got = view_origins(reader)
+    assert {"/section", "/gauge", "/twirl/dial", "/verdict", "/force/layer", "/force/part", "/depth", "/rates"} <= set(got)
+
+
+def test_danger_structures_are_drawn_in_the_section(recording, tmp_path):
+    """The hook for a point's danger structures: given to the sink, each is cut by the section and
+    drawn at /section/scene/danger/<name>, labelled with its name and kind."""
+    from haptic_acu.session.section import Structure
+
+    path = tmp_path / "danger.rrd"
+    sink = RerunSink.to_file(path, structures=[Structure("pleura", "membrane", np.array([0.0, 0.0, -0.037]),
+                                                         normal=np.array([0.0, 0.0, -1.0]))])
+    run_session(recording.model, recording.model.cfg, sink, z0=1e-3, z1=-2e-3)
+    store = RrdReader(path).store()
+    _, _, strips = columns(store, "/section/scene/danger/pleura", "LineStrips3D:strips")
+    _, _, labels = columns(store, "/section/scene/danger/pleura", "LineStrips3D:labels")
+    assert labels[-1] == ["pleura (membrane)"]
+    np.testing.assert_allclose(np.array(strips[-1][0])[:, 2], -37.0, atol=1e-9)  # 37 mm below the acupoint

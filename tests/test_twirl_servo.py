@@ -257,7 +257,7 @@ def test_session_metrics_report_the_twirl_of_each_insertion(cfg):
     m = session_metrics(_synthetic_rows(roll, t), cfg)
     tw = m["per_insertion"][0]["technique"]["twirl"]
     assert tw["cycles"] == 3
-    assert tw["amplitude_deg"] == pytest.approx(A, abs=0.01) and tw["swing_deg"] == pytest.approx(2 * A, abs=0.02)
+    assert tw["swing_deg"] == pytest.approx(2 * A, abs=0.02)
     assert tw["frequency_hz"] == pytest.approx(f, rel=1e-3)
     assert tw["peak_torque_nmm"] == pytest.approx(1e-3 * A, rel=1e-3)
     cl = m["per_insertion"][0]["technique"]["classification"]
@@ -294,13 +294,13 @@ def test_cohort_insertion_table_has_the_technique_columns(cfg):
     assert np.all(ref[:, COL["roll_deg"]] == 0.0) and np.all(ref[:, COL["torque_nmm"]] == 0.0)
     _, ins = insertion_table(rows, cfg, None, ref)
     names = {c.name for c in INSERTION_COLUMNS}
-    assert {"twirl_cycles", "twirl_amplitude_deg", "twirl_frequency_hz", "twirl_net_rotation_deg",
+    assert {"twirl_cycles", "twirl_swing_deg", "twirl_frequency_hz", "twirl_net_rotation_deg",
             "twirl_peak_torque_nmm", "thrust_to_lift", "grasp_felt_ratio", "technique"} <= names
     (row,) = ins
     assert row["technique"] == "reducing"
     # the file's own twirl: 10 twirls of 270 deg at 2.5 Hz (trajectories/make_twirl.py)
     assert row["twirl_cycles"] == 10
-    assert row["twirl_amplitude_deg"] == pytest.approx(135.0, rel=0.02)
+    assert row["twirl_swing_deg"] == pytest.approx(270.0, rel=0.02)
     assert row["twirl_frequency_hz"] == pytest.approx(2.5, rel=0.02)
     assert row["grasp_felt_ratio"] >= 1.0 - 1e-9
 

@@ -69,6 +69,8 @@ def test_wheel_carries_the_bundled_data_inside_the_package(installed):
     names = set(zipfile.ZipFile(installed["wheel"]).namelist())
     for f in _git_files("config", "trajectories"):
         assert f"haptic_acu/_bundled/{f}" in names, f"{f} is not package data in the wheel"
+    for f in _git_files("haptic_acu/session/layouts"):
+        assert f in names, f"{f} (a viewer layout) is not package data in the wheel"
     tops = {n.split("/")[0] for n in names}
     assert tops == {"haptic_acu", f"haptic_acu-{installed['wheel'].name.split('-')[1]}.dist-info"}, tops
     for f in _git_files("devices", "bench"):

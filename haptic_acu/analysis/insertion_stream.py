@@ -45,6 +45,7 @@ _X, _F, _T, _TICK = COL["x_m"], COL["fx_n"], COL["t_s"], COL["tick"]
 _PUNCT, _DEPTH, _LAT = COL["puncture"], COL["depth_skin_m"], COL["f_lateral_n"]
 _LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
 _ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
+_LAYER, _CLAMPED = COL["layer"], COL["clamped"]
 NONE, NEW, REV = 0, 1, 2
 
 
@@ -226,7 +227,6 @@ class _Twirl:
             "cycles": (n + 1) // 2,
             "reversals": n,
             "swing_deg": _r(swing, 2),
-            "amplitude_deg": _r(None if swing is None else swing / 2.0, 2),
             "frequency_hz": _r(freq, 3),
             "mean_speed_deg_s": _r(speed, 1),
             "net_rotation_deg": _r(self.last - self.first, 2),
@@ -369,6 +369,7 @@ class InsertionStream:
         self.p0 = None
         self.skin_punctured = False
         self.lat_over, self.lat_max = 0, -math.inf
+        self.bone_ticks = self.clamped_ticks = 0  # ticks with the tip in bone, with the force clamped
         self.max_depth = -math.inf
         self.p_deep = None
         self.records: list[np.ndarray] = []  # rows (index, depth, t, px, py, pz), depth-pruned
@@ -423,6 +424,8 @@ class InsertionStream:
         self.press.feed(rows, tip)
         lat = rows[:, _LAT]
         self.lat_over += int(np.count_nonzero(lat > self.comfort))
+        self.bone_ticks += int(np.count_nonzero(rows[:, _LAYER] == 3))
+        self.clamped_ticks += int(np.count_nonzero(rows[:, _CLAMPED]))
         self.lat_max = max(self.lat_max, float(lat.max()))
         self._records(i0, t, depth, rows[:, _X:_X + 3])
         if self.k_lo is None:
@@ -573,6 +576,7 @@ class InsertionStream:
             "lift_thrust": self._cycles(k_start),
             "lateral": {"ticks_over": self.lat_over, "time_over_s": 0.0, "max_n": _r(self.lat_max, 4)},
             "time_in_tissue_s": 0.0,
+            "_bone_ticks": self.bone_ticks, "_clamped_ticks": self.clamped_ticks,  # times at result()
         }
         if self.press.tip_max > -math.inf:
             out["max_tip_depth_mm"] = _r(max(self.press.tip_max, 0.0) * 1e3, 3)

@@ -53,6 +53,8 @@ Per insertion:
 * ``lateral``: ticks of the run with ``f_lateral_n`` (the lateral-constraint force) above the comfort
   bound, their duration, and the run's largest lateral force.
 * ``time_in_tissue_s``: the run's duration (ticks times the tick period).
+* ``time_on_bone_s`` and ``time_at_force_limit_s``: the run's ticks with the tip in bone, and with
+  the force clamped to the device's limit (``safety.force_limit_n``), times the tick period.
 * ``technique``: the manipulation (:func:`haptic_acu.analysis.technique.technique_metrics`, docs/model.md
   "Technique metrics") over the run, on its continuous depth along the insertion direction (mm), the
   roll (``roll_deg``), the twist torque (``torque_nmm``) and the axial force ``f_axial_n`` = -F . u
@@ -60,8 +62,10 @@ Per insertion:
   amplitude in degrees, frequency in Hz, net and total rotation, mean speed, peak torque),
   ``lift_thrust_forces`` (thrust and lift resistances and speeds, their ratio), ``grasp_felt`` (the
   withdrawal's resistance against the same withdrawal without rotation: only when the caller passes
-  the rows of that replay, ``reference_rows``; else None) and ``classification`` (reinforcing /
-  reducing / even, with its inputs, thresholds and source).
+  the rows of that replay, ``reference_rows``, and the needle turned; else None) and
+  ``classification`` (reinforcing / reducing / even, with its inputs, thresholds and source; no
+  label, and ``withheld`` saying why, for a run that touched bone or the force limit: those strokes
+  felt the bone or the device's limit, not the tissue: :func:`contact_and_label`).
 
 Session level: ``insertions`` (count), ``skin_punctures`` (insertions that broke intact skin),
 ``time_in_tissue_s`` and ``lateral`` summed over insertions. The tick period is the median interval
@@ -89,6 +93,7 @@ _SKIN = COL["state_skin"]
 _PUNCT = COL["puncture"]
 _DEPTH = COL["depth_skin_m"]
 _LAT = COL["f_lateral_n"]
+_LAYER, _CLAMPED = COL["layer"], COL["clamped"]
 _LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
 _ROLL, _TORQUE, _TICK = COL["roll_deg"], COL["torque_nmm"], COL["tick"]
 
@@ -298,7 +303,8 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         out["max_tip_depth_mm"] = _r(max(float(tip_depth[e:last + 1].max()), 0.0) * 1e3, 3)
     out["punctures"] = [p for p in punctures if t_entry <= p["t_s"] <= t_exit]
     out["technique"] = _technique(run, dc, u, _reference_run(reference_rows, run))
-    return out
+    return contact_and_label(out, int(np.count_nonzero(run[:, _LAYER] == BONE)),
+                             int(np.count_nonzero(run[:, _CLAMPED])), dt)
 
 
 def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N,
@@ -329,6 +335,29 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
                                     ref) for a, b in insertion_runs(rows[:, _SKIN])]
     return _session_dict(insertions, int(np.count_nonzero(rows[:, _SKIN] == PUNCTURED)), dt, target,
                          lateral_comfort_n)
+
+
+BONE = 3  # the sample ``layer`` code of bone
+WITHHELD = ("the tip touched bone or the force was held at the device's limit during this insertion: its "
+            "strokes felt the bone or the limit, not the tissue")
+
+
+def contact_and_label(m: dict, bone_ticks: int, clamped_ticks: int, dt: float) -> dict:
+    """An insertion's ``time_on_bone_s`` (ticks with the tip in bone) and ``time_at_force_limit_s``
+    (ticks with the force clamped to the device's limit), and what they do to its technique: no
+    label (``classification.withheld`` says why) when either is not zero; no grasp felt without
+    any rotation. Shared by the batch and the streamed metrics; returns ``m`` updated (its
+    technique dicts copied, not changed in place)."""
+    m["time_on_bone_s"] = _r(bone_ticks * dt, 4)
+    m["time_at_force_limit_s"] = _r(clamped_ticks * dt, 4)
+    tech = dict(m["technique"])
+    if not tech["twirl"]["total_rotation_deg"]:
+        tech["grasp_felt"] = None
+    if bone_ticks or clamped_ticks:
+        tech["classification"] = dict(tech["classification"], label=None, twirl_vote=None, lift_thrust_vote=None,
+                                      withheld=WITHHELD)
+    m["technique"] = tech
+    return m
 
 
 def _session_dict(insertions, punctured_rows, dt, target, lateral_comfort_n) -> dict:
@@ -482,5 +511,6 @@ class SessionMetricsScan:
             m["time_in_tissue_s"] = _r(n_run * dt, 4)
             m["punctures"] = [p for p in punctures if m["t_entry_s"] <= p["t_s"] <= m["t_exit_s"]]
             m["technique"] = m.pop("technique")
+            m = contact_and_label(m, m.pop("_bone_ticks"), m.pop("_clamped_ticks"), dt)
             insertions.append(m)
         return _session_dict(insertions, self.punctured_rows, dt, self.target, self.comfort)

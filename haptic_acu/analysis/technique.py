@@ -25,8 +25,8 @@ reversals.
 Twirling (:func:`twirl_metrics`): ``cycles`` = (reversals + 1) // 2 (a twirl from rest and back
 to rest has an odd or even number of reversals as it starts at one end of its swing or in the
 middle: both count N for N back-and-forth turns); ``swing_deg`` the mean angle
-turned between consecutive reversals (the textbooks' "twirling angle"), ``amplitude_deg`` half
-of it (a roll of A sin(2 pi f t) has amplitude A and swing 2A); ``frequency_hz`` = (reversals - 1)
+turned between consecutive reversals, peak to peak (the textbooks' "twirling angle"; a roll of
+A sin(2 pi f t) has swing 2A): the one twirl amplitude every output shows; ``frequency_hz`` = (reversals - 1)
 / 2 over the time from the first reversal to the last (exact for a sinusoid); ``net_rotation_deg``
 last roll minus first; ``total_rotation_deg`` the sum of |roll increments|; ``mean_speed_deg_s``
 the rotation between the first and last reversal over that time; ``peak_torque_nmm`` max |torque|.
@@ -140,7 +140,6 @@ def twirl_metrics(t_s, roll_deg, torque_nmm=None, min_swing_deg: float = ROLL_MI
         "cycles": (n + 1) // 2,
         "reversals": n,
         "swing_deg": _r(swing, 2),
-        "amplitude_deg": _r(None if swing is None else swing / 2.0, 2),
         "frequency_hz": _r(freq, 3),
         "mean_speed_deg_s": _r(speed, 1),
         "net_rotation_deg": _r(roll[-1] - roll[0], 2) if len(roll) else 0.0,

@@ -337,6 +337,28 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
     lo, hi = cfg.scene.target_depth_mm
     if not 0 <= lo < hi:
         _fail(path, "scene.target_depth_mm", f"must be [low, high] with 0 <= low < high, got {[lo, hi]}")
+    half = min(cfg.body.semi_axes_mm)
+    for layer in cfg.layers:  # a net reaching round the body: its flat patch is no longer the surface
+        radius = (layer.rings - 1) * layer.spring_length_mm
+        if radius > half:
+            _fail(path, f"{layer.name}.rings", f"the net's radius (rings - 1) x spring_length_mm = {radius:g} mm "
+                  f"is wider than the body's smallest semi-axis body.semi_axes_mm = {half:g} mm")
+    _check_costs(path, cfg)
+
+
+def _check_costs(path: Path, cfg: TissueConfig) -> None:
+    """Settings whose product would take more than the budget (:mod:`haptic_acu.base.budget`):
+    refused now, naming the keys and the cost, not after minutes of solving."""
+    from . import budget
+
+    budget.check_sh_fit(cfg.body.lmax, cfg.body.fit_samples, str(path))
+    tables = cfg.solver.servo_net == "table"
+    for layer in cfg.layers:
+        if tables:
+            budget.check_net(layer.name, layer.rings, cfg.solver.static_tolerance_um, str(path))
+
+
+MAX_CONFIG_BYTES = 1 << 20
 
 
 def _bundled_section(name: str) -> dict:
@@ -347,11 +369,19 @@ def _bundled_section(name: str) -> dict:
 def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
     """Load and validate a tissue config (default ``config/tissue.toml``); ``overrides``: the
     command line's ``--set section.key=value`` items (:mod:`haptic_acu.base.overrides`)."""
+    from .csvin import check_source
+
     path = Path(path) if path is not None else DEFAULT_CONFIG
     try:
+        st = check_source(path, "config file")  # a device or a pipe never ends: refused unread
+        if st.st_size > MAX_CONFIG_BYTES:
+            raise UserError(f"{path}: {st.st_size / 1e6:.0f} MB; a config file is at most "
+                            f"{MAX_CONFIG_BYTES >> 20} MB")
         raw = path.read_bytes()
-    except FileNotFoundError:
-        raise UserError(f"{path}: config file not found") from None
+    except UserError as e:
+        if "no such file" in str(e):
+            raise UserError(f"{path}: config file not found") from None
+        raise
     except OSError as e:
         raise UserError(f"{path}: cannot read config: {e.strerror}") from None
     try:
@@ -359,6 +389,8 @@ def load_config(path: str | Path | None = None, overrides=None) -> TissueConfig:
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a UTF-8 text file") from None
     except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: invalid TOML: {e}") from None
+    except ValueError as e:  # an integer of over 4300 digits
         raise UserError(f"{path}: invalid TOML: {e}") from None
     for name in _OPTIONAL_SECTIONS:
         if name not in data and path.resolve() != DEFAULT_CONFIG.resolve():

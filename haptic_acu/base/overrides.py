@@ -30,6 +30,9 @@ def parse_set(item: str) -> tuple[str, str, object]:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
+    except ValueError:  # an integer of over 4300 digits
+        raise UserError(f"--set {name}: a number of {len(text)} characters is not a value any key "
+                        "takes") from None
     return section, key, value
 
 

@@ -25,6 +25,7 @@ COMMANDS = {
     "cohort": "haptic_acu.cli.cohort",
     "study": "haptic_acu.cli.study",
     "points": "haptic_acu.cli.points",
+    "view": "haptic_acu.cli.view",
 }
 
 

@@ -10,11 +10,15 @@ def register(sub) -> None:
                                    "start, the first replay with empty caches and cohort throughput; print a table with the targets (pass/miss). Never fails on a number. "
                                    "Full run a few minutes; --quick well under that.")
     p.add_argument("--quick", action="store_true", help="fewer samples and a 5 s real-time loop (CI)")
-    p.add_argument("--json", metavar="FILE", help="also write every figure to FILE as JSON")
+    p.add_argument("--json", metavar="FILE", help="also write every figure to FILE as JSON (an existing file "
+                                                  "only with --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="let --json replace an existing file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from haptic_acu.bench.run import main
 
-    return main(quick=args.quick, json_path=args.json)
+    from ..base.outputs import Outputs
+    Outputs(overwrite=args.overwrite).file("--json", args.json).check()  # before minutes of measuring
+    return main(quick=args.quick, json_path=args.json, overwrite=args.overwrite)

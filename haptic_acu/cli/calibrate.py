@@ -22,10 +22,10 @@ viscous from Coulomb), and the kernels are run tick by tick at the curve's speed
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -59,27 +59,28 @@ def register(sub) -> None:
 
 
 # ---- the curve ----------------------------------------------------------------------------------------
+MAX_CURVE_DEPTH_MM = 200.0  # deeper than any needle goes: a curve in micrometres?
+MIN_CURVE_SPAN_MM = 0.5  # a curve spanning less than this: depth in metres?
+MAX_CURVE_FORCE_N = 50.0  # a needle insertion's force is a few newtons: force in millinewtons?
+
+
 def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_mm, force_n) of a curve file; UserError naming the file and line on anything wrong."""
+    """(depth_mm, force_n) of a curve file; UserError naming the file and line on anything wrong.
+    Read by :func:`haptic_acu.base.csvin.read_table` (its limits; a BOM is accepted); a curve whose
+    numbers say they are in other units (metres, millinewtons) is refused."""
+    from ..base.csvin import read_table
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"{path}: cannot read: {e}") from None
-    rows = [(i + 1, line) for i, line in enumerate(text.splitlines())
-            if line.strip() and not line.lstrip().startswith("#")]
-    if not rows:
-        raise UserError(f"{path}: empty (expected a header depth_mm,force_n and rows)")
-    header = [h.strip() for h in next(csv.reader([rows[0][1]]))]
+    table = read_table(path, "curve file")
+    header = table.header
     for need in ("depth_mm", "force_n"):
         if need not in header:
-            raise UserError(f"{path}: line {rows[0][0]}: header has no '{need}' column (got {','.join(header)})")
+            raise UserError(f"{path}: line {table.header_line}: header has no '{need}' column (got "
+                            f"{','.join(header)[:200]})")
     ix, ifc = header.index("depth_mm"), header.index("force_n")
     x, f = [], []
-    for lineno, line in rows[1:]:
-        cells = next(csv.reader([line]))
+    for row in table.rows:
+        lineno, cells = row.line, row.fields
         try:
             a, b = float(cells[ix]), float(cells[ifc])
         except (IndexError, ValueError):
@@ -95,6 +96,16 @@ def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
     x, f = np.array(x), np.array(f)
     if x[0] < 0:
         raise UserError(f"{path}: depth starts at {x[0]:g} mm; depth is measured from the first touch (>= 0)")
+    span, peak = float(x[-1] - x[0]), float(np.abs(f).max())
+    if span < MIN_CURVE_SPAN_MM:
+        raise UserError(f"{path}: depth_mm spans {span:.3g} mm: is the depth in metres? (depth_mm is in "
+                        f"millimetres; a needle insertion spans {MIN_CURVE_SPAN_MM:g} mm at least)")
+    if x[-1] > MAX_CURVE_DEPTH_MM:
+        raise UserError(f"{path}: depth_mm reaches {x[-1]:.4g} mm: is the depth in micrometres? (depth_mm "
+                        f"is in millimetres; at most {MAX_CURVE_DEPTH_MM:g})")
+    if peak > MAX_CURVE_FORCE_N:
+        raise UserError(f"{path}: force_n reaches {peak:.4g} N: is the force in mN? (force_n is in newtons; "
+                        f"a needle insertion's force is at most {MAX_CURVE_FORCE_N:g} N)")
     return x, f
 
 
@@ -208,6 +219,20 @@ def rise_report(fit, x, f, ib, tol_m):
 
 
 # ---- after the break: cutting and friction ------------------------------------------------------------
+POST_S_PER_TICK = 25e-6  # post_model: a Python loop over the servo kernels, 25 us a tick measured
+POST_BYTES_PER_TICK = 16.0  # its tick and force arrays
+
+
+def check_post_cost(speed_mm_s: float, length_mm: float) -> None:
+    """Refuse a curve whose post-break stretch replayed tick by tick at ``speed_mm_s`` would pass the
+    cost budget (:mod:`haptic_acu.base.budget`)."""
+    from ..base.budget import check_ticks
+
+    ticks = length_mm / speed_mm_s * 1e3
+    check_ticks(f"--speed-mm-s {speed_mm_s:g} over the curve's {length_mm:.3g} mm after the break", ticks,
+                POST_S_PER_TICK, POST_BYTES_PER_TICK)
+
+
 def post_model(layer, needle, thickness_mm, x_mm, xb_mm, speed_m_s):
     """Force magnitude (N) the rich mechanics give at depths ``x_mm`` after a break at ``xb_mm``, the
     tip advancing at ``speed_m_s`` in the first layer, run tick by tick with the servo's kernels."""
@@ -320,10 +345,13 @@ def _write_checked(out: Path, text: str) -> None:
 
 
 def run(args) -> int:
+    from ..base.outputs import Outputs
+
     t0 = time.perf_counter()
     out = Path(args.out)
-    if out.exists():
+    if out.exists() or out.is_symlink():
         raise UserError(f"{out}: exists; calibrate never overwrites a file (choose another --out)")
+    Outputs().input("CURVE.csv", args.curve).input("--config", args.config).file("--out", out).check()
     if not (math.isfinite(args.speed_mm_s) and args.speed_mm_s > 0):
         raise UserError(f"--speed-mm-s must be a positive number, got {args.speed_mm_s}")
     cfg = config_from_args(args)
@@ -333,6 +361,11 @@ def run(args) -> int:
         cfg = dataclasses.replace(cfg, needle=dataclasses.replace(cfg.needle, diameter_mm=args.needle_diameter_mm))
     x, f = read_curve(args.curve)
     ib = find_break(args.curve, x, f)
+    check_post_cost(args.speed_mm_s, float(x[-1] - x[ib]))
+    if f[ib] > cfg.safety.force_limit_n:
+        print(f"haptic-acu: warning: {args.curve}: the break at {f[ib]:.3g} N is beyond the device's "
+              f"{cfg.safety.force_limit_n:g} N (safety.force_limit_n): the fitted skin cannot be felt to break",
+              file=sys.stderr)
     tol_m = cfg.solver.static_tolerance_um * 1e-6
     w = cfg.skin.rings
     max_spacing = NET_RADIUS_OF_BODY * min(cfg.body.semi_axes_mm) / (w - 1)

@@ -1,6 +1,7 @@
 """``haptic-acu cohort``: a class's recorded sessions replayed into one table (see :mod:`haptic_acu.cohort.sessions`)."""
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -21,7 +22,12 @@ def register(sub) -> None:
     add_config_args(p)
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                    help="run the replays on this Dask distributed scheduler (workers need haptic-acu and the files)")
-    p.add_argument("--jobs", type=int, default=0, help="local worker processes (default: the usable cores)")
+    p.add_argument("--scheduler-timeout", type=float, default=60.0, metavar="S",
+                   help="give up when the scheduler cannot be reached, no worker has joined, or every worker "
+                        "has been lost, for this many seconds (default %(default)s)")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="local worker processes (default: the usable cores; more than the cores, or than the "
+                        "memory holds, are lowered with a note)")
     p.add_argument("--force", action="store_true", help="replay every session, even those up to date")
     p.add_argument("--session-files", action="store_true",
                    help="also write each replayed session's samples.csv, summary.json and force_depth.png "
@@ -43,9 +49,54 @@ def run(args) -> int:
     cfg = config_from_args(args)
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0, got {args.jobs}")
+    if not (math.isfinite(args.scheduler_timeout) and 0 < args.scheduler_timeout <= 86400):
+        raise UserError(f"--scheduler-timeout must be a number of seconds in (0, 86400], got {args.scheduler_timeout}")
+    from ..base.outputs import Outputs
+    from ..cohort.sessions import STATE_DIR
+    out = Path(args.out)
+    Outputs().input("MANIFEST.csv", manifest.path).input("--config", args.config).folder(
+        "--out", out, resumable=STATE_DIR, owner="cohort").check()
     points = session_points(manifest, cfg, args.point, args.patient)  # bad names: one line, before any work
-    return run_cohort(manifest, Path(args.out), cfg, jobs=args.jobs, scheduler=args.scheduler,
-                      force=args.force, quiet=args.quiet, session_files=args.session_files, points=points)
+    jobs = args.jobs
+    if not args.scheduler:
+        jobs, note = bounded_jobs(args.jobs)
+        if note:
+            print(f"haptic-acu: note: {note}", file=sys.stderr)
+    return run_cohort(manifest, out, cfg, jobs=jobs, scheduler=args.scheduler,
+                      force=args.force, quiet=args.quiet, session_files=args.session_files,
+                      timeout_s=args.scheduler_timeout, points=points)
+
+
+WORKER_BYTES = 300 << 20  # a replay worker's resident memory (measured: 4.7 GB for 16 workers)
+
+
+def _available_bytes() -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def bounded_jobs(jobs: int) -> tuple[int, str | None]:
+    """The local pool's size: ``jobs`` (0: one per usable core), at most one per usable core (a replay
+    is compute bound: more processes only share the cores, and each takes its memory) and at most as
+    many as the available memory holds; a note saying why when ``jobs`` was lowered."""
+    cores = max(1, len(os.sched_getaffinity(0)))
+    avail = _available_bytes()
+    by_mem = max(1, avail // WORKER_BYTES) if avail is not None else cores
+    n = min(jobs or cores, cores, by_mem)
+    if jobs and n < jobs:
+        why = (f"{cores} usable core(s)" if n == cores else
+               f"{avail / (1 << 30):.1f} GB of memory available, about {WORKER_BYTES >> 20} MB a worker")
+        return n, f"--jobs {jobs} lowered to {n}: {why}"
+    if not jobs and n < cores:
+        return n, (f"{n} worker(s), not one per core: {avail / (1 << 30):.1f} GB of memory available, about "
+                   f"{WORKER_BYTES >> 20} MB a worker")
+    return n, None
 
 
 def session_points(manifest, cfg, point=None, patient=None) -> dict:
@@ -70,9 +121,24 @@ def session_points(manifest, cfg, point=None, patient=None) -> dict:
     return out
 
 
+SESSION_FILES = {"samples.csv", "summary.json", "force_depth.png"}
+
+
+def _drop_stale_session_files(sdir: Path) -> None:
+    """Remove a session's files folder an earlier run wrote (only those files in it): the session is
+    replayed now, with another configuration or input, without --session-files, so the folder would
+    otherwise keep the old results beside the new tables, unmarked."""
+    import shutil
+
+    if sdir.is_dir() and not sdir.is_symlink():
+        names = {q.name for q in sdir.iterdir()}
+        if names and names <= SESSION_FILES:
+            shutil.rmtree(sdir, ignore_errors=True)
+
+
 def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: bool = False,
                quiet: bool = False, stream=None, stats: dict | None = None, session_files: bool = False,
-               points: dict | None = None) -> int:
+               timeout_s: float = 60.0, points: dict | None = None) -> int:
     """Run the cohort (see the module); returns the exit status: 0, or 2 when a session failed.
     ``scheduler``: None (local pool), a ``tcp://`` address, or a ``distributed.Client``. ``stats``
     (a dict, optional) receives ``replayed``, ``skipped``, ``replay_s`` (the replays' wall time,
@@ -81,22 +147,25 @@ def run_cohort(manifest, out: Path, cfg, jobs: int = 0, scheduler=None, force: b
 
     stream = stream if stream is not None else sys.stderr
     # reach the cluster before the output folder is made or locked: a wrong address leaves nothing
-    client = connect(scheduler) if isinstance(scheduler, str) else scheduler
+    client = connect(scheduler, timeout_s) if isinstance(scheduler, str) else scheduler
     try:
-        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, points or {})
+        return _run(manifest, out, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s,
+                    points or {})
     finally:
         if isinstance(scheduler, str):
             client.close()
 
 
-def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, points) -> int:
+def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, session_files, timeout_s,
+         points) -> int:
     from ..cohort import report as cohort_report, tables as cohort_tables
     from ..cohort.sessions import CohortDir, Job, config_hash, file_sha256, point_hash, record_name, up_to_date
-    from ..cohort.run import ProgressLine, run_dask, run_local
+    from ..cohort.run import ProgressLine, run_dask, run_local, wait_for_workers
 
     csha = config_hash(cfg)
     records, todo, failed_lines = {}, [], []
     t0 = time.perf_counter()
+    fresh = not out.exists()  # made by this run: removed again if every session fails
     with CohortDir(out) as cd:
         for e in manifest.entries:
             try:
@@ -117,6 +186,8 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
             if not force and up_to_date(rec, isha, csha_s) and files_ok:
                 records[e.session] = rec
             else:
+                if not session_files:
+                    _drop_stale_session_files(sdir)  # replayed anew without them: the old ones are not its
                 todo.append(Job(e.session, str(e.path.resolve()), cfg, isha, csha_s, str(sdir) if session_files else None,
                                 *(pt or (None, None))))
         skipped = len(manifest.entries) - len(todo) - len(failed_lines)
@@ -142,20 +213,32 @@ def _run(manifest, out: Path, cfg, jobs, client, force, quiet, stream, stats, se
                 run_local(todo, workers, on_result)
                 where = f"local, {min(workers, max(1, len(todo)))} process(es)"
             else:
-                where = f"dask at {client.scheduler.address}, {sum(client.nthreads().values())} worker thread(s)"
-                run_dask(todo, client, on_result)
+                threads = wait_for_workers(client, timeout_s, stream)
+                where = f"dask at {client.scheduler.address}, {threads} worker thread(s)"
+                run_dask(todo, client, on_result, timeout_s=timeout_s, stream=stream)
         finally:
             progress.close()
         run_s = time.perf_counter() - t_run
-        tables = cohort_tables.write(out, manifest, records)
-        ses_rows = tables["sessions"].to_pylist()
-        failed = sum(1 for r in ses_rows if r["error"])
-        extra = {"manifest": str(manifest.path), "sessions": len(ses_rows), "failed": failed,
-                 "insertions": sum(r["insertions"] or 0 for r in ses_rows), "config": cfg.path,
-                 "config_sha256": csha, "columns": cohort_tables.columns_doc()}
-        report = cohort_report.write_report(out, ses_rows, extra)
-        from ..cohort.sessions import write_atomic
-        write_atomic(out / "report.json", cohort_tables.dumps(report).encode())
+        if fresh and records and all(r.get("error") for r in records.values()):
+            all_failed = True  # nothing to show: the folder this run made goes again
+        else:
+            all_failed = False
+            tables = cohort_tables.write(out, manifest, records)
+        if not all_failed:
+            ses_rows = tables["sessions"].to_pylist()
+            failed = sum(1 for r in ses_rows if r["error"])
+            extra = {"manifest": str(manifest.path), "sessions": len(ses_rows), "failed": failed,
+                     "insertions": sum(r["insertions"] or 0 for r in ses_rows), "config": cfg.path,
+                     "config_sha256": csha, "columns": cohort_tables.columns_doc()}
+            report = cohort_report.write_report(out, ses_rows, extra)
+            from ..cohort.sessions import write_atomic
+            write_atomic(out / "report.json", cohort_tables.dumps(report).encode())
+    if all_failed:
+        import shutil
+        shutil.rmtree(out, ignore_errors=True)
+        if not quiet:
+            print(f"haptic-acu cohort: every session failed: nothing written (no {out}/ left)", file=stream)
+        return 2
     if stats is not None:
         stats.update(replayed=len(todo), skipped=skipped, replay_s=run_s, total_s=time.perf_counter() - t0)
     if not quiet:

@@ -33,16 +33,17 @@ import numpy as np
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.config import MODEL_KINDS
 from ..base.errors import UserError
+from ..base.outputs import plain_text
 from .options import add_config_args, config_from_args
 from ..base.progress import step
 from .replay import fresh_path
 from ..servo.samples import COL, NCOL
+from ..analysis.quantities import BY_NAME, QUANTITIES, fmt, value
 from ..servo.state import PLACE_NAMES
 
 COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
-# per-insertion numbers whose difference from the first session goes into compare.json
-DIFF_KEYS = ("entry_offset_mm", "angle_deg", "max_depth_mm", "max_tip_depth_mm", "insertion_speed_mm_s",
-             "time_to_target_s", "peak_total_force_n", "time_in_tissue_s")
+# per-insertion numbers whose difference from the first session goes into compare.json (by their one name)
+DIFF_KEYS = tuple(q.name for q in QUANTITIES if q.path and q.unit and q.name != "t_entry_s")
 
 
 def register(sub) -> None:
@@ -154,25 +155,17 @@ def _puncture_peak(layer: str):
     return cell
 
 
-INSERTION_ROWS = (
-    ("entry offset from acupoint (mm)", lambda i: f"{i['entry_offset_mm']:.2f}"),
-    ("angle to skin normal (deg)", lambda i: _fmt(i["angle_deg"], ".1f")),
-    ("needle depth in tissue (mm)", lambda i: f"{i['max_depth_mm']:.2f} {i['depth_verdict']}"),
-    ("tip below the rest skin (mm)", lambda i: _fmt(i.get("max_tip_depth_mm"), ".2f")),
-    ("insertion speed (mm/s)", lambda i: _fmt(i["insertion_speed_mm_s"], ".2f")),
-    ("time to target depth (s)", lambda i: _fmt(i["time_to_target_s"], ".3f")),
+def _quantity_row(q):
+    return (q.label, lambda i: fmt(i, q))
+
+
+# one row per quantity (analysis/quantities.py: the one name, label and resolution of each), and the
+# punctures' peaks (the summary's punctures)
+INSERTION_ROWS = tuple(_quantity_row(q) for q in QUANTITIES if q.label and q.path
+                       and q.name not in ("time_in_tissue_s",)) + (
     ("skin puncture: peak |F| (N)", _puncture_peak("skin")),
     ("fat puncture: peak |F| (N)", _puncture_peak("fat")),
     ("muscle puncture: peak |F| (N)", _puncture_peak("muscle")),
-    ("lift-thrust cycles", lambda i: str(i["lift_thrust"]["cycles"])),
-    ("mean lift amplitude (mm)", lambda i: _fmt(i["lift_thrust"]["mean_amplitude_mm"], ".2f")),
-    ("lift-thrust frequency (Hz)", lambda i: _fmt(i["lift_thrust"]["frequency_hz"], ".2f")),
-    ("max lateral force (N)", lambda i: f"{i['lateral']['max_n']:.3f}"),
-    ("twirl cycles", lambda i: str(_tech(i, "twirl", "cycles"))),
-    ("twirl swing (deg)", lambda i: _fmt(_tech(i, "twirl", "swing_deg"), ".0f")),
-    ("twirl frequency (Hz)", lambda i: _fmt(_tech(i, "twirl", "frequency_hz"), ".2f")),
-    ("thrust / lift resistance", lambda i: _fmt(_tech(i, "lift_thrust_forces", "thrust_to_lift"), ".2f")),
-    ("technique", lambda i: _tech(i, "classification", "label") or "-"),
 )
 
 
@@ -235,8 +228,7 @@ def differences(metrics) -> list[dict]:
     for m in metrics[1:]:
         per = []
         for a, b in zip(base, m["per_insertion"]):
-            per.append({k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0
-                        for k in DIFF_KEYS})
+            per.append({k: _diff(a, b, k) for k in DIFF_KEYS})
         out.append({"insertions": m["insertions"] - metrics[0]["insertions"], "per_insertion": per})
     return out
 
@@ -244,14 +236,24 @@ def differences(metrics) -> list[dict]:
 def first_insertion_diff(metrics) -> dict:
     """B minus A for the first insertion's numbers (None where either is missing)."""
     a, b = (m["per_insertion"][0] if m["per_insertion"] else {} for m in metrics[:2])
-    return {k: None if a.get(k) is None or b.get(k) is None else round(b[k] - a[k], 4) + 0.0 for k in DIFF_KEYS}
+    return {k: _diff(a, b, k) for k in DIFF_KEYS}
+
+
+def _diff(a: dict, b: dict, name: str):
+    """B minus A of one quantity, at its resolution (None where either has none)."""
+    q = BY_NAME[name]
+    va, vb = value(a, q), value(b, q)
+    if va is None or vb is None:
+        return None
+    return round(vb - va, q.decimals) + 0.0
 
 
 # ---- the figure -------------------------------------------------------------------------------
 def session_curve(rows, tissue, punctures=None, index=None) -> tuple:
     """One session's curve for :func:`plot_curves`: (tip depth below the rest skin in mm, ``F . u``
-    in N, insertion index per row, punctures, each puncture's insertion index). ``rows``: every row
-    or the bounded envelope of :class:`haptic_acu.session.report.FigureRows` with its ``index``."""
+    in N, insertion index per row, punctures, each puncture's insertion index, time in s, roll in
+    deg). ``rows``: every row or the bounded envelope of
+    :class:`haptic_acu.session.report.FigureRows` with its ``index``."""
     from ..session.report import SessionScan, insertion_index, puncture_records, radial_force_n, tip_depth_m, tissue_of
 
     tissue = tissue_of(tissue)
@@ -263,25 +265,60 @@ def session_curve(rows, tissue, punctures=None, index=None) -> tuple:
     ev = punctures if punctures is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
     t = rows[:, COL["t_s"]]
     ev_idx = [int(idx[min(int(np.searchsorted(t, e["t_s"] - 5e-5)), len(idx) - 1)]) for e in ev]
-    return depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx
+    return depth * 1e3, radial_force_n(rows, tissue), idx, ev, ev_idx, t.copy(), rows[:, COL["roll_deg"]].copy()
 
 
 def plot_compare(rows_list, labels, path, tissue, punctures_list=None, insertion: int | None = None,
-                 dpi: int = 110) -> None:
+                 dpi: int = 110, target_mm=None, force_limit_n=None) -> None:
     """``F . u`` (N) against the tip's depth below the rest skin (mm) for every session, as in
     force_depth.png (:func:`haptic_acu.session.report.tip_depth_m`, :func:`~haptic_acu.session.report.radial_force_n`,
-    the same layer bands), one colour per session, one panel per insertion (``insertion``, 1-based:
-    that one only; each session's approach is drawn with its first insertion), punctures marked
-    (``punctures_list``: each session's :func:`~haptic_acu.session.report.puncture_records`; else found here).
-    ``tissue``: a Tissue or a TissueConfig. PNG without a date or software stamp: identical input
-    gives identical bytes."""
+    the same layer bands), one colour and line style per session, one panel per insertion
+    (``insertion``, 1-based: that one only; each session's approach is drawn with its first
+    insertion), punctures marked (``punctures_list``: each session's
+    :func:`~haptic_acu.session.report.puncture_records`; else found here); see :func:`plot_curves`.
+    ``tissue``: a Tissue or a TissueConfig (whose target depth and force limit are then drawn unless
+    given). PNG without a date or software stamp: identical input gives identical bytes."""
+    if hasattr(tissue, "scene"):
+        target_mm = target_mm if target_mm is not None else tuple(tissue.scene.target_depth_mm)
+        force_limit_n = force_limit_n if force_limit_n is not None else tissue.safety.force_limit_n
     curves = [session_curve(rows, tissue, None if punctures_list is None else punctures_list[j])
               for j, rows in enumerate(rows_list)]
-    plot_curves(curves, labels, path, tissue, insertion, dpi)
+    plot_curves(curves, labels, path, tissue, insertion, dpi, target_mm=target_mm, force_limit_n=force_limit_n)
 
 
-def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110) -> None:
-    """:func:`plot_compare` from each session's :func:`session_curve`."""
+# per session: line style and width, so sessions drawn on one another stay told apart (a dashed
+# line over a solid one of another colour shows both)
+STYLES = ("-", (0, (5, 3)), (0, (1.5, 2.5)), (0, (6, 2, 1.5, 2)))
+WIDTHS = (2.6, 1.8, 1.4, 1.1)
+TARGET_COLOUR = "0.3"  # no session colour: the hatch is told from every curve
+LIMIT_COLOUR = "#c62828"
+FORCE_SIGN = "+ = the tissue pushes the needle out"
+
+
+def _style(j: int) -> dict:
+    return {"color": COLOURS[j % len(COLOURS)], "ls": STYLES[j % len(STYLES)], "lw": WIDTHS[j % len(WIDTHS)]}
+
+
+def same_as(curves) -> list[int | None]:
+    """Per session: the index of an earlier session with the same curve (force and depth, every
+    row), or None."""
+    out: list[int | None] = []
+    for j, c in enumerate(curves):
+        out.append(next((i for i in range(j) if out[i] is None and curves[i][0].shape == c[0].shape
+                         and np.array_equal(curves[i][0], c[0]) and np.array_equal(curves[i][1], c[1])), None))
+    return out
+
+
+@plain_text  # names (files, labels) are drawn as text, never as mathtext
+def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110, target_mm=None,
+                force_limit_n=None) -> None:
+    """:func:`plot_compare` from each session's :func:`session_curve`.
+
+    Top: force against depth, one panel per insertion, over the layer bands at rest, the target
+    depth range hatched (``target_mm``) and the device's force limit as a dashed line
+    (``force_limit_n``). Below: the same force against time (every session), and, when any session
+    rolls the needle, its roll against time. Each session has its colour and line style (widest
+    first), and a session whose curve equals an earlier one's says so in the legend."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
@@ -292,14 +329,19 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     tissue = tissue_of(tissue)
     n_ins = max([int(c[2].max()) + 1 for c in curves if c[2].size] + [1])
     shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
-    fig = Figure(figsize=(max(8.5, 3.4 * len(shown) + 2.8), 5.2), layout="constrained")
+    twirl = any(c[6].size and float(np.abs(c[6]).max()) > 0.0 for c in curves)
+    ratios = [3.0, 1.6] + ([1.3] if twirl else [])
+    fig = Figure(figsize=(max(9.5, 3.4 * len(shown) + 3.6), 5.2 + 2.2 * (len(ratios) - 1)), layout="constrained")
     FigureCanvasAgg(fig)
-    axes = [fig.add_subplot(1, len(shown), 1)]
-    axes += [fig.add_subplot(1, len(shown), j + 1, sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
+    gs = fig.add_gridspec(len(ratios), len(shown), height_ratios=ratios)
+    axes = [fig.add_subplot(gs[0, 0])]
+    axes += [fig.add_subplot(gs[0, j], sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
+    ax_t = fig.add_subplot(gs[1, :])
+    ax_r = fig.add_subplot(gs[2, :], sharex=ax_t) if twirl else None
     bounds = tissue.depths_at_acupoint() * 1e3
     all_d = [d for d, *_ in curves if d.size]
     lo = min([float(d.min()) for d in all_d] + [0.0])
-    hi = max([float(d.max()) for d in all_d] + [float(bounds[2])])
+    hi = max([float(d.max()) for d in all_d] + [float(bounds[2])] + ([float(target_mm[1])] if target_mm else []))
     pad = 0.02 * (hi - lo)
     x0, x1 = lo - pad, hi + pad
     edges = [*bounds, max(x1, float(bounds[3]))]
@@ -310,16 +352,27 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
         for ax in axes:
             ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.4, lw=0)
         handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.4, label=f"{name} (at rest)"))
+    if target_mm is not None:
+        for ax in axes:
+            ax.axvspan(float(target_mm[0]), float(target_mm[1]), facecolor="none", edgecolor=TARGET_COLOUR,
+                       hatch="//", lw=1.0, alpha=0.45)
+        handles.append(Patch(facecolor="none", edgecolor=TARGET_COLOUR, hatch="//",
+                             label=f"target depth {float(target_mm[0]):g}-{float(target_mm[1]):g} mm"))
+    if force_limit_n is not None:
+        for ax in axes + [ax_t]:
+            ax.axhline(float(force_limit_n), color=LIMIT_COLOUR, ls="--", lw=1.2)
+        handles.append(Line2D([], [], color=LIMIT_COLOUR, ls="--", label=f"device force limit {force_limit_n:g} N"))
     f_all = [f for _, f, *_ in curves if f.size]
     for p, (ax, k) in enumerate(zip(axes, shown)):
         ax.axhline(0.0, color="0.6", lw=0.6)
         last = insertion is None and p == len(shown) - 1 and n_ins > len(shown)
-        for (d, f, idx, ev, ev_idx), colour in zip(curves, COLOURS * (1 + len(curves) // len(COLOURS))):
+        for j, (d, f, idx, ev, ev_idx, *_rest) in enumerate(curves):
+            st = _style(j)
             sel = idx >= k if last else idx == k
-            ax.plot(np.where(sel, d, np.nan), np.where(sel, f, np.nan), color=colour, lw=1.1)
+            ax.plot(np.where(sel, d, np.nan), np.where(sel, f, np.nan), **st)
             for e, ki in zip(ev, ev_idx):
                 if ki == k or (last and ki >= k):
-                    ax.plot([e["tip_depth_mm"]], [e["peak_force_n"]], marker="v", ms=7, color=colour,
+                    ax.plot([e["tip_depth_mm"]], [e["peak_force_n"]], marker="v", ms=7, color=st["color"],
                             mec="k", mew=0.5, ls="none")
         ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9)
         ax.set_xlabel("tip depth below the rest skin (mm)")
@@ -327,15 +380,42 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
             ax.tick_params(labelleft=False)
     axes[0].set_xlim(x0, x1)
     if f_all:
-        axes[0].set_ylim(min(-0.05, 1.1 * min(float(f.min()) for f in f_all)),
-                         max(0.1, 1.15 * max(float(f.max()) for f in f_all)))
-    axes[0].set_ylabel("force along the outward normal F . u (N)")
-    for label, colour in zip(labels, COLOURS * (1 + len(labels) // len(COLOURS))):
-        handles.append(Line2D([], [], color=colour, label=label))
+        top = max(float(f.max()) for f in f_all)
+        if force_limit_n is not None:
+            top = max(top, float(force_limit_n))
+        ylim = (min(-0.05, 1.1 * min(float(f.min()) for f in f_all)), max(0.1, 1.12 * top))
+        axes[0].set_ylim(*ylim)
+        ax_t.set_ylim(*ylim)
+    axes[0].set_ylabel(f"force along the outward normal F . u (N)\n{FORCE_SIGN}")
+    t_end = 0.0
+    for j, c in enumerate(curves):
+        t, f = c[5], c[1]
+        if t.size:
+            ax_t.plot(t, f, **_style(j))
+            t_end = max(t_end, float(t[-1]))
+            if ax_r is not None:
+                ax_r.plot(t, c[6], **_style(j))
+    ax_t.axhline(0.0, color="0.6", lw=0.6)
+    ax_t.set_ylabel(f"F . u (N)\n{FORCE_SIGN}", fontsize=8)
+    ax_t.set_title("force against time", fontsize=9)
+    ax_t.set_xlim(0.0, t_end if t_end > 0 else 1.0)
+    if ax_r is not None:
+        ax_t.tick_params(labelbottom=False)
+        ax_r.axhline(0.0, color="0.6", lw=0.6)
+        ax_r.set_ylabel("roll (deg)\n+ = clockwise from the handle", fontsize=8)
+        ax_r.set_title("twirling: the needle's roll against time", fontsize=9)
+        ax_r.set_xlabel("time (s)")
+    else:
+        ax_t.set_xlabel("time (s)")
+    twins = same_as(curves)
+    for j, label in enumerate(labels):
+        same = f" (same curve as {labels[twins[j]]})" if twins[j] is not None else ""
+        handles.append(Line2D([], [], label=label + same, **_style(j)))
     handles.append(Line2D([], [], marker="v", ls="none", color="0.4", mec="k", mew=0.5,
                           label="puncture (peak |F| while pressed)"))
     fig.suptitle("Force against depth: " + " vs ".join(labels))
-    axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+                    handlelength=3.5)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
 
 
@@ -345,7 +425,8 @@ def _labels(args, paths) -> list[str]:
         if len(args.labels) != len(paths):
             raise UserError(f"--labels: give one name per session ({len(paths)}), got {len(args.labels)}")
         return list(args.labels)
-    stems = [p.stem for p in paths]
+    # a session's own recording (run's <out>/recording.csv) is named by its folder
+    stems = [p.parent.name if p.stem == "recording" and p.parent.name else p.stem for p in paths]
     if len(set(stems)) == len(stems):
         return stems
     return [f"{s} ({chr(65 + i) if i < 26 else i + 1})" for i, s in enumerate(stems)]
@@ -467,5 +548,6 @@ def _compare_into(partial: Path, args, cfg, devices, paths, labels):
     if ps is not None:
         doc.update(point=ps.point.code, patient=ps.patient.as_dict(), anatomy=ps.anatomy.as_dict())
     (partial / "compare.json").write_text(json.dumps(doc, indent=2, sort_keys=True, allow_nan=False) + "\n")
-    plot_curves(curves, labels, partial / "compare.png", tissue, args.insertion)
+    plot_curves(curves, labels, partial / "compare.png", tissue, args.insertion,
+                target_mm=tuple(cfg.scene.target_depth_mm), force_limit_n=cfg.safety.force_limit_n)
     return curves, labels, metrics

@@ -32,6 +32,7 @@ def register(sub) -> None:
                                    "body.skin_coefficients.")
     p.add_argument("mesh", nargs="?", metavar="MESH.obj", help="OBJ mesh of a body surface, in mm")
     p.add_argument("--lmax", type=int, metavar="N", help="SH degree of the mesh fit (default: the config's body.lmax)")
+    p.add_argument("--overwrite", action="store_true", help="let --out replace an existing file (never the mesh)")
     p.add_argument("--out", metavar="FILE.npz|DIR",
                    help="write the mesh fit's coefficients to FILE.npz, or into the folder DIR as <mesh>_sh.npz")
     from .options import add_config_args
@@ -88,14 +89,18 @@ def _fit_mesh(mesh, lmax, out, args) -> int:
         if not out_path.is_dir():
             raise UserError(f"{out}: cannot write: folder {out_path} does not exist")
         out_path = out_path / f"{Path(mesh).stem}_sh.npz"
-        if out_path.exists():
-            raise UserError(f"{out_path}: exists; not overwritten (give --out FILE.npz to choose another name)")
     if out_path is not None and out_path.suffix != ".npz":
         raise UserError(f"{out}: --out must name a .npz file or an existing folder")
     if out_path is not None and not out_path.parent.is_dir():
         raise UserError(f"{out}: cannot write: directory {out_path.parent} does not exist")
+    if out_path is not None:
+        from ..base.outputs import Outputs
+        Outputs(overwrite=args.overwrite).input("MESH.obj", mesh).input("--config", getattr(args, "config", None)).file(
+            "--out", out_path).check()
     t0 = time.perf_counter()
     pts, lines = read_vertices(mesh)
+    from ..base.budget import check_sh_fit
+    check_sh_fit(lmax, len(pts), f"{mesh}: --lmax {lmax} with {len(pts):,} vertices", keys=False)
     from ..tissue import shf  # the numba kernels, once the input is known to be good
     from ..tissue.body import save_coefficients
 
@@ -127,9 +132,11 @@ def _fit_mesh(mesh, lmax, out, args) -> int:
     print(f"  radial fit error: RMS {rms * 1e3:.2e} mm, max {abs(resid[worst]) * 1e3:.2e} mm "
           f"(vertex on line {lines[worst]})")
     if out_path is not None:
-        try:
-            save_coefficients(out_path, coeffs, centre, source=str(mesh))
-        except OSError as e:
-            raise UserError(f"{out}: cannot write: {e.strerror or e}") from None
+        import io
+
+        from ..base.outputs import write_new
+        buf = io.BytesIO()
+        save_coefficients(buf, coeffs, centre, source=str(mesh))
+        write_new(out_path, buf.getvalue(), overwrite=args.overwrite)  # whole, and never over a file unasked
         print(f"  wrote {out_path} (use body.skin_coefficients = \"{out_path.name}\" with body.lmax = {lmax})")
     return 0

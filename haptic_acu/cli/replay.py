@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import csv
-import fcntl
-import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -12,6 +10,10 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names
 from ..base.errors import UserError
+from ..base.outputs import Outputs, claim_folder, safe_cell, write_new
+from ..base.outputs import fresh_folder as fresh_path
+
+BATCH_FILES = ("summaries.csv", "insertions.csv", "punctures.csv")
 
 
 def register(sub) -> None:
@@ -31,10 +33,13 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer instead of a file (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="stream to a running rerun viewer at ADDR")
+    from .options import add_layout_arg
+    add_layout_arg(p, "instructor for a file, trainee with --spawn/--connect")
     p.add_argument("--jobs", type=int, default=0, metavar="N", help="parallel replays for a batch (default: the cores)")
     p.add_argument("--quiet", action="store_true", help="print only where the files are")
     from ..session.point import add_point_args
     add_point_args(p)
+    p.add_argument("--verbose", action="store_true", help="also print timing statistics (how fast the replay ran)")
     p.set_defaults(func=run)
 
 
@@ -42,30 +47,20 @@ def _stamp() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
-def fresh_path(path: Path) -> Path:
-    """``path``, or ``path-2``, ``path-3``... if it exists."""
-    if not path.exists():
-        return path
-    i = 2
-    while path.with_name(f"{path.name}-{i}").exists():
-        i += 1
-    return path.with_name(f"{path.name}-{i}")
-
-
-def print_summary(summary: dict, out_dir: Path, file=sys.stdout, quiet: bool = False) -> None:
+def print_summary(summary: dict, out_dir: Path, file=None, quiet: bool = False, verbose: bool = False) -> None:
     from ..session.report import print_results
-    print_results(summary, out_dir, file=file, quiet=quiet)
+    print_results(summary, out_dir, file=file, quiet=quiet, verbose=verbose)
 
 
 def _one(args_tuple):
-    traj, out_dir, config, rrd, overrides, point = args_tuple
+    traj, out_dir, config, rrd, overrides, point, layout = args_tuple
     from ..base.config import load_config
     from ..session.point import setup
     from ..session.replay import replay_one
     try:
         cfg = load_config(config, overrides=overrides)
         s = replay_one(traj, out_dir, config, rrd=rrd, progress=False, cfg=cfg,
-                       point=setup(cfg, *point) if point else None)
+                       point=setup(cfg, *point) if point else None, layout=layout)
         return str(traj), s, None
     except UserError as e:
         return str(traj), None, str(e)
@@ -117,11 +112,23 @@ def flatten(d: dict, prefix: str = "") -> dict:
 
 
 def insertion_rows(summary: dict) -> list[dict]:
-    """insertions.csv's rows: one per insertion, its trainee metrics (summary.json's
-    ``metrics.per_insertion``, flattened by :func:`flatten`), numbered from 1."""
+    """insertions.csv's rows: one per insertion, numbered from 1: its trainee metrics (summary.json's
+    ``metrics.per_insertion``), each quantity of :mod:`haptic_acu.analysis.quantities` under its one
+    name (the cohort's column), every other number flattened by :func:`flatten`."""
+    from ..analysis.quantities import QUANTITIES, value
+
+    named = [q for q in QUANTITIES if q.path]
+    taken = {"_".join(q.path) for q in named}
     m = summary.get("metrics") or {}
-    return [{"trajectory": summary["trajectory"], "insertion": n, **flatten(ins)}
-            for n, ins in enumerate(m.get("per_insertion", []), 1)]
+    rows = []
+    for n, ins in enumerate(m.get("per_insertion", []), 1):
+        row = {"trajectory": summary["trajectory"], "insertion": n}
+        for q in named:
+            v = value(ins, q)
+            row[q.name] = "" if v is None else v
+        row.update({k: v for k, v in flatten(ins).items() if k not in taken})
+        rows.append(row)
+    return rows
 
 
 def puncture_rows(summary: dict) -> list[dict]:
@@ -140,13 +147,13 @@ def write_table(path: Path, rows: list[dict]) -> None:
     cols: list[str] = []
     for r in rows:
         cols += [c for c in r if c not in cols]
-    try:
-        with open(path, "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=cols or ["trajectory"])
-            wr.writeheader()
-            wr.writerows(rows)
-    except OSError as e:
-        raise UserError(f"{path}: cannot write: {e.strerror or e}") from None
+    import io
+
+    buf = io.StringIO(newline="")
+    wr = csv.DictWriter(buf, fieldnames=cols or ["trajectory"])
+    wr.writeheader()
+    wr.writerows({k: safe_cell(v) for k, v in r.items()} for r in rows)  # a file named =cmd|... is text
+    write_new(path, buf.getvalue())
 
 
 def run(args) -> int:
@@ -157,53 +164,58 @@ def run(args) -> int:
     if args.jobs < 0:
         raise UserError(f"--jobs must be >= 0 (0: one per core), got {args.jobs}")
     cfg = config_from_args(args)  # a bad config fails before anything runs
+    from .options import check_layout_arg
+    check_layout_arg(args)
     from ..session.point import setup_from_args
     ps = setup_from_args(cfg, args)  # a bad point or patient too
     if args.spawn:
         from ..session.viewer import NO_DISPLAY_REPLAY, check_spawn
         check_spawn(NO_DISPLAY_REPLAY)
     paths = trajectories_from(args.trajectories)
+    from ..base.csvin import check_source
     for p in paths:
-        if not p.is_file():
+        if not (p.exists() or p.is_symlink()):
             raise UserError(f"{p}: trajectory file not found{not_found_hint()}")
+        check_source(p, "trajectory file")  # a folder, a pipe or a device: refused unread
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
         summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps)
-        print_summary(summary, out, quiet=args.quiet)
+                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
+        print_summary(summary, out, quiet=args.quiet, verbose=args.verbose)
         return 0
     if args.spawn or args.connect or args.realtime:
         raise UserError("--spawn, --connect and --realtime take one trajectory, not a batch")
     base = Path(args.out) if args.out else fresh_path(Path("runs") / f"batch-{_stamp()}")
-    if base.exists() and not base.is_dir():
-        raise UserError(f"{base}: exists and is not a folder; choose another --out")
-    try:
-        base.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"{base}: cannot create the output folder: {e.strerror or e}") from None
-    lock = os.open(base, os.O_RDONLY | os.O_DIRECTORY)  # one batch at a time per folder
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(lock)
-        raise UserError(f"{base}: another batch is writing to this folder; wait for it or choose "
-                        "another --out") from None
+    plan = Outputs().folder("--out", base, files=BATCH_FILES + tuple(p.stem for p in paths))
+    for p in paths:
+        plan.input("TRAJECTORY", p)
+    if args.config:
+        plan.input("--config", args.config)
+    if not (base.is_dir() and any(base.iterdir())):
+        plan.check()  # a folder with files: a batch writing it is named first (claim_folder)
+    lock = claim_folder(base, busy=f"{base}: another batch is writing to this folder; wait for it or "
+                                   "choose another --out")
     try:
         return _run_batch(args, paths, base, ps)
     finally:
-        os.close(lock)
+        lock.release()
 
 
 def _run_batch(args, paths, base: Path, ps=None) -> int:
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    jobs = args.jobs or min(len(paths), max(1, len(os.sched_getaffinity(0))))
+    from .cohort import bounded_jobs
+    jobs, note = bounded_jobs(args.jobs)  # at most the cores and what the memory holds
+    if note:
+        print(f"haptic-acu: note: {note}", file=sys.stderr)
+    jobs = min(jobs, len(paths))
     # a random patient is drawn once for the batch (its seed recorded), so every file meets the same one
     point = ((args.point, args.patient if ps is None or not ps.patient.random else f"random:{ps.patient.seed}",
               args.feedback) if args.point else None)
-    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point) for p in paths]
+    work = [(str(p), str(base / p.stem), args.config, not args.no_rrd, args.overrides or None, point, args.layout)
+            for p in paths]
     results = {}
     from ..base import progress
     with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \
@@ -221,7 +233,7 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
             failed += 1
             print(f"haptic-acu replay: error: {err}", file=sys.stderr)
             continue
-        print_summary(summary, Path(w[1]), quiet=args.quiet)
+        print_summary(summary, Path(w[1]), quiet=args.quiet, verbose=args.verbose)
         rows.append(_flat(summary))
         insertions += insertion_rows(summary)
         punctures += puncture_rows(summary)

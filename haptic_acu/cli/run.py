@@ -18,13 +18,15 @@ it (the figure and summary are written after the session, also after a fault).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
 
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.errors import UserError
-from .options import add_config_args, config_from_args
+from ..base.outputs import Outputs, claim_folder
+from .options import add_config_args, check_layout_arg, config_from_args
 from ..base.progress import step
 
 
@@ -47,15 +49,20 @@ def register(sub) -> None:
     p.add_argument("--record", metavar="FILE", help="write the replayable recording to FILE instead of "
                                                     "<out>/recording.csv (an existing file is refused unless "
                                                     "--overwrite; never the session's own --trajectory)")
-    p.add_argument("--overwrite", action="store_true", help="let --record replace an existing file")
+    p.add_argument("--overwrite", action="store_true", help="let --record and --rrd FILE replace an existing file "
+                                                            "(never an input, never the report folder's files)")
     add_config_args(p)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rrd", metavar="FILE", nargs="?", const="",
                    help="log to a rerun .rrd file (without FILE: <out>/recording.rrd)")
     g.add_argument("--spawn", action="store_true", help="log to a new rerun viewer (needs a display)")
     g.add_argument("--connect", metavar="ADDR", help="log to a running rerun viewer at ADDR (host:port)")
+    from .options import add_layout_arg
+    add_layout_arg(p, "trainee")
     p.add_argument("--no-status", action="store_true", help="no live status line")
-    p.add_argument("--quiet", action="store_true", help="print only the loop line and where the files are")
+    p.add_argument("--quiet", action="store_true", help="print only where the files are")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print the servo loop's timing statistics (always in summary.json's loop)")
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
     p.add_argument("--pin-cores", action="store_true",
@@ -91,16 +98,32 @@ def make_device(args, cfg):
     return OmniDevice(ws, force_limit_n=limit, stylus_axis=not args.travel_axis)
 
 
+MAX_DURATION_S = 1e6  # 11.6 days: a longer --duration is a typo
+
+
 def out_folder(args) -> Path:
-    """The report folder: ``--out`` (empty or new), else a fresh ``runs/<device>-<time>``."""
+    """The report folder's path: ``--out``, else a fresh ``runs/<device>-<time>`` (checked and claimed
+    by :func:`output_plan` and :func:`haptic_acu.base.outputs.claim_folder`)."""
     from .replay import fresh_path
 
     if args.out:
-        out = Path(args.out)
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            raise UserError(f"{out}: output folder exists and is not empty")
-        return out
+        return Path(args.out)
     return fresh_path(Path("runs") / f"{args.device}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def output_plan(args, out: Path, rec: Path, rrd: Path | None) -> Outputs:
+    """The session's outputs under the output rule: the report folder and its files, ``--record``
+    and ``--rrd`` elsewhere; the trajectory and the config are inputs."""
+    own = ["samples.csv", "summary.json", "force_depth.png"]
+    own += [] if args.record else ["recording.csv"]
+    own += ["recording.rrd"] if rrd is not None and not args.rrd else []
+    plan = Outputs(overwrite=args.overwrite).input("--trajectory", args.trajectory).input("--config", args.config)
+    plan.folder("--out", out, files=own)
+    if args.record:
+        plan.file("--record", rec)
+    if args.rrd:
+        plan.file("--rrd", rrd)
+    return plan
 
 
 def _rerun_sink(args, out: Path):
@@ -108,20 +131,18 @@ def _rerun_sink(args, out: Path):
     # hold the GIL for hundreds of microseconds beside the servo thread
     from ..session.sinkproc import rerun_connect_sink, rerun_file_sink, rerun_spawn_sink
     if args.spawn:
-        return rerun_spawn_sink()
+        return rerun_spawn_sink(args.layout)
     if args.connect:
-        return rerun_connect_sink(args.connect)
-    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve())
+        return rerun_connect_sink(args.connect, args.layout)
+    return rerun_file_sink((Path(args.rrd) if args.rrd else out / "recording.rrd").resolve(), args.layout)
 
 
 def run(args) -> int:
-    from ..session.engine import Session
-    from ..session.recorder import RecorderSink
-    from ..session.report import SamplesCsvSink, SummarySink
-
-    if args.duration is not None and not args.duration > 0:
-        raise UserError(f"--duration must be > 0, got {args.duration}")
+    if args.duration is not None and not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION_S):
+        raise UserError(f"--duration must be a number of seconds > 0 and at most {MAX_DURATION_S:g}, got "
+                        f"{args.duration}")
     cfg = config_from_args(args)
+    check_layout_arg(args)
     from ..session.point import setup_from_args
     ps = setup_from_args(cfg, args)  # --point: the tissue at the point, its structures, the grading
     if ps is not None:
@@ -134,16 +155,29 @@ def run(args) -> int:
         if not traj.is_file():
             raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
         args.trajectory = str(traj)
-    if args.record:  # checked now, created only once the session can start (after device.open)
-        from ..session.recorder import check_target
-        rec = check_target(args.record, args.overwrite, inputs=[args.trajectory])
-    device = make_device(args, cfg)
     out = out_folder(args)
-    if not args.record:
-        rec = out / "recording.csv"
-    if args.rrd and not Path(args.rrd).resolve().parent.exists():
-        raise UserError(f"{args.rrd}: folder {Path(args.rrd).resolve().parent} does not exist")
-    out.mkdir(parents=True, exist_ok=True)
+    rec = Path(args.record) if args.record else out / "recording.csv"
+    rrd = None if args.rrd is None else Path(args.rrd) if args.rrd else out / "recording.rrd"
+    # every output checked now (nothing replaced, nothing shared); the recording is created only
+    # once the session can start (after device.open)
+    output_plan(args, out, rec, rrd).check()
+    device = make_device(args, cfg)
+    lock = claim_folder(out)  # held alone until the session's report is written
+    try:
+        return _run(args, cfg, device, out, rec, ps)
+    except UserError:
+        lock.discard_if_empty()  # the session could not start: nothing left behind
+        raise
+    finally:
+        lock.release()
+
+
+def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
+    """The session itself, once its outputs are checked and its folder held (``ps``: a --point setup)."""
+    from ..session.engine import Session
+    from ..session.recorder import RecorderSink
+    from ..session.report import SamplesCsvSink, SummarySink
+
     summary_sink = SummarySink(cfg, keep_rows=False)  # streamed: a long session's memory stays flat
     recorder = RecorderSink(rec, overwrite=args.overwrite, device=device)
     sinks = [recorder, SamplesCsvSink(out / "samples.csv"), summary_sink]
@@ -163,6 +197,9 @@ def run(args) -> int:
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
                       compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
                       model=ps.model() if ps is not None else None)  # the compiled loop honours resets
+    if args.device == "scripted":
+        from ..session.replay import check_start
+        check_start(args.trajectory, session.model.tissue)
     with step("preparing the simulator (numba compiles it on the first run; cached afterwards)"):
         session.warm_up()
     device.open()
@@ -173,11 +210,16 @@ def run(args) -> int:
         device.close()
     st = result.stats
     pe = st["period_error_us"]
-    print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
-          f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
-          f"{st['servo_loop']} servo loop", file=sys.stderr)
+    if args.verbose:
+        print(f"session: {result.ticks} ticks in {result.duration_s:.2f} s, {st['missed_ticks']} missed; "
+              f"period error p50 {pe['p50']:.0f} us, p99 {pe['p99']:.0f} us, max {pe['max']:.0f} us; "
+              f"{st['servo_loop']} servo loop", file=sys.stderr)
+    elif st["missed_ticks"] > LATE_SHARE_SAID * max(result.ticks, 1):
+        print(f"note: this computer was often late with the force ({100.0 * st['missed_ticks'] / max(result.ticks, 1):.1f}% "
+              "of the servo ticks): the feel may have been rough; --verbose gives the timing", file=sys.stderr)
     try:
-        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, point=ps, grade=grade)
+        write_report(summary_sink, cfg, out, f"{args.device} session", quiet=args.quiet, point=ps, grade=grade,
+                     recording=rec)
         if args.record:
             print(f"  recording: {rec}")
     finally:  # the fault is reported even if the report could not be written
@@ -186,20 +228,66 @@ def run(args) -> int:
     return 3 if result.fault else 0
 
 
-def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, point=None, grade=None) -> dict:
-    """summary.json and force_depth.png of a finished session into ``out``; print the results
-    (``point``, ``grade``: a --point session's setup and grading sink)."""
-    from ..session.report import plot_force_depth, print_results
+LATE_SHARE_SAID = 0.01  # without --verbose the loop's timing is mentioned only when this share of ticks was late
+
+
+def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, point=None, grade=None,
+                 recording=None) -> dict:
+    """summary.json, debrief.md and force_depth.png of a finished session into ``out``; print the
+    results and the debrief (``point``, ``grade``: a --point session's setup and grading sink;
+    ``recording``: the session's recording, for the grasp felt of an insertion that twirled,
+    :func:`grasp_from_recording`)."""
+    from ..session.report import add_debrief, plot_force_depth, print_results, write_debrief_md
 
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    from ..session.replay import needle_note
+    note = needle_note(summary, cfg)
+    if note:
+        print(note, file=sys.stderr)
     if point is not None:
         from ..session.point import add_to_summary
         add_to_summary(summary, point, grade.result())
+    if recording is not None and summary.get("fault") is None:
+        grasp_from_recording(summary["metrics"], Path(recording), cfg)
+    add_debrief(summary, cfg)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    write_debrief_md(summary, out)
     rows, index = summary_sink.figure_rows()
     with step("drawing force_depth.png"):
         plot_force_depth(rows, out / "force_depth.png", summary_sink.tissue, summary=summary, index=index)
     print_results(summary, out, quiet=quiet)
     return summary
+
+
+def grasp_from_recording(metrics: dict, recording: Path, cfg) -> None:
+    """The grasp felt of each insertion that turned the needle, as ``haptic-acu replay`` finds it:
+    the withdrawal's resistance against the same session without rotation. The live session cannot
+    run that reference beside itself, so its recording is replayed twice headless (with and
+    without its roll: the same ticks as the session) and each insertion's ``grasp_felt`` taken
+    from there. Nothing happens when no insertion turned (there is no grasp to measure)."""
+    per = metrics.get("per_insertion") or []
+    if not any((m["technique"]["twirl"].get("total_rotation_deg") or 0.0) > 0.0 for m in per):
+        return
+    if not recording.is_file():
+        return
+    from ..devices.scripted import ScriptedDevice
+    from ..session.engine import Session
+    from ..session.replay import reference_forces
+    from ..session.report import SummarySink
+
+    with step("measuring the grasp felt on withdrawal (the session replayed with and without its twirl)"):
+        ref = reference_forces(recording, cfg)
+        if ref is None:
+            return
+        sink = SummarySink(cfg, keep_rows=False, reference_rows=ref)
+        with ScriptedDevice(recording, max_hand_speed_m_per_s=cfg.scene.max_hand_speed_m_per_s,
+                            force_limit_n=cfg.safety.force_limit_n) as device:
+            result = Session(cfg, device, [sink], clock="sim", dents=False).run()
+        if result.fault:
+            return
+        again = sink.metrics(sink.summary()["punctures"])["per_insertion"]
+    for m, r in zip(per, again):
+        if m["t_entry_s"] == r["t_entry_s"]:
+            m["technique"]["grasp_felt"] = r["technique"]["grasp_felt"]

@@ -31,7 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import scoring
+from ..base.csvin import read_table
 from ..base.errors import UserError
+from ..base.outputs import Outputs, claim_folder, fresh_folder, plain_text_figures, safe_cell
 from ..analysis.scoring import INDICES
 
 
@@ -68,48 +70,30 @@ class _Row:
     cells: dict[str, str]
 
 
-def _read_csv(path: str, columns: tuple[str, ...]) -> list[_Row]:
-    """Rows of a CSV whose header must be exactly ``columns`` (any order). '#' lines are comments."""
-    p = Path(path)
-    if not p.exists():
-        raise UserError(f"{path}: no such file")
-    if not p.is_file():
-        raise UserError(f"{path}: not a regular file")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise UserError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-    except OSError as e:
-        raise UserError(f"{path}: cannot read: {e.strerror}") from None
-    header: list[str] | None = None
-    header_line = 0
+def _read_csv(path: str, columns: tuple[str, ...], what: str = "ratings file") -> list[_Row]:
+    """Rows of a CSV whose header must be exactly ``columns`` (any order). '#' lines are comments.
+    Read by :func:`haptic_acu.base.csvin.read_table` (its limits and one-line errors)."""
+    table = read_table(path, what)
+    header, header_line = table.header, table.header_line
+    seen = set()
+    for name in header:
+        if name in seen:
+            raise UserError(f"{path}: line {header_line}: column {name!r} appears twice")
+        seen.add(name)
+    unknown = [c for c in header if c not in columns]
+    if unknown:
+        raise UserError(f"{path}: line {header_line}: unknown column {unknown[0]!r} "
+                        f"(expected {','.join(columns)})")
+    missing = [c for c in columns if c not in seen]
+    if missing:
+        raise UserError(f"{path}: line {header_line}: missing column(s) {','.join(missing)}")
     rows: list[_Row] = []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        s = raw.strip()
-        if not s or s.startswith("#"):
-            continue
-        fields = [f.strip() for f in next(csv.reader([raw]))]
-        if header is None:
-            header, header_line = fields, lineno
-            seen = set()
-            for name in header:
-                if name in seen:
-                    raise UserError(f"{path}: line {lineno}: column {name!r} appears twice")
-                seen.add(name)
-            unknown = [c for c in header if c not in columns]
-            if unknown:
-                raise UserError(f"{path}: line {lineno}: unknown column {unknown[0]!r} "
-                                f"(expected {','.join(columns)})")
-            missing = [c for c in columns if c not in seen]
-            if missing:
-                raise UserError(f"{path}: line {lineno}: missing column(s) {','.join(missing)}")
-            continue
+    for row in table.rows:
+        fields = [f.strip() for f in row.fields]
         if len(fields) != len(header):
-            raise UserError(f"{path}: line {lineno}: {len(fields)} fields, but the header "
+            raise UserError(f"{path}: line {row.line}: {len(fields)} fields, but the header "
                             f"(line {header_line}) has {len(header)}")
-        rows.append(_Row(lineno, dict(zip(header, fields))))
-    if header is None:
-        raise UserError(f"{path}: empty file (expected a header line: {','.join(columns)})")
+        rows.append(_Row(row.line, dict(zip(header, fields))))
     if not rows:
         raise UserError(f"{path}: line {header_line}: header but no data rows")
     return rows
@@ -179,7 +163,7 @@ def read_ratings(path: str) -> list[Ratings]:
 
 def read_subjective(path: str) -> np.ndarray:
     """Read a one-row CSV of the seven subjective weights (summing to 1)."""
-    rows = _read_csv(path, INDICES)
+    rows = _read_csv(path, INDICES, "subjective weights file")
     if len(rows) != 1:
         raise UserError(f"{path}: line {rows[1].line}: expected exactly one row of weights, "
                         f"found {len(rows)}")
@@ -188,7 +172,7 @@ def read_subjective(path: str) -> np.ndarray:
 
 def read_delphi(path: str) -> tuple[list[np.ndarray], list[tuple[int, ...]]]:
     """Read Delphi rounds: per round (1, 2, ...) the experts x indices weight matrix and lines."""
-    rows = _read_csv(path, ("round", "expert") + INDICES)
+    rows = _read_csv(path, ("round", "expert") + INDICES, "Delphi rounds file")
     rounds: dict[int, list[tuple[np.ndarray, int]]] = {}
     seen: dict[tuple[int, str], int] = {}
     for row in rows:
@@ -226,27 +210,19 @@ def _fmt_weights(w) -> str:
     return " ".join(f"{n}={v:.3f}" for n, v in zip(INDICES, w))
 
 
-def _out_dir(arg: str | None) -> Path:
-    if arg:
-        d = Path(arg)
-        if d.exists() and not d.is_dir():
-            raise UserError(f"--out {arg}: exists and is not a folder")
-        try:
-            d.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise UserError(f"--out {arg}: cannot create: {e.strerror}") from None
-        return d
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    for k in range(1000):
-        d = Path("runs") / (f"score-{stamp}" if k == 0 else f"score-{stamp}-{k}")
-        try:
-            d.mkdir(parents=True, exist_ok=False)
-            return d
-        except FileExistsError:
-            continue
-        except OSError as e:
-            raise UserError(f"{d}: cannot create: {e.strerror}") from None
-    raise UserError(f"runs/score-{stamp}: too many runs in the same second")
+OUR_FILES = ("weights.csv", "scores.csv", "score.json", "scores.png")
+
+
+def _out_dir(args):
+    """The output folder (``--out``, or a new ``runs/score-<time>``) checked under the output rule
+    (new or empty; never one of the inputs) and held alone; returns (folder, lock)."""
+    if args.out:
+        d = Path(args.out)
+    else:
+        d = fresh_folder(Path("runs") / f"score-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}")
+    Outputs().input("RATINGS.csv", args.ratings).input("--subjective", args.subjective).input(
+        "--delphi", args.delphi).folder("--out", d, files=OUR_FILES).check()
+    return d, claim_folder(d)
 
 
 def run(args) -> int:
@@ -278,7 +254,15 @@ def run(args) -> int:
             raise UserError(f"{args.ratings}: line {r.lines[0]}: system {r.system!r} "
                             f"({len(r.lines)} raters): {e}") from None
 
-    out = _out_dir(args.out)
+    out, lock = _out_dir(args)
+    try:
+        _report(args, out, results, alpha, mu, source, delphi_result)
+    finally:
+        lock.release()
+    return 0
+
+
+def _report(args, out: Path, results, alpha, mu, source, delphi_result) -> None:
     if delphi_result is not None:
         _print_delphi(delphi_result, args.delphi)
     print(f"subjective weights alpha from {source}")
@@ -287,11 +271,11 @@ def run(args) -> int:
         _write_weights_csv(out / "weights.csv", results, alpha)
         _write_scores_csv(out / "scores.csv", results)
         _write_json(out / "score.json", args, source, alpha, mu, delphi_result, results)
-        _plot(out / "scores.png", results)
+        with plain_text_figures():  # system and rater names are data, not markup
+            _plot(out / "scores.png", results)
     except OSError as e:  # a full disk, a folder gone read-only
         raise UserError(f"{out}: cannot write the score's files: {e.strerror or e}") from None
     print(f"wrote {out}/weights.csv, scores.csv, score.json, scores.png")
-    return 0
 
 
 def _print_delphi(res: scoring.DelphiResult, path: str) -> None:
@@ -361,7 +345,7 @@ def _write_weights_csv(path: Path, results, alpha) -> None:
                     "omega_combined"])
         for r in results:
             for j, idx in enumerate(INDICES):
-                w.writerow([r.name, idx, _num(r.objective.mean[j]), _num(r.objective.sigma[j]),
+                w.writerow([safe_cell(r.name), idx, _num(r.objective.mean[j]), _num(r.objective.sigma[j]),
                             _num(alpha[j]), _num(r.objective.beta[j]), _num(r.omega[j])])
 
 
@@ -371,7 +355,7 @@ def _write_scores_csv(path: Path, results) -> None:
         w.writerow(["system", "rater", "score"])
         for r in results:
             for rater, s in zip(r.raters, r.scores):
-                w.writerow([r.name, rater, _num(s)])
+                w.writerow([safe_cell(r.name), safe_cell(rater), _num(s)])
 
 
 def _write_json(path: Path, args, source, alpha, mu, dres, results) -> None:

@@ -129,9 +129,11 @@ def _study(path):
 
 
 def _new_folder(arg: str) -> Path:
+    """An output folder under the output rule (:mod:`haptic_acu.base.outputs`): new or empty."""
+    from ..base.outputs import check_folder
+
     d = Path(arg)
-    if d.exists() and (not d.is_dir() or any(d.iterdir())):
-        raise UserError(f"--out {arg}: exists and is not an empty folder")
+    check_folder(d, "--out")
     return d
 
 

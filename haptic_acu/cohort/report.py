@@ -20,6 +20,17 @@ level has the larger value, ties counting half) and the rank-biserial correlatio
 (Cliff's delta); with more than two levels also the Kruskal-Wallis test
 (:func:`scipy.stats.kruskal`), and the figure annotates the first level against the last.
 Sessions of one trainee are not independent: with few trainees, read the p-values as descriptive.
+The pairwise tests grow with the square of the number of levels: with more than :data:`MAX_LEVELS`
+levels they are run between the first :data:`MAX_LEVELS` only (``pairs_skipped`` counts the rest,
+and a warning says so) and the figure shows those levels; the Kruskal-Wallis test takes them all.
+
+Text from the manifest (trainee and level names) is drawn as text, never as mathtext or TeX.
+
+Every statistic works on the values rounded to the metric's resolution
+(:func:`haptic_acu.analysis.quantities.resolution`: the decimals it is reported at), so a difference
+below it (economy of motion 1.0 against 0.999999999) is no difference. Each metric's entry in
+report.json says which way is better (``better``: "lower", "higher", "zero" or "" for a description,
+:func:`haptic_acu.analysis.quantities.better`), and so do the figures' titles.
 """
 from __future__ import annotations
 
@@ -28,7 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.outputs import plain_text_figures
+from ..analysis.quantities import at_resolution, better, resolution
 from .sessions import _parse_date
+
+MAX_LEVELS = 12  # pairwise tests (66 pairs) and the figure's boxes at most for this many levels
 
 # (sessions-table column, axis label) of the metrics reported and plotted
 REPORT_METRICS = [
@@ -55,6 +70,20 @@ def _sig(x, digits=4):
     if x is None or not np.isfinite(x):
         return None
     return float(f"{float(x):.{digits}g}")
+
+
+def _at_resolution(col: str, v):
+    """``v`` rounded to the metric's resolution (None stays None)."""
+    return at_resolution(col, v)
+
+
+BETTER_WORDS = {"lower": "lower is better", "higher": "higher is better", "zero": "closer to 0 is better"}
+
+
+def metric_title(col: str, label: str) -> str:
+    """A figure panel's title: the metric and which way is better."""
+    b = BETTER_WORDS.get(better(col))
+    return f"{label} ({b})" if b else label
 
 
 def _usable(rows):
@@ -87,10 +116,11 @@ def learning_curves(rows: list[dict]) -> dict:
         entry = {"sessions": [r["session"] for r in rs], "dates": [r.get("date") or None for r in rs],
                  "days_since_first": days, "metrics": {}}
         for col, _ in REPORT_METRICS:
-            y = [r.get(col) for r in rs]
+            y = [_at_resolution(col, r.get(col)) for r in rs]
             x = [i + 1 for i, v in enumerate(y) if v is not None]
             yv = [v for v in y if v is not None]
-            m = {"values": [_r(v) for v in y], "theil_slope_per_session": None, "spearman_rho": None, "spearman_p": None}
+            m = {"values": [_r(v) for v in y], "theil_slope_per_session": None, "spearman_rho": None, "spearman_p": None,
+                 "better": better(col), "resolution": resolution(col)}
             if len(yv) >= 3 and np.ptp(yv) > 0:
                 m["theil_slope_per_session"] = _r(stats.theilslopes(yv, x).slope)
                 rho = stats.spearmanr(x, yv)
@@ -108,14 +138,21 @@ def level_comparison(rows: list[dict]) -> dict | None:
     if len(levels) < 2:
         return None
     out = {"levels": levels, "metrics": {}}
+    paired = levels[:MAX_LEVELS]
+    if len(levels) > MAX_LEVELS:
+        n = len(levels)
+        out["pairs_skipped"] = n * (n - 1) // 2 - MAX_LEVELS * (MAX_LEVELS - 1) // 2
+        import sys
+        print(f"haptic-acu: warning: {n} levels: pairwise tests only between the first {MAX_LEVELS} "
+              f"({out['pairs_skipped']} pairs skipped; report.json level_comparison)", file=sys.stderr)
     for col, _ in REPORT_METRICS:
-        vals = {lv: np.array([r[col] for r in rows if r["level"] == lv and r.get(col) is not None], float)
-                for lv in levels}
+        vals = {lv: np.array([_at_resolution(col, r[col]) for r in rows if r["level"] == lv and r.get(col) is not None],
+                             float) for lv in levels}
         per = {lv: {"n": int(v.size), "median": _r(np.median(v)) if v.size else None,
                     "q1": _r(np.percentile(v, 25)) if v.size else None,
                     "q3": _r(np.percentile(v, 75)) if v.size else None} for lv, v in vals.items()}
         pairs = []
-        for a, b in combinations(levels, 2):
+        for a, b in combinations(paired, 2):
             va, vb = vals[a], vals[b]
             p = {"a": a, "b": b, "n_a": int(va.size), "n_b": int(vb.size), "mannwhitney_u": None, "p_value": None,
                  "common_language": None, "rank_biserial": None, "median_difference": None}
@@ -126,7 +163,8 @@ def level_comparison(rows: list[dict]) -> dict | None:
                 p.update(mannwhitney_u=_r(res.statistic), p_value=_sig(res.pvalue), common_language=_r(cl),
                          rank_biserial=_r(2 * cl - 1))
             pairs.append(p)
-        entry = {"by_level": per, "pairs": pairs, "kruskal_h": None, "kruskal_p": None}
+        entry = {"by_level": per, "pairs": pairs, "kruskal_h": None, "kruskal_p": None, "better": better(col),
+                 "resolution": resolution(col)}
         present = [v for v in vals.values() if v.size]
         if len(levels) > 2 and len(present) >= 2 and np.ptp(np.concatenate(present)) > 0:
             kw = stats.kruskal(*present)
@@ -188,7 +226,7 @@ def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
             with np.errstate(all="ignore"):
                 med = np.nanmedian(table, axis=0)
             ax.plot(np.arange(1, longest + 1), med, "-", color="k", lw=2, label="median over trainees")
-        ax.set_title(label, fontsize=10)
+        ax.set_title(metric_title(col, label), fontsize=10)
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
         readable_y(ax, table.ravel())
@@ -205,12 +243,12 @@ def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
 
 def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> None:
     plt, fig, axes = _axes_grid(len(REPORT_METRICS))
-    levels = comp["levels"]
+    levels = comp["levels"][:MAX_LEVELS]
     usable = [r for r in _usable(rows) if r.get("level")]
     rng = np.random.default_rng(0)  # fixed jitter: identical figures for identical tables
     for ax, (col, label) in zip(axes, REPORT_METRICS):
-        data = [np.array([r[col] for r in usable if r["level"] == lv and r.get(col) is not None], float)
-                for lv in levels]
+        data = [np.array([_at_resolution(col, r[col]) for r in usable if r["level"] == lv and r.get(col) is not None],
+                         float) for lv in levels]
         ax.boxplot([d if d.size else [np.nan] for d in data], tick_labels=levels, showfliers=False, widths=0.5)
         for i, d in enumerate(data):
             ax.plot(i + 1 + rng.uniform(-0.12, 0.12, d.size), d, "o", ms=3, alpha=0.6, color="C0")
@@ -219,10 +257,11 @@ def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> Non
         note = ""
         if pair["rank_biserial"] is not None:
             note = f"\n{pair['a']} vs {pair['b']}: r_rb = {pair['rank_biserial']:+.2f}, p = {pair['p_value']:.2g}"
-        ax.set_title(label + note, fontsize=9.5)
+        ax.set_title(metric_title(col, label) + note, fontsize=9.5)
         ax.grid(alpha=0.3, axis="y")
         readable_y(ax, np.concatenate(data) if data else [])
-    fig.suptitle(f"Levels: per-session mean over insertions (box: quartiles; r_rb: rank-biserial effect size, "
+    shown = "" if len(comp["levels"]) <= MAX_LEVELS else f"first {MAX_LEVELS} of {len(comp['levels'])} levels; "
+    fig.suptitle(f"Levels ({shown}per-session mean over insertions; box: quartiles; r_rb: rank-biserial effect size, "
                  f"> 0 when {levels[0]} is higher; p: Mann-Whitney)")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     fig.savefig(path, dpi=dpi)
@@ -235,12 +274,13 @@ def write_report(out: Path, session_rows: list[dict], extra: dict) -> dict:
     curves = learning_curves(session_rows)
     comp = level_comparison(session_rows)
     figures = {}
-    if curves:
-        plot_learning_curves(curves, out / "learning_curves.png")
-        figures["learning_curves"] = "learning_curves.png"
-    if comp:
-        plot_levels(comp, session_rows, out / "levels.png")
-        figures["levels"] = "levels.png"
+    with plain_text_figures():  # names from the manifest are data, not markup
+        if curves:
+            plot_learning_curves(curves, out / "learning_curves.png")
+            figures["learning_curves"] = "learning_curves.png"
+        if comp:
+            plot_levels(comp, session_rows, out / "levels.png")
+            figures["levels"] = "levels.png"
     for name in ("learning_curves", "levels"):  # a figure an earlier run drew that this one cannot
         if name not in figures:
             (out / f"{name}.png").unlink(missing_ok=True)

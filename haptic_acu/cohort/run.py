@@ -78,16 +78,47 @@ class ProgressLine:
             self.stream.flush()
 
 
-def _worker_init() -> None:
-    os.setpgrp()  # a terminal's Ctrl-C goes to the parent only; it stops the pool
+PR_SET_PDEATHSIG = 1
+
+
+def _worker_init(parent: int) -> None:
+    """In each local worker: its own process group (a terminal's Ctrl-C goes to the parent only, which
+    stops the pool), and death with its parent: the kernel sends it SIGKILL when the parent dies, even
+    by SIGKILL (Linux ``PR_SET_PDEATHSIG``; elsewhere the parent's own handlers end it)."""
+    os.setpgrp()
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before the line above: nothing to work for
+        os._exit(1)
+
+
+class Terminated(SystemExit):
+    """SIGTERM while the pool runs: unwinds like Ctrl-C (the pool's workers are ended, every finished
+    session is already saved) and exits 143."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated(128 + signum)
 
 
 def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) -> None:
     if not jobs:
         return
+    import signal
+    import threading
+
     workers = max(1, min(workers, len(jobs)))
     pending = iter(jobs)
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init)
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init,
+                             initargs=(os.getpid(),))
     try:
         inflight = set()
         _fill(ex.submit, pending, inflight, 2 * workers)
@@ -101,6 +132,9 @@ def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) 
             p.terminate()
         ex.shutdown(wait=True, cancel_futures=True)
         raise
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, old)
     ex.shutdown(wait=True)
 
 
@@ -112,68 +146,169 @@ def _fill(submit, pending: Iterable[Job], inflight: set, limit: int) -> None:
         inflight.add(submit(replay_session, job))
 
 
+DASK_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")  # what a scheduler can listen on (inproc: this process only)
+POLL_S = 1.0  # how often a run on a cluster looks at its workers while waiting for results
+
+
 def scheduler_address(address: str) -> str:
-    """``address`` checked as ``PROTOCOL://HOST:PORT`` (``HOST:PORT`` means tcp); UserError otherwise.
-    Checked before a Client is made: a Client given a bad address fails, then its finaliser waits
-    40 s at exit and prints a traceback."""
+    """``address`` checked as ``PROTOCOL://HOST:PORT`` (``HOST:PORT`` means tcp) with a protocol Dask
+    speaks (:data:`DASK_SCHEMES`); UserError otherwise. Checked before a Client is made: a Client given
+    a bad address fails, then its finaliser waits 40 s at exit and prints a traceback."""
     from distributed.comm.addressing import parse_address, parse_host_port
 
     full = address if "://" in address else f"tcp://{address}"
     try:
-        _, location = parse_address(full, strict=True)
+        scheme, location = parse_address(full, strict=True)
         host, port = parse_host_port(location)
     except ValueError as e:
         raise UserError(f"--scheduler {address}: expected tcp://HOST:PORT ({e})") from None
+    if scheme not in DASK_SCHEMES:
+        raise UserError(f"--scheduler {address}: '{scheme}://' is not a protocol a Dask scheduler listens on "
+                        f"({', '.join(s + '://' for s in DASK_SCHEMES)})")
+    if scheme == "ucx":
+        from distributed.comm.registry import get_backend
+        try:
+            get_backend("ucx")
+        except Exception as e:  # noqa: BLE001 - the backend's import fails without ucx-py
+            raise UserError(f"--scheduler {address}: ucx:// needs the ucx backend ({type(e).__name__})") from None
     if not host or not 0 < port < 65536:
         raise UserError(f"--scheduler {address}: expected tcp://HOST:PORT with a port in 1-65535")
     return full
 
 
+def _security(address: str):
+    """The Dask TLS settings for a tls:// or wss:// scheduler (from Dask's config:
+    ``distributed.comm.tls.*``), or None for the others; UserError if none are configured."""
+    if not address.startswith(("tls://", "wss://")):
+        return None
+    from distributed.security import Security
+
+    sec = Security()
+    if not (sec.tls_ca_file and sec.tls_client_cert):
+        raise UserError(f"--scheduler {address}: TLS needs certificates in Dask's configuration "
+                        "(distributed.comm.tls.ca-file, .client.cert, .client.key)")
+    return sec
+
+
+def _probe(address: str, timeout_s: float, security) -> None:
+    """Ask the scheduler at ``address`` who it is, all within ``timeout_s``: UserError (one line) if
+    nothing answers, something else answers, or it is not a Dask scheduler."""
+    import asyncio
+
+    from distributed.comm import connect as comm_connect
+
+    async def ask():
+        kw = security.get_connection_args("client") if security is not None else {}
+        comm = await comm_connect(address, timeout=timeout_s, **kw)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        who = asyncio.run(asyncio.wait_for(ask(), timeout_s))
+    except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, a handshake with something else
+        what = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+        raise UserError(f"--scheduler {address}: cannot connect within {timeout_s:g} s "
+                        f"(--scheduler-timeout): {what}") from None
+    if not (isinstance(who, dict) and who.get("type") == "Scheduler"):
+        kind = who.get("type") if isinstance(who, dict) else type(who).__name__
+        raise UserError(f"--scheduler {address}: answers as {kind!r}, not a Dask scheduler")
+
+
 def connect(address: str, timeout_s: float = 20.0):
-    """A ``distributed.Client`` to the scheduler at ``address``; UserError if it cannot be reached."""
+    """A ``distributed.Client`` to the scheduler at ``address``; UserError (one line) if it cannot be
+    reached within ``timeout_s``."""
     try:
         from distributed import Client
     except ImportError:
         raise UserError("--scheduler needs dask.distributed: pip install 'haptic-acu[cohort]'") from None
     address = scheduler_address(address)
+    security = _security(address)
+    _probe(address, timeout_s, security)  # a listener that never answers would hold Client() forever
     try:
-        return Client(address, timeout=timeout_s, set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as e:
-        raise UserError(f"--scheduler {address}: cannot connect: {e}") from None
+        return Client(address, timeout=timeout_s, set_as_default=False, security=security)
+    except Exception as e:  # noqa: BLE001 - OSError, TimeoutError, a handshake with something else
+        what = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+        raise UserError(f"--scheduler {address}: cannot connect within {timeout_s:g} s "
+                        f"(--scheduler-timeout): {what}") from None
 
 
-def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None]) -> None:
-    """Run the jobs on ``client``'s cluster, at most twice its worker threads in flight."""
+def wait_for_workers(client, timeout_s: float, stream=None) -> int:
+    """Wait up to ``timeout_s`` for a worker to join; returns the cluster's worker threads."""
+    threads = sum(client.nthreads().values())
+    if threads:
+        return threads
+    stream = stream if stream is not None else sys.stderr
+    addr = client.scheduler.address
+    print(f"haptic-acu: waiting up to {timeout_s:g} s (--scheduler-timeout) for a worker to join the "
+          f"scheduler at {addr}", file=stream, flush=True)
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except TimeoutError:
+        raise UserError(f"--scheduler {addr}: no worker joined in {timeout_s:g} s (--scheduler-timeout); "
+                        f"start one with: dask worker {addr}") from None
+    except OSError as e:
+        raise UserError(f"--scheduler {addr}: lost the scheduler while waiting for a worker: {e}") from None
+    return sum(client.nthreads().values()) or 1
+
+
+def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout_s: float = 60.0,
+             stream=None) -> None:
+    """Run the jobs on ``client``'s cluster, at most twice its worker threads in flight. A cluster
+    with no worker for ``timeout_s`` (every one lost) stops the run with one line (exit 3); every
+    session finished before is already saved, so the next run resumes from there."""
     if not jobs:
         return
-    from distributed import as_completed
-
-    threads = sum(client.nthreads().values()) or 1
+    threads = wait_for_workers(client, timeout_s, stream)
     pending = iter(jobs)
     by_future = {}
+    done_count = 0
 
     def submit(fn, job: Job):
         fut = client.submit(fn, job, pure=False, key=f"cohort-replay-{job.session}-{time.time_ns()}")
         by_future[fut] = job
         return fut
 
-    first = set()
-    _fill(submit, pending, first, 2 * threads)
-    ac = as_completed(first, loop=client.loop)
+    inflight = set()
+    _fill(submit, pending, inflight, 2 * threads)
+    lost_since = None
+    looked = time.monotonic()
     try:
-        for fut in ac:
-            job = by_future.pop(fut)
-            try:
-                rec = fut.result()
-            except Exception as e:  # the worker died (KilledWorker), lost the task, ...
-                rec = {"session": job.session, "file": job.file, "input_sha256": None,
-                       "config_sha256": job.config_sha256, "error": f"{job.file}: worker failed: {type(e).__name__}: {e}",
-                       "summary": None, "insertions": [], "retry": True}
-            on_result(rec)
-            more = set()
-            _fill(submit, pending, more, 1)
-            for f in more:
-                ac.add(f)
+        while inflight:
+            done = {f for f in inflight if f.done()}  # at most twice the worker threads to look at
+            if not done:
+                time.sleep(0.05)
+                if time.monotonic() - looked < POLL_S:
+                    continue
+                looked = time.monotonic()
+            for fut in done:
+                inflight.discard(fut)
+                job = by_future.pop(fut)
+                try:
+                    rec = fut.result()
+                except Exception as e:  # the worker died (KilledWorker), lost the task, ...
+                    rec = {"session": job.session, "file": job.file, "input_sha256": None,
+                           "config_sha256": job.config_sha256,
+                           "error": f"{job.file}: worker failed: {type(e).__name__}: {e}",
+                           "summary": None, "insertions": [], "retry": True}
+                else:
+                    done_count += 1
+                on_result(rec)
+                _fill(submit, pending, inflight, len(inflight) + 1)
+            if done:
+                lost_since = None
+                continue
+            if client.nthreads():
+                lost_since = None
+            elif lost_since is None:
+                lost_since = time.monotonic()
+            elif time.monotonic() - lost_since > timeout_s:
+                raise UserError(f"--scheduler {client.scheduler.address}: every worker has been lost for "
+                                f"{timeout_s:g} s (--scheduler-timeout); {done_count} session(s) finished "
+                                f"and kept, {len(inflight) + sum(1 for _ in pending)} left: run again to "
+                                "resume", exit_status=3)
     except BaseException:
         client.cancel(list(by_future))
         raise

@@ -24,7 +24,6 @@ asked (``--session-files``: ``DIR/sessions/<name>/`` gets the replay's ``samples
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -40,9 +39,10 @@ from typing import Callable
 import numpy as np
 
 from ..base.errors import UserError
+from ..base.outputs import FolderLock
 
 # Bump when a metric's definition changes: every cached session is then replayed again.
-METRICS_VERSION = 3  # 3: the technique columns (twirling, grasp felt, reinforcing / reducing / even)
+METRICS_VERSION = 4  # 4: one name per quantity (analysis/quantities.py), bone and force-limit times
 REQUIRED = ("session", "trainee", "file")
 OPTIONAL = ("level", "date")
 STATE_DIR = ".cohort"
@@ -149,9 +149,9 @@ INSERTION_COLUMNS: list[Column] = [
     Column("entry_offset_mm", "mm", "distance of the entry point from the acupoint", lambda c: c.m["entry_offset_mm"]),
     Column("angle_deg", "deg", "angle between the insertion direction and the inward skin normal at the entry",
            lambda c: c.m["angle_deg"]),
-    Column("depth_reached_mm", "mm", "largest depth below the skin entry (compressed tissue's frame)",
+    Column("max_depth_mm", "mm", "the needle's largest depth in the tissue, along it from the skin entry",
            lambda c: c.m["max_depth_mm"]),
-    Column("depth_error_mm", "mm", "signed distance of depth_reached_mm from the target range "
+    Column("depth_error_mm", "mm", "signed distance of max_depth_mm from the target range "
            "(0 inside, negative too shallow, positive too deep)", _depth_error),
     Column("insertion_speed_mm_s", "mm/s", "mean axial speed from the puncture to 90% of the max depth",
            lambda c: c.m["insertion_speed_mm_s"]),
@@ -162,6 +162,9 @@ INSERTION_COLUMNS: list[Column] = [
     Column("peak_force_muscle_n", "N", "largest force attributed to the muscle",
            lambda c: c.m["peak_layer_force_n"]["muscle"]),
     Column("peak_total_force_n", "N", "largest |F| over the insertion", lambda c: c.m["peak_total_force_n"]),
+    Column("time_on_bone_s", "s", "time with the tip in bone", lambda c: c.m["time_on_bone_s"]),
+    Column("time_at_force_limit_s", "s", "time with the force held at the device's limit (safety.force_limit_n)",
+           lambda c: c.m["time_at_force_limit_s"]),
     Column("lateral_time_s", "s", "time with the lateral-constraint force above the comfort bound",
            lambda c: c.m["lateral"]["time_over_s"]),
     Column("lateral_max_n", "N", "largest lateral-constraint force", lambda c: c.m["lateral"]["max_n"]),
@@ -169,8 +172,8 @@ INSERTION_COLUMNS: list[Column] = [
     Column("lift_thrust_amplitude_mm", "mm", "mean lift-thrust stroke", _lt("mean_amplitude_mm")),
     Column("lift_thrust_frequency_hz", "Hz", "lift-thrust frequency", _lt("frequency_hz")),
     Column("twirl_cycles", "", "twirling cycles (roll reversals with 5 deg hysteresis)", _tech("twirl", "cycles"), "int64"),
-    Column("twirl_amplitude_deg", "deg", "twirl amplitude: half the mean angle between roll reversals",
-           _tech("twirl", "amplitude_deg")),
+    Column("twirl_swing_deg", "deg", "twirl swing, peak to peak: the mean angle between roll reversals",
+           _tech("twirl", "swing_deg")),
     Column("twirl_frequency_hz", "Hz", "twirling frequency", _tech("twirl", "frequency_hz")),
     Column("twirl_net_rotation_deg", "deg", "roll at the insertion's end minus at its start",
            _tech("twirl", "net_rotation_deg")),
@@ -255,10 +258,16 @@ class ManifestError(UserError):
 
 
 def _parse_date(text: str):
+    """An ISO date or date-time as a naive UTC datetime, or None. A time with a zone (``+02:00``,
+    ``Z``) is converted to UTC; one without a zone is read as UTC (docs/cohort.md), so dates with and
+    without zones sort on one time line."""
     try:
-        return _dt.datetime.fromisoformat(text)
+        d = _dt.datetime.fromisoformat(text)
     except ValueError:
         return None
+    if d.tzinfo is not None:
+        d = d.astimezone(_dt.timezone.utc).replace(tzinfo=None)
+    return d
 
 
 def read_manifest(path) -> Manifest:
@@ -266,17 +275,15 @@ def read_manifest(path) -> Manifest:
     bad row (missing column, unknown or clashing column, row of the wrong width, empty required
     cell, duplicate session, unparseable date). Missing trajectory files are not checked here:
     such a session fails alone at run time."""
+    from ..base.csvin import iter_lines, split_row
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise UserError(f"{path}: manifest not found") from None
-    except UnicodeDecodeError:
-        raise UserError(f"{path}: manifest is not UTF-8 text") from None
-    except OSError as e:
-        raise UserError(f"{path}: cannot read manifest: {e.strerror}") from None
-    reader = csv.reader(text.splitlines(keepends=True))
-    header = next(reader, None)
+    lines = ((n, text) for n, text in iter_lines(path, "manifest"))
+    header = None
+    for n, text in lines:  # the header: the first line (blank lines before it skipped)
+        if text.strip():
+            header = split_row(path, text, n)
+            break
     if not header or not any(h.strip() for h in header):
         raise UserError(f"{path}: line 1: empty manifest (expected a header {','.join(REQUIRED)},...)")
     header = [h.strip() for h in header]
@@ -297,9 +304,8 @@ def read_manifest(path) -> Manifest:
     m = Manifest(path=path, columns=header)
     seen: dict[str, int] = {}
     base = path.resolve().parent
-    line = reader.line_num
-    for row in reader:
-        start, line = line + 1, reader.line_num
+    for start, text in lines:
+        row = split_row(path, text, start)  # an unclosed quote: one line naming it, not the rows after
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
@@ -320,7 +326,12 @@ def read_manifest(path) -> Manifest:
             problems.append(f"{path}: line {start}: date '{cells['date']}' is not an ISO date (YYYY-MM-DD[THH:MM])")
             continue
         f = Path(cells["file"]).expanduser()
-        m.entries.append(Entry(start, cells, f if f.is_absolute() else base / f))
+        f = f if f.is_absolute() else base / f
+        if not f.exists():  # a bundled trajectory's name (every other command takes them)
+            from ..base.bundled import resolve_trajectory
+            b = resolve_trajectory(cells["file"])
+            f = b if b.is_file() and b != Path(cells["file"]) else f
+        m.entries.append(Entry(start, cells, f))
     if problems:
         raise ManifestError(problems)
     if not m.entries:
@@ -596,22 +607,15 @@ class CohortDir:
             raise UserError(f"{self.out}: folder exists, is not empty and is not a cohort output; "
                             f"choose another --out")
         self.records.mkdir(parents=True, exist_ok=True)
-        lock = self.state / "lock"
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            pid = lock.read_text().strip() if lock.exists() else "?"
-            if pid.isdigit() and not _alive(int(pid)):
-                lock.unlink(missing_ok=True)  # left by a run that died: take it over
-                return self.open()
-            raise UserError(f"{self.out}: another cohort run (pid {pid}) is writing this folder") from None
-        with os.fdopen(fd, "w") as f:
-            f.write(str(os.getpid()))
+        # an flock, not a pid file: the kernel drops it when the run dies, so of two runs taking over
+        # a dead run's folder exactly one gets it
+        self._lock = FolderLock(self.state / "lock", f"{self.out}: another cohort run{{holder}} is "
+                                                      "writing this folder").acquire()
         self._locked = True
 
     def close(self) -> None:
         if self._locked:
-            (self.state / "lock").unlink(missing_ok=True)
+            self._lock.release()
             self._locked = False
 
     def __enter__(self):
@@ -630,16 +634,6 @@ class CohortDir:
     def save(self, rec: dict) -> None:
         write_atomic(self.records / record_name(rec["session"]),
                      (json.dumps(rec, sort_keys=True, indent=1) + "\n").encode())
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def up_to_date(rec: dict | None, input_sha: str | None, config_sha: str) -> bool:

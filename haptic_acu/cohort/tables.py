@@ -83,8 +83,17 @@ def _bytes_parquet(table) -> bytes:
 
 
 def _bytes_csv(table) -> bytes:
+    """The table as CSV, its text cells neutralised (:func:`haptic_acu.base.outputs.safe_cell`: a
+    manifest's ``=cmd|...`` or ``@SUM(1)`` is written as text a spreadsheet shows, never runs)."""
+    import pyarrow as pa
     import pyarrow.csv as pcsv
 
+    from ..base.outputs import safe_cell
+
+    for i, f in enumerate(table.schema):
+        if pa.types.is_string(f.type):
+            table = table.set_column(i, f, pa.array([safe_cell(v) for v in table.column(i).to_pylist()],
+                                                    type=pa.string()))
     buf = io.BytesIO()
     pcsv.write_csv(table, buf)
     return buf.getvalue()

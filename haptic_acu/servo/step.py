@@ -5,6 +5,7 @@ sequence of named phases, each a small kernel of its own:
 
     check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
     sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
+    handle_stop (the handle on the skin: no more than the needle's length goes in) ->
     twirl_phase (winding: torque, grasp) -> bone_wall -> danger_phase -> locate -> clamp
     -> render_local -> danger_render   (the danger phases: a point's structures, servo/danger.py)
 
@@ -583,6 +584,23 @@ def post_puncture(inp, m, s, d):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def handle_stop(m, s, d):
+    """The needle is a real needle: no more of it than its length goes into the tissue. Once the
+    depth along the insertion from the entry (``work.s_p``) passes the needle's length, the handle
+    is on the skin: a stop as stiff as the bone wall (``k_bone``) pushes the needle back out along
+    its axis, and the depth reported (``d.depth_skin``) is the needle's, at most its length."""
+    wk = s.work[0]
+    length = m.params[0].needle_length
+    pen = wk.s_p - length
+    if pen > 0.0:
+        a = s.servo[0].axis  # handle to tip: the stop pushes along -axis
+        kh = m.params[0].k_bone
+        for c in range(3):
+            wk.f[c] -= kh * pen * a[c]
+        d.depth_skin = length
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def twirl_phase(inp, m, s, d):
     """The tissue wound around the shaft by the needle's roll (:func:`haptic_acu.tissue.twirl.wind_step`,
     per layer with the needle's length in it, ``servo.lengths`` from the post-puncture phase): the
@@ -717,6 +735,8 @@ def render_local(m, s, d):
             across = lateral_stiffness(m, s)
         if front >= N_LAYERS and s.radii[N_LAYERS] - wk.rho > -1e-3:
             along = max(along, m.params[0].k_bone)
+        if wk.s_p - m.params[0].needle_length > -1e-3:  # the handle at (or near) the skin
+            along = max(along, m.params[0].k_bone)
     shaft = d.f_damp - d.f_cut  # friction + viscous along +axis (Table 1's damping in the paper's mode)
     for c in range(3):
         d.r_force[c] = d.force[c] - shaft * d.r_axis[c]
@@ -748,6 +768,7 @@ def step_kernel(inp, m, s, out):
         front_contact(inp, m, s, d)
     if s.servo[0].inserted != 0:
         post_puncture(inp, m, s, d)
+        handle_stop(m, s, d)
     twirl_phase(inp, m, s, d)
     bone_wall(m, s, d)
     danger_phase(inp, m, s, d)

@@ -723,8 +723,9 @@ class Session:
                 self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
 
     def _timer_loop(self, t0: float) -> None:
-        """Tick k at ``t0 + k * servo_dt`` (sleep, then spin), read the device then :meth:`_servo_tick`;
-        a device time stuck while a force is commanded is a fault."""
+        """Tick k at ``t0 + k * servo_dt`` (sleep, then spin), read the device at session time
+        ``k * servo_dt`` then :meth:`_servo_tick`; a device time stuck while a force is commanded is
+        a fault."""
         dev = self.device
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
@@ -746,7 +747,9 @@ class Session:
                 pass
             start = perf()
             err = start - deadline
-            t = start - t0
+            # session time is the tick's own, k * dt (as the compiled loop's and a replay's): a late
+            # tick runs late but keeps its time, so a replay of the recording runs the same ticks
+            t = k * dt
             if t > limit:
                 break
             state = dev.read_at(t)
@@ -762,7 +765,7 @@ class Session:
             self._t_session = t
             k += 1
             if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor the deadlines instead of
-                anchor = perf() - k * dt  # bursting; session time (start - t0) still only moves on
+                anchor = perf() - k * dt  # bursting; session time (k * dt) moves on a tick at a time
             count_ticks += 1
             if start - count_start >= 0.5:
                 self.rates["servo_hz"] = count_ticks / (start - count_start)

@@ -10,6 +10,12 @@ keyboard's twirl keys), which the replay plays into the servo, so a session repl
 appended once per visual frame, unbuffered: a crash or Ctrl-C loses at most the last frame, and on a
 fault the engine's final flush writes every tick up to the fault.
 
+A replay of the recording runs the session's own ticks: the tip's position and roll are written to
+the last bit (``%.17g``: the replay derives the velocity from consecutive positions), and at the end
+one more row holds the last position half a tick after the last tick (:data:`END_AFTER_S`): a
+trajectory is done when the replay's time reaches its last row, so without it the replay would stop
+one tick short.
+
 Safety of the user's files: :meth:`RecorderSink.open` (called once the session can start, after
 the device opened) creates the file, refusing an existing one unless ``overwrite`` and always
 refusing the session's own input trajectory. An I/O error while recording (a full disk) cuts the
@@ -18,7 +24,6 @@ exit 3); the recording stops there and still replays.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -43,25 +48,12 @@ _SRC_AXIS = [COL["axis_x"], COL["axis_y"], COL["axis_z"]]
 EXTRA_AXIS = EXTRA[:-1] + AXIS_COLUMNS + EXTRA[-1:]
 
 
+EXACT = "%.17g"  # a float64 to the last bit
+END_AFTER_S = 0.5e-3  # the end row: half a servo tick after the last tick
+
+
 class RecordingError(Exception):
     """Writing the recording failed (the file ends on its last whole row)."""
-
-
-def check_target(path, overwrite: bool = False, inputs=()) -> Path:
-    """Refuse (one line) a recording target that would destroy something: the session's input
-    trajectory (always), an existing file (unless ``overwrite``), a folder, a missing folder."""
-    p = Path(path)
-    for src in inputs:
-        if src is not None and (Path(src).resolve() == p.resolve()
-                                or (p.exists() and Path(src).exists() and os.path.samefile(src, p))):
-            raise UserError(f"{p}: is the session's input trajectory; record to another file")
-    if p.is_dir():
-        raise UserError(f"{p}: is a folder; --record takes a file name")
-    if not p.parent.is_dir():
-        raise UserError(f"{p}: folder {p.parent} does not exist")
-    if (p.exists() or p.is_symlink()) and not overwrite:
-        raise UserError(f"{p}: exists; choose another file or add --overwrite")
-    return p
 
 
 class RecorderSink(Sink):
@@ -81,6 +73,7 @@ class RecorderSink(Sink):
         self._events_seen = 0
         self._pending: list[tuple[int, str]] = []
         self.failed: str | None = None
+        self._last_row: np.ndarray | None = None
         self.rows = 0
 
     def open(self) -> None:
@@ -90,11 +83,15 @@ class RecorderSink(Sink):
             return
         try:
             axis_fmt = {c: "%.9f" for c in AXIS_COLUMNS} if self.axis else {}
+            # the tip's position and roll to the last bit (shortest round-trip digits): the replay
+            # derives the velocity from consecutive positions, and 0.1 um over a 1 ms tick is
+            # 0.1 mm/s, which the damping turns into millinewtons
+            exact = {c: EXACT for c in ("x_mm", "y_mm", "z_mm", ROLL_COLUMN)}
             self._w = TrajectoryWriter(self.path, extra_columns=EXTRA_AXIS if self.axis else EXTRA,
                                        open_mode="w" if self.overwrite else "x",
                                        formats={"layer": PLACES, "state_skin": STATES, "state_fat": STATES,
                                                 "state_muscle": STATES, EVENT_COLUMN: EVENTS,
-                                                ROLL_COLUMN: "%.4f", **axis_fmt},
+                                                **exact, **axis_fmt},
                                        write_header=False)
         except FileExistsError:
             raise UserError(f"{self.path}: exists; choose another file or add --overwrite") from None
@@ -160,10 +157,20 @@ class RecorderSink(Sink):
                 raise RecordingError(f"{self.path}: recording stopped at {at} ({self.rows} rows, the "
                                      f"file ends on a whole row): {e.strerror or e}") from None
             self._last_t = out[-1, 0]
+            self._last_row = out[-1].copy()
             self.rows += out.shape[0]
 
     def close(self, result) -> None:
         if self._w is not None:
+            if self.failed is None and self._last_row is not None:
+                end = self._last_row.copy()  # the session's end: half a tick after its last tick
+                end[0] += END_AFTER_S
+                end[-1] = 0.0  # no event
+                try:
+                    self._w.append_rows(end[None, :])
+                    self.rows += 1
+                except OSError:
+                    pass
             if self.failed is None:
                 try:
                     self._w.write_header()  # a session that ended before its first frame

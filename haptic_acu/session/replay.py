@@ -7,6 +7,8 @@ same visual-frame code as a live session) and writes, into one output folder:
 * ``samples.csv``     one row per servo tick,
 * ``summary.json``    punctures, peaks, depths, per-layer time and peak force, session metrics,
 * ``force_depth.png`` force against depth (layers shaded, punctures marked) and against time,
+* ``debrief.md``      the debrief: per insertion what was right and wrong, worst first
+  (:mod:`haptic_acu.analysis.debrief`; also in summary.json as ``debrief``),
 * ``recording.rrd``   the rerun recording (unless ``rrd=False``).
 
 The folder is built as ``<out>.partial`` and renamed only when everything is written, so a failed
@@ -35,7 +37,7 @@ DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
 MAX_REPLAY_DURATION_S = 4 * 3600.0  # a longer file is refused (split it)
 MARKER = ".haptic-acu-replay"  # in every DIR.partial a replay makes: the folder is ours
 OUR_FILES = {MARKER, "samples.csv", "summary.json", "force_depth.png", "recording.rrd", "compare.json",
-             "compare.png"}
+             "compare.png", "debrief.md"}
 
 
 class OutputFolder:
@@ -227,16 +229,47 @@ class _Guarded(Sink):
             raise
 
 
+def check_start(trajectory, tissue) -> None:
+    """Refuse (one line) a trajectory whose first sample is inside the tissue: a session starts with
+    the needle in the air (the tissue is intact until the tip touches it)."""
+    from .trajectory import TrajectoryReader
+
+    first = next(iter(TrajectoryReader(trajectory, max_hand_speed_m_per_s=1e9).blocks(1 << 12)), None)
+    if first is None:
+        return
+    layer, _ = tissue.locate(first.pos_m[0])
+    if layer >= 0:
+        from ..analysis.scan import tip_depth_m
+        from ..tissue.layers import PLACE_NAMES
+
+        depth = float(tip_depth_m(first.pos_m[:1], tissue)[0]) * 1e3
+        raise UserError(f"{trajectory}: line {int(first.line[0])}: the tip starts inside the tissue "
+                        f"({PLACE_NAMES[layer + 1]}, "
+                        f"{depth:.3g} mm below the skin); a trajectory starts in the air above the skin (is "
+                        "z_mm's sign flipped?)")
+
+
+def needle_note(summary: dict, cfg) -> str | None:
+    """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
+    deepest = summary.get("max_tip_depth_mm") or 0.0
+    if deepest > cfg.needle.length_mm:
+        return (f"haptic-acu: warning: the tip went {deepest:.3g} mm deep with a {cfg.needle.length_mm:g} mm "
+                "needle (needle.length_mm): the handle would be in the tissue; forces past the needle's "
+                "length are not physical")
+    return None
+
+
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None,
-               point=None) -> dict:
+               point=None, layout: str | None = None) -> dict:
     """Replay ``trajectory`` into ``out_dir``; returns the summary dict. Raises UserError on bad
     input (nothing is left in ``out_dir``) and on a fault during the replay. ``point``: a
     :class:`~haptic_acu.session.point.PointSetup` (``--point``: its tissue, structures and grading)."""
     from haptic_acu.devices.scripted import ScriptedDevice
 
     from .engine import Session
-    from .report import SamplesCsvSink, SummarySink, plot_force_depth, preload_figure_modules
+    from .report import (SamplesCsvSink, SummarySink, add_debrief, plot_force_depth, preload_figure_modules,
+                         write_debrief_md)
 
     cfg = cfg if cfg is not None else load_config(config_path)
     if point is not None:
@@ -263,11 +296,11 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         if rrd or spawn or connect:
             from .rerun_log import RerunSink
             if spawn:
-                sinks.append(RerunSink.spawn())
+                sinks.append(RerunSink.spawn(layout))
             elif connect:
-                sinks.append(RerunSink.connect(connect))
+                sinks.append(RerunSink.connect(connect, layout))
             else:
-                sink = RerunSink.to_file(partial / "recording.rrd")
+                sink = RerunSink.to_file(partial / "recording.rrd", layout)
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
                 sinks.append(io.guard(sink))
         if progress:
@@ -279,6 +312,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             sinks.append(grade)
         session = Session(cfg, device, sinks, clock="realtime" if realtime else "sim",
                           model=point.model() if point is not None else None)
+        check_start(trajectory, session.model.tissue)
         session.warm_up()
         if not realtime:
             preload_figure_modules()  # matplotlib's import overlaps the session's compiled ticks
@@ -303,10 +337,15 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         summary = summary_sink.summary()
         summary["trajectory"] = trajectory.name
         summary["metrics"] = summary_sink.metrics(summary["punctures"])
+        note = needle_note(summary, cfg)
+        if note:
+            print(note, file=sys.stderr)
         if point is not None:
             from .point import add_to_summary
             add_to_summary(summary, point, grade.result())
+        add_debrief(summary, cfg)
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        write_debrief_md(summary, partial)
         fig_rows, fig_index = summary_sink.figure_rows()
         plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
                          index=fig_index)

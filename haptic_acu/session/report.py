@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 from .sink import Sink
@@ -372,6 +373,26 @@ def _insertion_handles(n_ins: int) -> list:
     return out
 
 
+WITHDRAWAL_MIN_MM = 1.0  # a final rise of the tip shorter than this is not called a withdrawal
+WITHDRAWAL_TOL_MM = 0.02  # depth noise allowed within the withdrawal's monotone rise
+
+
+def withdrawal_start(depth_mm) -> int | None:
+    """Index where an insertion's withdrawal starts: the final run over which the tip only rises
+    (depth falling, within :data:`WITHDRAWAL_TOL_MM`) to the insertion's end, if it rises more than
+    :data:`WITHDRAWAL_MIN_MM`; else None."""
+    d = np.asarray(depth_mm, dtype=np.float64)
+    if d.size < 2:
+        return None
+    i = d.size - 1
+    top = d[i]  # the deepest point of the run so far, walking back from the end
+    while i > 0 and d[i - 1] >= top - WITHDRAWAL_TOL_MM:
+        i -= 1
+        top = max(top, d[i])
+    i += int(np.argmax(d[i:]))  # the run starts at its deepest point
+    return i if d[i] - d[-1] > WITHDRAWAL_MIN_MM else None
+
+
 def preload_figure_modules():
     """Import matplotlib's figure and Agg canvas on a daemon thread and return it: a replay starts
     this before its session, whose compiled ticks release the GIL, so the import (a good part of the
@@ -391,6 +412,7 @@ def preload_figure_modules():
     return t
 
 
+@plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
     """The needle-insertion figure, written as a PNG to ``path`` (byte-identical for identical input).
@@ -459,14 +481,28 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
         handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.45, label=f"{name} (at rest)"))
     for ax in panels:
         ax.axhline(0.0, color="0.6", lw=0.6)
+    withdrew = False
     for k, sl in _segments(idx):
         ax = panels[min(max(k, 0), n_pan - 1)]
-        ax.plot(depth_mm[sl], f_ax[sl], color=_colour(k), lw=1.0)
+        w = withdrawal_start(depth_mm[sl]) if k >= 0 else None
+        if w is None:
+            ax.plot(depth_mm[sl], f_ax[sl], color=_colour(k), lw=1.0)
+        else:  # the withdrawal dashed, and named where it runs
+            a = sl.start + w
+            ax.plot(depth_mm[sl.start:a + 1], f_ax[sl.start:a + 1], color=_colour(k), lw=1.0)
+            ax.plot(depth_mm[a:sl.stop], f_ax[a:sl.stop], color=_colour(k), lw=1.2, ls=(0, (4, 2)))
+            mid = a + int(np.argmin(np.abs(depth_mm[a:sl.stop] - 0.5 * (depth_mm[a] + depth_mm[sl.stop - 1]))))
+            ax.annotate("withdrawal", (depth_mm[mid], f_ax[mid]), xytext=(0, -18), textcoords="offset points",
+                        fontsize=8, color=_colour(k), ha="center",
+                        arrowprops={"arrowstyle": "->", "color": _colour(k), "lw": 0.8})
+            withdrew = True
         ax_t.plot(t[sl], f_ax[sl], color=_colour(k), lw=1.0)
         if ax_lat is not None:
             ax_lat.plot(t[sl], f_lat[sl], color=_colour(k), lw=1.0)
     if (idx < 0).any():
         handles.append(Line2D([], [], color=APPROACH_COLOUR, label="approach"))
+    if withdrew:
+        handles.append(Line2D([], [], color="0.3", lw=1.2, ls=(0, (4, 2)), label="withdrawal (dashed)"))
     handles += _insertion_handles(n_ins)
     for ev in events:
         c = _EVENT_COLOURS[ev["layer"]]
@@ -491,7 +527,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
             ax.set_title(f"insertion {j + 1}{'+' if last else ''}", fontsize=9, color=_colour(j))
         if j:
             ax.tick_params(labelleft=False)
-    panels[0].set_ylabel("force along the outward normal F . u (N)")
+    panels[0].set_ylabel("force along the outward normal F . u (N)\n+ = the tissue pushes the needle out")
     fig.suptitle(title or "Needle insertion: force against depth")
     panels[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
 
@@ -579,7 +615,7 @@ def technique_text(tech) -> str:
     if tw.get("cycles"):
         swing = "-" if tw.get("swing_deg") is None else f"{tw['swing_deg']:.0f}"
         frq = "-" if tw.get("frequency_hz") is None else f"{tw['frequency_hz']:.2f}"
-        out += f"; {tw['cycles']} twirl cycles ({swing} deg, {frq} Hz)"
+        out += f"; {tw['cycles']} twirl cycles ({swing} deg swing, peak to peak, {frq} Hz)"
     label = (tech.get("classification") or {}).get("label")
     if label:
         out += f"; technique: {label}"
@@ -620,13 +656,57 @@ def result_lines(summary: dict) -> list[str]:
     return out + point_lines(summary)  # with --point: the grading against the point
 
 
-def print_results(summary: dict, out_dir, file=None, quiet: bool = False) -> None:
-    """:func:`result_lines` (unless ``quiet``) and where the files are."""
+def add_debrief(summary: dict, cfg) -> dict:
+    """Put the session's debrief (:func:`haptic_acu.analysis.debrief.debrief`) into ``summary``
+    (key ``debrief``), with what it judged against: the needle's length and the device's force
+    limit (``needle_length_mm``, ``force_limit_n``). Returns the debrief."""
+    from ..analysis.debrief import debrief
+
+    summary["needle_length_mm"] = float(cfg.needle.length_mm)
+    summary["force_limit_n"] = float(cfg.safety.force_limit_n)
+    summary["debrief"] = debrief(summary)
+    return summary["debrief"]
+
+
+def write_debrief_md(summary: dict, out_dir) -> None:
+    """``debrief.md`` in the report folder: the summary's debrief as Markdown."""
+    from ..analysis.debrief import debrief_markdown
+
+    title = f"Debrief: {summary.get('trajectory', 'session')}"
+    Path(out_dir, "debrief.md").write_text(debrief_markdown(summary["debrief"], title) + "\n")
+
+
+def _width(file) -> int:
+    """The terminal's width for ``file`` (80 when it is not a terminal or does not say)."""
+    import os
+    try:
+        cols = os.get_terminal_size(file.fileno()).columns
+    except (AttributeError, ValueError, OSError):
+        import shutil
+        cols = shutil.get_terminal_size((80, 24)).columns
+    return cols if cols > 0 else 80
+
+
+def print_results(summary: dict, out_dir, file=None, quiet: bool = False, verbose: bool = False) -> None:
+    """:func:`result_lines` and the debrief (unless ``quiet``), wrapped to the terminal's width, and
+    where the files are; timing statistics (how fast a replay ran, the servo loop's) only with
+    ``verbose`` (they are in summary.json's ``loop`` either way)."""
+    import textwrap
+
+    from ..analysis.debrief import debrief_lines
+
     file = sys.stdout if file is None else file
+    width = max(40, _width(file))
     if not quiet:
         for line in result_lines(summary):
-            print(line, file=file)
-        if summary.get("_wall_s"):
+            indent = " " * (len(line) - len(line.lstrip()))
+            for part in textwrap.wrap(line, width=width, subsequent_indent=indent + "    ",
+                                      break_on_hyphens=False) or [""]:
+                print(part, file=file)
+        if summary.get("debrief"):
+            for line in debrief_lines(summary["debrief"], width):
+                print(line, file=file)
+        if verbose and summary.get("_wall_s"):
             print(f"  replayed {summary['duration_s'] / summary['_wall_s']:.0f}x real time", file=file)
     print(f"  files: {out_dir}/", file=file)
 

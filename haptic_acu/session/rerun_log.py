@@ -3,32 +3,44 @@ a running viewer over gRPC.
 
 Timelines: ``sim_time`` (a duration, s) and ``tick`` (the servo tick, a sequence).
 
-Servo-rate series, one value per tick, sent once per visual frame as columns (``send_columns``):
+Servo-rate series, one value per tick, sent as columns (``send_columns``); a series that is zero
+so far is not sent (its plot's legend shows only what has happened):
 
-    /force/total   |F|, fx, fy, fz (N)
-    /force/split   force attributed to skin, fat, muscle; surface, damping, lateral, bone parts (N)
-    /depth         tip depth below the rest skin surface (mm, haptic_acu.session.report.tip_depth_m),
-                   depth into the current layer (mm)
-    /twirl/roll    the needle's roll (deg, cumulative, + clockwise seen from the handle)
-    /twirl/torque  the twist torque of the tissue wound around the shaft (N*mm, haptic_acu.tissue.twirl)
+    /force/total         the force along the needle (N, + pushes the needle back)
+    /force/total/across  the force across the needle (N), once it is not zero (|F| is the hypotenuse
+                         of the two)
+    /force/total/f<x|y|z> the scene-frame components (N), each once it is neither zero nor the force along
+                         the needle itself (a vertical needle's fz)
+    /force/layer         the force along the needle by layer: skin, fat, muscle (N, + pushes back)
+    /force/part          ... by part: pressed surface, cutting and friction, bone (N, + pushes back)
+    /depth/tip           the needle's depth (mm below the skin, drawn downward: the plotted value is
+                         minus the depth): along the needle once inside (the summary's depth), before
+                         that the tip's depth below the rest skin (haptic_acu.session.report.tip_depth_m)
+    /depth/marks         the target range's ends and the layer boundaries along the needle (the same
+                         downward mm), at the ends of each batch
+    /twirl/series        the needle's roll (deg, cumulative, + clockwise seen from the handle) and the
+                         twist torque of the tissue wound around the shaft (N*mm), once it is turned
 
-Per visual frame (``log`` at ~60 Hz), all positions in metres in the scene frame (+z up, the
-acupoint at the origin):
+The trainee's view (section, depth gauge, verdict, twirl dial): haptic_acu.session.trainee.
+
+The 3D body, per visual frame, in metres in the scene frame (+z up, the acupoint at the origin):
 
     /world/tissue/<layer>/rest    boundary k's surface away from the acupoint (static, coarse)
     /world/tissue/<layer>/patch   the fine patch around the acupoint: radius = rest radius - dent,
                                   the dent from the live nets on haptic_acu.session.engine.PATCH_GRID
-                                  (frame.dents); re-logged only when it changes
+                                  (frame.dents); logged only when it changes
     /world/needle                 40 mm of needle from the tip back along the insertion axis
     /world/twist                  a 6 mm bar across the needle's handle end that turns with its roll
                                   (haptic_acu.tissue.twirl.twist_direction): the twirling, seen in 3D
     /world/force                  the force on the needle as an arrow at the tip (10 mm per N)
     /world/nets/<layer>/slot<s>   each live force net's particles and springs (the lattice's
-                                  neighbour pairs, drawn as its straight rows); re-logged when moved
+                                  neighbour pairs, drawn as its straight rows); logged when moved
     /rates/servo_hz, visual_hz    the engine's measured loop rates (every 0.5 s)
     /events                       punctures ("skin punctured at t=..., depth ..., peak ..."), faults
 
-A blueprint (3D view beside force, depth and rate plots and the event log) goes with the recording.
+Everything that changes frame by frame is collected and sent as columns every ``batch_frames``
+frames (1 for a viewer, 30 for a replay to a file). The layout (``layout``: a name from
+haptic_acu.session.blueprints or an .rbl file) goes with the recording as its default blueprint.
 ``set_time`` is thread-local in rerun: every logging call sets its time in the calling thread.
 """
 from __future__ import annotations
@@ -41,16 +53,20 @@ import urllib.parse
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from ..tissue import shf
 from ..base.errors import UserError
 from .report import LAYERS, SessionScan, tip_depth_m
 from ..servo.samples import COL
+from ..tissue.layers import PRESSING
 from ..tissue.body import grid_triangles
 from ..tissue.twirl import twist_direction
 from ..servo.state import FREE, LAYER_NAMES, N_SLOTS, PLACE_NAMES, net_index, net_layer, net_slot
+from .blueprints import DEFAULT_FILE, DEFAULT_LIVE
+from .blueprints import load as load_layout
 from .sink import Sink
+from .section import structures_from_anatomy, structures_from_danger
+from .trainee import Columns, TraineeScene, seen_key
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -66,21 +82,74 @@ _ALPHA = {"skin": 150, "fat": 200, "muscle": 255, "bone": 255}
 
 _C_X = COL["x_m"]
 _C_F = COL["fx_n"]
-_SPLIT_COLS = np.r_[COL["f_skin_n"]:COL["f_muscle_n"] + 1, COL["f_surface_n"]:COL["f_bone_n"] + 1]
+_C_AXIS = COL["axis_x"]
+_C_STATE = COL["state_skin"]
+_C_LAYER_F = COL["f_skin_n"]
+_C_SURF, _C_DAMP, _C_LAT, _C_BONE = COL["f_surface_n"], COL["f_damp_n"], COL["f_lateral_n"], COL["f_bone_n"]
+F_ZERO_N = 1e-4  # a force series below this (0.1 mN, under the plots' resolution) is not yet sent
 
-# entity -> (series names, colours, (rows, tip depth) -> (k, m) values); one send_columns each per frame
+
+def needle_back(rows: np.ndarray) -> np.ndarray:
+    """(k, 3) unit vectors from tip to handle, per row (straight up where a row has no axis)."""
+    a = rows[:, _C_AXIS:_C_AXIS + 3]
+    n = np.linalg.norm(a, axis=1)
+    ok = np.isfinite(n) & (n > 0.5)
+    back = np.zeros_like(a)
+    back[:, 2] = 1.0
+    back[ok] = -a[ok] / n[ok, None]
+    return back
+
+
+def along_across(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The force along the needle (+ pushes the needle back toward its handle) and across it (N)."""
+    f = rows[:, _C_F:_C_F + 3]
+    back = needle_back(rows)
+    ax = np.einsum("ij,ij->i", f, back)
+    return ax, np.linalg.norm(f - ax[:, None] * back, axis=1)
+
+
+def layer_forces(rows: np.ndarray) -> np.ndarray:
+    """(k, 3) the force attributed to skin, fat, muscle, + pushing the needle back: a pressed layer's
+    surface force (a magnitude) as it is, a punctured layer's share of the axial force (signed handle
+    to tip) negated."""
+    f = rows[:, _C_LAYER_F:_C_LAYER_F + 3]
+    pressing = rows[:, _C_STATE:_C_STATE + 3] == PRESSING
+    return np.where(pressing, f, -f)
+
+
+def part_forces(rows: np.ndarray) -> np.ndarray:
+    """(k, 3) the force by part, + pushing the needle back: the pressed surface, cutting and friction
+    after a puncture (the axial force, signed handle to tip, negated), the bone wall."""
+    return np.column_stack([rows[:, _C_SURF], -rows[:, _C_DAMP], rows[:, _C_BONE]])
+
+
+def _scene_component(rows: np.ndarray, j: int) -> np.ndarray:
+    """(k, 2): scene component j, and how far it is from zero and from the force along the needle
+    (the second column only decides when the series starts: a component that is the along-force
+    itself, a vertical needle's fz, would be a second line drawn under the first)."""
+    c = rows[:, _C_F + j]
+    return np.column_stack([c, np.minimum(np.abs(c), np.abs(np.abs(c) - np.abs(along_across(rows)[0])))])
+
+
+# entity -> (series names, colours, (rows, needle depth mm) -> (k, m) values, the size below which the
+# series is zero and not yet sent (None: sent from the start))
 SERIES = {
-    "force/total": (["|F|", "fx", "fy", "fz"], [(20, 20, 20), (214, 39, 40), (44, 160, 44), (31, 119, 180)],
-                    lambda r, d: np.column_stack([np.linalg.norm(r[:, _C_F:_C_F + 3], axis=1), r[:, _C_F:_C_F + 3]])),
-    "force/split": ([*LAYER_NAMES, "surface", "damping", "lateral", "bone"],
-                    [(215, 140, 100), (200, 160, 30), (170, 40, 40), (31, 119, 180), (255, 127, 14), (148, 103, 189),
-                     (140, 86, 75)],
-                    lambda r, d: r[:, _SPLIT_COLS]),
-    "depth": (["tip below rest skin (mm)", "into current layer (mm)"], [(20, 20, 20), (120, 120, 120)],
-              lambda r, d: np.column_stack([d * 1e3, r[:, COL["depth_m"]] * 1e3])),
-    "twirl/roll": (["roll (deg)"], [(31, 119, 180)], lambda r, d: r[:, COL["roll_deg"]:COL["roll_deg"] + 1]),
-    "twirl/torque": (["torque (N*mm)"], [(214, 39, 40)], lambda r, d: r[:, COL["torque_nmm"]:COL["torque_nmm"] + 1]),
+    "force/total": (["along the needle (+ pushes it back)"], [(31, 119, 180)], lambda r, d: along_across(r)[0][:, None],
+                    None),
+    "force/total/across": (["across the needle"], [(255, 127, 14)], lambda r, d: along_across(r)[1][:, None], F_ZERO_N),
+    "force/total/fx": (["fx (scene)"], [(214, 39, 40)], lambda r, d: _scene_component(r, 0), F_ZERO_N),
+    "force/total/fy": (["fy (scene)"], [(44, 160, 44)], lambda r, d: _scene_component(r, 1), F_ZERO_N),
+    "force/total/fz": (["fz (scene, + up)"], [(148, 103, 189)], lambda r, d: _scene_component(r, 2), F_ZERO_N),
+    "force/layer": (list(LAYER_NAMES), [(215, 140, 100), (200, 160, 30), (170, 40, 40)],
+                    lambda r, d: layer_forces(r), F_ZERO_N),
+    "force/part": (["pressed surface", "cutting and friction", "bone"], [(31, 119, 180), (255, 127, 14), (110, 110, 110)],
+                   lambda r, d: part_forces(r), F_ZERO_N),
+    "depth/tip": (["tip"], [(0, 90, 255)], lambda r, d: -d[:, None], None),
+    "twirl/series": (["roll (deg)", "twist torque (N*mm)"], [(31, 119, 180), (214, 39, 40)],
+                     lambda r, d: r[:, [COL["roll_deg"], COL["torque_nmm"]]], 1e-9),
 }
+MARKS = (["target (shallow end)", "target (deep end)", "skin | fat", "fat | muscle", "muscle | bone"],
+         [(20, 150, 60), (20, 150, 60), (215, 140, 100), (200, 160, 30), (120, 120, 120)])
 TWIST_BAR_M = 0.006
 
 
@@ -131,26 +200,10 @@ def log_structures(rec, anatomy) -> None:
                                          fill_mode="solid"), static=True)
 
 
-def blueprint() -> rrb.Blueprint:
-    """The default layout: the 3D scene on the left; force, depth, loop rates and events on the right."""
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(name="needle and tissue", origin="/world"),
-            rrb.Vertical(
-                rrb.TimeSeriesView(name="force on the needle (N)", origin="/force/total"),
-                rrb.TimeSeriesView(name="force by layer and part (N)", origin="/force/split"),
-                rrb.TimeSeriesView(name="depth (mm)", origin="/depth"),
-                rrb.TimeSeriesView(name="roll (deg)", origin="/twirl/roll"),
-                rrb.TimeSeriesView(name="twist torque (N*mm)", origin="/twirl/torque"),
-                rrb.TimeSeriesView(name="loop rates (Hz)", origin="/rates"),
-                rrb.TextLogView(name="events", origin="/events"),
-                row_shares=[3, 2, 2, 1, 1, 1, 1],
-            ),
-            column_shares=[3, 2],
-        ),
-        rrb.TimePanel(timeline="sim_time"),
-        collapse_panels=False,
-    )
+def blueprint(layout: str = DEFAULT_FILE):
+    """The default blueprint of a recording: a bundled layout by name or an .rbl file
+    (:func:`haptic_acu.session.blueprints.load`)."""
+    return load_layout(layout)
 
 
 def _check_reachable(url: str, timeout_s: float = 2.0) -> None:
@@ -215,12 +268,15 @@ class RerunSink(Sink):
     time of every ``on_frame`` (rerun's own encoder and writer threads are not included)."""
 
     def __init__(self, mode: str = "file", target: str | None = None, *, recording_id: str | None = None,
-                 rest_n_theta: int = 40, footer: bool = True):
+                 rest_n_theta: int = 40, footer: bool = True, layout: str | None = None, structures=()):
         self.mode = mode
         self.target = target
         self.rest_n_theta = rest_n_theta
+        # the trainee's layout for a viewer and a live session's file, the instructor's for a replay's file
+        self.layout = layout or (DEFAULT_FILE if mode == "file" and footer else DEFAULT_LIVE)
+        self.structures = list(structures)
+        bp = blueprint(self.layout)  # a bad --layout fails before anything is created
         self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
-        bp = blueprint()
         try:
             if mode == "file":
                 # The .rrd footer (a manifest of every chunk, for random access) is held in memory
@@ -263,29 +319,30 @@ class RerunSink(Sink):
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod
-    def to_file(cls, path, **kw) -> "RerunSink":
-        """Write a .rrd file (headless)."""
-        return cls("file", str(path), **kw)
+    def to_file(cls, path, layout: str | None = None, **kw) -> "RerunSink":
+        """Write a .rrd file (headless); ``layout``: its default blueprint (the instructor's)."""
+        return cls("file", str(path), layout=layout, **kw)
 
     @classmethod
-    def to_file_live(cls, path, **kw) -> "RerunSink":
-        """Write a .rrd file from a live session of any length: no footer, so memory stays flat."""
-        return cls("file", str(path), footer=False, **kw)
+    def to_file_live(cls, path, layout: str | None = None, **kw) -> "RerunSink":
+        """Write a .rrd file from a live session of any length: no footer, so memory stays flat
+        (default blueprint: the trainee's)."""
+        return cls("file", str(path), footer=False, layout=layout, **kw)
 
     @classmethod
-    def spawn(cls, **kw) -> "RerunSink":
-        """Start a rerun viewer and stream to it."""
-        return cls("spawn", None, **kw)
+    def spawn(cls, layout: str | None = None, **kw) -> "RerunSink":
+        """Start a rerun viewer and stream to it (default blueprint: the trainee's)."""
+        return cls("spawn", None, layout=layout, **kw)
 
     @classmethod
-    def connect(cls, addr: str | None = None, **kw) -> "RerunSink":
+    def connect(cls, addr: str | None = None, layout: str | None = None, **kw) -> "RerunSink":
         """Stream to a running viewer: a ``rerun+http://host:port/proxy`` URL or ``host:port``
         (default: the local viewer's default address, port 9876)."""
         if addr is None:
             addr = DEFAULT_URL
         elif "://" not in addr:
             addr = f"rerun+http://{addr}/proxy"
-        return cls("connect", addr, **kw)
+        return cls("connect", addr, layout=layout, **kw)
 
     @classmethod
     def from_spec(cls, spec: str, **kw) -> "RerunSink":
@@ -307,16 +364,19 @@ class RerunSink(Sink):
         if self._warm:
             return
         rec = self.rec
-        for path, (names, colours, _) in SERIES.items():
+        for path, (names, colours, _, _) in SERIES.items():
             rec.log(path, rr.SeriesLines(names=names, colors=colours, widths=[1.5] * len(names)), static=True)
-            empty = np.zeros((0, len(names)))
-            rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=_ns(empty[:, 0])),
-                                            rr.TimeColumn("tick", sequence=np.zeros(0, dtype=np.int64))],
-                             columns=rr.Scalars.columns(scalars=empty))
+        rec.log("depth/marks", rr.SeriesLines(names=MARKS[0], colors=MARKS[1], widths=[1.0] * len(MARKS[0])),
+                static=True)
+        empty = np.zeros((0, 2))
+        rec.send_columns("force/total", indexes=[rr.TimeColumn("sim_time", duration=_ns(empty[:, 0])),
+                                                 rr.TimeColumn("tick", sequence=np.zeros(0, dtype=np.int64))],
+                         columns=rr.Scalars.columns(scalars=empty))
         self._warm = True
 
     def start(self, info: dict) -> None:
-        """Log the static scene: rest surfaces, patch topology, session description."""
+        """Log the static scene: rest surfaces, patch topology, session description, the trainee's
+        view's fixed parts."""
         self.warm_up()
         from .engine import PATCH_GRID  # the grid frame.dents are evaluated on
 
@@ -340,6 +400,8 @@ class RerunSink(Sink):
             p = anatomy.patient
             doc.append(f"point: {anatomy.point.code} {anatomy.point.name}; patient {p.sex}, BMI {p.bmi:g}, age {p.age:g}")
         rec.log("session", rr.TextDocument("\n".join(doc)), static=True)
+        target = tuple(cfg.scene.target_depth_mm) if cfg is not None else (15.0, 30.0)
+        self._target = target
 
         th_p, ph_p = PATCH_GRID
         n_th, n_ph = th_p.shape
@@ -366,8 +428,6 @@ class RerunSink(Sink):
                 rec.log(f"world/tissue/{name}/patch", rr.Mesh3D.from_fields(
                     triangle_indices=self._patch_tris, albedo_factor=colour), static=True)
         self._patch_dent = [None, None, None]
-        for k in range(3):
-            self._log_patch(k, np.zeros(th_p.shape))
         self._rows = [lattice_rows(lat, n) for lat, n in zip(model.lattices, model.n)]
         self._net_last: dict[int, np.ndarray] = {}
         if anatomy is not None:
@@ -378,24 +438,79 @@ class RerunSink(Sink):
                 static=True)
         rec.log("world/twist", rr.LineStrips3D.from_fields(radii=rr.Radius.ui_points(4.0), colors=[(31, 119, 180)]),
                 static=True)
+        for k, name in enumerate(LAYERS):
+            for s in range(N_SLOTS):
+                rec.log(f"world/nets/{name}/slot{s}/particles", rr.Points3D.from_fields(
+                    radii=rr.Radius.ui_points(2.0), colors=[_COLOURS[name]]), static=True)
+                rec.log(f"world/nets/{name}/slot{s}/springs", rr.LineStrips3D.from_fields(
+                    radii=rr.Radius.ui_points(0.75), colors=[(60, 60, 60)]), static=True)
+        # frame-rate entities, sent as columns every batch
+        self._cols: dict[str, Columns] = {
+            "world/needle": Columns(rr.LineStrips3D, partitioned=True),
+            "world/twist": Columns(rr.LineStrips3D, partitioned=True),
+            "world/force": Columns(rr.Arrows3D, partitioned=True),
+            **{f"world/tissue/{BOUNDARY_NAMES[k]}/patch": Columns(rr.Mesh3D, partitioned=True) for k in range(3)},
+        }
+        self._started_series: set[str] = set()
+        structures = info.get("structures") or self.structures
+        if not structures and anatomy is not None:  # a --point session's danger structures, by name
+            structures = structures_from_anatomy(anatomy)
+        elif not structures and getattr(model, "danger", None) is not None:  # the servo's rows, by kind
+            structures = structures_from_danger(model.danger)
+        self.scene = TraineeScene(rec, tissue, target, (th_p[:, 0], ph_p[0]), structures=structures)
+        self.scene.start()
+        for k in range(3):
+            self._log_patch(k, np.zeros(th_p.shape), 0.0, 0)
         self._started = True
 
     def _send_series(self) -> None:
-        """Send the pending servo rows: one send_columns per series (one value per tick), and the
-        puncture events among them."""
+        """Send the pending servo rows: one send_columns per series (one value per tick) and the
+        frame-rate columns; the puncture events among the rows."""
         if not self._pending:
+            self._send_frames()
             return
         rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
         self._pending = []
         rec = self.rec
-        depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        tip_depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        inside = rows[:, COL["layer"]] >= 0
+        depth_mm = np.where(inside, rows[:, COL["depth_skin_m"]], tip_depth) * 1e3
         idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
                rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
-        for path, (_, _, get) in SERIES.items():
-            rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=get(rows, depth)))
-        self._events(rows, depth)
+        for path, (_, _, get, zero) in SERIES.items():
+            vals = get(rows, depth_mm)
+            if vals.shape[1] > len(SERIES[path][0]):  # a scene component and its distance from the rest
+                vals, apart = vals[:, :1], vals[:, 1:]
+            else:
+                apart = vals
+            if zero is not None and path not in self._started_series:
+                nz = np.nonzero(np.any(np.abs(apart) > zero, axis=1))[0]
+                if not nz.size:
+                    continue
+                self._started_series.add(path)
+                first = max(int(nz[0]) - 1, 0)  # from the last zero: the line starts at zero
+                sub = [rr.TimeColumn("sim_time", duration=_ns(rows[first:, COL["t_s"]])),
+                       rr.TimeColumn("tick", sequence=rows[first:, COL["tick"]].astype(np.int64))]
+                rec.send_columns(path, indexes=sub, columns=rr.Scalars.columns(scalars=vals[first:]))
+                continue
+            rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=vals))
+        # the target and the layer boundaries along the needle, at the batch's ends
+        lo, hi = self._target
+        marks = np.concatenate([[lo, hi], self.scene.depths[1:4]])
+        ends = [0, len(rows) - 1] if len(rows) > 1 else [0]
+        rec.send_columns("depth/marks", indexes=[
+            rr.TimeColumn("sim_time", duration=_ns(rows[ends, COL["t_s"]])),
+            rr.TimeColumn("tick", sequence=rows[ends, COL["tick"]].astype(np.int64))],
+            columns=rr.Scalars.columns(scalars=np.tile(-marks, (len(ends), 1))))
+        self._events(rows, tip_depth)
+        self._send_frames()
         rec.set_time("sim_time", duration=_ns(self._last_t))  # _events moved this thread's time
         rec.set_time("tick", sequence=self._last_tick)
+
+    def _send_frames(self) -> None:
+        for path, col in self._cols.items():
+            col.send(self.rec, path)
+        self.scene.flush()
 
     def on_frame(self, frame) -> None:
         t_wall = time.perf_counter()
@@ -406,29 +521,36 @@ class RerunSink(Sink):
         if k:
             self._pending.append(rows)
             self._last_tick = int(rows[-1, COL["tick"]])
-        self._last_t = frame.t_s
-        self._frames_since_send += 1
-        if self._frames_since_send >= self.batch_frames:
-            self._frames_since_send = 0
-            self._send_series()
-        rec.set_time("sim_time", duration=_ns(frame.t_s))
-        rec.set_time("tick", sequence=self._last_tick)
+        self._last_t = t = frame.t_s
+        tick = self._last_tick
         model = frame.model
+        dents = getattr(frame, "dents", None) or {}
         if k:
-            tip = rows[-1, _C_X:_C_X + 3]
+            row = rows[-1]
+            tip = row[_C_X:_C_X + 3]
             back = -model.axis if model.inserted else np.array([0.0, 0.0, 1.0])
-            rec.log("world/needle", rr.LineStrips3D.from_fields(strips=[[tip, tip + NEEDLE_LENGTH_M * back]]))
-            rec.log("world/twist", rr.LineStrips3D.from_fields(strips=[twist_bar(tip, back, rows[-1, COL["roll_deg"]])]))
-            f = rows[-1, _C_F:_C_F + 3]
-            rec.log("world/force", rr.Arrows3D.from_fields(origins=[tip], vectors=[f * FORCE_ARROW_M_PER_N]))
+            c = self._cols
+            pose = seen_key(tip, back, decimals=7)  # to 0.1 um
+            c["world/needle"].add(t, tick, key=pose, strips=[np.array([tip, tip + NEEDLE_LENGTH_M * back])])
+            c["world/twist"].add(t, tick, key=(pose, round(float(row[COL["roll_deg"]]), 1)),
+                                 strips=[twist_bar(tip, back, row[COL["roll_deg"]])])
+            vec = row[_C_F:_C_F + 3] * FORCE_ARROW_M_PER_N
+            c["world/force"].add(t, tick, key=(pose, seen_key(vec, decimals=6)), origins=tip[None], vectors=vec[None])
+            self.scene.frame(t, tick, rows, float(tip_depth_m(tip[None], self.tissue)[0]) * 1e3, dents)
         rates = getattr(frame, "rates", None) or {}
         if rates and frame.t_s >= self._rates_next:
+            rec.set_time("sim_time", duration=_ns(t))
+            rec.set_time("tick", sequence=tick)
             self._rates_next = frame.t_s + _RATES_EVERY_S
             for key in ("servo_hz", "visual_hz"):
                 if key in rates:
                     rec.log(f"rates/{key}", rr.Scalars(float(rates[key])))
-        self._patches(frame)
-        self._nets(model)
+        self._patches(frame, dents, t, tick)
+        self._nets(model, t, tick)
+        self._frames_since_send += 1
+        if self._frames_since_send >= self.batch_frames:
+            self._frames_since_send = 0
+            self._send_series()
         self._frames_since_flush += 1
         if self.flush_frames and self._frames_since_flush >= self.flush_frames:
             self._frames_since_flush = 0
@@ -463,6 +585,8 @@ class RerunSink(Sink):
             rec.log("events", rr.TextLog(
                 f"{ev['layer']} punctured at t={ev['t_s']:.3f} s, depth {ev['tip_depth_m'] * 1e3:.2f} mm, "
                 f"peak {ev['peak_force_n']:.3f} N", level=rr.TextLogLevel.INFO))
+            i = int(np.searchsorted(rows[:, COL["tick"]], ev["tick"]))
+            self.scene.puncture(ev, rows[min(i, len(rows) - 1), _C_X:_C_X + 3])
         bad = np.nonzero(rows[:, COL["fault"]])[0]
         if bad.size and not getattr(self, "_fault_logged", False):
             i = bad[0]
@@ -472,18 +596,18 @@ class RerunSink(Sink):
                                          level=rr.TextLogLevel.ERROR))
             self._fault_logged = True
 
-    def _log_patch(self, k: int, dent: np.ndarray) -> None:
+    def _log_patch(self, k: int, dent: np.ndarray, t: float, tick: int) -> None:
         r_rest, r_pole = self._patch_rest[k]
         verts = self.tissue.centre + self._patch_dirs * (r_rest - dent)[..., None]
         pole = self.tissue.centre + np.array([0.0, 0.0, r_pole - float(dent[0].mean())])
         normals = _grid_normals(verts).reshape(-1, 3)
-        self.rec.log(f"world/tissue/{BOUNDARY_NAMES[k]}/patch", rr.Mesh3D.from_fields(
-            vertex_positions=np.vstack([verts.reshape(-1, 3), pole]).astype(np.float32),
-            vertex_normals=np.vstack([normals, [0.0, 0.0, 1.0]]).astype(np.float32)))
+        v = np.vstack([verts.reshape(-1, 3), pole]).astype(np.float32)
+        self._cols[f"world/tissue/{BOUNDARY_NAMES[k]}/patch"].add(
+            t, tick, n=len(v), vertex_positions=v,
+            vertex_normals=np.vstack([normals, [0.0, 0.0, 1.0]]).astype(np.float32))
         self._patch_dent[k] = dent
 
-    def _patches(self, frame) -> None:
-        dents = getattr(frame, "dents", None) or {}
+    def _patches(self, frame, dents, t: float, tick: int) -> None:
         model = frame.model
         for k in range(3):
             if k in dents:
@@ -495,19 +619,22 @@ class RerunSink(Sink):
             last = self._patch_dent[k]
             if dent is None:
                 if last is not None and np.any(last != 0.0):
-                    self._log_patch(k, np.zeros_like(last))
+                    self._log_patch(k, np.zeros_like(last), t, tick)
                 continue
             if last is None or last.shape != dent.shape or np.max(np.abs(dent - last)) > _DENT_EPS_M:
-                self._log_patch(k, dent)
+                self._log_patch(k, dent, t, tick)
 
-    def _nets(self, model) -> None:
+    def _nets(self, model, t: float, tick: int) -> None:
         rec = self.rec
         for idx in range(N_SLOTS * len(LAYERS)):
             k, s = net_layer(idx), net_slot(idx)
             path = f"world/nets/{LAYERS[k]}/slot{s}"
             if model.owner(idx) == FREE:
                 if idx in self._net_last:
-                    rec.log(path, rr.Clear(recursive=True))
+                    rec.set_time("sim_time", duration=_ns(t))
+                    rec.set_time("tick", sequence=tick)
+                    rec.log(f"{path}/particles", rr.Points3D.from_fields(positions=np.zeros((0, 3))))
+                    rec.log(f"{path}/springs", rr.LineStrips3D.from_fields(strips=[]))
                     del self._net_last[idx]
                 continue
             pos = model.net_positions(idx)[: model.n[k]]
@@ -515,10 +642,12 @@ class RerunSink(Sink):
             if last is not None and np.max(np.abs(pos - last)) <= _NET_EPS_M:
                 continue
             self._net_last[idx] = pos
-            rec.log(f"{path}/particles", rr.Points3D(pos, radii=rr.Radius.ui_points(2.0),
-                                                      colors=[_COLOURS[LAYERS[k]]]))
-            rec.log(f"{path}/springs", rr.LineStrips3D([pos[r] for r in self._rows[k]],
-                                                        radii=rr.Radius.ui_points(0.75), colors=[(60, 60, 60)]))
+            if f"{path}/particles" not in self._cols:
+                self._cols[f"{path}/particles"] = Columns(rr.Points3D, partitioned=True)
+                self._cols[f"{path}/springs"] = Columns(rr.LineStrips3D, partitioned=True)
+            self._cols[f"{path}/particles"].add(t, tick, n=len(pos), positions=pos)
+            strips = [pos[r] for r in self._rows[k]]
+            self._cols[f"{path}/springs"].add(t, tick, n=len(strips), strips=strips)
 
     # -- measurements ---------------------------------------------------------------------------
     def frame_cost_ms(self, cpu: bool = False) -> dict:

@@ -195,18 +195,18 @@ class ProcessSink(Sink):
             self._conn.close()
 
 
-def rerun_file_sink(path) -> ProcessSink:
+def rerun_file_sink(path, layout: str | None = None) -> ProcessSink:
     # a live session's file has no footer (flat memory: see RerunSink); rerun warns about that
     # once at WARN level, which is the intended trade, so that one message is silenced
     quiet = "re_log_encoding::rrd::file_sink=error"
     rust_log = os.environ.get("RUST_LOG")
-    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "to_file_live", str(path),
+    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "to_file_live", str(path), layout,
                        env={"RUST_LOG": f"{rust_log},{quiet}" if rust_log else f"warn,{quiet}"})
 
 
-def rerun_spawn_sink() -> ProcessSink:
-    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "spawn")
+def rerun_spawn_sink(layout: str | None = None) -> ProcessSink:
+    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "spawn", layout)
 
 
-def rerun_connect_sink(addr: str) -> ProcessSink:
-    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "connect", addr)
+def rerun_connect_sink(addr: str, layout: str | None = None) -> ProcessSink:
+    return ProcessSink("haptic_acu.session.rerun_log", "RerunSink", "connect", addr, layout)

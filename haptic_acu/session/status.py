@@ -5,18 +5,22 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
 
     t 3.21 s | x +0.0 y +0.0 mm | fat 1.20 mm | 2.05 mm deep (target 15-30) | |F| 0.41 N | v 5.0 mm/s (set 5) | roll +90 deg +0.041 N*mm | skin:punct fat:press muscle:- | last puncture skin 1.450 N | servo 1000 Hz visual 60 Hz | loop ok
 
+* for 1.5 s after a puncture (session time), ``SKIN PUNCTURED`` (``FAT``, ``MUSCLE``) first on the line;
+* the warnings, first: ``FORCE LIMIT`` while the commanded force is clamped to the safety limit,
+  ``ON BONE: withdraw`` with the tip on the bone, and ``12.40 mm deep, 2.4 PAST 30`` in place of
+  the target once the needle is deeper than the target range;
 * the session time (s) of the newest servo tick;
 * the tip's position relative to the acupoint (x, y in mm, the scene frame's origin);
 * where the tip is: in the air with its height above the rest skin, ``pressing skin`` with how far
   the skin is pushed in, or the layer (``bone`` past the muscle) with the depth into that layer and
   below the skin along the needle (mm), against the config's ``scene.target_depth_mm``;
 * the force on the needle |F| (N) and the tip speed (mm/s), with the keyboard's set speed;
-* once the needle has been rolled: its roll (deg, cumulative, + clockwise seen from the handle) and
-  the twist torque of the tissue wound around the shaft (N*mm, :mod:`haptic_acu.tissue.twirl`);
+* once the needle has been rolled: its roll (deg, cumulative, + clockwise seen from the handle),
+  kept before the position and rates, and the twist torque of the tissue wound around the shaft
+  (N*mm, :mod:`haptic_acu.tissue.twirl`);
 * each layer's state: ``-`` untouched, ``press`` pressing (a force net is active), ``punct`` punctured;
 * the last puncture and its peak |F| (N, the report's number: :class:`haptic_acu.session.report.SessionScan`);
-* warnings: ``ON BONE: withdraw`` with the tip on the bone, ``FORCE LIMIT`` while the commanded force
-  is clamped to the safety limit, ``CONTINUOUS FORCE LIMIT: easing off`` while the rendering layer's
+* ``CONTINUOUS FORCE LIMIT: easing off`` while the rendering layer's
   continuous-force protection scales the device's force down (sample column ``render_status``);
 * the servo and visual rates the engine measured (``Frame.rates``, Hz);
 * the loop's health in words: ``loop ok``, or ``host late 0.3%, missed 12``: the share and count of
@@ -25,14 +29,15 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
   rule).
 
 The line must fit the terminal's width (a wrapped line could not be rewritten in place): on a narrow
-terminal the least important fields go first (the rates, the layer states, the position and loop
-health, the roll and last puncture; the time, place, depth against the target, force, speed and
-warnings stay: about 100 columns inside the tissue). It is padded over the previous one. It is drawn only when the
+terminal the least important fields go first (the rates, the layer states, the position, torque and
+loop health, the last puncture, then the time, place, speed and roll; the puncture flash, the
+warnings, the depth against the target and the force stay: within 80 columns). It is padded over the previous one. It is drawn only when the
 stream is a terminal, or with ``force=True``. ``close(result)`` ends the line with a newline and
 prints the fault reason, if any.
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -72,6 +77,9 @@ def loop_health(missed: int, ticks: int) -> str:
     return f"host late {pct:.1f}%, missed {missed}"
 
 
+FLASH_S = 1.5  # a puncture is announced this long (session time) after it happens
+
+
 def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, *, ticks: int | None = None,
                   tip_depth_mm: float | None = None, target_mm=None, last_puncture: dict | None = None,
                   speed_set_mm_s: float | None = None, warning: str = "") -> list[tuple[int, str]]:
@@ -87,13 +95,20 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     # force, speed, warnings) before the roll and last puncture, then position and loop health, then
     # the layer states, then the rates
     # the position relative to the acupoint matters most in the air, while aiming
-    fields = [(0, f"t {t_s:.2f} s"), (1 if layer < 0 else 3, f"x {x_mm:+.1f} y {y_mm:+.1f} mm")]
+    fields = []
+    # a puncture just now, by name: the first thing on the line while it lasts
+    if last_puncture is not None and 0.0 <= t_s - last_puncture.get("t_s", -math.inf) <= FLASH_S:
+        fields.append((0, f"{last_puncture['layer'].upper()} PUNCTURED"))
+    fields += [(2, f"t {t_s:.2f} s"), (1 if layer < 0 else 3, f"x {x_mm:+.1f} y {y_mm:+.1f} mm")]
     if layer >= 0:
-        fields.append((0, f"{_PLACE.get(layer, '?')} {row[_C_DEPTH] * 1e3:.2f} mm"))
-        deep = f"{row[_C_DEPTH_SKIN] * 1e3:.2f} mm deep"
-        if target_mm is not None:
+        fields.append((1, f"{_PLACE.get(layer, '?')} {row[_C_DEPTH] * 1e3:.2f} mm"))
+        depth = row[_C_DEPTH_SKIN] * 1e3
+        deep = f"{depth:.2f} mm deep"
+        if target_mm is not None and depth > target_mm[1]:
+            deep += f", {depth - target_mm[1]:.1f} PAST {target_mm[1]:g}"
+        elif target_mm is not None:
             deep += f" (target {target_mm[0]:g}-{target_mm[1]:g})"
-        fields.append((1, deep))
+        fields.append((0, deep))
     elif int(row[_C_STATE]) == 1 and tip_depth_mm is not None:
         fields.append((0, f"pressing skin {max(tip_depth_mm, 0.0):.2f} mm"))
     elif tip_depth_mm is not None:
@@ -105,18 +120,19 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
     if speed_set_mm_s is not None:
         v += f" (set {speed_set_mm_s:g})"
     fields.append((1, v))
-    if row[_C_ROLL] != 0.0 or row[_C_TORQUE] != 0.0:  # once the needle has been rolled
-        fields.append((2, f"roll {row[_C_ROLL]:+.0f} deg {row[_C_TORQUE]:+.3f} N*mm"))
+    if row[_C_ROLL] != 0.0 or row[_C_TORQUE] != 0.0:  # once the needle has been rolled: before the position
+        fields.append((1, f"roll {row[_C_ROLL]:+.0f} deg"))
+        fields.append((3, f"{row[_C_TORQUE]:+.3f} N*mm"))
     fields.append((4, " ".join(f"{name}:{_STATE_SHORT[int(s)] if 0 <= int(s) < 3 else '?'}"
                                for name, s in zip(LAYER_NAMES, row[_C_STATE:_C_STATE + 3]))))
     if last_puncture is not None:
         fields.append((2, f"last puncture {last_puncture['layer']} {last_puncture['peak_force_n']:.3f} N"))
     if layer == _BONE:
-        fields.append((0, "ON BONE: withdraw"))
+        fields.insert(0, (0, "ON BONE: withdraw"))
     if warning:
         fields.append((0, warning))
     if row[_C_CLAMP]:
-        fields.append((0, "FORCE LIMIT"))
+        fields.insert(0, (0, "FORCE LIMIT"))
     if int(row[_C_RSTAT]) & _LIMITING:  # the rendering layer's continuous-force protection
         fields.append((0, "CONTINUOUS FORCE LIMIT: easing off"))
     fields.append((5, f"servo {rates.get('servo_hz', 0.0):.0f} Hz visual {rates.get('visual_hz', 0.0):.0f} Hz"))

@@ -71,7 +71,6 @@ import csv
 import math
 import os
 import re
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
@@ -93,13 +92,14 @@ EVENT_CODES = {"": 0, "reset": 1}
 CATEGORY_COLUMNS = {"layer": LAYER_CODES, "state_skin": STATE_CODES, "state_fat": STATE_CODES,
                     "state_muscle": STATE_CODES, EVENT_COLUMN: EVENT_CODES}
 MAX_COORD_MM = 10_000.0  # 10 m from the acupoint: a unit mistake, not a hand
+AXIS_OUT_Z = 0.5  # an axis with axis_z above this points out of the skin (within 60 degrees of +z)
 AXIS_UNIT_TOLERANCE = 0.01  # |axis| must be within 1% of 1
 MAX_ROLL_DEG_PER_S = 3600.0  # 10 turns per second: faster is not a hand twirling a needle
 DEFAULT_MAX_HAND_SPEED_M_PER_S = 2.0
 SERVO_TICK_S = 1e-3  # the velocity finite-difference step: one 1 kHz servo tick
 BLOCK_BYTES = 1 << 18  # bytes parsed at a time when streaming a whole file (~7000 rows)
 CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows)
-MAX_LINE_BYTES = 1 << 20  # a longer "line" is binary data, not a row
+from ..base.csvin import MAX_LINE_BYTES  # noqa: E402 - the input layer's line limit (1 MB)
 
 _NUMBER = re.compile(
     r"[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|nan|inf|infinity)",
@@ -203,16 +203,18 @@ class TrajectoryReader:
 
     # -- file access -------------------------------------------------------------------------
     def _open(self):
+        from ..base.csvin import check_source
+
         try:
-            st = os.stat(self.path)
-            if stat.S_ISFIFO(st.st_mode) or stat.S_ISSOCK(st.st_mode) or stat.S_ISCHR(st.st_mode):
-                raise UserError(f"{self.path}: is a pipe or a device, not a trajectory file (it is "
-                                "read more than once: save it to a file first)")
+            check_source(self.path, "trajectory file")  # the input layer's rule: a regular file
+        except UserError as e:
+            if "no such file" in str(e):
+                raise UserError(f"{self.path}: trajectory file not found") from None
+            raise
+        try:
             return open(self.path, "rb")
         except FileNotFoundError:
             raise UserError(f"{self.path}: trajectory file not found") from None
-        except IsADirectoryError:
-            raise UserError(f"{self.path}: is a directory, not a trajectory file") from None
         except OSError as e:
             raise UserError(f"{self.path}: cannot read trajectory file: {e.strerror}") from None
 
@@ -516,6 +518,18 @@ class _Checker:
                                  f"the tip moves at {speed[i]:.3g} m/s since line {ll[i]}, faster "
                                  f"than a hand can (max_hand_speed_m_per_s = {self.vmax:g}); "
                                  "trajectory refused"))
+            if self.axis_idx is not None:
+                # entering the skin at the acupoint (z through 0) with the axis pointing out of it: the
+                # needle would go in handle first (the axis runs from the handle to the tip)
+                z, az = vv[:, 3], vv[:, self.axis_idx[2]]
+                with np.errstate(invalid="ignore"):
+                    bad_a = np.flatnonzero((z[:-1] > 0) & (z[1:] <= 0) & ~anew & (az[1:] > AXIS_OUT_Z))
+                if len(bad_a):
+                    i = int(bad_a[0])
+                    problems.append((i + 1 - off, 2,
+                                     f"the tip enters the skin (z_mm {z[i]:g} to {z[i + 1]:g}) against its "
+                                     f"needle axis (axis_z = {az[i + 1]:+.3g} points out of the skin; the axis "
+                                     "runs from the handle to the tip)"))
             if len(bad_r):
                 i = int(bad_r[0])
                 problems.append((i + 1 - off, 2,

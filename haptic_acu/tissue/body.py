@@ -307,11 +307,16 @@ def save_coefficients(path, coeffs_m: np.ndarray, centre_m: np.ndarray, source: 
 
 def load_coefficients(path) -> tuple[np.ndarray, np.ndarray]:
     """(coeffs in m, centre in m) from a file written by :func:`save_coefficients`."""
+    import zipfile
+
+    from ..base.csvin import check_source
+
+    check_source(path, "coefficients file")  # a device or a pipe: refused unread
     try:
         with np.load(path, allow_pickle=False) as z:
             c = np.asarray(z["coeffs_mm"], dtype=np.float64) * 1e-3
             centre = np.asarray(z["centre_mm"], dtype=np.float64) * 1e-3
-    except (OSError, ValueError, KeyError, TypeError) as e:  # TypeError: a .npy, not an .npz
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as e:  # TypeError: a .npy
         raise UserError(f"{path}: not a coefficients file written by 'haptic-acu fit' ({e})") from None
     if c.ndim != 1 or not np.all(np.isfinite(c)) or centre.shape != (3,):
         raise UserError(f"{path}: malformed coefficients (need finite coeffs_mm (K,) and centre_mm (3,))")

@@ -19,6 +19,7 @@ import numpy as np
 from ..base.errors import UserError
 
 _VERTEX_COUNTS = (3, 4, 6, 7)  # x y z [w] [r g b]
+MAX_OBJ_BYTES = 512 << 20
 
 
 def read_vertices(path) -> tuple[np.ndarray, np.ndarray]:
@@ -26,13 +27,21 @@ def read_vertices(path) -> tuple[np.ndarray, np.ndarray]:
 
     The file's coordinates are taken to be millimetres.
     """
+    from ..base.csvin import check_source
+
     path = Path(path)
     try:
+        st = check_source(path, "OBJ file")  # a device or a pipe never ends: refused unread
+        if st.st_size > MAX_OBJ_BYTES:
+            raise UserError(f"{path}: {st.st_size / 1e6:.0f} MB; an OBJ file is read whole and may be at "
+                            f"most {MAX_OBJ_BYTES >> 20} MB (decimate the mesh)")
         raw = path.read_bytes()
-    except FileNotFoundError:
-        raise UserError(f"{path}: OBJ file not found") from None
-    except IsADirectoryError:
-        raise UserError(f"{path}: is a directory, not an OBJ file") from None
+    except UserError as e:
+        if "no such file" in str(e):
+            raise UserError(f"{path}: OBJ file not found") from None
+        if "is a directory" in str(e):
+            raise UserError(f"{path}: is a directory, not an OBJ file") from None
+        raise
     except OSError as e:
         raise UserError(f"{path}: cannot read OBJ file: {e.strerror}") from None
     if b"\0" in raw:

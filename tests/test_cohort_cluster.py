@@ -1,0 +1,178 @@
+"""The cohort's distributed path against a hostile world: schemes Dask does not speak, a scheduler
+with no worker, a cluster that loses every worker mid-run, and a local pool that is terminated.
+
+Each ends within its stated time with one line; finished sessions are kept; no process is left.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from haptic_acu.base.errors import UserError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("address, expect", [
+    ("udp://127.0.0.1:8786", "'udp://' is not a protocol"),
+    ("http://127.0.0.1:8787", "'http://' is not a protocol"),
+    ("inproc://127.0.0.1:1", "'inproc://' is not a protocol"),
+])
+def test_schemes_dask_does_not_speak(address, expect):
+    from haptic_acu.cohort.run import scheduler_address
+
+    with pytest.raises(UserError, match=expect):
+        scheduler_address(address)
+
+
+def test_tls_without_certificates_is_one_line():
+    from haptic_acu.cohort.run import connect
+
+    with pytest.raises(UserError, match="certificates"):
+        connect("tls://127.0.0.1:8786", timeout_s=2)
+
+
+def test_a_listener_that_is_not_a_scheduler(tmp_path):
+    """tcp:// to something that accepts and says nothing: one line within the timeout, no traceback."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    port = srv.getsockname()[1]
+    man = tmp_path / "m.csv"
+    man.write_text("session,trainee,file\ns1,ann,a.csv\n")
+    try:
+        t0 = time.monotonic()
+        p = subprocess.run([sys.executable, "-m", "haptic_acu", "cohort", str(man), "--out", str(tmp_path / "o"),
+                            "--scheduler", f"tcp://127.0.0.1:{port}", "--scheduler-timeout", "3"],
+                           capture_output=True, text=True, timeout=120, cwd=REPO)
+        took = time.monotonic() - t0
+    finally:
+        srv.close()
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    lines = [ln for ln in p.stderr.strip().splitlines() if not ln.startswith("haptic-acu: ")]
+    assert len(lines) == 1 and "cannot connect within 3 s" in lines[0], p.stderr
+    assert took < 60
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    import dask
+
+    with dask.config.set({"temporary-directory": str(tmp_path / "dask-scratch")}), \
+            distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp://",
+                                     dashboard_address=None) as lc:
+        yield lc
+
+
+def test_no_worker_joins_within_the_timeout(cluster, tmp_path, capsys):
+    from haptic_acu.cli import main
+
+    man = tmp_path / "m.csv"
+    man.write_text(f"session,trainee,file\ns1,ann,{REPO / 'trajectories' / 'default.csv'}\n")
+    t0 = time.monotonic()
+    rc = main(["cohort", str(man), "--out", str(tmp_path / "o"), "--scheduler", cluster.scheduler_address,
+               "--scheduler-timeout", "2"])
+    err = capsys.readouterr().err
+    assert rc == 2 and time.monotonic() - t0 < 30
+    assert "waiting up to 2 s" in err and "no worker joined in 2 s" in err, err
+
+
+def test_losing_every_worker_stops_with_one_line_and_keeps_finished_sessions(cluster, tmp_path):
+    """One worker; once the first session is saved the worker goes: the run stops within the timeout
+    (exit 3, one line) and the finished session is on disk for the next run."""
+    from haptic_acu.base.config import load_config
+    from haptic_acu.cohort.run import run_dask
+    from haptic_acu.cohort.sessions import Job, config_hash, file_sha256
+
+    traj = REPO / "trajectories" / "default.csv"
+    cfg = load_config()
+    csha = config_hash(cfg)
+    jobs = [Job(f"s{k}", str(traj), cfg, file_sha256(traj), csha, None) for k in range(4)]
+    from distributed import Client
+
+    client = Client(cluster.scheduler_address, set_as_default=False, timeout=30)
+    cluster.scale(1)
+    saved = []
+
+    def on_result(rec):
+        saved.append(rec)
+        if len(saved) == 1:  # the cluster loses its only worker
+            threading.Thread(target=lambda: cluster.scale(0), daemon=True).start()
+
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(UserError) as e:
+            run_dask(jobs, client, on_result, timeout_s=3)
+    finally:
+        client.close()
+    assert e.value.exit_status == 3 and "every worker has been lost" in str(e.value)
+    assert time.monotonic() - t0 < 120
+    assert saved and saved[0]["summary"] is not None and not saved[0].get("error")
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out |= {int(c) for c in (task / "children").read_text().split()}
+        except OSError:
+            pass
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie waiting for its parent is gone for this purpose
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_terminated_local_pool_takes_its_workers(tmp_path, sig):
+    from haptic_acu.bench.cohort_bench import synthetic_cohort
+
+    man = synthetic_cohort(tmp_path / "class", trainees=2, sessions=2, duration_s=60.0, seed=1)
+    p = subprocess.Popen([sys.executable, "-m", "haptic_acu", "cohort", str(man), "--out", str(tmp_path / "o"),
+                          "--jobs", "2", "--quiet"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         start_new_session=True)
+    workers: set[int] = set()
+    try:
+        end = time.monotonic() + 120
+        while time.monotonic() < end and p.poll() is None:
+            workers = {c for c in _children(p.pid) if "multiprocessing" in Path(f"/proc/{c}/cmdline").read_text()}
+            if len(workers) >= 2:
+                break
+            time.sleep(0.2)
+        assert len(workers) >= 2, "the pool did not start"
+        p.send_signal(sig)
+        p.communicate(timeout=60)
+        end = time.monotonic() + 30
+        while time.monotonic() < end and any(_alive(w) for w in workers):
+            time.sleep(0.2)
+        assert not any(_alive(w) for w in workers)
+        if sig == signal.SIGTERM:
+            assert p.returncode == 143
+    finally:
+        for w in workers:
+            try:
+                os.kill(w, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()

@@ -1,0 +1,51 @@
+"""A live session's report equals a replay of its own recording: for every bundled trajectory,
+``run --device scripted`` (real time) then ``replay`` of the recording it wrote give the same ticks,
+punctures, peaks and per-insertion metrics, to the resolution the outputs print."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from haptic_acu.base.bundled import bundled_trajectories
+from haptic_acu.cli import main
+
+pytestmark = pytest.mark.slow  # each bundled trajectory is played in real time (about 2 minutes in all)
+
+TIMING = {"loop", "trajectory", "_wall_s", "_stats"}  # the clock's own statistics differ by nature
+
+
+def _close(a, b, path=""):
+    """Equal, numbers within one unit of their last printed digit (a float64 sum in another order can
+    land on the other side of a rounding half)."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), (path, set(a) ^ set(b))
+        for k in a:
+            _close(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        digits = max(len(repr(a).split(".")[-1]), len(repr(b).split(".")[-1])) if "e" not in repr(a) + repr(b) else 6
+        assert abs(a - b) <= 1.01 * 10.0 ** -min(digits, 6), (path, a, b)
+    else:
+        assert a == b, (path, a, b)
+
+
+@pytest.mark.parametrize("name", sorted(bundled_trajectories()))
+def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
+    live, again = tmp_path / "live", tmp_path / "replay"
+    assert main(["run", "--device", "scripted", "--trajectory", name, "--out", str(live), "--no-status"]) == 0
+    assert main(["replay", str(live / "recording.csv"), "--out", str(again), "--no-rrd"]) == 0
+    a = json.loads((live / "summary.json").read_text())
+    b = json.loads((again / "summary.json").read_text())
+    # (a host too loaded for the visual loop drops rows from the live report; none may be missing)
+    assert a["loop"]["dropped_rows"] == 0, "the live session dropped rows: the host was overloaded"
+    assert a["ticks"] == b["ticks"] and a["duration_s"] == b["duration_s"]
+    assert [p["layer"] for p in a["punctures"]] == [p["layer"] for p in b["punctures"]]
+    assert [p["t_s"] for p in a["punctures"]] == [p["t_s"] for p in b["punctures"]]
+    for k in set(a) - TIMING - {"debrief"}:
+        _close(a[k], b[k], k)
+    assert a["debrief"]["insertions"] == b["debrief"]["insertions"]
