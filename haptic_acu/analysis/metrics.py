@@ -337,7 +337,7 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
                          lateral_comfort_n)
 
 
-BONE = 3  # the sample ``layer`` code of bone
+from ..tissue.layers import BONE  # noqa: E402 (the sample ``layer`` code of bone)
 WITHHELD = ("the tip touched bone or the force was held at the device's limit during this insertion: its "
             "strokes felt the bone or the limit, not the tissue")
 

@@ -504,18 +504,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     if withdrew:
         handles.append(Line2D([], [], color="0.3", lw=1.2, ls=(0, (4, 2)), label="withdrawal (dashed)"))
     handles += _insertion_handles(n_ins)
-    for ev in events:
-        c = _EVENT_COLOURS[ev["layer"]]
-        x, y = ev["tip_depth_mm"], ev["peak_force_n"]
-        k = int(idx[min(int(np.searchsorted(t, ev["t_s"] - 5e-5)), len(idx) - 1)]) if idx.size else 0
-        ax = panels[min(max(k, 0), n_pan - 1)]
-        ax.plot([x], [y], marker="v", ms=8, color=c, ls="none", mec="k", mew=0.5)
-        ax.annotate(f"{ev['layer']}\n{y:.3f} N, {x:.2f} mm", (x, y), xytext=(5, 3),
-                    textcoords="offset points", fontsize=7, color=c)
-        ax_t.axvline(ev["t_s"], color=c, lw=0.8, ls="--")
-    if events:
-        handles.append(Line2D([], [], marker="v", ls="none", color="0.3", mec="k", mew=0.5,
-                              label="puncture (peak |F| while pressed)"))
+    handles += _draw_punctures(panels, ax_t, events, idx, t)
     handles += _draw_structures(panels, ax_t, structures, summary)
     panels[0].set_xlim(x0, x1)
     if rows.size:
@@ -541,6 +530,26 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     ax_t.set_xlim(*tspan)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
 
+
+
+def _draw_punctures(panels, ax_t, events, idx, t) -> list:
+    """force_depth.png's punctures: a marker with the layer, peak |F| and depth on the insertion's
+    panel and a dashed line on the time panel; the legend's handle."""
+    from matplotlib.lines import Line2D
+    n_pan = len(panels)
+    for ev in events:
+        c = _EVENT_COLOURS[ev["layer"]]
+        x, y = ev["tip_depth_mm"], ev["peak_force_n"]
+        k = int(idx[min(int(np.searchsorted(t, ev["t_s"] - 5e-5)), len(idx) - 1)]) if idx.size else 0
+        ax = panels[min(max(k, 0), n_pan - 1)]
+        ax.plot([x], [y], marker="v", ms=8, color=c, ls="none", mec="k", mew=0.5)
+        ax.annotate(f"{ev['layer']}\n{y:.3f} N, {x:.2f} mm", (x, y), xytext=(5, 3),
+                    textcoords="offset points", fontsize=7, color=c)
+        ax_t.axvline(ev["t_s"], color=c, lw=0.8, ls="--")
+    if not events:
+        return []
+    return [Line2D([], [], marker="v", ls="none", color="0.3", mec="k", mew=0.5,
+                   label="puncture (peak |F| while pressed)")]
 
 def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) -> None:
     """force_depth.png's lateral panel: the force across the needle and, on its own scale, the tip's
