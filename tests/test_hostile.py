@@ -240,9 +240,11 @@ def test_cohort_levels_pairwise_tests_bounded(tmp_path):
 
 
 def test_cohort_formula_cells_are_neutralised(tmp_path):
-    m = manifest(tmp_path / "m.csv", ["@SUM(1),=cmd|' /C calc'!A0,nope.csv,+lvl,", "s2,-bob,nope2.csv,,"])
+    # one session replays (a bundled trajectory), the other fails (its file is missing): the tables
+    # are written (a run where every session fails leaves no folder)
+    m = manifest(tmp_path / "m.csv", ["@SUM(1),=cmd|' /C calc'!A0,default,+lvl,", "s2,-bob,nope2.csv,,"])
     code, err = cli("cohort", m, "--out", tmp_path / "o", "--quiet")
-    assert code == 2  # both sessions fail: their files are missing
+    assert code == 2 and "nope2.csv" in err  # a failed session is reported and makes the status 2
     text = (tmp_path / "o" / "sessions.csv").read_text()
     assert "'@SUM(1)" in text and "'=cmd|" in text and "'-bob" in text and "'+lvl" in text
     assert not re.search(r"(^|,)[=@+]", text, re.M)

@@ -23,9 +23,11 @@ DT = 1e-3
 
 
 def flat_config(base=None, radius_mm=1000.0):
-    """The sphere config of physics_helpers (layers 1 / 5 / 20 mm) on a 1 m sphere: a line at 75 deg
-    from the normal still reaches the muscle within the needle's length."""
+    """The sphere config of physics_helpers (layers 1 / 5 / 20 mm) on a 1 m sphere, with a 60 mm
+    needle: a line at 75 deg from the normal reaches the muscle (12 mm down, 46 mm along the line)
+    and goes 4 mm further with the handle still off the skin."""
     cfg = sphere_config(base)
+    cfg = replace(cfg, "needle", length_mm=60.0)
     return replace(cfg, "body", semi_axes_mm=(radius_mm,) * 3)
 
 

@@ -377,8 +377,8 @@ def test_tip_exactly_at_the_tissue_centre_is_handled(cfg, tissue):
     assert np.all(np.isfinite(f)) and not model.fault
     # Through the holes of an earlier insertion (no dent, so no compression offset) and on down
     # through the bone to its centre: the wall's penetration is the whole bone radius, its push the
-    # +z pole's direction.
-    big = NeedleModel(replace(cfg, "safety", force_limit_n=1e6), tissue)
+    # +z pole's direction (a needle long enough to reach it: the handle stays off the skin).
+    big = NeedleModel(replace(replace(cfg, "safety", force_limit_n=1e6), "needle", length_mm=1000.0), tissue)
     insert_and_withdraw(big)
     pts, v = straight_line(1e-3, tissue.centre[2], 0.1)
     drive(big, pts, v)

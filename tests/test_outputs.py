@@ -135,7 +135,7 @@ def test_stale_partial_of_a_killed_replay_is_replaced(tmp_path):
     r = cli("replay", "--no-rrd", "--out", out, short_csv(tmp_path / "s.csv"))
     assert r.returncode == 0, r.stderr
     assert not partial.exists()
-    assert sorted(p.name for p in out.iterdir()) == ["force_depth.png", "samples.csv", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["debrief.md", "force_depth.png", "samples.csv", "summary.json"]
 
 
 def test_out_is_an_existing_file(tmp_path):

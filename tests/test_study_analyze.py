@@ -171,7 +171,7 @@ def test_order_and_carry_over_checks(configs, tmp_path):
 def test_analyze_bad_input(analyzed, tmp_path, capsys):
     study = analyzed["study"]
     assert main(["study", "analyze", str(study.folder), "--out", str(analyzed["out"])]) == 2
-    assert "not an empty folder" in capsys.readouterr().err
+    assert "not empty" in capsys.readouterr().err
     assert main(["study", "analyze", str(study.folder), "--out", str(tmp_path / "x"), "--mu", "1.5"]) == 2
     assert "--mu" in capsys.readouterr().err
     # a hand-edited ratings.csv with a rating off the scale: one line naming the file and line

@@ -95,7 +95,7 @@ def test_installed_commands_run_from_another_folder(installed):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["trajectory"] == "default.csv"
     assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
-    assert {p.name for p in out.iterdir()} == {"summary.json", "samples.csv", "force_depth.png"}
+    assert {p.name for p in out.iterdir()} == {"summary.json", "samples.csv", "force_depth.png", "debrief.md"}
     scoring = installed["site"] / "haptic_acu" / "_bundled" / "config" / "scoring"
     r = _run(installed, "score", scoring / "example_ratings.csv", "--delphi", scoring / "example_delphi.csv",
              "--out", "score")

@@ -44,6 +44,7 @@ COMMAND_OUTPUTS: dict[str, dict[str, tuple[str, ...]]] = {
     "calibrate": {"--out": ()},
     "bench": {"--json": ()},
     "points": {},  # prints only
+    "view": {},  # serves a recording over HTTP on 127.0.0.1; writes nothing
     "study": {"plan --out": (), "example --out": (), "analyze --out": (), "replay --out": ()},
     "cohort": {"--out": ("insertions.parquet", "insertions.csv", "sessions.parquet", "sessions.csv",
                          "report.json")},
