@@ -77,7 +77,7 @@ def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=()):
     rec = tmp_path / "rec.csv"
     env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
                            "--record", str(rec), "--no-status"],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))

@@ -72,7 +72,7 @@ def run_cli(emulator, tmp_path, path, duration, *, extra_args=(), config=None, *
     out = tmp_path / "out"
     env = emulator_env(emulator, path=path, log=log, **emu)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
+    cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
            "--record", str(rec), "--out", str(out), "--no-status", *extra_args]
     if config is not None:
         cmd += ["--config", str(config)]

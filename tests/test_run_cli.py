@@ -39,7 +39,11 @@ def env():
 
 
 def haptic_acu(*args):
-    return [sys.executable, "-m", "haptic_acu", *map(str, args)]
+    """The command line; ``run`` with --verbose, whose closing timing line these tests read."""
+    args = [*map(str, args)]
+    if args[:1] == ["run"]:
+        args.insert(1, "--verbose")
+    return [sys.executable, "-m", "haptic_acu", *args]
 
 
 def session_ticks(stderr: str) -> int:

@@ -74,7 +74,7 @@ def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, se
     env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
                        velocity=velocity)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", str(duration),
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
                            "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else [])
                           + (["--config", str(config)] if config is not None else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
@@ -247,7 +247,7 @@ def test_missing_openhaptics_is_one_line_and_status_2(tmp_path):
                            capture_output=True)
     if probe.returncode == 0:
         pytest.skip("a libHD.so is installed on this machine's loader path")
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", "1"],
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", "1"],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
@@ -273,7 +273,7 @@ def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, worksp
     rec = tmp_path / "rec.csv"
     env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--device", "omni", "--duration", "1.6",
+    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", "1.6",
                            "--record", str(rec), "--no-status", "--out", str(tmp_path / "out")] + (["--python-servo"] if servo == "python" else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr

@@ -88,7 +88,7 @@ def main() -> int:
     work.mkdir(parents=True, exist_ok=True)
     traj = work / "soak.csv"
     tiled(ROOT / "trajectories" / "default.csv", args.minutes, traj)
-    cmd = [sys.executable, "-m", "haptic_acu", "run", "--device", "scripted", "--trajectory", str(traj),
+    cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "scripted", "--trajectory", str(traj),
            "--duration", str(args.minutes * 60.0), "--no-status", "--out", str(work / "session"),
            "--rrd", str(work / "session.rrd")] + (["--pin-cores"] if args.pin_cores else [])
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
