@@ -31,7 +31,7 @@ from haptic_acu.base.config import load_config
 from haptic_acu.session.engine import Session
 from haptic_acu.base.errors import DeviceFault
 from haptic_acu.servo.step import NeedleModel
-from haptic_acu.session.recorder import EXTRA, RecorderSink
+from haptic_acu.session.recorder import EXTRA, tick_rows, RecorderSink
 from haptic_acu.tissue.body import Tissue
 from haptic_acu.session.sink import Sink
 
@@ -168,7 +168,7 @@ def visual_threads():
 
 
 def recorded(path) -> trajectory.Trajectory:
-    return trajectory.load(path, extra_columns=EXTRA)
+    return tick_rows(trajectory.load(path, extra_columns=EXTRA))
 
 
 def check_stopped(result, dev, counter, reason_part):

@@ -31,7 +31,7 @@ from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_en
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
-from haptic_acu.session.recorder import EXTRA  # noqa: E402
+from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -112,7 +112,7 @@ def test_closed_loop_session_through_the_emulated_omni(emulator, tmp_path, grip_
     proc, frames, rec = run_cli(emulator, tmp_path, path, duration, stylus={**grip, "hand_tremor": TREMOR})
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
 
     # punctures: skin and fat break on the way in, each felt at the device as a drop
     states = np.stack([tr.extra["state_skin"], tr.extra["state_fat"]], axis=1)
@@ -174,7 +174,7 @@ def test_a_recording_with_a_late_scheduler_tick_replays(emulator, tmp_path):
             (1.6, 0.0, 0.0, device_z(-1.0)), (1.9, 0.0, 0.0, z5)]
     proc, frames, rec = run_cli(emulator, tmp_path, path, 2.0, faults=[("late", 1.0)])
     assert proc.returncode == 0, proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     np.testing.assert_allclose(np.diff(tr.t_s), 1e-3, atol=1e-9)
     assert len(tr.t_s) >= 1900  # the late ticks ran (caught up), each a row
     rep, _ = replay(tmp_path, rec)

@@ -27,7 +27,7 @@ from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_en
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
-from haptic_acu.session.recorder import EXTRA  # noqa: E402
+from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -130,7 +130,7 @@ def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp
     assert np.all(angle_deg(s["axis"][before], OBLIQUE) < 1e-3)  # the stylus's own, every tick before entry
     assert np.all(s["clamped"] == 0)
     assert np.nanmax(s["f_lateral_n"]) < 0.25
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     assert len(tr.t_s) == len(s["t_s"])
     # the recording carries the axis: its headless replay inserts along the same line
     rep = subprocess.run([sys.executable, "-m", "haptic_acu", "replay", str(rec), "--no-rrd", "--quiet", "--out",
@@ -218,7 +218,7 @@ def test_a_still_hand_on_the_skin_for_5_s_is_no_fault(emulator, tmp_path):
     proc, frames, rec, out = run_cli(emulator, tmp_path, path, 6.0)
     assert proc.returncode == 0, proc.stderr
     assert "stopped:" not in proc.stderr and "Traceback" not in proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     assert tr.t_s[-1] > 5.9
     n = len(tr.t_s)
     p = frames[:n, 2:5]

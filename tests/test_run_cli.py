@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from haptic_acu.session import trajectory
-from haptic_acu.session.recorder import EXTRA
+from haptic_acu.session.recorder import EXTRA, tick_rows
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
@@ -79,7 +79,7 @@ def test_signal_stops_the_session_cleanly(tmp_path, sig):
             proc.communicate()
     assert proc.returncode == 0, err  # a requested stop is a clean end, not an error
     assert "Traceback" not in err and "stopped:" not in err
-    tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: increasing time, finite values
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))  # parses: increasing time, finite values
     n = session_ticks(err)
     assert len(tr.t_s) == n >= 1000
     assert tr.t_s[-1] < 16.0  # stopped by the signal, not at the trajectory's end
@@ -135,7 +135,7 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
                                      "--record", rec, "--no-status", "--out", tmp_path / "session"),
                           cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert live.returncode == 0, live.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     assert len(tr.t_s) == session_ticks(live.stderr)
 
     out = tmp_path / "replay"

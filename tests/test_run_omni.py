@@ -32,7 +32,7 @@ from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noq
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
-from haptic_acu.session.recorder import EXTRA  # noqa: E402
+from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME = 0  # emulator log record kind of a committed force frame
@@ -131,7 +131,7 @@ def test_omni_press_through_the_cli(emulator, tmp_path, workspace, servo, veloci
     ticks = int(m.group(1))
     assert f"{servo} servo loop" in proc.stderr
 
-    tr = trajectory.load(rec, extra_columns=EXTRA)  # parses: strictly increasing time, finite values
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))  # parses: strictly increasing time, finite values
     # one row per tick of a 2 s session, to its end (rows carry the device's tick time)
     assert len(tr.t_s) == ticks >= 1000 and 1.8 < tr.t_s[-1] <= 2.0
     check_rows_match_frames(tr, frames, workspace)
@@ -165,7 +165,7 @@ def test_omni_turned_scaled_workspace_through_the_cli(emulator, tmp_path, servo)
     proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), servo=servo, config=cfg_path)
     assert proc.returncode == 0, proc.stderr
     assert f"{servo} servo loop" in proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     check_rows_match_frames(tr, frames, workspace)
     f_scene = np.stack([tr.extra["fx_n"], tr.extra["fy_n"]], axis=1)
     assert np.abs(f_scene[:, 0]).max() > 1e-3  # a sideways force in the scene, turned into the device's y
@@ -191,7 +191,7 @@ def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, k
     assert np.any(f[frames[:, 0] < FAULT_AT, 2] > 0.5 * NOMINAL_MAX_N)  # it was pressing when the fault came
     assert np.all(f[-1] == 0.0)  # the last frame commanded zero
 
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     n = len(tr.t_s)
     check_rows_match_frames(tr, frames, workspace)  # every tick up to the fault, in order
     assert len(frames) - n == 1  # then only the fault's own zero frame
@@ -216,7 +216,7 @@ def test_omni_frozen_under_a_steady_force_is_a_still_hand_through_the_cli(emulat
                                 duration=3.0, servo=servo)
     assert proc.returncode == 0, proc.stderr
     assert f"{servo} servo loop" in proc.stderr and "stopped:" not in proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     n = len(tr.t_s)
     assert tr.t_s[-1] > 2.9
     check_rows_match_frames(tr, frames, workspace)
@@ -235,7 +235,7 @@ def test_omni_scheduler_that_stops_calling_is_a_fault_through_the_cli(emulator, 
     assert "compiled servo loop" in proc.stderr and "Traceback" not in proc.stderr
     reasons = [ln for ln in proc.stderr.splitlines() if "stopped:" in ln]
     assert len(reasons) == 1 and "not called" in reasons[0], proc.stderr
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     check_rows_match_frames(tr, frames, workspace)
     assert len(frames) == len(tr.t_s)  # no frame after the last tick: none could be sent
     assert abs(frames[-1, 0] - FAULT_AT) <= 3e-3
@@ -279,7 +279,7 @@ def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, worksp
     assert proc.returncode == 0, proc.stderr
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
     frames = rows[rows[:, 1] == FRAME]
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     n = len(tr.t_s)
     assert n > 1000 and len(frames) >= n
     t_dev = frames[:n, 0]

@@ -177,3 +177,14 @@ class RecorderSink(Sink):
                 except OSError:
                     pass
             self._w.close()
+
+
+def tick_rows(tr):
+    """A loaded recording (:class:`~haptic_acu.session.trajectory.Trajectory`) without its end row
+    (the one :data:`END_AFTER_S` after the last tick, when it has one): one row per servo tick."""
+    import dataclasses
+
+    if len(tr.t_s) >= 2 and abs((tr.t_s[-1] - tr.t_s[-2]) - END_AFTER_S) < 1e-9:
+        return dataclasses.replace(tr, t_s=tr.t_s[:-1], pos_m=tr.pos_m[:-1],
+                                   extra={k: v[:-1] for k, v in tr.extra.items()})
+    return tr
