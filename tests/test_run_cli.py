@@ -193,7 +193,7 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
                                      "--no-status", "--out", out, "--set", "scene.target_depth_mm=[5,20]"),
                           cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
     assert live.returncode == 0, live.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["force_depth.png", "recording.csv", "samples.csv", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["debrief.md", "force_depth.png", "recording.csv", "samples.csv", "summary.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["session"]  # nothing under runs/ with --out
     s = json.loads((out / "summary.json").read_text())
     assert [p["layer"] for p in s["punctures"]] == list(LAYERS)

@@ -24,7 +24,7 @@ import pytest
 from haptic_acu.analysis.scoring import INDICES
 from haptic_acu.cli import main
 from haptic_acu.session import trajectory
-from haptic_acu.session.recorder import EXTRA
+from haptic_acu.session.recorder import EXTRA, tick_rows
 from haptic_acu.study.store import Study
 
 REPO = Path(__file__).resolve().parents[1]
@@ -203,7 +203,7 @@ def test_trials_run_and_record(ran):
         assert doc["status"] == "complete"
         for f in ("recording.csv", "samples.csv", "summary.json", "force_depth.png"):
             assert (study.sessions / name / f).is_file(), (name, f)
-        tr = trajectory.load(study.sessions / name / "recording.csv", extra_columns=EXTRA)
+        tr = tick_rows(trajectory.load(study.sessions / name / "recording.csv", extra_columns=EXTRA))
         assert len(tr.t_s) == doc["ticks"] > 1000
     assert (study.sessions / "P01-T1" / "recording.rrd").is_file()
     assert "\r" in ran["runs"][0][2]  # the status line was drawn
@@ -319,7 +319,7 @@ def test_replay_uses_the_trials_model(ran, tmp_path, capsys):
     assert main(["study", "replay", str(study.folder), "--participant", "P01", "--trial", "2",
                  "--out", str(tmp_path / "r")]) == 0
     assert not grep_names(capsys.readouterr().out)
-    rec = trajectory.load(study.sessions / "P01-T2" / "recording.csv", extra_columns=EXTRA)
+    rec = tick_rows(trajectory.load(study.sessions / "P01-T2" / "recording.csv", extra_columns=EXTRA))
     t = rec.t_s
     live = np.column_stack([rec.extra["fx_n"], rec.extra["fy_n"], rec.extra["fz_n"]])
     # away from the ticks where a layer breaks (a force step cannot be compared across a timing
@@ -386,7 +386,7 @@ def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
     assert "Traceback" not in err and "interrupted" in err and "Please rate" not in out
     doc = json.loads((study.sessions / "P01-T1" / "trial.json").read_text())
     assert doc["status"] == "interrupted" and doc["signal"] == "SIGTERM"
-    tr = trajectory.load(rec, extra_columns=EXTRA)  # complete: parses, one row per tick
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))  # complete: parses, one row per tick
     assert len(tr.t_s) == doc["ticks"] >= 500
     assert study.ratings_path.read_bytes() == before
     from haptic_acu.study import overview
@@ -434,7 +434,7 @@ def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_p
     assert doc["status"] == "complete" and doc["signal"] == "SIGINT" and doc["duration_s"] < 25
     from haptic_acu.study import overview
     assert overview.states(study)["P01", 1].state == overview.TO_RATE
-    tr = trajectory.load(rec, extra_columns=EXTRA)
+    tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     assert len(tr.t_s) == doc["ticks"] >= 500
 
 

@@ -697,20 +697,24 @@ def _width(file) -> int:
 
 
 def print_results(summary: dict, out_dir, file=None, quiet: bool = False, verbose: bool = False) -> None:
-    """:func:`result_lines` and the debrief (unless ``quiet``), wrapped to the terminal's width, and
-    where the files are; timing statistics (how fast a replay ran, the servo loop's) only with
-    ``verbose`` (they are in summary.json's ``loop`` either way)."""
+    """:func:`result_lines` and the debrief (unless ``quiet``), and where the files are. On a
+    terminal the result lines are wrapped to its width; into a file or a pipe each stays one line
+    (what a script greps). The debrief's prose is wrapped to the width (80 off a terminal). Timing
+    statistics (how fast a replay ran, the servo loop's) only with ``verbose`` (they are in
+    summary.json's ``loop`` either way)."""
     import textwrap
 
     from ..analysis.debrief import debrief_lines
 
     file = sys.stdout if file is None else file
     width = max(40, _width(file))
+    tty = bool(getattr(file, "isatty", lambda: False)())
     if not quiet:
         for line in result_lines(summary):
             indent = " " * (len(line) - len(line.lstrip()))
-            for part in textwrap.wrap(line, width=width, subsequent_indent=indent + "    ",
-                                      break_on_hyphens=False) or [""]:
+            parts = textwrap.wrap(line, width=width, subsequent_indent=indent + "    ",
+                                  break_on_hyphens=False) if tty else [line]
+            for part in parts or [""]:
                 print(part, file=file)
         if summary.get("debrief"):
             for line in debrief_lines(summary["debrief"], width):
