@@ -287,7 +287,7 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
                 inflight.discard(fut)
                 job = by_future.pop(fut)
                 try:
-                    rec = fut.result()
+                    rec = fut.result(timeout=timeout_s)  # a result lost with its worker is not waited for
                 except Exception as e:  # the worker died (KilledWorker), lost the task, ...
                     rec = {"session": job.session, "file": job.file, "input_sha256": None,
                            "config_sha256": job.config_sha256,
