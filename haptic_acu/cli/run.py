@@ -239,16 +239,8 @@ def write_report(summary_sink, cfg, out: Path, name: str, quiet: bool = False, p
     :func:`grasp_from_recording`)."""
     from ..session.report import add_debrief, plot_force_depth, print_results, write_debrief_md
 
-    summary = summary_sink.summary()
-    summary["trajectory"] = name
-    summary["metrics"] = summary_sink.metrics(summary["punctures"])
-    from ..session.replay import needle_note
-    note = needle_note(summary, cfg)
-    if note:
-        print(note, file=sys.stderr)
-    if point is not None:
-        from ..session.point import add_to_summary
-        add_to_summary(summary, point, grade.result())
+    from ..session.replay import session_summary
+    summary = session_summary(summary_sink, name, cfg, point, grade)
     if recording is not None and summary.get("fault") is None:
         grasp_from_recording(summary["metrics"], Path(recording), cfg)
     add_debrief(summary, cfg)

@@ -249,6 +249,22 @@ def check_start(trajectory, tissue) -> None:
                         "z_mm's sign flipped?)")
 
 
+def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dict:
+    """A finished session's summary, as replay and run both report it: the summary sink's numbers,
+    the trajectory's name, the metrics, the needle-length note (on stderr) and, with a ``point``,
+    its grading."""
+    summary = summary_sink.summary()
+    summary["trajectory"] = name
+    summary["metrics"] = summary_sink.metrics(summary["punctures"])
+    note = needle_note(summary, cfg)
+    if note:
+        print(note, file=sys.stderr)
+    if point is not None:
+        from .point import add_to_summary
+        add_to_summary(summary, point, grade.result())
+    return summary
+
+
 def needle_note(summary: dict, cfg) -> str | None:
     """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
     deepest = summary.get("max_tip_depth_mm") or 0.0
@@ -334,15 +350,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                 f"(tick {result.ticks} of about {int(device.duration_s / session.servo_dt)}); "
                 f"the files so far are in {partial}/, not published",
                 exit_status=128 + (signum or signal.SIGINT))
-        summary = summary_sink.summary()
-        summary["trajectory"] = trajectory.name
-        summary["metrics"] = summary_sink.metrics(summary["punctures"])
-        note = needle_note(summary, cfg)
-        if note:
-            print(note, file=sys.stderr)
-        if point is not None:
-            from .point import add_to_summary
-            add_to_summary(summary, point, grade.result())
+        summary = session_summary(summary_sink, trajectory.name, cfg, point, grade)
         add_debrief(summary, cfg)
         (partial / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
         write_debrief_md(summary, partial)
