@@ -1,6 +1,9 @@
 """A live session's report equals a replay of its own recording: for every bundled trajectory,
-``run --device scripted`` (real time) then ``replay`` of the recording it wrote give the same ticks,
-punctures, peaks and per-insertion metrics, to the resolution the outputs print."""
+``run --device scripted --speed 8`` (the live path: the compiled loop on its own thread, the feeder,
+the visual thread's sinks and recorder, with deadlines 8 times as often as real time) then ``replay``
+of the recording it wrote give the same ticks, punctures, peaks and per-insertion metrics, to the
+resolution the outputs print. A session's numbers are its ticks' own at any pace (session time is
+k x 1 ms); the real-pace loop against the replay, tick by tick, is tests/test_rtloop.py's."""
 from __future__ import annotations
 
 import json
@@ -11,7 +14,7 @@ import pytest
 from haptic_acu.base.bundled import bundled_trajectories
 from haptic_acu.cli import main
 
-pytestmark = pytest.mark.slow  # each bundled trajectory is played in real time (about 2 minutes in all)
+SPEED = "8"  # times real time
 
 TIMING = {"loop", "trajectory", "_wall_s", "_stats"}  # the clock's own statistics differ by nature
 
@@ -34,10 +37,12 @@ def _close(a, b, path=""):
         assert a == b, (path, a, b)
 
 
+@pytest.mark.slow  # each bundled trajectory played live (a minute or two in all)
 @pytest.mark.parametrize("name", sorted(bundled_trajectories()))
 def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
     live, again = tmp_path / "live", tmp_path / "replay"
-    assert main(["run", "--device", "scripted", "--trajectory", name, "--out", str(live), "--no-status"]) == 0
+    assert main(["run", "--device", "scripted", "--trajectory", name, "--speed", SPEED, "--out", str(live),
+                 "--no-status"]) == 0
     assert main(["replay", str(live / "recording.csv"), "--out", str(again), "--no-rrd"]) == 0
     a = json.loads((live / "summary.json").read_text())
     b = json.loads((again / "summary.json").read_text())
@@ -49,3 +54,17 @@ def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
     for k in set(a) - TIMING - {"debrief"}:
         _close(a[k], b[k], k)
     assert a["debrief"]["insertions"] == b["debrief"]["insertions"]
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--device", "scripted", "--trajectory", "default", "--speed", "0"], "--speed must be a number > 0"),
+    (["--device", "scripted", "--trajectory", "default", "--speed", "nan"], "--speed must be a number > 0"),
+    (["--device", "scripted", "--trajectory", "default", "--speed", "101"], "at most 100"),
+    (["--device", "keyboard", "--speed", "2"], "--speed is for --device scripted, not keyboard"),
+])
+def test_a_bad_speed_is_one_line_and_status_2(tmp_path, capsys, args, says):
+    out = tmp_path / "out"
+    assert main(["run", *args, "--out", str(out), "--no-status"]) == 2
+    err = capsys.readouterr().err
+    assert says in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert not out.exists()  # nothing left behind
