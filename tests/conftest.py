@@ -15,7 +15,6 @@ import pytest
 SERIAL_MODULES = {
     "test_engine", "test_hd_physical", "test_keyboard", "test_omni", "test_omni_closed_loop", "test_omni_stylus",
     "test_rtloop", "test_run_cli", "test_run_omni", "test_study", "test_study_kinds", "test_keyboard_debrief",
-    "test_live_equals_replay",
 }
 
 

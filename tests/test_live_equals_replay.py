@@ -3,7 +3,9 @@
 the visual thread's sinks and recorder, with deadlines 8 times as often as real time) then ``replay``
 of the recording it wrote give the same ticks, punctures, peaks and per-insertion metrics, to the
 resolution the outputs print. A session's numbers are its ticks' own at any pace (session time is
-k x 1 ms); the real-pace loop against the replay, tick by tick, is tests/test_rtloop.py's."""
+k x 1 ms); the real-pace loop against the replay, tick by tick, is tests/test_rtloop.py's. A paced
+session never skips a late tick, so a busy neighbour delays these sessions without changing them:
+they run in the parallel phase."""
 from __future__ import annotations
 
 import json
