@@ -244,14 +244,14 @@ def test_replay_honours_a_reset_fresh_tissue(tmp_path):
     """second_insertion_same_site.csv goes in twice through one hole: one skin puncture. With a
     reset between the passes the tissue is fresh: the second pass punctures the skin again."""
     plain = tmp_path / "plain"
-    r = cli("replay", SAME_SITE, "--no-rrd", "--quiet", "--out", plain)
+    r = cli_here("replay", SAME_SITE, "--no-rrd", "--quiet", "--out", plain)
     assert r.returncode == 0, r.stderr
     layers = [p["layer"] for p in json.loads((plain / "summary.json").read_text())["punctures"]]
     assert layers.count("skin") == 1
     # the pause between the passes: the tip is back at +5 mm from about 4.2 s to 5.7 s
     reset = with_reset(SAME_SITE, tmp_path / "reset.csv", 5.0)
     out = tmp_path / "fresh"
-    r = cli("replay", reset, "--no-rrd", "--quiet", "--out", out)
+    r = cli_here("replay", reset, "--no-rrd", "--quiet", "--out", out)
     assert r.returncode == 0, r.stderr
     pts = json.loads((out / "summary.json").read_text())["punctures"]
     skin = [p for p in pts if p["layer"] == "skin"]
@@ -352,12 +352,13 @@ def test_recorder_places_events_on_their_ticks(tmp_path):
 
 
 def test_live_scripted_session_honours_a_reset(tmp_path):
-    """Played on the wall clock, a file with a reset event gives fresh tissue too (the servo loop
-    that reads the device tick by tick honours DeviceState.reset): two skin punctures, as in the
-    headless replay of the same file."""
+    """Played on the wall clock (paced 8 times as fast: the same ticks), a file with a reset event
+    gives fresh tissue too (the compiled loop honours the feed's reset flags): two skin punctures,
+    as in the headless replay of the same file."""
     reset = with_reset(SAME_SITE, tmp_path / "reset.csv", 5.0)
     rec = tmp_path / "live.csv"
-    r = cli("run", "--device", "scripted", "--trajectory", reset, "--record", rec, "--no-status")
+    r = cli_here("run", "--device", "scripted", "--trajectory", reset, "--speed", 8, "--record", rec, "--no-status",
+                 "--out", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     tr = T.load(rec, max_hand_speed_m_per_s=10.0, extra_columns=("state_skin", "event"))
     s = tr.extra["state_skin"]
