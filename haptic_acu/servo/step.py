@@ -78,7 +78,8 @@ from ..tissue.netresponse import table_for
 from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
-from ..tissue.baselines import KIND_CODES, MSM, baseline_response, baseline_slope, contact_for, msm_release, msm_response
+from ..tissue.baselines import (KIND_CODES, MSM, baseline_response, baseline_slope, contact_for, msm_release,
+                                msm_response)
 from ..tissue.body import Tissue, boundary_radii_grad
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params

@@ -5,17 +5,16 @@ Each baseline answers the question the force net answers in the servo (``servo.s
 the tip at depth ``d`` below the pressed layer's rest surface (radially, the same depth the force net
 reads), how hard does the surface push back along ``grad(-d)``, and has the layer broken. Every
 baseline here is linear elastic and its contact is centred under the tip (as the force net is
-re-centred under a sliding tip), so its answer is ``F = k d`` with a stiffness ``k`` per layer, and
-it breaks at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` come from:
+re-centred under a sliding tip); the static ones answer ``F = k d`` with a stiffness ``k`` per
+layer, and break at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` come from:
 
 * **SHF** (the SH surface alone, Fang & Wu 2011's family): a penalty ``k`` along the normal below
   the SH surface, per layer, from the config; breaks at a force (``d_c = F_c / k``).
-* **MSM** (a volumetric mass-spring lattice, [38]'s family): a cubic lattice of spacing ``h`` of the
-  layers from the pressed one down (edge and face-diagonal springs, ``k_spring = 2 E h / 5`` summed
-  over the cubes a spring borders: the isotropic central-force cubic lattice, E exact, nu = 1/4),
-  the bottom fixed, the node under the tip pushed in; ``k`` is the reaction per unit push (the
-  lattice at equilibrium, its inertia left out, as the FEM and BEM are elastostatic); breaks when a
-  spring at that node reaches a strain.
+* **MSM** (a volumetric mass-spring lattice, [38]'s family; ``tissue/msm.py``): a cubic lattice of
+  the layers from the pressed one down with springs and a volume energy that give it the layers' E
+  and nu, lumped masses, integrated at the servo's rate by backward Euler in its symmetric modes
+  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when a spring at the tip's node
+  reaches a strain. Its ``k`` and ``d_c`` here are its statics, for reports.
 * **FEM** (linear elastostatics on tetrahedra, DiMaio & Salcudean 2005; Bro-Nielsen 1998): a
   structured tetrahedral mesh of the layers from the pressed one down (quarter-symmetric block,
   graded toward the tip, layer interfaces on element faces), P1 elements assembled with
