@@ -56,7 +56,7 @@ def test_a_config_without_the_model_section_is_the_force_net(tmp_path):
 # ---- MSM: the lattice's E and nu, its dynamics ----------------------------------------------------
 
 @pytest.mark.parametrize("E_pa, nu, h", [(420e3, 0.45, 0.5e-3), (3.25e3, 0.49, 1e-3), (30e3, 0.45, 0.25e-3),
-                                         (30e3, 0.25, 0.5e-3), (420e3, 0.3, 0.5e-3)])
+                                         (30e3, 0.25, 0.5e-3), (420e3, 0.3, 0.5e-3), (30e3, 0.1, 0.5e-3)])
 def test_msm_lattice_compression_gives_the_young_modulus_and_poisson_ratio_it_was_built_from(E_pa, nu, h):
     # a free cube between rolling plates, 0.1% strain: stress / strain and lateral / axial strain
     E_eff, nu_eff = msm.compression_test(E_pa, nu, h, cells=5)
@@ -120,6 +120,14 @@ def test_msm_symmetric_modes_give_the_full_lattices_static_stiffness():
     assert md.stiffness == pytest.approx(1.0 / u[tip], rel=1e-8)
     # the reduction keeps a fraction of the modes: those the square's symmetries leave unchanged
     assert len(md.phi) < K.shape[0] / 6
+
+
+def test_msm_patch_is_stable_below_a_quarter_too():
+    # below nu = 1/4 the volume energy's stiffness is negative; the springs keep the patch positive
+    p = SMALL
+    for nu in (0.0, 0.1):
+        md = msm.modes(p["E"], [nu, nu], p["rho"], p["thick"], p["h"], p["half_cells"], p["depth"])
+        assert md.omega.min() > 2 * math.pi * 10 and md.stiffness > 0
 
 
 def test_msm_servo_step_is_the_full_lattices_backward_euler_with_unilateral_contact():
