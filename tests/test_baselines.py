@@ -281,6 +281,24 @@ def test_each_baseline_breaks_every_layer_pressing_straight_in(kind):
         assert -z_skin == pytest.approx(contact.crit_depth[0], abs=5e-5)
 
 
+def test_msm_lattice_state_is_the_servos_and_a_reset_puts_it_at_rest():
+    from haptic_acu.servo.step import NeedleModel
+
+    nm = NeedleModel(load_config(overrides=["model.kind=msm"]))
+    v = np.array([0.0, 0.0, -0.05])
+
+    def press():  # 50 mm/s to 1 mm into the skin, then out
+        zs = list(np.arange(0.2e-3, -1.0e-3, -5e-5)) + [0.5e-3] * 5
+        return np.array([np.linalg.norm(nm.step(np.array([0.0, 0.0, z]), v)) for z in zs])
+
+    first = press()
+    assert first.max() > 0 and np.abs(nm.state.msm_qv).max() > 0 and nm.rec["msm_layer"] == 1
+    assert first[-1] == 0.0  # off the surface: no force, the lattice moving on
+    nm.reset()
+    assert not nm.state.msm_qv.any()
+    assert np.array_equal(press(), first)
+
+
 def test_the_baselines_differ_where_their_sources_do():
     # skin's contact stiffness (N/m): the half-space of skin (BEM) is stiffer than the layered FEM body
     # (skin on soft fat), and SHF's is its configured secant
