@@ -16,14 +16,14 @@ The clock calls are LLVM declarations of libc's ``clock_gettime`` / ``clock_nano
 pointers), so the functions stay cacheable like every other kernel.
 
 Ticks happen at ``t0 + k * period``; tick k reads the position at session time ``k * period`` and
-its sample row carries that time and its lateness (``period_err_s``). A paced loop (``ctl[0].wall_ns``
-shorter than the period: a scripted session played faster than real time) keeps its deadlines
-``wall_ns`` apart and its lateness against ``wall_ns``, while each tick's session time stays
-``k * period``: the ticks, and so every number they make, are those of a session at real pace. A stall longer than
-``ctl[0].skip_after`` periods (the session's default: 10) skips ahead to the present (the skipped
-ticks count as missed) instead of bursting through them; with :data:`NO_END` there the loop never
-skips and runs late ticks back to back, so every tick of the trajectory is a row whatever the host
-does (what a comparison against the headless replay needs).
+its sample row carries that time and its lateness (``period_err_s``). A paced loop
+(``ctl[0].wall_ns`` shorter than the period: a scripted session played faster than real time) keeps
+its deadlines ``wall_ns`` apart and its lateness against ``wall_ns``, while each tick's session time
+stays ``k * period``: the ticks, and so every number they make, are those of a session at real
+pace. A stall longer than ``ctl[0].skip_after`` periods (the session's default: 10) skips ahead
+to the present (the skipped ticks count as missed) instead of bursting through them; with
+:data:`NO_END` there the loop never skips and runs late ticks back to back, so every tick of the
+trajectory is a row whatever the host does (what a comparison against the headless replay needs).
 """
 from __future__ import annotations
 
