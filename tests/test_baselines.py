@@ -18,6 +18,7 @@ from haptic_acu.base.config import MODEL_KINDS, load_config
 from haptic_acu.base.errors import UserError
 from haptic_acu.cli import main
 from haptic_acu.tissue import baselines as B
+from haptic_acu.tissue import bem, fem
 
 A = 0.125e-3  # the default needle's radius (0.25 mm diameter)
 E = 30e3
@@ -80,7 +81,7 @@ def test_msm_springs_follow_the_rule_and_sum_at_layer_interfaces():
 @pytest.fixture(scope="module")
 def fem_refinement():
     """The flat punch on a 16 mm homogeneous block at three refinements (elements across the tip)."""
-    return {n: B.fem_flat_punch([E], [NU], [16e-3], A, n_in=n, ratio=r, half_width=16e-3, depth=16e-3)
+    return {n: fem.flat_punch([E], [NU], [16e-3], A, n_in=n, ratio=r, half_width=16e-3, depth=16e-3)
             for n, r in ((1, 1.5), (2, 1.45), (3, 1.35))}
 
 
@@ -110,18 +111,101 @@ def test_fem_surface_displacement_falls_off_as_boussinesq(fem_refinement, r_mm):
 
 @pytest.mark.slow
 def test_bem_contact_force_is_the_fems_within_10_percent(fem_refinement):
-    assert B.bem_flat_punch(E, NU, A) == pytest.approx(fem_refinement[3].stiffness, rel=0.10)
+    assert bem.flat_punch(E, NU, A) == pytest.approx(fem_refinement[3].stiffness, rel=0.10)
 
 
 def test_bem_meets_sneddon():
     for nu in (0.0, 0.3, 0.45):
-        assert B.bem_flat_punch(E, nu, A) == pytest.approx(2 * A * E / (1 - nu ** 2), rel=0.03)
+        assert bem.flat_punch(E, nu, A) == pytest.approx(2 * A * E / (1 - nu ** 2), rel=0.03)
 
 
 def test_fem_condensed_patch_is_symmetric_positive_definite():
-    res = B.fem_flat_punch([E], [NU], [8e-3], A, n_in=1, ratio=1.6, half_width=8e-3, depth=8e-3)
+    res = fem.flat_punch([E], [NU], [8e-3], A, n_in=1, ratio=1.6, half_width=8e-3, depth=8e-3)
     assert np.allclose(res.schur, res.schur.T)
     assert np.linalg.eigvalsh(res.schur).min() > 0
+
+
+@pytest.fixture(scope="module")
+def body_mesh():
+    """The servo's FEM mesh of the default body from the skin down, around the acupoint."""
+    from haptic_acu.tissue.body import Tissue
+
+    tis = Tissue.from_config(load_config())
+    bnd = fem.sh_boundaries(tis.coeffs, tis.centre, 0)
+    return tis, fem.body_mesh(bnd, np.zeros(3), A)
+
+
+def _radius_toward(tis, k, pts):
+    from haptic_acu.tissue import shf
+
+    d = pts - tis.centre
+    rho = np.linalg.norm(d, axis=1)
+    theta = np.arccos(d[:, 2] / rho)
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return rho, shf.evaluate(tis.coeffs[k], theta, phi)
+
+
+def test_fem_mesh_nodes_on_each_interface_lie_on_its_sh_boundary(body_mesh):
+    # the skin surface and skin/fat (the block is 8 mm deep): every node meshed at that boundary's
+    # nominal depth sits on the SH surface r_k(theta, phi) in its own direction (evaluated here, apart
+    # from the mesher)
+    tis, bm = body_mesh
+    nominal = tis.depths_at_acupoint()
+    p = bm.mesh.p.T
+    for k in range(2):
+        on = np.isclose(bm.depth, nominal[k], atol=1e-9)
+        assert on.sum() >= 100, k
+        rho, r_k = _radius_toward(tis, k, p[on])
+        assert np.abs(rho - r_k).max() < 1e-9, k
+    # the body is curved over the block: the skin surface's nodes are not on one plane
+    top = p[np.isclose(bm.depth, 0.0)]
+    assert np.ptp(top[:, 2]) > 0.2e-3
+
+
+def test_fem_mesh_is_conforming_and_each_element_in_its_layer(body_mesh):
+    tis, bm = body_mesh
+    p = bm.mesh.p
+    t = bm.mesh.t
+
+    def volumes(q):
+        d1, d2, d3 = (q[:, t[i]] - q[:, t[0]] for i in (1, 2, 3))
+        return np.einsum("ij,ij->j", d1, np.cross(d2.T, d3.T).T) / 6.0
+
+    vol = volumes(p)
+    chart = volumes(np.vstack([bm.lateral, -bm.depth]))  # the same tetrahedra in the (x, y, depth) chart
+    assert (np.abs(vol) > 0).all()
+    assert (np.sign(vol) == np.sign(chart)).all()  # none inverted by the mapping onto the boundaries
+    # every face is shared by at most two elements (conforming: no hanging faces inside)
+    faces = np.sort(np.concatenate([t[[0, 1, 2]], t[[0, 1, 3]], t[[0, 2, 3]], t[[1, 2, 3]]], axis=1), axis=0)
+    _, counts = np.unique(faces, axis=1, return_counts=True)
+    assert counts.max() == 2
+    # each element's centroid lies radially between its layer's SH boundaries
+    c = p[:, t].mean(axis=1).T
+    for j in range(3):
+        sel = bm.layer == j
+        if not sel.any():
+            continue
+        rho, r_top = _radius_toward(tis, j, c[sel])
+        _, r_bot = _radius_toward(tis, j + 1, c[sel])
+        assert (rho < r_top).all() and (rho > r_bot).all(), j
+
+
+def test_fem_on_the_curved_body_is_the_flat_blocks_within_a_few_percent():
+    # the default limb's curvature radii at the acupoint are 55 mm and more: over a needle's radius
+    # the layered body is locally flat, so its muscle's stiffness is the flat body's, and a little softer
+    # (a convex surface)
+    from haptic_acu.tissue.body import Tissue
+
+    cfg = load_config(overrides=["model.kind=fem"])
+    tis = Tissue.from_config(cfg)
+    Es = [v * 1e3 for v in cfg.model.young_modulus_kpa]
+    nus = list(cfg.model.poisson_ratio)
+    thick = [layer.thickness_mm * 1e-3 for layer in cfg.layers]
+    curved = fem.tissue_press(tis, 2, Es[2:], nus[2:], A, n_in=1, ratio=1.8, half_width=6e-3, depth=6e-3)
+    flat = fem.press(fem.sphere_boundaries(1.0, thick[2:]), np.zeros(3), Es[2:], nus[2:], A, n_in=1, ratio=1.8,
+                     half_width=6e-3, depth=6e-3)  # the same mesh on a sphere of 1 m: flat over the block
+    assert curved.stiffness == pytest.approx(flat.stiffness, rel=0.03)
+    assert curved.stiffness < flat.stiffness
 
 
 # ---- through the servo ------------------------------------------------------------------------------
