@@ -20,12 +20,12 @@ it breaks at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` c
   :mod:`haptic_acu.tissue.fem`): a structured tetrahedral mesh between the body's SH boundaries from
   the pressed layer down, around the acupoint, P1 elements assembled with scikit-fem, the stiffness
   condensed (Schur complement) onto the surface nodes near the tip, then onto the contact set (a
-  flat tip of the needle's radius); ``k`` is the condensed matrix's sum. Breaks at an indentation
-  depth.
+  flat tip of the needle's radius); ``k`` is the condensed matrix's sum. Breaks by the energy
+  criterion (:func:`rupture_depth`).
 * **BEM** (boundary elements, James & Pai 1999; Zhu & Gu 2012's family;
   :mod:`haptic_acu.tissue.bem`): the contact disc in boundary elements with Boussinesq's Green's
   function of a half-space of the pressed layer's material; ``k`` is the sum of the capacitance
-  matrix (the compliance matrix's inverse). Breaks at an indentation depth.
+  matrix (the compliance matrix's inverse). Breaks by the energy criterion (:func:`rupture_depth`).
 
 Precomputation is cached like the force nets' tables (``netresponse.cache_dir``), keyed by every
 parameter that enters.
@@ -215,9 +215,17 @@ def _layers(cfg, k):
     return E, nu, thick
 
 
+def rupture_depth(k: float, toughness: float, a: float) -> float:
+    """The energy criterion (Mahvash & Dupont 2010's rupture: the energy the press stored pays for
+    the crack): a linear contact of stiffness ``k`` (N/m) breaks when ``k d^2 / 2`` reaches
+    ``toughness`` (J/m^2) times the crack's area, taken as the tip's cross-section ``pi a^2``
+    (ours): ``d_c = sqrt(2 J pi a^2 / k)`` (m)."""
+    return math.sqrt(2.0 * toughness * math.pi * a * a / k)
+
+
 def contact_key(cfg) -> str:
     m = cfg.model
-    text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.puncture_depth_mm, m.shf_stiffness_n_per_mm,
+    text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.fracture_toughness_j_per_m2, m.shf_stiffness_n_per_mm,
                  m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_puncture_strain,
                  tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, fem.N_IN, fem.RATIO,
                  fem.HALF_WIDTH_M, fem.DEPTH_M, fem.PATCH_M, bem.N_IN, MSM_HALF_CELLS, MSM_DEPTH_M,
@@ -243,11 +251,11 @@ def build_contact(cfg) -> Contact:
         elif m.kind == "fem":
             res = fem.tissue_press(tissue, j, E, nu, a)
             k[j] = res.stiffness
-            crit[j] = m.puncture_depth_mm[j] * 1e-3
+            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
             nbytes += res.schur.nbytes + res.patch_xy.nbytes
         elif m.kind == "bem":
             k[j] = bem.flat_punch(E[0], nu[0], a)
-            crit[j] = m.puncture_depth_mm[j] * 1e-3
+            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
             nbytes += bem.element_count() ** 2 * 8  # the compliance matrix
         elif m.kind == "msm":
             stiff, strain_per_m = msm_press(E, thick, m.msm_spacing_mm * 1e-3)
