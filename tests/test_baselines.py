@@ -54,6 +54,16 @@ def test_a_config_without_the_model_section_is_the_force_net(tmp_path):
     assert load_config(tmp_path / "old.toml", ["model.kind=fem"]).model.kind == "fem"
 
 
+def test_the_retired_break_depth_key_is_read_with_a_one_line_warning(tmp_path, capsys):
+    src = open(load_config().path, encoding="utf-8").read()
+    old = src.replace("fracture_toughness_j_per_m2 =", "puncture_depth_mm = [1.5, 1.0, 1.0]\nfracture_toughness_j_per_m2 =")
+    (tmp_path / "old.toml").write_text(old)
+    cfg = load_config(tmp_path / "old.toml", ["model.kind=fem"])
+    assert cfg.model.fracture_toughness_j_per_m2 == load_config().model.fracture_toughness_j_per_m2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model.puncture_depth_mm" in err[0] and "fracture_toughness_j_per_m2" in err[0]
+
+
 # ---- MSM: Young's modulus of the lattice ----------------------------------------------------------
 
 @pytest.mark.parametrize("E_pa, h", [(420e3, 0.5e-3), (3.25e3, 1e-3), (30e3, 0.25e-3)])
