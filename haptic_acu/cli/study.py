@@ -128,6 +128,14 @@ def _study(path):
     return Study(path)
 
 
+def _participant_trial(study, args) -> str:
+    """``--participant``'s name, once ``--trial`` is checked to be one of theirs."""
+    p = study.participant(args.participant)
+    if not 1 <= args.trial <= study.n_trials:
+        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    return p
+
+
 def _new_folder(arg: str) -> Path:
     """An output folder under the output rule (:mod:`haptic_acu.base.outputs`): new or empty."""
     from ..base.outputs import check_folder
@@ -219,9 +227,7 @@ def cmd_rate(args) -> int:
     from ..study.ratings import check_row
 
     study = _study(args.study)
-    p = study.participant(args.participant)
-    if not 1 <= args.trial <= study.n_trials:
-        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    p = _participant_trial(study, args)
     trial = study.plan[p, args.trial]
     st = overview.states(study)[p, args.trial]
     if st.state in (overview.TO_RUN, overview.INTERRUPTED):
@@ -253,9 +259,7 @@ def cmd_replay(args) -> int:
     from ..study.trial import blind_config
 
     study = _study(args.study)
-    p = study.participant(args.participant)
-    if not 1 <= args.trial <= study.n_trials:
-        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    p = _participant_trial(study, args)
     mine = [a for a in study.attempts_of(p, args.trial) if (a.folder / "recording.csv").is_file()]
     if args.attempt is not None:
         mine = [a for a in mine if a.number == args.attempt]

@@ -28,7 +28,6 @@ from ..base.errors import UserError
 from ..base.outputs import plain_text
 from ..base.progress import step
 from ..servo.samples import COL, NCOL
-from ..servo.state import PLACE_NAMES
 
 COLOURS = ("#1f5fa8", "#d9661f", "#2e8b3e", "#8e3fa8", "#c0392b", "#17a2b8", "#7f7f7f", "#b8860b")
 
@@ -168,7 +167,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from .report import _BAND_COLOURS, MAX_PANELS, tissue_of
+    from .report import MAX_PANELS, layer_bands, tissue_of
 
     tissue = tissue_of(tissue)
     n_ins = max([int(c[2].max()) + 1 for c in curves if c[2].size] + [1])
@@ -188,14 +187,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     hi = max([float(d.max()) for d in all_d] + [float(bounds[2])] + ([float(target_mm[1])] if target_mm else []))
     pad = 0.02 * (hi - lo)
     x0, x1 = lo - pad, hi + pad
-    edges = [*bounds, max(x1, float(bounds[3]))]
-    handles = []
-    for name, a, b in zip(PLACE_NAMES[1:], edges[:-1], edges[1:]):
-        if b <= x0 or a >= x1:
-            continue
-        for ax in axes:
-            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.4, lw=0)
-        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.4, label=f"{name} (at rest)"))
+    handles = layer_bands(axes, bounds, x0, x1, alpha=0.4)
     if target_mm is not None:
         for ax in axes:
             ax.axvspan(float(target_mm[0]), float(target_mm[1]), facecolor="none", edgecolor=TARGET_COLOUR,

@@ -272,6 +272,23 @@ class FigureRows:
 
 # ---- the figure -------------------------------------------------------------------------------
 _BAND_COLOURS = {"skin": "#e8b89a", "fat": "#f3dc8c", "muscle": "#d98a8a", "bone": "#d8d4c8"}
+
+
+def layer_bands(axes, bounds, x0: float, x1: float, alpha: float) -> list:
+    """Each place's depth band at rest (``bounds``: the boundaries' depths at the acupoint, mm; the
+    last band runs to ``x1``) shaded on every axis of ``axes`` where it meets ``x0``-``x1``; returns
+    their legend handles."""
+    from matplotlib.patches import Patch
+
+    edges = [*bounds, max(x1, bounds[3])]
+    handles = []
+    for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
+        if b <= x0 or a >= x1:
+            continue
+        for ax in axes:
+            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=alpha, lw=0)
+        handles.append(Patch(color=_BAND_COLOURS[name], alpha=alpha, label=f"{name} (at rest)"))
+    return handles
 _EVENT_COLOURS = {"skin": "#b5542a", "fat": "#a07d00", "muscle": "#8e1e1e"}
 
 
@@ -434,7 +451,6 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
 
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
@@ -471,14 +487,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     structures = structure_depths(summary)  # --point: the danger structures below the point
     if structures:
         x1 = max(x1, max(d for _, d in structures) + 2.0)
-    edges = [*bounds, max(x1, bounds[3])]
-    handles = []
-    for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
-        if b <= x0 or a >= x1:
-            continue
-        for ax in panels:
-            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.45, lw=0)
-        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.45, label=f"{name} (at rest)"))
+    handles = layer_bands(panels, bounds, x0, x1, alpha=0.45)
     for ax in panels:
         ax.axhline(0.0, color="0.6", lw=0.6)
     withdrew = False
