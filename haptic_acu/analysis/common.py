@@ -38,7 +38,6 @@ def angle_deg(u: np.ndarray, n: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(u, n)), float(np.dot(u, n)))))
 
 
-
 def dot3(d: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Row-wise d . u for (k, 3) ``d``, the same bits whatever k (a BLAS matrix-vector product
     rounds a row differently in blocks of different sizes)."""

@@ -89,7 +89,6 @@ DEFAULT_LATERAL_COMFORT_N = 0.5
 CYCLE_PROMINENCE_M = 1e-3
 
 
-
 def insertion_runs(state_skin: np.ndarray) -> list[tuple[int, int]]:
     """(first, last) row indices of each contiguous run with the skin punctured."""
     inside = np.asarray(state_skin) == PUNCTURED

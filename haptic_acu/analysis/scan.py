@@ -17,7 +17,6 @@ PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
 
 
-
 def place_name(code: float) -> str:
     """Name of a sample ``layer`` code: -1 outside, 0 skin, 1 fat, 2 muscle, 3 bone."""
     return PLACES[int(code) + 1]

@@ -20,6 +20,7 @@ from ..base.outputs import safe_cell
 from . import scoring
 from .scoring import INDICES
 
+
 @dataclass(frozen=True)
 class _Row:
     line: int

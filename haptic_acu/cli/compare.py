@@ -44,7 +44,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-
 def parse_models(text: str | None) -> list[str]:
     """``--models a,b,...`` -> the model kinds, in order (UserError naming the option if bad)."""
     if text is None:
@@ -68,7 +67,6 @@ def _labels(args, paths) -> list[str]:
     if len(set(stems)) == len(stems):
         return stems
     return [f"{s} ({chr(65 + i) if i < 26 else i + 1})" for i, s in enumerate(stems)]
-
 
 
 def run(args) -> int:

@@ -48,7 +48,6 @@ def open_trajectory(path: Path, cfg):
     return dev
 
 
-
 def with_kind(cfg, kind: str):
     """``cfg`` with ``model.kind`` set to ``kind``."""
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind))

@@ -289,6 +289,8 @@ def layer_bands(axes, bounds, x0: float, x1: float, alpha: float) -> list:
             ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=alpha, lw=0)
         handles.append(Patch(color=_BAND_COLOURS[name], alpha=alpha, label=f"{name} (at rest)"))
     return handles
+
+
 _EVENT_COLOURS = {"skin": "#b5542a", "fat": "#a07d00", "muscle": "#8e1e1e"}
 
 
