@@ -266,12 +266,15 @@ def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dic
 
 
 def needle_note(summary: dict, cfg) -> str | None:
-    """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
-    deepest = summary.get("max_tip_depth_mm") or 0.0
-    if deepest > cfg.needle.length_mm:
-        return (f"haptic-acu: warning: the tip went {deepest:.3g} mm deep with a {cfg.needle.length_mm:g} mm "
-                "needle (needle.length_mm): the handle would be in the tissue; forces past the needle's "
-                "length are not physical")
+    """A warning when the whole needle went in (the handle met the skin and held the needle at its
+    length: the hand or the trajectory pushed deeper than the needle is long)."""
+    from ..analysis.debrief import FULLY_IN_MM
+
+    length = float(cfg.needle.length_mm)
+    ins = (summary.get("metrics") or {}).get("per_insertion") or []
+    if any((i.get("max_depth_mm") or 0.0) >= length - FULLY_IN_MM for i in ins):
+        return (f"haptic-acu: warning: the whole {length:g} mm needle went in (needle.length_mm): the handle "
+                "met the skin and held the needle at its length while the device pushed on")
     return None
 
 

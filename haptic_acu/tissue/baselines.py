@@ -77,7 +77,7 @@ def baseline_response(inp, m, s, k, idx, dep, ax):
         s.servo[0].slot_q[idx, c] = s.work[0].q[c]
     lay = m.layer[k]
     fn = lay.bl_k * dep
-    broke = dep > puncture_threshold(lay.bl_crit, inp.v, ax, m.params[0])
+    broke = dep > puncture_threshold(lay.bl_crit, s.work[0].tip_v, ax, m.params[0])
     return fn, broke
 
 
