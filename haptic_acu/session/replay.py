@@ -251,31 +251,15 @@ def check_start(trajectory, tissue) -> None:
 
 def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dict:
     """A finished session's summary, as replay and run both report it: the summary sink's numbers,
-    the trajectory's name, the metrics, the needle-length note (on stderr) and, with a ``point``,
+    the trajectory's name, the metrics and, with a ``point``,
     its grading."""
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
-    note = needle_note(summary, cfg)
-    if note:
-        print(note, file=sys.stderr)
     if point is not None:
         from .point import add_to_summary
         add_to_summary(summary, point, grade.result())
     return summary
-
-
-def needle_note(summary: dict, cfg) -> str | None:
-    """A warning when the whole needle went in (the handle met the skin and held the needle at its
-    length: the hand or the trajectory pushed deeper than the needle is long)."""
-    from ..analysis.debrief import FULLY_IN_MM
-
-    length = float(cfg.needle.length_mm)
-    ins = (summary.get("metrics") or {}).get("per_insertion") or []
-    if any((i.get("max_depth_mm") or 0.0) >= length - FULLY_IN_MM for i in ins):
-        return (f"haptic-acu: warning: the whole {length:g} mm needle went in (needle.length_mm): the handle "
-                "met the skin and held the needle at its length while the device pushed on")
-    return None
 
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
