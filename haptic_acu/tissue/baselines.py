@@ -66,7 +66,7 @@ def baseline_response(inp, m, s, k, idx, dep, ax):
         s.servo[0].slot_q[idx, c] = s.work[0].q[c]
     lay = m.layer[k]
     fn = lay.bl_k * dep
-    broke = dep > puncture_threshold(lay.bl_crit, inp.v, ax, m.params[0])
+    broke = dep > puncture_threshold(lay.bl_crit, s.work[0].tip_v, ax, m.params[0])
     return fn, broke
 
 
@@ -99,7 +99,7 @@ def msm_response(inp, m, s, k, idx, dep, ax):
         qv[:, :] = 0.0
         sv.msm_layer = k + 1
     fn, strain = msm_tick(m.msm, k, lay.msm_n, lay.msm_g, qv[0], qv[1], dep, m.params[0].dt)
-    broke = strain > puncture_threshold(lay.msm_eps, inp.v, ax, m.params[0])
+    broke = strain > puncture_threshold(lay.msm_eps, s.work[0].tip_v, ax, m.params[0])
     return fn, broke
 
 
