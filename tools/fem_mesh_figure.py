@@ -19,9 +19,10 @@ import numpy as np  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
 from haptic_acu.tissue import fem, shf  # noqa: E402
 from haptic_acu.tissue.body import Tissue  # noqa: E402
+from haptic_acu.tissue.layers import LAYER_NAMES  # noqa: E402
 
 COLOURS = ("#c0504d", "#e6b84c", "#8064a2")
-NAMES = ("skin", "fat", "muscle")
+NAMES = LAYER_NAMES
 
 
 def main(out: str = "docs/img/fem-mesh-section.png") -> int:
