@@ -120,6 +120,45 @@ def test_losing_every_worker_stops_with_one_line_and_keeps_finished_sessions(clu
     assert saved and saved[0]["summary"] is not None and not saved[0].get("error")
 
 
+def test_batches_sized_to_the_workers():
+    """At least four tasks per worker thread, at most BATCH_MAX sessions a task, never empty."""
+    from haptic_acu.cohort.run import BATCH_MAX, batch_size
+
+    assert batch_size(1, 8) == 1 and batch_size(7, 2) == 1
+    assert batch_size(40, 2) == 5 and 40 / batch_size(40, 2) >= 4 * 2
+    assert batch_size(200, 2) == BATCH_MAX
+    assert batch_size(10, 0) == 2  # no thread counted yet: as one
+
+
+def test_the_workers_profiler_is_paused_while_a_cohort_runs(cluster, tmp_path):
+    """The workers' sampling profiler (every 10 ms, it takes the GIL from the replay) stops for the
+    run, on the workers there at the start, and runs again once the run is over."""
+    from distributed import Client
+
+    from haptic_acu.base.config import load_config
+    from haptic_acu.cohort.daskworker import profiler_running
+    from haptic_acu.cohort.run import run_dask
+    from haptic_acu.cohort.sessions import Job, config_hash, file_sha256
+
+    traj = REPO / "trajectories" / "default.csv"
+    cfg = load_config()
+    jobs = [Job("s0", str(traj), cfg, file_sha256(traj), config_hash(cfg), None)]
+    cluster.scale(1)
+    client = Client(cluster.scheduler_address, set_as_default=False, timeout=30)
+    try:
+        client.wait_for_workers(1, timeout=30)
+        assert list(client.run(profiler_running).values()) == [True]  # Dask's default: sampling
+        during = []
+        run_dask(jobs, client, lambda rec: during.append((rec, client.run(profiler_running))), timeout_s=30)
+        after = client.run(profiler_running)
+    finally:
+        client.close()
+    (rec, running), = during
+    assert rec["error"] is None and rec["summary"] is not None
+    assert list(running.values()) == [False]
+    assert list(after.values()) == [True]
+
+
 def _children(pid: int) -> set[int]:
     out = set()
     for task in Path(f"/proc/{pid}/task").iterdir():
