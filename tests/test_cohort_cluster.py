@@ -130,19 +130,27 @@ def test_batches_sized_to_the_workers():
     assert batch_size(10, 0) == 2  # no thread counted yet: as one
 
 
-def test_the_workers_profiler_is_paused_while_a_cohort_runs(cluster, tmp_path):
+def test_a_cohort_on_dask_pauses_the_profiler_and_builds_the_tissue_once(cluster, monkeypatch):
     """The workers' sampling profiler (every 10 ms, it takes the GIL from the replay) stops for the
-    run, on the workers there at the start, and runs again once the run is over."""
+    run and runs again once it is over; three sessions in three tasks on one worker build the
+    configuration's tissue once."""
     from distributed import Client
 
     from haptic_acu.base.config import load_config
+    from haptic_acu.cohort import sessions
     from haptic_acu.cohort.daskworker import profiler_running
-    from haptic_acu.cohort.run import run_dask
-    from haptic_acu.cohort.sessions import Job, config_hash, file_sha256
+    from haptic_acu.cohort.run import batch_size, run_dask
+    from haptic_acu.tissue.body import Tissue
 
+    built = []
+    real = Tissue.from_config.__func__
+    monkeypatch.setattr(Tissue, "from_config", classmethod(lambda cls, cfg: built.append(1) or real(cls, cfg)))
+    monkeypatch.setattr(sessions, "_TISSUE", {})  # the worker is a thread of this process: a fresh one
     traj = REPO / "trajectories" / "default.csv"
     cfg = load_config()
-    jobs = [Job("s0", str(traj), cfg, file_sha256(traj), config_hash(cfg), None)]
+    jobs = [sessions.Job(f"s{k}", str(traj), cfg, sessions.file_sha256(traj), sessions.config_hash(cfg), None)
+            for k in range(3)]
+    assert batch_size(len(jobs), 1) == 1
     cluster.scale(1)
     client = Client(cluster.scheduler_address, set_as_default=False, timeout=30)
     try:
@@ -153,10 +161,11 @@ def test_the_workers_profiler_is_paused_while_a_cohort_runs(cluster, tmp_path):
         after = client.run(profiler_running)
     finally:
         client.close()
-    (rec, running), = during
-    assert rec["error"] is None and rec["summary"] is not None
-    assert list(running.values()) == [False]
+    assert sorted(rec["session"] for rec, _ in during) == ["s0", "s1", "s2"]
+    assert all(rec["error"] is None and rec["summary"] is not None for rec, _ in during)
+    assert [list(running.values()) for _, running in during] == [[False]] * 3
     assert list(after.values()) == [True]
+    assert len(built) == 1
 
 
 def _children(pid: int) -> set[int]:
