@@ -130,6 +130,19 @@ def test_batches_sized_to_the_workers():
     assert batch_size(10, 0) == 2  # no thread counted yet: as one
 
 
+def test_batches_cover_every_session_once_and_end_single():
+    """Consecutive, in order, every job once; the last tasks one session each (the workers finish
+    together)."""
+    from haptic_acu.cohort.run import BATCH_MAX, batches
+
+    jobs = list(range(200))
+    got = list(batches(jobs, 2))
+    assert [j for b in got for j in b] == jobs
+    sizes = [len(b) for b in got]
+    assert sizes[0] == BATCH_MAX and sizes == sorted(sizes, reverse=True) and sizes[-8:] == [1] * 8
+    assert list(batches([], 2)) == []
+
+
 def test_a_cohort_on_dask_pauses_the_profiler_and_builds_the_tissue_once(cluster, monkeypatch):
     """The workers' sampling profiler (every 10 ms, it takes the GIL from the replay) stops for the
     run and runs again once it is over; three sessions in three tasks on one worker build the

@@ -12,7 +12,7 @@ Local: ``concurrent.futures.ProcessPoolExecutor`` with spawned workers started i
 group, so a Ctrl-C at the terminal reaches only the parent, which cancels what is queued and ends
 its workers; one session a task. Dask: ``distributed.Client(address)``; the workers must have this
 package installed and see the trajectory files at the same (absolute) paths. A task replays a batch
-of sessions (:func:`batch_size`), and the workers' sampling profiler is paused while the run lasts
+of sessions (:func:`batches`), and the workers' sampling profiler is paused while the run lasts
 (:mod:`haptic_acu.cohort.daskworker`). Results are identical: the same function on the same inputs,
 deterministic on the sim clock.
 """
@@ -261,14 +261,24 @@ BATCH_MAX = 8  # sessions in one Dask task at most
 
 
 def batch_size(n_jobs: int, threads: int) -> int:
-    """Sessions per Dask task: at least four tasks for every worker thread (the load stays balanced
-    and a lost worker takes few finished sessions with it), at most :data:`BATCH_MAX`."""
+    """Sessions in the next Dask task with ``n_jobs`` left: at least four tasks for every worker
+    thread (a lost worker takes few finished sessions with it), at most :data:`BATCH_MAX`."""
     return max(1, min(BATCH_MAX, n_jobs // (4 * max(1, threads))))
+
+
+def batches(jobs: list[Job], threads: int):
+    """The jobs in consecutive batches sized by :func:`batch_size` on what is left, so they shrink
+    to single sessions toward the end and the workers finish together."""
+    i = 0
+    while i < len(jobs):
+        size = batch_size(len(jobs) - i, threads)
+        yield jobs[i:i + size]
+        i += size
 
 
 def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout_s: float = 60.0,
              stream=None) -> None:
-    """Run the jobs on ``client``'s cluster in batches (:func:`batch_size`; one task replays a batch
+    """Run the jobs on ``client``'s cluster in batches (:func:`batches`; one task replays a batch
     in turn and returns its records), at most twice the cluster's worker threads in flight. The
     workers' sampling profiler is paused for the run (:mod:`haptic_acu.cohort.daskworker`). A
     cluster with no worker for ``timeout_s`` (every one lost) stops the run with one line (exit 3);
@@ -278,8 +288,7 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
     from .sessions import replay_batch
 
     threads = wait_for_workers(client, timeout_s, stream)
-    size = batch_size(len(jobs), threads)
-    pending = iter([jobs[i:i + size] for i in range(0, len(jobs), size)])
+    pending = batches(jobs, threads)
     by_future = {}
     done_count = 0
 
