@@ -456,7 +456,7 @@ def test_a_live_session_runs_a_baseline_with_rerun_logging_and_its_recording_rep
 
     out = tmp_path / "run"
     rec = tmp_path / "session.csv"
-    assert main(["run", "--device", "scripted", "--trajectory", "default", "--duration", "2.5", "--set",
+    assert main(["run", "--device", "scripted", "--trajectory", "default", "--duration", "2.5", "--speed", "8", "--set",
                  "model.kind=bem", "--out", str(out), "--record", str(rec), "--rrd", str(tmp_path / "s.rrd"),
                  "--no-status", "--quiet"]) == 0
     live = json.loads((out / "summary.json").read_text())
