@@ -190,10 +190,15 @@ def test_report_learning_curves_and_levels(cohort):
         assert (cohort["out"] / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_dask_cluster_gives_the_local_tables(cohort, tmp_path, capsys):
+def test_dask_cluster_gives_the_local_tables(cohort, tmp_path, capsys, monkeypatch):
     """The user's path: ``--scheduler tcp://HOST:PORT`` on the command line, to a cluster listening on
-    TCP (its workers threads of this process, to spare the test machine's cores)."""
+    TCP (its workers threads of this process, to spare the test machine's cores); the sessions go
+    two to a task, the garbled file's failure in a batch with a good session."""
     distributed = pytest.importorskip("distributed")
+    from haptic_acu.cohort import run
+
+    sizes = []
+    monkeypatch.setattr(run, "batch_size", lambda n, threads: sizes.append(n) or 2)
     before = set(multiprocessing.active_children())
     import dask
 
@@ -203,8 +208,10 @@ def test_dask_cluster_gives_the_local_tables(cohort, tmp_path, capsys):
         address = lc.scheduler_address
         assert address.startswith("tcp://")
         rc = main(["cohort", str(cohort["manifest"]), "--out", str(tmp_path / "dask"), "--scheduler", address])
-    assert rc == 2
-    assert f"on dask at {address}, 2 worker thread(s)" in capsys.readouterr().err
+    assert rc == 2 and sizes == [6, 4, 2]  # every session but the missing file, in three tasks
+    err = capsys.readouterr().err
+    assert f"on dask at {address}, 2 worker thread(s)" in err
+    assert err.count("session 'garbled' failed") == 1 and "session 'known' failed" not in err
     a, b = tables(cohort["out"]), tables(tmp_path / "dask")
     for n in a:
         assert a[n].equals(b[n]), n

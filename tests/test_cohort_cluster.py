@@ -120,6 +120,67 @@ def test_losing_every_worker_stops_with_one_line_and_keeps_finished_sessions(clu
     assert saved and saved[0]["summary"] is not None and not saved[0].get("error")
 
 
+def test_batches_sized_to_the_workers():
+    """At least four tasks per worker thread, at most BATCH_MAX sessions a task, never empty."""
+    from haptic_acu.cohort.run import BATCH_MAX, batch_size
+
+    assert batch_size(1, 8) == 1 and batch_size(7, 2) == 1
+    assert batch_size(40, 2) == 5 and 40 / batch_size(40, 2) >= 4 * 2
+    assert batch_size(200, 2) == BATCH_MAX
+    assert batch_size(10, 0) == 2  # no thread counted yet: as one
+
+
+def test_batches_cover_every_session_once_and_end_single():
+    """Consecutive, in order, every job once; the last tasks one session each (the workers finish
+    together)."""
+    from haptic_acu.cohort.run import BATCH_MAX, batches
+
+    jobs = list(range(200))
+    got = list(batches(jobs, 2))
+    assert [j for b in got for j in b] == jobs
+    sizes = [len(b) for b in got]
+    assert sizes[0] == BATCH_MAX and sizes == sorted(sizes, reverse=True) and sizes[-8:] == [1] * 8
+    assert list(batches([], 2)) == []
+
+
+def test_a_cohort_on_dask_pauses_the_profiler_and_builds_the_tissue_once(cluster, monkeypatch):
+    """The workers' sampling profiler (every 10 ms, it takes the GIL from the replay) stops for the
+    run and runs again once it is over; three sessions in three tasks on one worker build the
+    configuration's tissue once."""
+    from distributed import Client
+
+    from haptic_acu.base.config import load_config
+    from haptic_acu.cohort import sessions
+    from haptic_acu.cohort.daskworker import profiler_running
+    from haptic_acu.cohort.run import batch_size, run_dask
+    from haptic_acu.tissue.body import Tissue
+
+    built = []
+    real = Tissue.from_config.__func__
+    monkeypatch.setattr(Tissue, "from_config", classmethod(lambda cls, cfg: built.append(1) or real(cls, cfg)))
+    monkeypatch.setattr(sessions, "_TISSUE", {})  # the worker is a thread of this process: a fresh one
+    traj = REPO / "trajectories" / "default.csv"
+    cfg = load_config()
+    jobs = [sessions.Job(f"s{k}", str(traj), cfg, sessions.file_sha256(traj), sessions.config_hash(cfg), None)
+            for k in range(3)]
+    assert batch_size(len(jobs), 1) == 1
+    cluster.scale(1)
+    client = Client(cluster.scheduler_address, set_as_default=False, timeout=30)
+    try:
+        client.wait_for_workers(1, timeout=30)
+        assert list(client.run(profiler_running).values()) == [True]  # Dask's default: sampling
+        during = []
+        run_dask(jobs, client, lambda rec: during.append((rec, client.run(profiler_running))), timeout_s=30)
+        after = client.run(profiler_running)
+    finally:
+        client.close()
+    assert sorted(rec["session"] for rec, _ in during) == ["s0", "s1", "s2"]
+    assert all(rec["error"] is None and rec["summary"] is not None for rec, _ in during)
+    assert [list(running.values()) for _, running in during] == [[False]] * 3
+    assert list(after.values()) == [True]
+    assert len(built) == 1
+
+
 def _children(pid: int) -> set[int]:
     out = set()
     for task in Path(f"/proc/{pid}/task").iterdir():

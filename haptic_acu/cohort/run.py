@@ -2,16 +2,19 @@
 
 Both runners call :func:`haptic_acu.cohort.sessions.replay_session` on each :class:`~haptic_acu.cohort.sessions.Job`
 and hand every record to ``on_result`` as it arrives (the caller saves it at once, so an
-interrupted run keeps every finished session). At most ``2 * workers`` jobs are in flight, so
+interrupted run keeps every finished session). At most ``2 * workers`` tasks are in flight, so
 memory stays bounded whatever the cohort's size; a worker keeps no session's rows in memory (its
 metrics are streamed, the path columns read the rows back from a temporary file:
-:mod:`haptic_acu.session.pathstream`).
+:mod:`haptic_acu.session.pathstream`). A worker process loads numba's kernels and builds the
+configuration's tissue on its first session and keeps them for the next ones.
 
 Local: ``concurrent.futures.ProcessPoolExecutor`` with spawned workers started in their own process
 group, so a Ctrl-C at the terminal reaches only the parent, which cancels what is queued and ends
-its workers. Dask: ``distributed.Client(address)``; the workers must have this package installed
-and see the trajectory files at the same (absolute) paths. Results are identical: the same
-function on the same inputs, deterministic on the sim clock.
+its workers; one session a task. Dask: ``distributed.Client(address)``; the workers must have this
+package installed and see the trajectory files at the same (absolute) paths. A task replays a batch
+of sessions (:func:`batches`), and the workers' sampling profiler is paused while the run lasts
+(:mod:`haptic_acu.cohort.daskworker`). Results are identical: the same function on the same inputs,
+deterministic on the sim clock.
 """
 from __future__ import annotations
 
@@ -138,12 +141,12 @@ def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) 
     ex.shutdown(wait=True)
 
 
-def _fill(submit, pending: Iterable[Job], inflight: set, limit: int) -> None:
+def _fill(submit, pending: Iterable, inflight: set, limit: int, fn=replay_session) -> None:
     while len(inflight) < limit:
-        job = next(pending, None)
-        if job is None:
+        item = next(pending, None)
+        if item is None:
             return
-        inflight.add(submit(replay_session, job))
+        inflight.add(submit(fn, item))
 
 
 DASK_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")  # what a scheduler can listen on (inproc: this process only)
@@ -254,25 +257,50 @@ def wait_for_workers(client, timeout_s: float, stream=None) -> int:
     return sum(client.nthreads().values()) or 1
 
 
+BATCH_MAX = 8  # sessions in one Dask task at most
+
+
+def batch_size(n_jobs: int, threads: int) -> int:
+    """Sessions in the next Dask task with ``n_jobs`` left: at least four tasks for every worker
+    thread (a lost worker takes few finished sessions with it), at most :data:`BATCH_MAX`."""
+    return max(1, min(BATCH_MAX, n_jobs // (4 * max(1, threads))))
+
+
+def batches(jobs: list[Job], threads: int):
+    """The jobs in consecutive batches sized by :func:`batch_size` on what is left, so they shrink
+    to single sessions toward the end and the workers finish together."""
+    i = 0
+    while i < len(jobs):
+        size = batch_size(len(jobs) - i, threads)
+        yield jobs[i:i + size]
+        i += size
+
+
 def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout_s: float = 60.0,
              stream=None) -> None:
-    """Run the jobs on ``client``'s cluster, at most twice its worker threads in flight. A cluster
-    with no worker for ``timeout_s`` (every one lost) stops the run with one line (exit 3); every
-    session finished before is already saved, so the next run resumes from there."""
+    """Run the jobs on ``client``'s cluster in batches (:func:`batches`; one task replays a batch
+    in turn and returns its records), at most twice the cluster's worker threads in flight. The
+    workers' sampling profiler is paused for the run (:mod:`haptic_acu.cohort.daskworker`). A
+    cluster with no worker for ``timeout_s`` (every one lost) stops the run with one line (exit 3);
+    every session finished before is already saved, so the next run resumes from there."""
     if not jobs:
         return
+    from .sessions import replay_batch
+
     threads = wait_for_workers(client, timeout_s, stream)
-    pending = iter(jobs)
+    pending = batches(jobs, threads)
     by_future = {}
     done_count = 0
 
-    def submit(fn, job: Job):
-        fut = client.submit(fn, job, pure=False, key=f"cohort-replay-{job.session}-{time.time_ns()}")
-        by_future[fut] = job
+    def submit(fn, batch: list[Job]):
+        key = f"cohort-replay-{batch[0].session}-{len(batch)}-{time.time_ns()}"
+        fut = client.submit(fn, batch, pure=False, key=key)
+        by_future[fut] = batch
         return fut
 
+    plugin = _pause_profilers(client, timeout_s)
     inflight = set()
-    _fill(submit, pending, inflight, 2 * threads)
+    _fill(submit, pending, inflight, 2 * threads, replay_batch)
     lost_since = None
     looked = time.monotonic()
     try:
@@ -285,18 +313,19 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
                 looked = time.monotonic()
             for fut in done:
                 inflight.discard(fut)
-                job = by_future.pop(fut)
+                batch = by_future.pop(fut)
                 try:
-                    rec = fut.result(timeout=timeout_s)  # a result lost with its worker is not waited for
+                    recs = fut.result(timeout=timeout_s)  # a result lost with its worker is not waited for
                 except Exception as e:  # the worker died (KilledWorker), lost the task, ...
-                    rec = {"session": job.session, "file": job.file, "input_sha256": None,
-                           "config_sha256": job.config_sha256,
-                           "error": f"{job.file}: worker failed: {type(e).__name__}: {e}",
-                           "summary": None, "insertions": [], "retry": True}
+                    recs = [{"session": job.session, "file": job.file, "input_sha256": None,
+                             "config_sha256": job.config_sha256,
+                             "error": f"{job.file}: worker failed: {type(e).__name__}: {e}",
+                             "summary": None, "insertions": [], "retry": True} for job in batch]
                 else:
-                    done_count += 1
-                on_result(rec)
-                _fill(submit, pending, inflight, len(inflight) + 1)
+                    done_count += len(recs)
+                for rec in recs:
+                    on_result(rec)
+                _fill(submit, pending, inflight, len(inflight) + 1, replay_batch)
             if done:
                 lost_since = None
                 continue
@@ -305,10 +334,36 @@ def run_dask(jobs: list[Job], client, on_result: Callable[[dict], None], timeout
             elif lost_since is None:
                 lost_since = time.monotonic()
             elif time.monotonic() - lost_since > timeout_s:
+                left = sum(len(by_future[f]) for f in inflight) + sum(len(b) for b in pending)
                 raise UserError(f"--scheduler {client.scheduler.address}: every worker has been lost for "
                                 f"{timeout_s:g} s (--scheduler-timeout); {done_count} session(s) finished "
-                                f"and kept, {len(inflight) + sum(1 for _ in pending)} left: run again to "
-                                "resume", exit_status=3)
+                                f"and kept, {left} left: run again to resume", exit_status=3)
     except BaseException:
         client.cancel(list(by_future))
         raise
+    finally:
+        _resume_profilers(client, plugin, timeout_s)
+
+
+def _pause_profilers(client, timeout_s: float) -> str | None:
+    """Register :class:`~haptic_acu.cohort.daskworker.CohortWorkerPlugin` within ``timeout_s``: its
+    name, or None if the cluster refused it or did not answer (the run goes on, the profiler sampling)."""
+    from .daskworker import CohortWorkerPlugin
+
+    name = f"haptic-acu-cohort-{os.getpid()}-{time.time_ns()}"
+    try:
+        client.sync(client._register_worker_plugin, plugin=CohortWorkerPlugin(name), name=name,
+                    idempotent=False, callback_timeout=timeout_s)
+    except Exception:  # noqa: BLE001 - an older or restricted cluster, a timeout: slower, not wrong
+        return None
+    return name
+
+
+def _resume_profilers(client, name: str | None, timeout_s: float) -> None:
+    """Unregister the plugin (the workers' profilers resume), waiting at most ``timeout_s``."""
+    if name is None:
+        return
+    try:
+        client.sync(client._unregister_worker_plugin, name=name, nanny=False, callback_timeout=timeout_s)
+    except Exception:  # noqa: BLE001 - the scheduler is gone or did not answer: nothing to resume
+        pass

@@ -490,6 +490,12 @@ def replay_session(job: Job) -> dict:
     return rec
 
 
+def replay_batch(jobs: list[Job]) -> list[dict]:
+    """:func:`replay_session` on each job in turn (one Dask task; the jobs' shared configuration is
+    sent once with the batch)."""
+    return [replay_session(job) for job in jobs]
+
+
 def _replay(job: Job) -> dict:
     from haptic_acu.devices.scripted import ScriptedDevice
 
