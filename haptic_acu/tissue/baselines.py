@@ -67,7 +67,7 @@ MSM_DEPTH_M = 6e-3  # and at most this deep (fixed below)
 
 # ---- the servo's side (compiled; one small function, not inlined into the step) -------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def baseline_response(inp, m, s, k, idx, dep, ax):
     """A baseline's pressed layer ``k`` with the tip ``dep`` below its rest surface: (the force along
     grad(-d), N; broken?). ``F = bl_k dep``; the layer breaks past ``bl_crit`` scaled by the approach
@@ -81,7 +81,7 @@ def baseline_response(inp, m, s, k, idx, dep, ax):
     return fn, broke
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def baseline_slope(m, s, k):
     """A baseline's stiffness along grad(-d) at the tip for the rendering layer: ``bl_k |grad d|^2``."""
     g = s.work[0].gd

@@ -127,7 +127,7 @@ def _add_order(coeffs, lmax, m, pmm, x, cm, sm, total):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point(coeffs, lmax, theta, phi):
     """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing.
     ``lmax`` <= REC_LMAX (the config's limit; not checked here)."""
@@ -172,14 +172,14 @@ def eval_direction(coeffs, lmax, dx, dy, dz):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _eval_point4(coeffs, lmax, theta, phi, out):
     """eval_point for four rows at once (the tissue's boundaries): one Legendre recurrence and one set
     of cos/sin(m phi), the four sums in registers and formed in eval_point's order (bit for bit)."""
     eval_point4_grad(coeffs, lmax, theta, phi, out, -1, out)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
     """:func:`_eval_point4` (``out``: the four rows' r, bit for bit) and, for ``k`` >= 0, row k's
     derivatives in the same pass: ``grad[0]`` = dr_k/dtheta, ``grad[1]`` = (dr_k/dphi) / sin(theta)
@@ -253,7 +253,7 @@ def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
         grad[1] = gp / s if s != 0.0 else _pole_dphi(ck, lmax, x, phi)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _pole_dphi(ck, lmax, x, phi):
     """(dr/dphi) / sin(theta) at sin(theta) = 0 (x = cos theta = +-1): its limit, order 1's terms
     alone with P_l1 / sin(theta) from the same recurrence started at P_11 / sin(theta)."""
@@ -270,7 +270,7 @@ def _pole_dphi(ck, lmax, x, phi):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point_many(coeffs, lmax, theta, phi, out):
     """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs`` (bit for bit); four rows,
     the tissue's boundaries, share one recurrence (:func:`_eval_point4`). Allocates nothing."""
@@ -281,7 +281,7 @@ def eval_point_many(coeffs, lmax, theta, phi, out):
         out[k] = eval_point(coeffs[k], lmax, theta, phi)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def direction_of(px, py, pz, cx, cy, cz):
     """(theta, phi, rho) of point p seen from centre c; the direction of c itself is the +z pole."""
     dx = px - cx
