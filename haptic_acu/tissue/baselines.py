@@ -220,7 +220,7 @@ def bem_flat_punch(E, nu, a, n_in=BEM_N_IN) -> float:
 
 # ---- MSM (tissue/msm.py) -----------------------------------------------------------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def msm_response(inp, m, s, k, idx, dep, ax):
     """The MSM's pressed layer ``k`` with the tip ``dep`` below its rest surface: one backward-Euler
     step of its lattice (``msm.msm_tick``; the lattice's state in ``State.msm_qv``, started from rest
@@ -240,7 +240,7 @@ def msm_response(inp, m, s, k, idx, dep, ax):
     return fn, broke
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def msm_release(m, s, k):
     """The tip off layer ``k``'s surface: its lattice moves on freely (one step, no contact)."""
     sv = s.servo[0]
