@@ -49,3 +49,31 @@ def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
     for k in set(a) - TIMING - {"debrief"}:
         _close(a[k], b[k], k)
     assert a["debrief"]["insertions"] == b["debrief"]["insertions"]
+
+
+def test_a_session_at_the_handle_replays_the_same(tmp_path):
+    """A hand pushing 10 mm past a 20 mm needle: the recording keeps the device's path (which goes
+    past the needle's length) and the needle's depth (which does not); its replay meets the same
+    stop: the same ticks, depths, time at the force limit and debrief."""
+    import csv
+
+    traj = tmp_path / "past_the_handle.csv"
+    traj.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,2\n3.2,0,0,-30\n3.7,0,0,-30\n6.9,0,0,2\n")
+    live, again = tmp_path / "live", tmp_path / "replay"
+    short = ["--set", "needle.length_mm=20"]
+    assert main(["run", "--device", "scripted", "--trajectory", str(traj), "--out", str(live), "--no-status",
+                 *short]) == 0
+    assert main(["replay", str(live / "recording.csv"), "--out", str(again), "--no-rrd", *short]) == 0
+    with open(live / "recording.csv", newline="") as fh:
+        rec = list(csv.DictReader(fh))
+    assert min(float(r["z_mm"]) for r in rec) == -30.0  # the device's path, past the needle's length
+    assert max(float(r["depth_skin_mm"]) for r in rec) == 20.0  # the needle, at its length
+    a = json.loads((live / "summary.json").read_text())
+    b = json.loads((again / "summary.json").read_text())
+    assert a["loop"]["dropped_rows"] == 0, "the live session dropped rows: the host was overloaded"
+    assert a["ticks"] == b["ticks"]
+    (m,) = a["metrics"]["per_insertion"]
+    assert m["max_depth_mm"] == 20.0 and m["time_at_force_limit_s"] > 0.4
+    for k in set(a) - TIMING - {"debrief"}:
+        _close(a[k], b[k], k)
+    assert a["debrief"]["insertions"] == b["debrief"]["insertions"]

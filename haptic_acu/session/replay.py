@@ -16,6 +16,7 @@ replay never leaves a folder that looks complete. Identical input gives byte-ide
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
@@ -147,6 +148,24 @@ class OutputFolder:
             os.close(self._fd)
             self._fd = None
 
+    @contextlib.contextmanager
+    def writing(self, what: str):
+        """:meth:`claim` ``DIR.partial`` and yield it; :meth:`publish` it when the block ends,
+        :meth:`discard` it on an error (an OSError: one line naming ``DIR`` and ``what``), and
+        :meth:`release` the lock whatever happens."""
+        partial = self.claim()
+        try:
+            yield partial
+            self.publish()
+        except OSError as e:
+            self.discard()
+            raise UserError(f"{self.out}: cannot write {what}: {e.strerror or e}") from None
+        except BaseException:
+            self.discard()
+            raise
+        finally:
+            self.release()
+
 
 class Progress(Sink):
     """A percentage on stderr (a sink: called per visual frame): rewritten in place on a terminal;
@@ -251,28 +270,15 @@ def check_start(trajectory, tissue) -> None:
 
 def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dict:
     """A finished session's summary, as replay and run both report it: the summary sink's numbers,
-    the trajectory's name, the metrics, the needle-length note (on stderr) and, with a ``point``,
+    the trajectory's name, the metrics and, with a ``point``,
     its grading."""
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
-    note = needle_note(summary, cfg)
-    if note:
-        print(note, file=sys.stderr)
     if point is not None:
         from .point import add_to_summary
         add_to_summary(summary, point, grade.result())
     return summary
-
-
-def needle_note(summary: dict, cfg) -> str | None:
-    """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
-    deepest = summary.get("max_tip_depth_mm") or 0.0
-    if deepest > cfg.needle.length_mm:
-        return (f"haptic-acu: warning: the tip went {deepest:.3g} mm deep with a {cfg.needle.length_mm:g} mm "
-                "needle (needle.length_mm): the handle would be in the tissue; forces past the needle's "
-                "length are not physical")
-    return None
 
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
@@ -300,8 +306,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         raise UserError(f"{trajectory}: spans {device.duration_s:.6g} s, more than a replay takes "
                         f"({limit:g} s); split the file")
     out = OutputFolder(out_dir)
-    partial = out.claim()
-    try:
+    with out.writing("the replay's files") as partial:
         reference = None
         if device.has_roll and not realtime:  # the grasp felt: the same replay without rotation
             reference = reference_forces(trajectory, cfg)  # its ticks and forces, not its rows
@@ -357,15 +362,6 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         fig_rows, fig_index = summary_sink.figure_rows()
         plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
                          index=fig_index)
-        out.publish()
-    except OSError as e:
-        out.discard()
-        raise UserError(f"{out_dir}: cannot write the replay's files: {e.strerror or e}") from None
-    except BaseException:
-        out.discard()
-        raise
-    finally:
-        out.release()
     summary["_wall_s"] = wall
     summary["_stats"] = result.stats
     return summary
