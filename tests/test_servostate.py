@@ -139,3 +139,49 @@ def test_the_clamp_scales_to_the_limit_and_latches_a_non_finite_force(fresh):
     out = np.zeros(1, ss.DIAG)
     _clamp_phase(m.model, m.state, out)
     assert not np.any(out[0]["force"]) and out[0]["fault"] == 1.0 and m.rec["fault"] == 1
+
+
+def _compiled_callees(fn):
+    """The numba dispatchers ``fn``'s source names (module globals, ``module.attribute``, its closure)."""
+    import types
+
+    from numba.core.dispatcher import Dispatcher
+
+    names = set()
+
+    def walk(code):
+        names.update(code.co_names)
+        for c in code.co_consts:
+            if isinstance(c, types.CodeType):
+                walk(c)
+
+    walk(fn.__code__)
+    g = fn.__globals__
+    cells = [c.cell_contents for c in (fn.__closure__ or ())]
+    for v in [g.get(n) for n in names] + cells:
+        if isinstance(v, Dispatcher):
+            yield v
+        elif isinstance(v, types.ModuleType):
+            yield from (w for w in (getattr(v, a, None) for a in names) if isinstance(w, Dispatcher))
+
+
+def test_no_kernel_the_servo_tick_calls_counts_references():
+    """The tick's arrays are owned by Python (the model's NamedTuples) or viewed from an address table
+    without a reference count; a kernel compiled with numba's reference counting still calls
+    NRT_incref / NRT_decref (not inlined) on every array it touches, hundreds of calls a tick. Every
+    kernel the step and the replay's loop reach, other than those inlined into their caller (which
+    take the caller's flags), is compiled without it (``_nrt=False``: it also refuses to allocate)."""
+    from haptic_acu.servo.tick import run_ticks
+
+    seen, todo = {}, [needle.step_kernel, run_ticks, needle.reset_servo]
+    while todo:
+        d = todo.pop()
+        key = f"{d.py_func.__module__}.{d.py_func.__qualname__}"
+        if key not in seen:
+            seen[key] = d
+            todo.extend(_compiled_callees(d.py_func))
+    assert {"haptic_acu.tissue.shf.eval_point4_grad", "haptic_acu.tissue.netresponse.lookup",
+            "haptic_acu.servo.clamp.clamp_force", "haptic_acu.tissue.twirl.wind_step"} <= set(seen)
+    counting = sorted(k for k, d in seen.items()
+                      if d.targetoptions.get("inline", "never") != "always" and d.targetoptions.get("_nrt", True))
+    assert counting == []

@@ -26,7 +26,7 @@ import numba as nb
 _SHRINK = 1.0 - 4.0 * 2.0 ** -52  # 4 ulps below 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def clamp_force(fx, fy, fz, lim):
     """``(fx, fy, fz, clamped)``: the force scaled to magnitude <= ``lim`` (exactly, in real
     arithmetic on the returned floats), ``clamped`` 1.0 if it was scaled. Non-finite input: zero

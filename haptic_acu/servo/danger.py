@@ -91,7 +91,7 @@ def structure_rows(anatomy, k_bone_n_per_mm: float, out: np.ndarray | None = Non
     return out
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def danger_phase(inp, m, s, d):
     """The structures' reaction on the tip (module docstring). Writes ``s.work[0].f``, ``d.f_bone``,
     ``s.work[0].k_danger`` and ``s.dstate``."""
@@ -153,7 +153,7 @@ def danger_phase(inp, m, s, d):
             wk.k_danger = max(wk.k_danger, st.k)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def danger_render(s, d):
     """The rendering layer's stiffness along the axis: at least a touching structure's spring."""
     k = s.work[0].k_danger

@@ -97,7 +97,7 @@ __all__ = ["NeedleModel", "step_kernel", "step_entry", "surface_normal", "UNTOUC
            "STATE_NAMES", "N_LAYERS", "N_SLOTS", "MAX_HOLES"]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _surface_at(coeffs_k, lmax, ux, uy, uz):
     """Point (relative to the centre) of a radial SH surface in direction u (any length)."""
     th, ph, rr = shf.direction_of(ux, uy, uz, 0.0, 0.0, 0.0)
@@ -123,7 +123,7 @@ def tangents(ux, uy, uz):
     return t1x, t1y, t1z, uy * t1z - uz * t1y, uz * t1x - ux * t1z, ux * t1y - uy * t1x
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def surface_normal(coeffs_k, lmax, centre, p, out):
     """Outward unit normal of a radial SH surface at its point toward ``p`` (central differences
     along two tangents). Allocation-free."""
@@ -318,7 +318,7 @@ def contact_point(m, s, k):
         wk.cpt[c] = m.centre[c] + (wk.q[c] - m.centre[c]) / wk.rho * s.radii[k]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def take_slot(s, k):
     """The slot to build layer k's new net in: the one in use if the servo owns it, else a free
     one, else (both in springback) the older one."""
@@ -334,7 +334,7 @@ def take_slot(s, k):
     return 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def build_slot(m, s, k, idx):
     """Build slot ``idx``'s net of layer ``k`` at the contact point ``work.cpt`` (normal computed here)."""
     wk = s.work[0]
@@ -344,7 +344,7 @@ def build_slot(m, s, k, idx):
               wk.cpt, wk.nrm)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def touch(inp, m, s, k):
     """First touch of layer ``k``: where an earlier pass opened it (a track, ``find_track``: straight
     in, PUNCTURED; through the skin that begins the insertion along the track) or onto a new net
@@ -386,7 +386,7 @@ def tip_on_net(s, X0f, ax):
     return (rx + dz1 * ax[0]) ** 2 + (ry + dz1 * ax[1]) ** 2 + (rz + dz1 * ax[2]) ** 2
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def recentre(m, s, k, idx, use_table):
     """The tip slid half a spacing sideways: rebuild the net under it (where it is drawn and, at a
     puncture, handed to springback). The force does not change: it is read with N1 at the tip's
@@ -445,7 +445,7 @@ def table_response(m, s, k, idx):
     return fn, rw
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def sweep_net(m, s, k, idx, sweeps):
     """N1 held ``work.dz1`` straight below its rest point, ``sweeps`` relaxation sweeps of the net:
     (N1's reaction along the axis, ring-w deflection). N1 is then drawn at the tip."""
@@ -468,7 +468,7 @@ def sweep_net(m, s, k, idx, sweeps):
     return fn, rw
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def puncture(inp, m, s, d, k, idx, use_table):
     """Layer ``k`` breaks: its net goes to springback (shape laid, copied onto the curved surface,
     owner VISUAL_OWNS), the hole is recorded, a skin break fixes the entry point and axis, and the
@@ -794,7 +794,7 @@ def render_local(m, s, d):
     d.r_released = 1.0 if d.puncture >= 0.0 else 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def step_kernel(inp, m, s, out):
     """One servo tick. ``inp``: :class:`~haptic_acu.servo.state.TickIn` (tip position, m; velocity,
     m/s; scene frame); ``m``: the read-only :class:`~haptic_acu.servo.state.Model`; ``s``: the
@@ -826,7 +826,7 @@ def step_kernel(inp, m, s, out):
     danger_render(s, d)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def reset_servo(sv, keep_holes=False):
     """Fresh tissue (:meth:`NeedleModel.reset`; in compiled code a recording's ``reset`` event, the
     keyboard's ``r``): the needle out, every layer untouched, the insertion axis back to -z, nothing

@@ -117,7 +117,7 @@ def servo_tick(sv, ring, t, tick, err_s):
     return sv.out.diag[0].fault == 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def run_ticks(P, V, A, R, T, tick0, table):
     """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V``,
     needle axes ``A`` (unit, handle to tip; NaN rows: unknown), needle rolls ``R`` (rad) at times

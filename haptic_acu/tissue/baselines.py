@@ -56,7 +56,7 @@ FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
 # ---- the servo's side (compiled; one small function, not inlined into the step) -------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def baseline_response(inp, m, s, k, idx, dep, ax):
     """A baseline's pressed layer ``k`` with the tip ``dep`` below its rest surface: (the force along
     grad(-d), N; broken?). ``F = bl_k dep``; the layer breaks past ``bl_crit`` scaled by the approach
@@ -70,7 +70,7 @@ def baseline_response(inp, m, s, k, idx, dep, ax):
     return fn, broke
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def baseline_slope(m, s, k):
     """A baseline's stiffness along grad(-d) at the tip for the rendering layer: ``bl_k |grad d|^2``
     (the MSM's: its contact's stiffness within a step, ``1 / msm_g``, at least its static one)."""
@@ -83,7 +83,7 @@ def baseline_slope(m, s, k):
 
 # ---- MSM (tissue/msm.py) -----------------------------------------------------------------------
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def msm_response(inp, m, s, k, idx, dep, ax):
     """The MSM's pressed layer ``k`` with the tip ``dep`` below its rest surface: one backward-Euler
     step of its lattice (``msm.msm_tick``; the lattice's state in ``State.msm_qv``, started from rest
@@ -103,7 +103,7 @@ def msm_response(inp, m, s, k, idx, dep, ax):
     return fn, broke
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def msm_release(m, s, k):
     """The tip off layer ``k``'s surface: its lattice moves on freely (one step, no contact)."""
     sv = s.servo[0]

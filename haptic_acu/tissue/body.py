@@ -53,7 +53,7 @@ def boundary_radii(coeffs, lmax, centre, p, out):
     return rho
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def boundary_radii_grad(coeffs, lmax, centre, p, out, k, grad):
     """:func:`boundary_radii` (the same radii, bit for bit) and, for 0 <= ``k`` < 4, boundary k's
     surface gradient on the unit sphere at the direction of ``p`` into ``grad[3]`` (a tangent vector,

@@ -239,7 +239,7 @@ class Net:
         return self.params.k_virtual * (m[0] + np.sum(6 * (j - 1) * m[1:]))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def tangent_frame(axis):
     """The net's tangent frame (e1, e2) at unit normal ``axis``: e1 = axis x (x, or y near the x
     axis), normalised; e2 = axis x e1. Returns e1x, e1y, e1z, e2x, e2y, e2z."""
@@ -260,7 +260,7 @@ def tangent_frame(axis):
     return e1x, e1y, e1z, e2x, e2y, e2z
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def build_net(surf, net, topo, springs, contact, normal):
     """Lay the lattice ``topo`` around ``contact`` with outward ``normal``: the flat reference lattice
     in the tangent plane, and its radial projection onto the SH surface ``surf`` (:class:`Surface`),
@@ -303,7 +303,7 @@ def build_net(surf, net, topo, springs, contact, normal):
             rest_len[i, k] = (1.0 - pretension) * spacing if (j >= 0 and j < n) else 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def sync_curved(net):
     """x_i = X0_i + (xf_i - X0f_i) for the force-net particles of ``net`` (:class:`NetArrays`)."""
     x, X0, xf, X0f = net.x, net.X0, net.xf, net.X0f
@@ -312,7 +312,7 @@ def sync_curved(net):
             x[i, k] = X0[i, k] + xf[i, k] - X0f[i, k]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def force_on(i, net, topo, springs, out):
     """Total net force on particle i (surface springs + virtual spring) into ``out[3]``."""
     xf, X0f, rest_len, axis, nbr = net.xf, net.X0f, net.rest_len, net.axis, topo.nbr
@@ -339,7 +339,7 @@ def force_on(i, net, topo, springs, out):
     out[2] = fz
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _relax_one(i, net, topo, springs, max_step):
     """One particle's Newton step (its largest component limited to ``max_step``); returns its size."""
     xf, X0f, rest_len, axis, nbr = net.xf, net.X0f, net.rest_len, net.axis, topo.nbr
@@ -423,7 +423,7 @@ def _relax_one(i, net, topo, springs, max_step):
     return m
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def relax(net, topo, springs, backward):
     """One Gauss-Seidel-Newton sweep over particles 1..n-1 of ``net`` (:class:`NetArrays`; lattice
     ``topo``, constants ``springs``), outward, or inward if ``backward``.
@@ -441,7 +441,7 @@ def relax(net, topo, springs, backward):
     return biggest
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def ring_w_mean_deflection(net, topo, w):
     """Mean dZ = -(x - X0) . n over ring w of ``net`` (m)."""
     xf, X0f, axis, ring, n = net.xf, net.X0f, net.axis, topo.ring, net.xf.shape[0]

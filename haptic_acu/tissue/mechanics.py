@@ -120,7 +120,7 @@ def mech_params(layers, needle, dt: float = 1e-3) -> MechParams:
 
 
 # ---- geometry ---------------------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def overlap_damage(r, radius):
     """Fraction of a needle's cross-section (radius ``radius``) at lateral distance ``r`` from a track
     of the same needle that the track has already opened: the two discs' lens area over the disc's
@@ -134,7 +134,7 @@ def overlap_damage(r, radius):
     return (2.0 * math.acos(x) - 2.0 * x * math.sqrt(1.0 - x * x)) / math.pi
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def lengths_in_layers(s_tip, bounds, length, out):
     """Needle length in each layer (m) for a tip at arc length ``s_tip`` on a line whose rest
     boundaries lie at arc lengths ``bounds[0..3]`` (skin surface, skin/fat, fat/muscle, muscle/bone;
@@ -153,7 +153,7 @@ def lengths_in_layers(s_tip, bounds, length, out):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def layer_at(s, bounds):
     """Layer at arc length ``s`` along a line with boundaries ``bounds``: -1 above the skin, 0-2 the
     tissue layers, 3 beyond the muscle/bone boundary."""
@@ -166,7 +166,7 @@ def layer_at(s, bounds):
 
 
 # ---- track memory -----------------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def begin_track(tracks, entry, axis, radius):
     """The track an insertion at ``entry`` along unit ``axis`` extends: an existing one whose line
     passes within ``radius`` of the entry with an axis within ~1 degree, else a new one (the oldest is
@@ -195,7 +195,7 @@ def begin_track(tracks, entry, axis, radius):
     return j
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def record_cut(cut_lo, cut_hi, j, layer, lo, hi):
     """Track ``j``'s layer ``layer`` is cut over arc lengths [lo, hi]: extends its range in the
     tracks' ``cut_lo`` / ``cut_hi`` arrays."""
@@ -207,7 +207,7 @@ def record_cut(cut_lo, cut_hi, j, layer, lo, hi):
         cut_hi[j, layer] = hi
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def record_passage(tracks, j, bounds, s_tip, punctured):
     """The tip at ``s_tip`` has opened every punctured layer (k < ``punctured``) of track ``j`` from
     its rest surface down to the tip (a straight needle cuts contiguously)."""
@@ -216,7 +216,7 @@ def record_passage(tracks, j, bounds, s_tip, punctured):
         record_cut(cut_lo, cut_hi, j, k, bounds[k], min(s_tip, bounds[k + 1]))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def track_damage(tracks, px, py, pz, layer, radius):
     """How much of layer ``layer``'s tissue at point (px, py, pz) (scene frame, m) earlier passes have
     opened (0 intact .. 1 cut): the largest :func:`overlap_damage` over the tracks whose cut range in
@@ -268,7 +268,7 @@ def friction_reset(st):
     anchor[0] = 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def stick_point(anchor, mode, k, decay, s, v, thr):
     """One tick of the stick point on plain scalars: the anchor's arc length ``anchor`` (m) and its
     ``mode`` (STUCK / SLIP_FWD / SLIP_BACK) for a needle at ``s`` moving at ``v``; spring ``k`` (N/m),
@@ -334,7 +334,7 @@ def viscous_force(b, lengths, v):
     return -c * v
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def cutting_layer(s, bounds, punctured):
     """The layer a tip at arc length ``s`` cuts into: the one it is in, if this insertion has broken
     its surface (``punctured`` layers from the skin down); -1 while it presses a surface, is above the
@@ -387,7 +387,7 @@ def rupture_fields(rp) -> tuple:
             ("rupture_vref", rp.reference_speed_mm_s * 1e-3))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def rupture_speed_factor(u, ratio, vc, vref):
     """Factor on a surface's puncture threshold at approach speed ``u`` (m/s, along the axis into
     the tissue; a receding or still tip counts as 0): the threshold falls from its quasi-static value

@@ -331,7 +331,7 @@ def pack(layer_modes, n_layers, zeta=DAMPING_RATIO, dt=DT):
     return tab, count, g
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def msm_tick(tab, k, nm, g, q, v, dep, dt):
     """One backward-Euler step of layer ``k``'s lattice (its ``nm`` modes in ``tab``; their
     coordinates ``q`` and velocities ``v``, updated in place) with the tip ``dep`` below the rest

@@ -137,7 +137,7 @@ def solve_column(net, topo, springs, col, out):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def lookup(tab, meta, rho2, c):
     """Bilinear read of one layer's table (``meta``: its :data:`TMETA` record) at lateral offset^2
     ``rho2`` and depth ``c`` (m): returns (reaction along the axis (N), ring-w mean deflection (m))."""
@@ -171,7 +171,7 @@ def lookup(tab, meta, rho2, c):
     return f, r
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def lay_field(tab, meta, c, n, X0f, axis, xf):
     """The centred equilibrium displacement at depth ``c`` laid onto a net: ``xf = X0f + D(c)`` in
     the net's frame (e1, e2 from ``axis``: :func:`haptic_acu.tissue.forcenet.tangent_frame`); ``meta``: the

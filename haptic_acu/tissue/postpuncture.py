@@ -40,7 +40,7 @@ def tracks_of(s):
     return Tracks(s.tr_entry, s.tr_axis, s.tr_lo, s.tr_hi, s.tr_count)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def gap_on_line(m, k, p, a, t):
     """How far the point ``p + t a`` lies outside rest boundary ``k`` (m, radially; < 0 inside)."""
     c = m.centre
@@ -48,7 +48,7 @@ def gap_on_line(m, k, p, a, t):
     return rho - shf.eval_point(m.coeffs[k], m.params[0].lmax, th, ph)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def line_crossing(m, k, p, a, t0, t1):
     """The parameter t where the line ``p + t a`` crosses rest boundary ``k``, by the secant method
     from the guesses ``t0``, ``t1``; NaN if it does not converge (the line misses the boundary)."""
@@ -73,7 +73,7 @@ def line_crossing(m, k, p, a, t0, t1):
     return math.nan
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def axis_bounds(m, s):
     """``servo.bounds``: arc lengths from the entry along the axis where the line crosses the rest
     boundaries (0 for the skin; NO_CROSSING where it never does), non-decreasing."""
@@ -101,7 +101,7 @@ def axis_bounds(m, s):
         b[k] = t
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def set_axis(inp, s, fx, fy, fz):
     """``servo.axis``: the device's (``inp.axis``, if finite and non-zero), else the direction of
     travel from ``servo.touch`` to the tip, else (fx, fy, fz) (unit)."""
@@ -127,7 +127,7 @@ def set_axis(inp, s, fx, fy, fz):
         sv.axis[2] = fz
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def begin_insertion(inp, m, s, j):
     """The skin is broken (``j`` = -1) or entered through track ``j``: axis (:func:`set_axis`; a
     track's own where the device does not say), entry point (where the axis through the tip crosses
@@ -163,7 +163,7 @@ def begin_insertion(inp, m, s, j):
     sv.engaged = 0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def find_track(m, s, k):
     """A track whose layer-``k`` cut range holds the contact point ``work.cpt`` (from one needle
     radius above the rest surface) with half or more of the needle's cross-section over it; or -1."""
@@ -220,7 +220,7 @@ def table1_axial(m, s, d, v):
     return -cd * v
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def rich_axial(inp, m, s, d, v):
     """Cutting + stick-point shaft friction + viscous friction along the axis (N along +s)."""
     sv = s.servo[0]

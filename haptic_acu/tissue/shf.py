@@ -127,7 +127,7 @@ def _add_order(coeffs, lmax, m, pmm, x, cm, sm, total):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point(coeffs, lmax, theta, phi):
     """r(theta, phi) = sum_lm c_lm Y_lm for one direction: O(lmax^2), allocates nothing.
     ``lmax`` <= REC_LMAX (the config's limit; not checked here)."""
@@ -172,16 +172,51 @@ def eval_direction(coeffs, lmax, dx, dy, dz):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _eval_point4(coeffs, lmax, theta, phi, out):
     """eval_point for four rows at once (the tissue's boundaries): one Legendre recurrence and one set
     of cos/sin(m phi), the four sums in registers and formed in eval_point's order (bit for bit)."""
-    eval_point4_grad(coeffs, lmax, theta, phi, out, -1, out)
+    t0 = 0.0
+    t1 = 0.0
+    t2 = 0.0
+    t3 = 0.0
+    c0 = coeffs[0]
+    c1 = coeffs[1]
+    c2 = coeffs[2]
+    c3 = coeffs[3]
+    x = math.cos(theta)
+    s = math.sin(theta)
+    pmm = _INV_SQRT_4PI
+    for m in range(lmax + 1):
+        if m > 0:
+            pmm = -_REC_MM[m] * s * pmm
+        cm = math.cos(m * phi)
+        sm = math.sin(m * phi)
+        p_lm2 = 0.0
+        p_lm1 = pmm
+        for l in range(m, lmax + 1):
+            p, p_lm1, p_lm2 = _next_plm(l, m, x, pmm, p_lm1, p_lm2)
+            base = l * l + l
+            if m == 0:
+                t0 += c0[base] * p
+                t1 += c1[base] * p
+                t2 += c2[base] * p
+                t3 += c3[base] * p
+            else:
+                sp = _SQRT2 * p
+                t0 += sp * (c0[base + m] * cm + c0[base - m] * sm)
+                t1 += sp * (c1[base + m] * cm + c1[base - m] * sm)
+                t2 += sp * (c2[base + m] * cm + c2[base - m] * sm)
+                t3 += sp * (c3[base + m] * cm + c3[base - m] * sm)
+    out[0] = t0
+    out[1] = t1
+    out[2] = t2
+    out[3] = t3
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
-    """:func:`_eval_point4` (``out``: the four rows' r, bit for bit) and, for ``k`` >= 0, row k's
+    """:func:`_eval_point4` (``out``: the four rows' r, bit for bit) and row ``k``'s (0 <= k < 4)
     derivatives in the same pass: ``grad[0]`` = dr_k/dtheta, ``grad[1]`` = (dr_k/dphi) / sin(theta)
     (the surface gradient's components along e_theta and e_phi). dP_lm/dtheta follows the Legendre
     recurrence differentiated term by term (no division by sin theta, exact at the poles); at
@@ -196,15 +231,14 @@ def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
     c1 = coeffs[1]
     c2 = coeffs[2]
     c3 = coeffs[3]
-    ck = coeffs[k if k >= 0 else 0]
+    ck = coeffs[k]
     x = math.cos(theta)
     s = math.sin(theta)
     pmm = _INV_SQRT_4PI
     dmm = 0.0  # dP_mm/dtheta
     for m in range(lmax + 1):
         if m > 0:
-            if k >= 0:
-                dmm = -_REC_MM[m] * (x * pmm + s * dmm)
+            dmm = -_REC_MM[m] * (x * pmm + s * dmm)
             pmm = -_REC_MM[m] * s * pmm
         cm = math.cos(m * phi)
         sm = math.sin(m * phi)
@@ -213,17 +247,16 @@ def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
         d_lm2 = 0.0
         d_lm1 = dmm
         for l in range(m, lmax + 1):
-            if k >= 0:
-                # d/dtheta of _next_plm's step (dx/dtheta = -sin theta), from the P values before it
-                if l == m:
-                    dp = dmm
-                elif l == m + 1:
-                    dp = _REC_M1[m] * (x * dmm - s * pmm)
-                else:
-                    dp = _REC_A[l, m] * (x * d_lm1 - s * p_lm1 - _REC_B[l, m] * d_lm2)
-                if l > m:
-                    d_lm2 = d_lm1
-                    d_lm1 = dp
+            # d/dtheta of _next_plm's step (dx/dtheta = -sin theta), from the P values before it
+            if l == m:
+                dp = dmm
+            elif l == m + 1:
+                dp = _REC_M1[m] * (x * dmm - s * pmm)
+            else:
+                dp = _REC_A[l, m] * (x * d_lm1 - s * p_lm1 - _REC_B[l, m] * d_lm2)
+            if l > m:
+                d_lm2 = d_lm1
+                d_lm1 = dp
             p, p_lm1, p_lm2 = _next_plm(l, m, x, pmm, p_lm1, p_lm2)
             base = l * l + l
             if m == 0:
@@ -231,29 +264,26 @@ def eval_point4_grad(coeffs, lmax, theta, phi, out, k, grad):
                 t1 += c1[base] * p
                 t2 += c2[base] * p
                 t3 += c3[base] * p
-                if k >= 0:
-                    gt += ck[base] * dp
+                gt += ck[base] * dp
             else:
                 sp = _SQRT2 * p
                 t0 += sp * (c0[base + m] * cm + c0[base - m] * sm)
                 t1 += sp * (c1[base + m] * cm + c1[base - m] * sm)
                 t2 += sp * (c2[base + m] * cm + c2[base - m] * sm)
                 t3 += sp * (c3[base + m] * cm + c3[base - m] * sm)
-                if k >= 0:
-                    cc = ck[base + m]
-                    cs = ck[base - m]
-                    gt += _SQRT2 * dp * (cc * cm + cs * sm)
-                    gp += sp * m * (cs * cm - cc * sm)
+                cc = ck[base + m]
+                cs = ck[base - m]
+                gt += _SQRT2 * dp * (cc * cm + cs * sm)
+                gp += sp * m * (cs * cm - cc * sm)
     out[0] = t0
     out[1] = t1
     out[2] = t2
     out[3] = t3
-    if k >= 0:
-        grad[0] = gt
-        grad[1] = gp / s if s != 0.0 else _pole_dphi(ck, lmax, x, phi)
+    grad[0] = gt
+    grad[1] = gp / s if s != 0.0 else _pole_dphi(ck, lmax, x, phi)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def _pole_dphi(ck, lmax, x, phi):
     """(dr/dphi) / sin(theta) at sin(theta) = 0 (x = cos theta = +-1): its limit, order 1's terms
     alone with P_l1 / sin(theta) from the same recurrence started at P_11 / sin(theta)."""
@@ -270,7 +300,7 @@ def _pole_dphi(ck, lmax, x, phi):
     return total
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def eval_point_many(coeffs, lmax, theta, phi, out):
     """``out[k] = eval_point(coeffs[k], ...)`` for every row of ``coeffs`` (bit for bit); four rows,
     the tissue's boundaries, share one recurrence (:func:`_eval_point4`). Allocates nothing."""
@@ -281,7 +311,7 @@ def eval_point_many(coeffs, lmax, theta, phi, out):
         out[k] = eval_point(coeffs[k], lmax, theta, phi)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def direction_of(px, py, pz, cx, cy, cz):
     """(theta, phi, rho) of point p seen from centre c; the direction of c itself is the +z pole."""
     dx = px - cx

@@ -285,7 +285,7 @@ def wind_layer(phi, e, d, dt, slip, twist_tau, engage_rad, engage_tau):
     return phi, e
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, _nrt=False)
 def wind_step(ws, roll_rad, length_m, dt, p):
     """One step of every layer's winding: ``roll_rad`` the needle's roll (rad, unwrapped),
     ``length_m`` (n_layers,) the needle length in each layer (m), ``dt`` (s). Updates ``ws``
