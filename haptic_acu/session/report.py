@@ -53,6 +53,8 @@ class SummarySink(Sink):
     ``info``.
     """
 
+    rows_only = True  # the rows (and the frame's time) only
+
     BATCH_ROWS = 2048
 
     def __init__(self, cfg=None, keep_rows: bool = True, reference_rows=None):
@@ -763,6 +765,8 @@ class SamplesCsvSink(Sink):
     punctured on that tick, else empty); ``clamped`` and ``fault`` (0/1). Fixed decimals (t 1 us,
     lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
     """
+
+    rows_only = True  # the rows (and the frame's time) only
 
     BATCH_ROWS = 1024
 
