@@ -486,6 +486,20 @@ class Session:
                 self._visual_frame(t)
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 
+    def _sim_block(self, k0: int, k1: int) -> bool:
+        """Ticks ``k0..k1`` on simulated time from a device that cannot be read ahead: a read and a
+        :meth:`_servo_tick` per tick; False if they did not all run (end, fault, stop)."""
+        dt = self.servo_dt
+        dev = self.device
+        for k in range(k0, k1 + 1):
+            t = k * dt
+            state = dev.read_at(t)
+            if state.done or self._stop.is_set():
+                return False
+            self._servo_tick(t, state)
+            self._t_session = t
+        return not self._stop.is_set()
+
     def _frame_plan(self, k0: int, next_frame: float, limit: float, max_frames: int):
         """The next frames from tick ``k0``: (each frame's last tick, the next frame time, whether
         the last block ends at ``limit`` without a frame), the rule of :meth:`_run_sim`."""

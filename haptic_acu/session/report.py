@@ -768,7 +768,7 @@ class SamplesCsvSink(Sink):
 
     rows_only = True  # the rows (and the frame's time) only
 
-    BATCH_ROWS = 1024
+    BATCH_ROWS = SummarySink.BATCH_ROWS  # the same batches: the tip depth is computed once for both
 
     def __init__(self, path):
         self.path = Path(path)
