@@ -158,7 +158,7 @@ def measure(n_sessions: int = 8, duration_s: float = 10.0, workers: int = 0, das
             progress: bool = False) -> dict:
     """Replay a synthetic cohort of ``n_sessions`` with the local pool (and a Dask LocalCluster)."""
     from haptic_acu.cohort.sessions import read_manifest
-    from haptic_acu.cli.cohort import run_cohort
+    from haptic_acu.cohort.update import run_cohort
     from haptic_acu.base.config import load_config
 
     workers = workers or max(1, len(os.sched_getaffinity(0)))

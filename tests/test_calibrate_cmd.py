@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from haptic_acu.cli import calibrate as cal
+from haptic_acu.tissue import calibration as cal
 from haptic_acu.cli import main
 from haptic_acu.base.config import load_config
 

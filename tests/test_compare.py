@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_acu.cli.compare import plot_compare
+from haptic_acu.session.compare import plot_compare
 from haptic_acu.base.config import load_config
 from haptic_acu.servo.samples import COL, NCOL
 
@@ -150,3 +150,22 @@ def test_figure_bytes_are_deterministic(tmp_path):
     # a different session draws a different picture (the bytes depend on the data)
     plot_compare([a, _rows(0.5 * d, 0.08 * d)], ["trainee", "expert"], paths[1], bounds)
     assert paths[1].read_bytes() != one
+
+
+def test_point_with_models_runs_the_point_through_each_model(tmp_path):
+    """``--point`` with ``--models``: each column is the trajectory at the point through that model.
+    The SHF column equals a --point comparison whose config's model is SHF, and is not the force
+    net's (their skins break differently)."""
+    import json
+
+    from haptic_acu.cli import main
+
+    both, one = tmp_path / "both", tmp_path / "one"
+    assert main(["compare", "ST36_correct", "--point", "ST36", "--models", "forcenet,shf", "--out", str(both)]) == 0
+    assert main(["compare", "ST36_correct", "--point", "ST36", "--set", "model.kind=shf", "--out", str(one)]) == 0
+    doc, ref = (json.loads((d / "compare.json").read_text()) for d in (both, one))
+    assert doc["labels"] == ["forcenet", "shf"] and doc["point"] == ref["point"] == "ST36"
+    by_model = [s["metrics"] for s in doc["sessions"]]
+    assert by_model[1] == ref["sessions"][0]["metrics"]
+    assert by_model[0] != by_model[1]
+    assert "critical_errors" in by_model[1]["per_insertion"][0]  # graded against the point

@@ -9,7 +9,7 @@ from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
 from haptic_acu.base.config import load_config
-from haptic_acu.cli.compare import COLOURS, FORCE_SIGN, plot_compare
+from haptic_acu.session.compare import COLOURS, FORCE_SIGN, plot_compare
 from haptic_acu.servo.samples import COL, NCOL
 
 

@@ -7,8 +7,8 @@ import re
 from pathlib import Path
 
 from haptic_acu.session import recorder
-from haptic_acu.cli import score as score_cmd
-from haptic_acu.cli.replay import _flat, puncture_rows
+from haptic_acu.analysis import score_files
+from haptic_acu.session.batch import puncture_rows, summary_row
 from haptic_acu.session.report import CSV_FIELDS
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -54,7 +54,7 @@ def test_every_batch_table_column_is_described():
                            "per_insertion": [{"t_entry_s": 0.4, "t_exit_s": 0.9}]}}
     section = _section(OUTPUTS, "A batch")
     names = _table_names(section)
-    for col in _flat(summary):
+    for col in summary_row(summary):
         generic = re.sub(r"^(skin|fat|muscle)_", "<layer>_", col)
         assert col in names or generic in names, f"summaries.csv column {col} is not in docs/output-files.md"
     for col in puncture_rows(summary)[0]:
@@ -69,8 +69,8 @@ def test_score_tables_are_described(tmp_path):
                 "rater", "score"):
         assert f"`{col}`" in section, col
     # and those are the headers the writers put on line 1
-    score_cmd._write_weights_csv(tmp_path / "w.csv", [], [])
-    score_cmd._write_scores_csv(tmp_path / "s.csv", [])
+    score_files.write_weights_csv(tmp_path / "w.csv", [], [])
+    score_files.write_scores_csv(tmp_path / "s.csv", [])
     for f in ("w.csv", "s.csv"):
         for col in (tmp_path / f).read_text().strip().split(","):
             assert f"`{col}`" in section, col

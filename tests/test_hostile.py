@@ -175,7 +175,7 @@ def test_calibrate_force_units(tmp_path):
 
 
 def test_calibrate_reads_a_bom_like_the_other_readers(tmp_path):
-    from haptic_acu.cli.calibrate import read_curve
+    from haptic_acu.tissue.calibration import read_curve
 
     x, f = read_curve(curve(tmp_path / "c.csv", bom=True))
     assert len(x) == 200 and x[0] == 0.0
@@ -251,7 +251,7 @@ def test_cohort_formula_cells_are_neutralised(tmp_path):
 
 
 def test_cohort_jobs_bounded_by_cores():
-    from haptic_acu.cli.cohort import bounded_jobs
+    from haptic_acu.cohort.update import bounded_jobs
 
     cores = len(os.sched_getaffinity(0))
     n, note = bounded_jobs(16 * cores)

@@ -148,3 +148,35 @@ def test_the_checker_sees_a_violation(tmp_path):
     f.write_text("def f():\n    from ..session import engine\n")
     known = {"haptic_acu.servo.x", "haptic_acu.session", "haptic_acu.session.engine"}
     assert "haptic_acu.session.engine" in imports_of("haptic_acu.servo.x", f, known)
+
+
+# A command module parses its arguments, calls the package that does the work and prints or writes
+# the results: apart from its ``register`` (the argparse declaration, as long as the command's
+# options), it stays short, and so does each of its functions.
+CLI_MAX_LINES = 260  # a cli module's lines outside ``register``
+CLI_MAX_FUNCTION_LINES = 60  # a cli function's lines, ``register`` aside
+
+
+def cli_shape() -> dict[str, tuple[int, list[tuple[str, int]]]]:
+    """cli module -> (its lines outside ``register``, [(function, lines)] of its other functions)."""
+    out = {}
+    for f in sorted((ROOT / "haptic_acu" / "cli").glob("*.py")):
+        text = f.read_text()
+        tree = ast.parse(text, filename=str(f))
+        fns = [(n.name, n.end_lineno - n.lineno + 1) for n in ast.walk(tree)
+               if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+        register = sum(n for name, n in fns if name == "register")
+        out[f.name] = (len(text.splitlines()) - register, [(name, n) for name, n in fns if name != "register"])
+    return out
+
+
+def test_cli_modules_stay_thin():
+    shape = cli_shape()
+    assert len(shape) >= 10 and sum(n for n, _ in shape.values()) > 1000  # the walk sees the commands
+    long_modules = [f"haptic_acu/cli/{m}: {n} lines outside register" for m, (n, _) in shape.items()
+                    if n > CLI_MAX_LINES]
+    long_functions = [f"haptic_acu/cli/{m}: {name} {n} lines" for m, (_, fns) in shape.items()
+                      for name, n in fns if n > CLI_MAX_FUNCTION_LINES]
+    assert not long_modules and not long_functions, (
+        "a command's work belongs in the package named for it (session/, analysis/, cohort/, study/, "
+        "tissue/), not in cli/:\n" + "\n".join(long_modules + long_functions))

@@ -72,22 +72,22 @@ def hand_path():
     return [(t, 0.0, 0.0, device_z(z)) for t, z in knots], phases, t_out + 0.2
 
 
-def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=()):
+def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=(), extra=()):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status"],
+                           "--record", str(rec), "--no-status", *extra],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))
     return proc, rows[rows[:, 1] == FRAME], rec
 
 
-def replay(tmp_path, rec):
+def replay(tmp_path, rec, extra=()):
     out = tmp_path / "replay"
     return subprocess.run([sys.executable, "-m", "haptic_acu", "replay", str(rec), "--no-rrd", "--quiet", "--out",
-                           str(out)], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S,
+                           str(out), *extra], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S,
                           env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"}), out
 
 
@@ -106,10 +106,16 @@ def buzz_per_phase(frames, phases, punctures_t, fs=1000.0):
     return out
 
 
-@pytest.mark.parametrize("grip_name, grip", [("loose", LOOSE_GRIP), ("firm", FIRM_GRIP)])
-def test_closed_loop_session_through_the_emulated_omni(emulator, tmp_path, grip_name, grip):
+@pytest.mark.parametrize("grip_name, grip, kind", [
+    ("loose", LOOSE_GRIP, None), ("firm", FIRM_GRIP, None),
+    # the MSM's lattice moves at the servo's rate: the same loop through it (docs/model.md s12.2)
+    pytest.param("loose", LOOSE_GRIP, "msm", marks=pytest.mark.slow),
+    pytest.param("firm", FIRM_GRIP, "msm", marks=pytest.mark.slow)])
+def test_closed_loop_session_through_the_emulated_omni(emulator, tmp_path, grip_name, grip, kind):
     path, phases, duration = hand_path()
-    proc, frames, rec = run_cli(emulator, tmp_path, path, duration, stylus={**grip, "hand_tremor": TREMOR})
+    extra = ("--set", f"model.kind={kind}") if kind else ()
+    proc, frames, rec = run_cli(emulator, tmp_path, path, duration, stylus={**grip, "hand_tremor": TREMOR},
+                                extra=extra)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
@@ -142,7 +148,7 @@ def test_closed_loop_session_through_the_emulated_omni(emulator, tmp_path, grip_
     # rows stamped with the device's tick time: exactly 1 ms apart
     np.testing.assert_allclose(np.diff(tr.t_s), 1e-3, atol=1e-9)
 
-    rep, out = replay(tmp_path, rec)
+    rep, out = replay(tmp_path, rec, extra)
     assert rep.returncode == 0, rep.stderr
     # the headless replay runs the tissue at the recorded proxy: the recorded simulated force again
     # (the file's precision, and the ticks around a puncture left out)

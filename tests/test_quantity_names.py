@@ -13,7 +13,7 @@ import pytest
 from haptic_acu.analysis.quantities import BY_NAME, QUANTITIES, value
 from haptic_acu.base.config import load_config
 from haptic_acu.cli import main
-from haptic_acu.cli.compare import DIFF_KEYS, INSERTION_ROWS
+from haptic_acu.analysis.comparison import DIFF_KEYS, INSERTION_ROWS
 
 REPO = Path(__file__).resolve().parent.parent
 TWIRL = REPO / "trajectories" / "twirl_even.csv"

@@ -289,3 +289,13 @@ def test_numba_compiles_are_reported(monkeypatch):
     err.truncate(0)
     assert _twice(4) == 8  # compiled: nothing more
     assert err.getvalue().strip("\x00") == ""
+
+
+def test_a_quiet_command_run_in_process_leaves_the_progress_lines_on():
+    """``main([... "--quiet"])`` silences its own progress lines only: the next in-process command
+    (or a library caller) still gets them."""
+    from haptic_acu.cli import main
+
+    assert progress.quiet is False
+    assert main(["replay", "no_such_trajectory.csv", "--quiet"]) == 2  # a one-line error, after --quiet took hold
+    assert progress.quiet is False

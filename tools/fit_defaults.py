@@ -20,7 +20,7 @@ import math
 import numpy as np
 from scipy.optimize import minimize
 
-from haptic_acu.cli.calibrate import RiseFit, rise_report
+from haptic_acu.tissue.calibration import RiseFit, rise_report
 from haptic_acu.base.config import load_config
 
 # Rise shape: Okamura, Simone and O'Leary 2004's f = a1 x + a2 x^2 before a puncture, with their

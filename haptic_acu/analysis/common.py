@@ -1,10 +1,19 @@
 """Small measures shared by the batch metrics (:mod:`.metrics`) and their streamed form
-(:mod:`.insertion_stream`), so that both compute them from one definition."""
+(:mod:`.insertion_stream`), so that both compute them from one definition; and the sample columns
+they and the scan (:mod:`.scan`) read, named once."""
 from __future__ import annotations
 
 import numpy as np
 
+from ..servo.samples import COL
 from ..servo.state import LAYER_NAMES as LAYERS  # noqa: F401 (re-exported)
+
+# the sample columns (:data:`haptic_acu.servo.samples.COL`) the analysis reads: a vector's first column
+C_X, C_F, C_T, C_TICK = COL["x_m"], COL["fx_n"], COL["t_s"], COL["tick"]
+C_LAYER, C_STATE, C_PUNCT, C_CLAMPED = COL["layer"], COL["state_skin"], COL["puncture"], COL["clamped"]
+C_DEPTH, C_LAT = COL["depth_skin_m"], COL["f_lateral_n"]
+C_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
+C_ROLL, C_TORQUE = COL["roll_deg"], COL["torque_nmm"]
 
 SPEED_DEPTH_FRACTION = 0.9  # the insertion speed is measured up to this fraction of the insertion's depth
 
@@ -27,7 +36,6 @@ def depth_verdict(depth_mm: float, target_mm) -> str:
 
 def angle_deg(u: np.ndarray, n: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(u, n)), float(np.dot(u, n)))))
-
 
 
 def dot3(d: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -34,18 +34,13 @@ import math
 
 import numpy as np
 
-from ..servo.samples import COL
 from .common import dot3
+from .common import C_CLAMPED, C_DEPTH, C_F, C_LAT, C_LAYER, C_LAYER_F, C_PUNCT, C_ROLL, C_T, C_TICK, C_TORQUE, C_X
 from .technique import DEPTH_MIN_STROKE_MM, MIN_SPEED_MM_S, ROLL_MIN_SWING_DEG, classify
 
 BUFFER_ROWS = 20_000  # rows kept before the continuous depth's steps are fixed (module docstring)
 PLATEAU_T_CAP = 4096  # times kept for the middle of a flat trough (beyond: interpolated, <1 tick off)
 
-_X, _F, _T, _TICK = COL["x_m"], COL["fx_n"], COL["t_s"], COL["tick"]
-_PUNCT, _DEPTH, _LAT = COL["puncture"], COL["depth_skin_m"], COL["f_lateral_n"]
-_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
-_ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
-_LAYER, _CLAMPED = COL["layer"], COL["clamped"]
 NONE, NEW, REV = 0, 1, 2
 
 
@@ -334,16 +329,16 @@ class _Press:
 
     def __init__(self, index: int, row: np.ndarray):
         self.index = index
-        self.t = float(row[_T])
-        self.entry = row[_X:_X + 3].copy()
+        self.t = float(row[C_T])
+        self.entry = row[C_X:C_X + 3].copy()
         self.layer_peak = [0.0, 0.0, 0.0]
         self.f_peak = 0.0
         self.tip_max = -math.inf
 
     def feed(self, rows: np.ndarray, tip) -> None:
-        for j, c in enumerate(_LAYER_F):
+        for j, c in enumerate(C_LAYER_F):
             self.layer_peak[j] = max(self.layer_peak[j], float(np.abs(rows[:, c]).max()))
-        f = rows[:, _F:_F + 3]
+        f = rows[:, C_F:C_F + 3]
         self.f_peak = max(self.f_peak, float(np.sqrt(np.einsum("ij,ij->i", f, f)).max()))
         if tip is not None:
             self.tip_max = max(self.tip_max, float(tip.max()))
@@ -408,12 +403,12 @@ class InsertionStream:
         k = len(rows)
         if k == 0:
             return
-        t = rows[:, _T]
-        depth = rows[:, _DEPTH]
+        t = rows[:, C_T]
+        depth = rows[:, C_DEPTH]
         i0 = self.n
         if self.n == 0:
-            self.t0, self.p0 = float(t[0]), rows[0, _X:_X + 3].copy()
-            self.skin_punctured = bool(rows[0, _PUNCT] == 0)
+            self.t0, self.p0 = float(t[0]), rows[0, C_X:C_X + 3].copy()
+            self.skin_punctured = bool(rows[0, C_PUNCT] == 0)
         d = np.diff(t) if self.n == 0 else np.diff(np.concatenate(([self.t_last], t)))
         if d.size:
             if self.dx0 is None:
@@ -422,21 +417,21 @@ class InsertionStream:
         self.n += k
         self.t_last = float(t[-1])
         self.press.feed(rows, tip)
-        lat = rows[:, _LAT]
+        lat = rows[:, C_LAT]
         self.lat_over += int(np.count_nonzero(lat > self.comfort))
-        self.bone_ticks += int(np.count_nonzero(rows[:, _LAYER] == 3))
-        self.clamped_ticks += int(np.count_nonzero(rows[:, _CLAMPED]))
+        self.bone_ticks += int(np.count_nonzero(rows[:, C_LAYER] == 3))
+        self.clamped_ticks += int(np.count_nonzero(rows[:, C_CLAMPED]))
         self.lat_max = max(self.lat_max, float(lat.max()))
-        self._records(i0, t, depth, rows[:, _X:_X + 3])
+        self._records(i0, t, depth, rows[:, C_X:C_X + 3])
         if self.k_lo is None:
             hit = np.flatnonzero(depth >= self.lo * 1e-3)
             if hit.size:
                 self.k_lo = (i0 + int(hit[0]), float(t[hit[0]]))
-        self.twirl.feed(t, rows[:, _ROLL], rows[:, _TORQUE])
-        cols = [t, depth, rows[:, _X], rows[:, _X + 1], rows[:, _X + 2], rows[:, _F], rows[:, _F + 1],
-                rows[:, _F + 2], rows[:, _PUNCT]]
+        self.twirl.feed(t, rows[:, C_ROLL], rows[:, C_TORQUE])
+        cols = [t, depth, rows[:, C_X], rows[:, C_X + 1], rows[:, C_X + 2], rows[:, C_F], rows[:, C_F + 1],
+                rows[:, C_F + 2], rows[:, C_PUNCT]]
         if self.ref is not None:
-            cols += list(self._ref_forces(rows[:, _TICK]).T)
+            cols += list(self._ref_forces(rows[:, C_TICK]).T)
         block = np.stack(cols, axis=1)
         if self.u_steps is None:
             self.buf.append(block)

@@ -75,27 +75,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..servo.samples import COL, NCOL
+from ..servo.samples import NCOL
 from ..servo.state import LAYER_NAMES as LAYERS
 from ..servo.state import PRESSING, PUNCTURED
 from .common import SPEED_DEPTH_FRACTION, depth_verdict, dot3  # noqa: F401 (re-exported)
+from .common import (C_CLAMPED, C_DEPTH, C_F, C_LAT, C_LAYER, C_LAYER_F, C_PUNCT, C_ROLL, C_STATE, C_T, C_TICK,
+                     C_TORQUE, C_X)
 from .common import angle_deg as _angle_deg
 from .common import round_json as _r
 from .insertion_stream import InsertionStream, _Press
 
 DEFAULT_LATERAL_COMFORT_N = 0.5
 CYCLE_PROMINENCE_M = 1e-3
-
-_X = COL["x_m"]
-_F = COL["fx_n"]
-_T = COL["t_s"]
-_SKIN = COL["state_skin"]
-_PUNCT = COL["puncture"]
-_DEPTH = COL["depth_skin_m"]
-_LAT = COL["f_lateral_n"]
-_LAYER, _CLAMPED = COL["layer"], COL["clamped"]
-_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
-_ROLL, _TORQUE, _TICK = COL["roll_deg"], COL["torque_nmm"], COL["tick"]
 
 
 def insertion_runs(state_skin: np.ndarray) -> list[tuple[int, int]]:
@@ -208,12 +199,12 @@ def _technique(run: np.ndarray, depth_c: np.ndarray, u: np.ndarray, ref: np.ndar
     without rotation, or None."""
     from .technique import technique_metrics
 
-    f = run[:, _F:_F + 3]
-    table = {"t_s": run[:, _T], "depth_mm": depth_c * 1e3, "roll_deg": run[:, _ROLL],
-             "torque_nmm": run[:, _TORQUE], "f_axial_n": -dot3(f, u)}
+    f = run[:, C_F:C_F + 3]
+    table = {"t_s": run[:, C_T], "depth_mm": depth_c * 1e3, "roll_deg": run[:, C_ROLL],
+             "torque_nmm": run[:, C_TORQUE], "f_axial_n": -dot3(f, u)}
     reference = None
     if ref is not None:
-        reference = {"f_axial_n": -dot3(ref[:, _F:_F + 3], u)}
+        reference = {"f_axial_n": -dot3(ref[:, C_F:C_F + 3], u)}
     return technique_metrics(table, reference)
 
 
@@ -221,8 +212,8 @@ def _reference_run(reference_rows, run: np.ndarray) -> np.ndarray | None:
     """The reference replay's rows on the same ticks as ``run``, or None if it does not hold them."""
     if reference_rows is None:
         return None
-    ticks = run[:, _TICK].astype(np.int64)
-    ref_ticks = reference_rows[:, _TICK].astype(np.int64)
+    ticks = run[:, C_TICK].astype(np.int64)
+    ref_ticks = reference_rows[:, C_TICK].astype(np.int64)
     idx = np.searchsorted(ref_ticks, ticks)
     if idx.size == 0 or idx[-1] >= len(ref_ticks) or not np.array_equal(ref_ticks[idx], ticks):
         return None
@@ -234,13 +225,13 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
                       reference_rows=None) -> dict:
     """Metrics of the insertion in rows ``first..last`` (inclusive; all with the skin punctured);
     ``reference_rows``: the session replayed without rotation (for the grasp felt), or None."""
-    state = rows[:, _SKIN]
+    state = rows[:, C_STATE]
     e = entry_tick(state, first)
     run = rows[first:last + 1]
-    t = run[:, _T]
-    p = run[:, _X:_X + 3]
-    depth = run[:, _DEPTH]
-    entry = rows[e, _X:_X + 3].copy()
+    t = run[:, C_T]
+    p = run[:, C_X:C_X + 3]
+    depth = run[:, C_DEPTH]
+    entry = rows[e, C_X:C_X + 3].copy()
     lo, hi = float(target_mm[0]), float(target_mm[1])
 
     k_deep = int(np.argmax(depth))
@@ -266,23 +257,23 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         speed = (axial[k90] - axial[0]) / (t[k90] - t[0]) * 1e3
 
     reached = np.flatnonzero(depth >= lo * 1e-3)
-    t_target = float(t[reached[0]] - rows[e, _T]) if reached.size else None
+    t_target = float(t[reached[0]] - rows[e, C_T]) if reached.size else None
 
     window = rows[e:last + 1]
-    peaks = {name: _r(np.abs(window[:, c]).max(), 4) for name, c in zip(LAYERS, _LAYER_F)}
-    f_total = np.sqrt(np.einsum("ij,ij->i", window[:, _F:_F + 3], window[:, _F:_F + 3]))
+    peaks = {name: _r(np.abs(window[:, c]).max(), 4) for name, c in zip(LAYERS, C_LAYER_F)}
+    f_total = np.sqrt(np.einsum("ij,ij->i", window[:, C_F:C_F + 3], window[:, C_F:C_F + 3]))
 
     at_depth = min(lo * 1e-3, SPEED_DEPTH_FRACTION * max_depth)
     k_start = int(np.argmax(depth >= at_depth))
-    dc = continuous_depth(depth, axial, run[:, _PUNCT])
+    dc = continuous_depth(depth, axial, run[:, C_PUNCT])
     cycles = lift_thrust_cycles(t[k_start:], dc[k_start:])
 
-    lat = run[:, _LAT]
+    lat = run[:, C_LAT]
     over = int(np.count_nonzero(lat > lateral_comfort_n))
-    skin_punctured = bool(run[0, _PUNCT] == 0)
-    t_entry, t_exit = _r(rows[e, _T], 4), _r(t[-1], 4)
+    skin_punctured = bool(run[0, C_PUNCT] == 0)
+    t_entry, t_exit = _r(rows[e, C_T], 4), _r(t[-1], 4)
     out = {
-        "t_entry_s": _r(rows[e, _T], 4),
+        "t_entry_s": _r(rows[e, C_T], 4),
         "t_inside_s": _r(t[0], 4),
         "t_exit_s": _r(t[-1], 4),
         "skin_punctured": skin_punctured,
@@ -303,8 +294,8 @@ def insertion_metrics(rows: np.ndarray, first: int, last: int, dt: float, target
         out["max_tip_depth_mm"] = _r(max(float(tip_depth[e:last + 1].max()), 0.0) * 1e3, 3)
     out["punctures"] = [p for p in punctures if t_entry <= p["t_s"] <= t_exit]
     out["technique"] = _technique(run, dc, u, _reference_run(reference_rows, run))
-    return contact_and_label(out, int(np.count_nonzero(run[:, _LAYER] == BONE)),
-                             int(np.count_nonzero(run[:, _CLAMPED])), dt)
+    return contact_and_label(out, int(np.count_nonzero(run[:, C_LAYER] == BONE)),
+                             int(np.count_nonzero(run[:, C_CLAMPED])), dt)
 
 
 def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_LATERAL_COMFORT_N,
@@ -325,15 +316,15 @@ def session_metrics(rows, cfg, tissue=None, lateral_comfort_n: float = DEFAULT_L
     tip_depth = None
     if tissue is not None:
         from .scan import SessionScan, puncture_records, tip_depth_m
-        tip_depth = tip_depth_m(rows[:, _X:_X + 3], tissue)
+        tip_depth = tip_depth_m(rows[:, C_X:C_X + 3], tissue)
         if punctures is None:
             punctures = puncture_records(SessionScan(tissue).feed(rows, depth=tip_depth))
     target = tuple(float(v) for v in cfg.scene.target_depth_mm)
-    dt = float(np.median(np.diff(rows[:, _T]))) if len(rows) >= 2 else 0.0
+    dt = float(np.median(np.diff(rows[:, C_T]))) if len(rows) >= 2 else 0.0
     ref = None if reference_rows is None else np.asarray(reference_rows, dtype=np.float64)
     insertions = [insertion_metrics(rows, a, b, dt, target, tissue, lateral_comfort_n, punctures or (), tip_depth,
-                                    ref) for a, b in insertion_runs(rows[:, _SKIN])]
-    return _session_dict(insertions, int(np.count_nonzero(rows[:, _SKIN] == PUNCTURED)), dt, target,
+                                    ref) for a, b in insertion_runs(rows[:, C_STATE])]
+    return _session_dict(insertions, int(np.count_nonzero(rows[:, C_STATE] == PUNCTURED)), dt, target,
                          lateral_comfort_n)
 
 
@@ -431,7 +422,7 @@ class SessionMetricsScan:
             self.ref = (np.asarray(reference_rows[0], dtype=np.float64), np.asarray(reference_rows[1], dtype=np.float64))
         elif reference_rows is not None:
             r = np.asarray(reference_rows, dtype=np.float64)
-            self.ref = (r[:, _TICK].copy(), r[:, _F:_F + 3].copy())
+            self.ref = (r[:, C_TICK].copy(), r[:, C_F:C_F + 3].copy())
         self.tissue = tissue
         self.comfort = float(lateral_comfort_n)
         self.rows_seen = 0
@@ -453,17 +444,17 @@ class SessionMetricsScan:
             return
         if rows.ndim != 2 or rows.shape[1] != NCOL:
             raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
-        t = rows[:, _T]
+        t = rows[:, C_T]
         if self._last_t is not None:
             self.dt.add(np.array([t[0] - self._last_t]))
         self.dt.add(np.diff(t))
         self._last_t = float(t[-1])
-        st = rows[:, _SKIN]
+        st = rows[:, C_STATE]
         self.punctured_rows += int(np.count_nonzero(st == PUNCTURED))
         tip = None
         if self.tissue is not None:
             from .scan import tip_depth_m
-            tip = tip_depth_m(rows[:, _X:_X + 3], self.tissue)
+            tip = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
         bounds = [0, *(np.flatnonzero(np.diff(st) != 0) + 1).tolist(), k]
         for a, b in zip(bounds[:-1], bounds[1:]):
             self._segment(rows[a:b], None if tip is None else tip[a:b], self.rows_seen + a, float(st[a]))

@@ -11,17 +11,10 @@ import numpy as np
 
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401
+from .common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
-
-_C_X = COL["x_m"]
-_C_F = COL["fx_n"]
-_C_T = COL["t_s"]
-_C_TICK = COL["tick"]
-_C_LAYER = COL["layer"]
-_C_STATE = COL["state_skin"]
-_C_PUNCT = COL["puncture"]
 
 
 def place_name(code: float) -> str:
@@ -56,10 +49,10 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
 def radial_force_n(rows: np.ndarray, tissue) -> np.ndarray:
     """F . u per row (N): the force along the outward radial direction at the tip (positive resists
     insertion)."""
-    d = rows[:, _C_X:_C_X + 3] - tissue.centre
+    d = rows[:, C_X:C_X + 3] - tissue.centre
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     u = d / np.where(rho > 0.0, rho, 1.0)[:, None]
-    return np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], u)
+    return np.einsum("ij,ij->i", rows[:, C_F:C_F + 3], u)
 
 
 def _r(x: float, nd: int) -> float:
@@ -112,11 +105,11 @@ class SessionScan:
             return []
         if rows.ndim != 2 or rows.shape[1] != NCOL:
             raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
-        f = np.sqrt(np.einsum("ij,ij->i", rows[:, _C_F:_C_F + 3], rows[:, _C_F:_C_F + 3]))
+        f = np.sqrt(np.einsum("ij,ij->i", rows[:, C_F:C_F + 3], rows[:, C_F:C_F + 3]))
         if depth is None:
-            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
-        t = rows[:, _C_T]
-        place = rows[:, _C_LAYER].astype(np.int64) + 1
+            depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        t = rows[:, C_T]
+        place = rows[:, C_LAYER].astype(np.int64) + 1
         # time: interval to the next row counts for the place of the earlier row
         if self.t_last is not None:
             self.time_in[self._prev_place] += t[0] - self.t_last
@@ -133,8 +126,8 @@ class SessionScan:
         self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
         self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
         # pressing runs and punctures (a few rows per frame: a plain loop)
-        states = rows[:, _C_STATE:_C_STATE + N_LAYERS].astype(np.int64).tolist()
-        punct = rows[:, _C_PUNCT].tolist()
+        states = rows[:, C_STATE:C_STATE + N_LAYERS].astype(np.int64).tolist()
+        punct = rows[:, C_PUNCT].tolist()
         found = []
         for i in range(k):
             st = states[i]
@@ -146,7 +139,7 @@ class SessionScan:
                 self._prev_state[j] = st[j]
             if punct[i] >= 0:
                 j = int(punct[i])
-                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, _C_TICK]),
+                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
                       "tip_depth_m": float(depth[i]), "peak_force_n": self._press_peak[j],
                       "peak_depth_m": self._press_peak_depth[j]}
                 found.append(ev)

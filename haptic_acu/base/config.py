@@ -139,7 +139,7 @@ class ModelParams:
 
     kind: str  # "forcenet" (the force net), "msm", "fem", "bem" or "shf"
     young_modulus_kpa: tuple[float, float, float]  # MSM, FEM, BEM: each layer's Young's modulus
-    poisson_ratio: tuple[float, float, float]  # MSM (fixed at 1/4 by its lattice), FEM, BEM
+    poisson_ratio: tuple[float, float, float]  # MSM, FEM, BEM
     puncture_depth_mm: tuple[float, float, float]  # FEM, BEM: indentation at which the layer breaks
     shf_stiffness_n_per_mm: tuple[float, float, float]  # SHF: penalty stiffness along the surface normal
     shf_puncture_force_n: tuple[float, float, float]  # SHF: force at which the layer breaks

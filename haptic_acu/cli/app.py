@@ -73,8 +73,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     from ..base import progress
-    progress.quiet = bool(getattr(args, "quiet", False))
+    was_quiet, progress.quiet = progress.quiet, bool(getattr(args, "quiet", False))
     progress.watch_compiles()
+    try:
+        return _dispatch(args)
+    finally:  # a command run in-process (main([...])) leaves the progress lines as it found them
+        progress.quiet = was_quiet
+
+
+def _dispatch(args) -> int:
+    """The command's exit status; its errors as one line on stderr."""
     try:
         return int(args.func(args) or 0)
     except UserError as e:

@@ -103,26 +103,10 @@ def _fit_mesh(mesh, lmax, out, args) -> int:
     check_sh_fit(lmax, len(pts), f"{mesh}: --lmax {lmax} with {len(pts):,} vertices", keys=False)
     from ..tissue import shf  # the numba kernels, once the input is known to be good
     from ..tissue.body import save_coefficients
+    from ..tissue.objmesh import fit_radial
 
     need = shf.n_coeffs(lmax)
-    if len(pts) < need:
-        raise UserError(f"{mesh}: {len(pts)} vertices are too few for lmax {lmax}: "
-                        f"need at least (lmax+1)^2 = {need}")
-    centre = pts.mean(axis=0)
-    d = pts - centre
-    rho = np.linalg.norm(d, axis=1)
-    # Relative test: a vertex at the centroid (to rounding) has no direction to fit along.
-    at_centre = rho <= 1e-9 * max(float(rho.max()), 1e-300)
-    if at_centre.any():
-        raise UserError(f"{mesh}: line {lines[np.argmax(at_centre)]}: vertex lies at the vertices' centroid, "
-                        "so its direction is undefined (the mesh is not a surface around its centroid)")
-    theta = np.arccos(np.clip(d[:, 2] / rho, -1.0, 1.0))
-    phi = np.arctan2(d[:, 1], d[:, 0])
-    try:
-        coeffs = shf.fit(theta, phi, rho, lmax)
-    except ValueError as e:
-        raise UserError(f"{mesh}: cannot fit the vertices' distances from their centroid: {e}") from None
-    resid = shf.evaluate(coeffs, theta, phi) - rho
+    coeffs, centre, rho, resid = fit_radial(mesh, pts, lines, lmax)
     rms = float(np.sqrt(np.mean(resid ** 2)))
     worst = int(np.argmax(np.abs(resid)))
     elapsed = time.perf_counter() - t0

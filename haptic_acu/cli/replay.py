@@ -1,7 +1,6 @@
 """``haptic-acu replay``: headless replay of one or more trajectories (see :mod:`haptic_acu.session.replay`)."""
 from __future__ import annotations
 
-import csv
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -10,7 +9,7 @@ from pathlib import Path
 
 from ..base.bundled import bundled_names
 from ..base.errors import UserError
-from ..base.outputs import Outputs, claim_folder, safe_cell, write_new
+from ..base.outputs import Outputs, claim_folder
 from ..base.outputs import fresh_folder as fresh_path
 
 BATCH_FILES = ("summaries.csv", "insertions.csv", "punctures.csv")
@@ -68,94 +67,6 @@ def _one(args_tuple):
         return str(traj), None, f"{e.filename or out_dir}: {e.strerror or e}"
 
 
-def _flat(summary: dict) -> dict:
-    """summaries.csv's row: the session's numbers (each the summary's, not a second estimate), the
-    first puncture of each layer, and the session-level trainee metrics."""
-    row = {"trajectory": summary["trajectory"], "duration_s": summary["duration_s"], "ticks": summary["ticks"],
-           "max_force_n": summary["max_force_n"], "max_tip_depth_mm": summary["max_tip_depth_mm"],
-           "layers_reached": " ".join(summary["layers_reached"]), "punctures": len(summary["punctures"])}
-    for p in summary["punctures"]:
-        row.setdefault(f"{p['layer']}_puncture_t_s", p["t_s"])
-        row.setdefault(f"{p['layer']}_peak_force_n", p["peak_force_n"])
-    m = summary.get("metrics") or {}
-    for key in ("insertions", "skin_punctures", "time_in_tissue_s"):
-        if key in m:
-            row[key] = m[key]
-    for key, v in (m.get("lateral") or {}).items():
-        row[f"lateral_{key}"] = v
-    if "point" in summary:  # --point: the point, the patient and the grading's totals
-        g = summary["point_grading"]
-        row.update(point=summary["point"], patient_sex=summary["patient"]["sex"], patient_bmi=summary["patient"]["bmi"],
-                   in_range=g["in_range"], on_target=g["on_target"], critical_errors=g["critical_errors"])
-    return row
-
-
-def flatten(d: dict, prefix: str = "") -> dict:
-    """A nested metrics dict as flat CSV columns: ``a.b`` -> ``a_b``; a list of three numbers
-    (a position) -> ``_x``, ``_y``, ``_z``; a list of dicts (the insertion's punctures) -> its
-    count; None -> an empty cell. New metrics get their columns without a change here."""
-    out = {}
-    for k, v in d.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(flatten(v, name + "_"))
-        elif isinstance(v, (list, tuple)):
-            if not v or all(isinstance(x, dict) for x in v):
-                out[name] = len(v)
-            elif len(v) == 3:
-                out.update({f"{name}_{c}": x for c, x in zip("xyz", v)})
-            else:
-                out[name] = " ".join(str(x) for x in v)
-        else:
-            out[name] = "" if v is None else v
-    return out
-
-
-def insertion_rows(summary: dict) -> list[dict]:
-    """insertions.csv's rows: one per insertion, numbered from 1: its trainee metrics (summary.json's
-    ``metrics.per_insertion``), each quantity of :mod:`haptic_acu.analysis.quantities` under its one
-    name (the cohort's column), every other number flattened by :func:`flatten`."""
-    from ..analysis.quantities import QUANTITIES, value
-
-    named = [q for q in QUANTITIES if q.path]
-    taken = {"_".join(q.path) for q in named}
-    m = summary.get("metrics") or {}
-    rows = []
-    for n, ins in enumerate(m.get("per_insertion", []), 1):
-        row = {"trajectory": summary["trajectory"], "insertion": n}
-        for q in named:
-            v = value(ins, q)
-            row[q.name] = "" if v is None else v
-        row.update({k: v for k, v in flatten(ins).items() if k not in taken})
-        rows.append(row)
-    return rows
-
-
-def puncture_rows(summary: dict) -> list[dict]:
-    """punctures.csv's rows: every puncture of the session (summary.json's ``punctures``) with the
-    insertion it belongs to (empty if none: a puncture outside every insertion's window)."""
-    ins = (summary.get("metrics") or {}).get("per_insertion", [])
-    rows = []
-    for n, p in enumerate(summary["punctures"], 1):
-        owner = next((k for k, i in enumerate(ins, 1) if i["t_entry_s"] <= p["t_s"] <= i["t_exit_s"]), "")
-        rows.append({"trajectory": summary["trajectory"], "puncture": n, "insertion": owner, **p})
-    return rows
-
-
-def write_table(path: Path, rows: list[dict]) -> None:
-    """A CSV with the union of the rows' columns in first-seen order (header on line 1)."""
-    cols: list[str] = []
-    for r in rows:
-        cols += [c for c in r if c not in cols]
-    import io
-
-    buf = io.StringIO(newline="")
-    wr = csv.DictWriter(buf, fieldnames=cols or ["trajectory"])
-    wr.writeheader()
-    wr.writerows({k: safe_cell(v) for k, v in r.items()} for r in rows)  # a file named =cmd|... is text
-    write_new(path, buf.getvalue())
-
-
 def run(args) -> int:
     from .options import config_from_args
     from ..base.bundled import not_found_hint
@@ -203,10 +114,12 @@ def run(args) -> int:
 
 
 def _run_batch(args, paths, base: Path, ps=None) -> int:
+    from ..session.batch import insertion_rows, puncture_rows, summary_row, write_table
+
     stems = [p.stem for p in paths]
     if len(set(stems)) != len(stems):
         raise UserError("batch trajectories must have distinct file names")
-    from .cohort import bounded_jobs
+    from ..cohort.update import bounded_jobs
     jobs, note = bounded_jobs(args.jobs)  # at most the cores and what the memory holds
     if note:
         print(f"haptic-acu: note: {note}", file=sys.stderr)
@@ -234,7 +147,7 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
             print(f"haptic-acu replay: error: {err}", file=sys.stderr)
             continue
         print_summary(summary, Path(w[1]), quiet=args.quiet, verbose=args.verbose)
-        rows.append(_flat(summary))
+        rows.append(summary_row(summary))
         insertions += insertion_rows(summary)
         punctures += puncture_rows(summary)
     if rows:

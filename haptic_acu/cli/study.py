@@ -128,6 +128,14 @@ def _study(path):
     return Study(path)
 
 
+def _participant_trial(study, args) -> str:
+    """``--participant``'s name, once ``--trial`` is checked to be one of theirs."""
+    p = study.participant(args.participant)
+    if not 1 <= args.trial <= study.n_trials:
+        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    return p
+
+
 def _new_folder(arg: str) -> Path:
     """An output folder under the output rule (:mod:`haptic_acu.base.outputs`): new or empty."""
     from ..base.outputs import check_folder
@@ -158,47 +166,21 @@ def cmd_plan(args) -> int:
     return 0
 
 
-def _pick_trial(study, args):
-    from ..study import overview
-
-    p = study.participant(args.participant)
-    st = overview.states(study)
-    if args.trial is None:
-        trial = overview.next_trial(study, p, st)
-        if trial is None:
-            rate = [t for t in range(1, study.n_trials + 1) if st[p, t].state == overview.TO_RATE]
-            tail = f"; to rate: trial(s) {', '.join(map(str, rate))}" if rate else ""
-            raise UserError(f"{p}: every trial has been run{tail} (--trial T --redo runs one again)")
-        return trial, st[p, trial.trial]
-    if not 1 <= args.trial <= study.n_trials:
-        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
-    trial = study.plan[p, args.trial]
-    s = st[p, args.trial]
-    if s.state in (overview.RATED, overview.TO_RATE) and not args.redo:
-        what = "is done (rated)" if s.state == overview.RATED else "was run (not rated yet: `study rate`)"
-        raise UserError(f"{p} trial {args.trial} {what}; --redo runs it again and keeps the earlier files")
-    first = overview.next_trial(study, p, st)
-    if s.state in (overview.TO_RUN, overview.INTERRUPTED) and first is not None and first.trial < args.trial:
-        print(f"haptic-acu study: note: {p}'s trial {first.trial} comes first in the plan; running trial "
-              f"{args.trial} out of order", file=sys.stderr)
-    return trial, s
-
-
 def cmd_trial(args) -> int:
     import signal
 
     from ..base.bundled import not_found_hint, resolve_trajectory
     from ..study import overview
-    from ..study.trial import run_session
+    from ..study.trial import blind_config, run_session
     from .run import make_device
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UserError(f"--duration must be > 0, got {args.duration}")
     study = _study(args.study)
-    trial, state = _pick_trial(study, args)
+    trial, state = overview.pick_trial(study, args.participant, args.trial, args.redo)
     key = study.key()
     model = study.model_of(key, trial)
-    cfg = _blind_config(study, key, model, trial)
+    cfg = blind_config(study, key, model, trial)
     if args.trajectory:
         traj = resolve_trajectory(args.trajectory)
         if not traj.is_file():
@@ -220,16 +202,6 @@ def cmd_trial(args) -> int:
               f"{trial.participant} --trial {trial.trial}")
         return 0
     return _ask_and_record(study, trial, redo=state.state in (overview.RATED, overview.TO_RATE))
-
-
-def _blind_config(study, key, model, trial):
-    """The model's config for a trial; an error names the system code, never the model or its file."""
-    try:
-        return study.checked_config(key, model)
-    except UserError:
-        raise UserError(f"{study.json_path}: the config of {trial.participant}'s {trial.system} no longer matches "
-                        "the plan's config hash (or no longer loads); the study's supervisor can see which "
-                        "with `haptic-acu study analyze`") from None
 
 
 def _ask_and_record(study, trial, redo: bool, previous=None) -> int:
@@ -255,9 +227,7 @@ def cmd_rate(args) -> int:
     from ..study.ratings import check_row
 
     study = _study(args.study)
-    p = study.participant(args.participant)
-    if not 1 <= args.trial <= study.n_trials:
-        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    p = _participant_trial(study, args)
     trial = study.plan[p, args.trial]
     st = overview.states(study)[p, args.trial]
     if st.state in (overview.TO_RUN, overview.INTERRUPTED):
@@ -286,11 +256,10 @@ def cmd_status(args) -> int:
 
 def cmd_replay(args) -> int:
     from ..session.replay import replay_one
+    from ..study.trial import blind_config
 
     study = _study(args.study)
-    p = study.participant(args.participant)
-    if not 1 <= args.trial <= study.n_trials:
-        raise UserError(f"--trial {args.trial}: {p} has trials 1-{study.n_trials}")
+    p = _participant_trial(study, args)
     mine = [a for a in study.attempts_of(p, args.trial) if (a.folder / "recording.csv").is_file()]
     if args.attempt is not None:
         mine = [a for a in mine if a.number == args.attempt]
@@ -301,7 +270,7 @@ def cmd_replay(args) -> int:
     out = _new_folder(args.out)
     trial = study.plan[p, args.trial]
     key = study.key()
-    cfg = _blind_config(study, key, study.model_of(key, trial), trial)
+    cfg = blind_config(study, key, study.model_of(key, trial), trial)
     summary = replay_one(a.folder / "recording.csv", out, rrd=False, progress=False, cfg=cfg)
     print(f"{a.folder.name} replayed headless with its model (from the study's key): "
           f"{len(summary['punctures'])} punctures, max force {summary['max_force_n']:.3f} N; files: {out}/")
@@ -312,17 +281,17 @@ def _subjective(args):
     import numpy as np
 
     from ..analysis import scoring
-    from . import score as score_cmd
+    from ..analysis.score_files import read_delphi, read_subjective
 
     if not (math.isfinite(args.mu) and 0.0 < args.mu < 1.0):
         raise UserError(f"--mu {args.mu}: must satisfy 0 < mu < 1")
     if not (math.isfinite(args.bound) and args.bound > 0):
         raise UserError(f"--bound {args.bound}: must be a positive number")
     if args.delphi:
-        rounds, _ = score_cmd.read_delphi(args.delphi)
+        rounds, _ = read_delphi(args.delphi)
         return scoring.delphi(rounds, args.bound).weights
     if args.subjective:
-        return score_cmd.read_subjective(args.subjective)
+        return read_subjective(args.subjective)
     return np.array(scoring.PAPER_SUBJECTIVE_WEIGHTS)
 
 
@@ -331,7 +300,7 @@ def cmd_analyze(args) -> int:
 
     from ..base.bundled import not_found_hint, resolve_trajectory
     from ..base.progress import step
-    from ..study.analyze import analyze, objective
+    from ..study.analyze import analysis_lines, analyze, objective
     from . import score as score_cmd
 
     study = _study(args.study)
@@ -356,36 +325,12 @@ def cmd_analyze(args) -> int:
         with step(f"replaying {path.name} with each of the {len(study.models)} models"):
             report["objective"] = objective(study, out, path)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    _print_analysis(report)
+    for line in analysis_lines(report):
+        print(line)
     print(f"wrote {out}/: report.json, ratings_by_model.csv, friedman.csv, wilcoxon.csv,")
     print("  descriptives.csv, order.csv, indices.png, order.png" + (", score/" if scored else "")
           + (", objective/" if path is not None else ""))
     return 0
-
-
-def _print_analysis(report) -> None:
-    import textwrap
-
-    print(f"{report['rated_trials']} of {report['planned_trials']} trials rated; "
-          f"{report['complete_participants']} participants rated every model")
-    if report["ranking"]:
-        print(textwrap.fill("ranking by mean comprehensive score: " + ", ".join(
-            f"{m} {report['scores'][m]['mean_score']:.2f}" for m in report["ranking"]), 80,
-            subsequent_indent="  "))
-    for m, why in report["not_scored"].items():
-        print(f"  {m}: not scored: {why}")
-    print(f"{'index':<22}{'Friedman p':>11}{'W':>6}{'order p':>9}{'carry p':>9}")
-    for name, e in report["indices"].items():
-        fr = e["friedman"]
-        o = e.get("order", {})
-        cells = [fr["p"], fr["kendall_w"], o.get("position_friedman", {}).get("p"), o.get("carry_over", {}).get("p")]
-        txt = ["-" if v is None else f"{v:.2g}" for v in cells]
-        print(f"{name[:21]:<22}{txt[0]:>11}{txt[1]:>6}{txt[2] if o else '':>9}{txt[3] if o else '':>9}".rstrip())
-        sig = [f"{q['a']} > {q['b']}" if (q["median_difference"] or 0) > 0 else f"{q['b']} > {q['a']}"
-               for q in e["pairwise"] if q["p_holm"] is not None and q["p_holm"] < 0.05]
-        if sig:
-            print(textwrap.fill("Holm p < 0.05: " + ", ".join(sig), 80, initial_indent="  ",
-                                subsequent_indent="    "))
 
 
 def cmd_example(args) -> int:

@@ -1,6 +1,7 @@
 """A class's recorded sessions replayed into tables: the manifest, jobs and resumable records
-(:mod:`.sessions`), the local pool or Dask cluster that runs them (:mod:`.run`), the Parquet/CSV
-tables (:mod:`.tables`) and the report and figures (:mod:`.report`).
+(:mod:`.sessions`), the folder brought up to date (:mod:`.update`), the local pool or Dask cluster
+that runs the replays (:mod:`.run`), the Parquet/CSV tables (:mod:`.tables`) and the report and
+figures (:mod:`.report`).
 
 May import: session, analysis, servo, tissue, base, and haptic_acu.devices.
 """

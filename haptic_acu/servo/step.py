@@ -78,7 +78,8 @@ from ..tissue.netresponse import table_for
 from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
-from ..tissue.baselines import KIND_CODES, baseline_response, baseline_slope, contact_for
+from ..tissue.baselines import (KIND_CODES, MSM, baseline_response, baseline_slope, contact_for, msm_release,
+                                msm_response)
 from ..tissue.body import Tissue, boundary_radii_grad
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params
@@ -498,6 +499,8 @@ def press(inp, m, s, d, k):
     if dep <= 0.0:
         sv.state[k] = UNTOUCHED
         sv.owner[k, ss.net_slot(idx)] = FREE
+        if m.params[0].kind == MSM:
+            msm_release(m, s, k)
         return
     X0f = net_views(m, s, idx)[1]
     ax = s.axes[idx]
@@ -510,7 +513,10 @@ def press(inp, m, s, d, k):
         tip_on_net(s, X0f, ax)
     wk.dz1 = dep
     depth_gradient(m, s, k)
-    if m.params[0].kind != 0:  # a baseline model (docs/model.md s12); the net is only drawn
+    if m.params[0].kind == MSM:  # the MSM's lattice, one step (docs/model.md s12.2)
+        fn, broke = msm_response(inp, m, s, k, idx, dep, ax)
+        rw = 0.0
+    elif m.params[0].kind != 0:  # a baseline model (docs/model.md s12); the net is only drawn
         fn, broke = baseline_response(inp, m, s, k, idx, dep, ax)
         rw = 0.0
     else:
@@ -799,6 +805,7 @@ def reset_servo(sv, keep_holes=False):
         s.tr_lo[:] = UNCUT
         s.tr_hi[:] = -UNCUT
         s.tr_count[:] = 0
+    s.msm_qv[:, :] = 0.0  # the MSM's lattice at rest
     ss.clear(sv.out.diag)
 
 
@@ -861,16 +868,18 @@ class NeedleModel:
         self.tables = [table_for(prm, tol) if cfg.solver.servo_net == "table" else None for prm in self.params]
         tab, tmeta = pack_tables(self.tables, N_LAYERS)
         layout, rows, rest_rows = self._layout()
+        contact = contact_for(cfg)  # the MSM's lattices' modes (a (1, 1) stand-in otherwise)
+        msm_tab = np.ascontiguousarray(contact.msm_tab if contact is not None else np.zeros((1, 1)))
         self.model = Model(coeffs=self.coeffs, centre=self.centre, layer=self._layer_params(cfg),
                            params=self._needle_params(cfg), layout=layout,
                            nbr=np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices])),
                            ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
                            plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
-                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER))
+                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER), msm=msm_tab)
         tr = (ss.MAX_TRACKS, 3)
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
-                              tr_hi=tr, dstate=(MAX_DANGER,))
+                              tr_hi=tr, dstate=(MAX_DANGER,), msm_qv=(2, msm_tab.shape[1]))
         self.state.axes[:, 2] = 1.0
         self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan
@@ -901,6 +910,10 @@ class NeedleModel:
         if contact is not None:
             lp["bl_k"] = contact.stiffness
             lp["bl_crit"] = contact.crit_depth
+            if cfg.model.kind == "msm":
+                lp["msm_n"] = contact.msm_count
+                lp["msm_g"] = contact.msm_g
+                lp["msm_eps"] = cfg.model.msm_puncture_strain
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:

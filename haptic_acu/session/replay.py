@@ -16,6 +16,7 @@ replay never leaves a folder that looks complete. Identical input gives byte-ide
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
@@ -146,6 +147,24 @@ class OutputFolder:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+
+    @contextlib.contextmanager
+    def writing(self, what: str):
+        """:meth:`claim` ``DIR.partial`` and yield it; :meth:`publish` it when the block ends,
+        :meth:`discard` it on an error (an OSError: one line naming ``DIR`` and ``what``), and
+        :meth:`release` the lock whatever happens."""
+        partial = self.claim()
+        try:
+            yield partial
+            self.publish()
+        except OSError as e:
+            self.discard()
+            raise UserError(f"{self.out}: cannot write {what}: {e.strerror or e}") from None
+        except BaseException:
+            self.discard()
+            raise
+        finally:
+            self.release()
 
 
 class Progress(Sink):
@@ -303,8 +322,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         raise UserError(f"{trajectory}: spans {device.duration_s:.6g} s, more than a replay takes "
                         f"({limit:g} s); split the file")
     out = OutputFolder(out_dir)
-    partial = out.claim()
-    try:
+    with out.writing("the replay's files") as partial:
         reference = None
         if device.has_roll and not realtime:  # the grasp felt: the same replay without rotation
             reference = reference_forces(trajectory, cfg)  # its ticks and forces, not its rows
@@ -360,15 +378,6 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         fig_rows, fig_index = summary_sink.figure_rows()
         plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
                          index=fig_index)
-        out.publish()
-    except OSError as e:
-        out.discard()
-        raise UserError(f"{out_dir}: cannot write the replay's files: {e.strerror or e}") from None
-    except BaseException:
-        out.discard()
-        raise
-    finally:
-        out.release()
     summary["_wall_s"] = wall
     summary["_stats"] = result.stats
     return summary

@@ -28,9 +28,9 @@ from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
 from .sink import Sink
+from ..analysis.common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 from ..analysis.scan import (  # noqa: F401 (re-exported: the report's vocabulary)
-    LAYERS, PLACES, _C_F, _C_LAYER, _C_PUNCT, _C_STATE, _C_T, _C_TICK, _C_X, SessionScan, _r, place_name,
-    puncture_records, radial_force_n, tip_depth_m)
+    LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, tip_depth_m)
 
 class SummarySink(Sink):
     """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
@@ -103,7 +103,7 @@ class SummarySink(Sink):
     def _scan_pending(self) -> None:
         if self._pending:
             rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
-            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+            depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
             self.scan.feed(rows, depth)
             if self.metrics_scan is not None:
                 self.metrics_scan.feed(rows)
@@ -234,10 +234,10 @@ class FigureRows:
         """Indices of the rows kept with the current bin size (in order)."""
         bins = g // self.bin
         if depth is None:
-            depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
-        keep = (rows[:, _C_PUNCT] >= 0) | (g == 0)
+            depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        keep = (rows[:, C_PUNCT] >= 0) | (g == 0)
         for key in (radial_force_n(rows, self.tissue), lateral_force_n(rows, self.tissue), depth,
-                    np.hypot(rows[:, _C_X], rows[:, _C_X + 1])):
+                    np.hypot(rows[:, C_X], rows[:, C_X + 1])):
             order = np.lexsort((key, bins))  # by bin, then by the key (ties: first row first)
             b = bins[order]
             first = np.ones(len(b), bool)
@@ -274,6 +274,25 @@ class FigureRows:
 
 # ---- the figure -------------------------------------------------------------------------------
 _BAND_COLOURS = {"skin": "#e8b89a", "fat": "#f3dc8c", "muscle": "#d98a8a", "bone": "#d8d4c8"}
+
+
+def layer_bands(axes, bounds, x0: float, x1: float, alpha: float) -> list:
+    """Each place's depth band at rest (``bounds``: the boundaries' depths at the acupoint, mm; the
+    last band runs to ``x1``) shaded on every axis of ``axes`` where it meets ``x0``-``x1``; returns
+    their legend handles."""
+    from matplotlib.patches import Patch
+
+    edges = [*bounds, max(x1, bounds[3])]
+    handles = []
+    for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
+        if b <= x0 or a >= x1:
+            continue
+        for ax in axes:
+            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=alpha, lw=0)
+        handles.append(Patch(color=_BAND_COLOURS[name], alpha=alpha, label=f"{name} (at rest)"))
+    return handles
+
+
 _EVENT_COLOURS = {"skin": "#b5542a", "fat": "#a07d00", "muscle": "#8e1e1e"}
 
 
@@ -323,24 +342,24 @@ def insertion_index(rows: np.ndarray) -> np.ndarray:
     the first insertion (:func:`haptic_acu.analysis.metrics.insertion_runs`, :func:`~haptic_acu.analysis.metrics.entry_tick`)."""
     from ..analysis.metrics import entry_tick, insertion_runs
 
-    state = rows[:, _C_STATE]
+    state = rows[:, C_STATE]
     entries = [entry_tick(state, a) for a, _ in insertion_runs(state)]
     return np.searchsorted(np.asarray(entries, dtype=np.int64), np.arange(len(rows)), side="right") - 1
 
 
 def lateral_force_n(rows: np.ndarray, tissue) -> np.ndarray:
     """|F - (F . u) u| per row (N): the force across the outward radial direction at the tip."""
-    d = rows[:, _C_X:_C_X + 3] - tissue.centre
+    d = rows[:, C_X:C_X + 3] - tissue.centre
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     u = d / np.where(rho > 0.0, rho, 1.0)[:, None]
-    f = rows[:, _C_F:_C_F + 3]
+    f = rows[:, C_F:C_F + 3]
     across = f - np.einsum("ij,ij->i", f, u)[:, None] * u
     return np.sqrt(np.einsum("ij,ij->i", across, across))
 
 
 def _lateral_travel_mm(idx: np.ndarray, offset_mm: np.ndarray, rows: np.ndarray) -> float:
     """The largest sideways travel (mm) of the tip while it touches the tissue, within one insertion."""
-    touching = np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1) > 1e-3
+    touching = np.linalg.norm(rows[:, C_F:C_F + 3], axis=1) > 1e-3
     travel = 0.0
     for k in np.unique(idx):
         sel = touching & (idx == k)
@@ -436,22 +455,21 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
 
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != NCOL:
         raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
     tissue = tissue_of(tissue)
-    depth = tip_depth_m(rows[:, _C_X:_C_X + 3], tissue)
+    depth = tip_depth_m(rows[:, C_X:C_X + 3], tissue)
     depth_mm = depth * 1e3
     f_ax = radial_force_n(rows, tissue)
     f_lat = lateral_force_n(rows, tissue)
-    t = rows[:, _C_T]
+    t = rows[:, C_T]
     events = summary["punctures"] if summary is not None else puncture_records(SessionScan(tissue).feed(rows, depth))
     idx = (np.asarray(index, dtype=np.int64) if index is not None
            else insertion_index(rows) if rows.size else np.zeros(0, np.int64))
     n_ins = int(idx.max()) + 1 if idx.size else 0
-    offset_mm = np.linalg.norm(rows[:, _C_X:_C_X + 2], axis=1) * 1e3  # tip's distance from the acupoint's axis
+    offset_mm = np.linalg.norm(rows[:, C_X:C_X + 2], axis=1) * 1e3  # tip's distance from the acupoint's axis
     show_lat = bool(rows.size) and (float(f_lat.max()) > LATERAL_SHOWN_N
                                     or _lateral_travel_mm(idx, offset_mm, rows) > LATERAL_TRAVEL_MM)
 
@@ -473,14 +491,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     structures = structure_depths(summary)  # --point: the danger structures below the point
     if structures:
         x1 = max(x1, max(d for _, d in structures) + 2.0)
-    edges = [*bounds, max(x1, bounds[3])]
-    handles = []
-    for name, a, b in zip(PLACES[1:], edges[:-1], edges[1:]):
-        if b <= x0 or a >= x1:
-            continue
-        for ax in panels:
-            ax.axvspan(a, b, color=_BAND_COLOURS[name], alpha=0.45, lw=0)
-        handles.append(Patch(color=_BAND_COLOURS[name], alpha=0.45, label=f"{name} (at rest)"))
+    handles = layer_bands(panels, bounds, x0, x1, alpha=0.45)
     for ax in panels:
         ax.axhline(0.0, color="0.6", lw=0.6)
     withdrew = False
@@ -830,18 +841,18 @@ class SamplesCsvSink(Sink):
             cols += [("fixed", nd) for *_, nd in _CSV_TAIL]
             cols += [("category", LAYERS), ("fixed", 0), ("fixed", 0)]
             self._fmt = RowFormatter(cols)
-        computed = {"tip_depth_mm": tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue),
-                    "f_n": np.linalg.norm(rows[:, _C_F:_C_F + 3], axis=1)}
+        computed = {"tip_depth_mm": tip_depth_m(rows[:, C_X:C_X + 3], self.tissue),
+                    "f_n": np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)}
 
         def col(spec):
             name, src, scale, nd = spec
             return (computed[name] if src is None else rows[:, COL[src]]) * scale
 
-        punct = rows[:, _C_PUNCT].copy()
+        punct = rows[:, C_PUNCT].copy()
         punct[punct < 0] = np.nan  # empty cell
         table = np.column_stack(
-            [rows[:, _C_TICK]] + [col(s) for s in _CSV_NUMERIC]
-            + [rows[:, _C_LAYER] + 1] + [rows[:, _C_STATE + j] for j in range(N_LAYERS)]
+            [rows[:, C_TICK]] + [col(s) for s in _CSV_NUMERIC]
+            + [rows[:, C_LAYER] + 1] + [rows[:, C_STATE + j] for j in range(N_LAYERS)]
             + [col(s) for s in _CSV_TAIL] + [punct, rows[:, COL["clamped"]], rows[:, COL["fault"]]])
         self._f.write(self._fmt.format(table).decode("ascii"))
         self.rows_written += k

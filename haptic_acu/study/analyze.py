@@ -404,3 +404,32 @@ def _write_dicts(path: Path, rows: list[dict]) -> None:
         w = csv.DictWriter(f, fieldnames=cols or ["model"])
         w.writeheader()
         w.writerows([{k: ("" if v is None else v) for k, v in r.items()} for r in rows])
+
+
+def analysis_lines(report) -> list[str]:
+    """What ``haptic-acu study analyze`` prints of ``report``: the trials rated, the ranking, and per
+    index Friedman's p, Kendall's W, the order effects and the Holm-significant pairs."""
+    import textwrap
+
+    out = []
+    out.append(f"{report['rated_trials']} of {report['planned_trials']} trials rated; "
+               f"{report['complete_participants']} participants rated every model")
+    if report["ranking"]:
+        out.append(textwrap.fill("ranking by mean comprehensive score: " + ", ".join(
+            f"{m} {report['scores'][m]['mean_score']:.2f}" for m in report["ranking"]), 80,
+            subsequent_indent="  "))
+    for m, why in report["not_scored"].items():
+        out.append(f"  {m}: not scored: {why}")
+    out.append(f"{'index':<22}{'Friedman p':>11}{'W':>6}{'order p':>9}{'carry p':>9}")
+    for name, e in report["indices"].items():
+        fr = e["friedman"]
+        o = e.get("order", {})
+        cells = [fr["p"], fr["kendall_w"], o.get("position_friedman", {}).get("p"), o.get("carry_over", {}).get("p")]
+        txt = ["-" if v is None else f"{v:.2g}" for v in cells]
+        out.append(f"{name[:21]:<22}{txt[0]:>11}{txt[1]:>6}{txt[2] if o else '':>9}{txt[3] if o else '':>9}".rstrip())
+        sig = [f"{q['a']} > {q['b']}" if (q["median_difference"] or 0) > 0 else f"{q['b']} > {q['a']}"
+               for q in e["pairwise"] if q["p_holm"] is not None and q["p_holm"] < 0.05]
+        if sig:
+            out.append(textwrap.fill("Holm p < 0.05: " + ", ".join(sig), 80, initial_indent="  ",
+                                     subsequent_indent="    "))
+    return out

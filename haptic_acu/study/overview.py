@@ -11,8 +11,10 @@ A trial is
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
+from ..base.errors import UserError
 from .store import Study, Trial
 
 RATED, TO_RATE, INTERRUPTED, TO_RUN = "rated", "to rate", "interrupted", "to run"
@@ -86,3 +88,30 @@ def table(study: Study) -> list[str]:
     lines.append(f"{'total':<{pw}}{f'{totals[RATED]}/{total}':>{w}}{totals[TO_RATE]:>9}{totals[INTERRUPTED]:>9}"
                  f"{totals[TO_RUN]:>8}")
     return lines
+
+
+def pick_trial(study, participant: str, number: int | None = None, redo: bool = False):
+    """The trial to run for ``participant`` and its :class:`TrialState`: trial ``number``, or the next
+    one of the plan not yet run. UserError (one line) if there is none, or if ``number`` is out of range
+    or already run (unless ``redo``); a note on stderr when ``number`` runs out of the plan's order."""
+    p = study.participant(participant)
+    st = states(study)
+    if number is None:
+        trial = next_trial(study, p, st)
+        if trial is None:
+            rate = [t for t in range(1, study.n_trials + 1) if st[p, t].state == TO_RATE]
+            tail = f"; to rate: trial(s) {', '.join(map(str, rate))}" if rate else ""
+            raise UserError(f"{p}: every trial has been run{tail} (--trial T --redo runs one again)")
+        return trial, st[p, trial.trial]
+    if not 1 <= number <= study.n_trials:
+        raise UserError(f"--trial {number}: {p} has trials 1-{study.n_trials}")
+    trial = study.plan[p, number]
+    s = st[p, number]
+    if s.state in (RATED, TO_RATE) and not redo:
+        what = "is done (rated)" if s.state == RATED else "was run (not rated yet: `study rate`)"
+        raise UserError(f"{p} trial {number} {what}; --redo runs it again and keeps the earlier files")
+    first = next_trial(study, p, st)
+    if s.state in (TO_RUN, INTERRUPTED) and first is not None and first.trial < number:
+        print(f"haptic-acu study: note: {p}'s trial {first.trial} comes first in the plan; running trial "
+              f"{number} out of order", file=sys.stderr)
+    return trial, s

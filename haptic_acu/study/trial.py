@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .. import __version__
+from ..base.errors import UserError
 from ..base.progress import step
 from .store import Study, Trial, now, write_trial_json
 
@@ -104,3 +105,13 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
             doc["signal"] = signal.Signals(sig).name
         write_trial_json(folder, doc)
     return TrialResult(folder, attempt, state, result.fault, summary)
+
+
+def blind_config(study, key, model, trial):
+    """The model's config for a trial; an error names the system code, never the model or its file."""
+    try:
+        return study.checked_config(key, model)
+    except UserError:
+        raise UserError(f"{study.json_path}: the config of {trial.participant}'s {trial.system} no longer matches "
+                        "the plan's config hash (or no longer loads); the study's supervisor can see which "
+                        "with `haptic-acu study analyze`") from None

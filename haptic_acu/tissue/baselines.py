@@ -5,17 +5,16 @@ Each baseline answers the question the force net answers in the servo (``servo.s
 the tip at depth ``d`` below the pressed layer's rest surface (radially, the same depth the force net
 reads), how hard does the surface push back along ``grad(-d)``, and has the layer broken. Every
 baseline here is linear elastic and its contact is centred under the tip (as the force net is
-re-centred under a sliding tip), so its answer is ``F = k d`` with a stiffness ``k`` per layer, and
-it breaks at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` come from:
+re-centred under a sliding tip); the static ones answer ``F = k d`` with a stiffness ``k`` per
+layer, and break at a depth ``d_c`` per layer; they differ in where ``k`` and ``d_c`` come from:
 
 * **SHF** (the SH surface alone, Fang & Wu 2011's family): a penalty ``k`` along the normal below
   the SH surface, per layer, from the config; breaks at a force (``d_c = F_c / k``).
-* **MSM** (a volumetric mass-spring lattice, [38]'s family): a cubic lattice of spacing ``h`` of the
-  layers from the pressed one down (edge and face-diagonal springs, ``k_spring = 2 E h / 5`` summed
-  over the cubes a spring borders: the isotropic central-force cubic lattice, E exact, nu = 1/4),
-  the bottom fixed, the node under the tip pushed in; ``k`` is the reaction per unit push (the
-  lattice at equilibrium, its inertia left out, as the FEM and BEM are elastostatic); breaks when a
-  spring at that node reaches a strain.
+* **MSM** (a volumetric mass-spring lattice, [38]'s family; ``tissue/msm.py``): a cubic lattice of
+  the layers from the pressed one down with springs and a volume energy that give it the layers' E
+  and nu, lumped masses, integrated at the servo's rate by backward Euler in its symmetric modes
+  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when a spring at the tip's node
+  reaches a strain. Its ``k`` and ``d_c`` here are its statics, for reports.
 * **FEM** (linear elastostatics on tetrahedra, DiMaio & Salcudean 2005; Bro-Nielsen 1998): a
   structured tetrahedral mesh of the layers from the pressed one down (quarter-symmetric block,
   graded toward the tip, layer interfaces on element faces), P1 elements assembled with
@@ -34,21 +33,22 @@ parameter that enters.
 from __future__ import annotations
 
 import hashlib
-import itertools
 import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
 
 from ..base.config import MODEL_KINDS
 from .mechanics import puncture_threshold
+from . import msm
+from .msm import msm_tick
 from .netresponse import cache_dir
 
-VERSION = 2  # bump when a precomputation changes (invalidates the cache)
+VERSION = 3  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -61,8 +61,6 @@ FEM_HALF_WIDTH_M = 12e-3
 FEM_DEPTH_M = 12e-3
 FEM_PATCH_M = 1e-3  # surface nodes kept by the condensation (within this of the tip)
 BEM_N_IN = 8  # boundary elements across the tip's radius
-MSM_HALF_CELLS = 6  # the lattice spans +-6 cells around the tip
-MSM_DEPTH_M = 6e-3  # and at most this deep (fixed below)
 
 
 # ---- the servo's side (compiled; one small function, not inlined into the step) -------------------
@@ -83,9 +81,13 @@ def baseline_response(inp, m, s, k, idx, dep, ax):
 
 @nb.njit(cache=True, nogil=True)
 def baseline_slope(m, s, k):
-    """A baseline's stiffness along grad(-d) at the tip for the rendering layer: ``bl_k |grad d|^2``."""
+    """A baseline's stiffness along grad(-d) at the tip for the rendering layer: ``bl_k |grad d|^2``
+    (the MSM's: its contact's stiffness within a step, ``1 / msm_g``, at least its static one)."""
     g = s.work[0].gd
-    return m.layer[k].bl_k * (g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    k_along = m.layer[k].bl_k
+    if m.params[0].kind == MSM and m.layer[k].msm_g > 0.0:
+        k_along = 1.0 / m.layer[k].msm_g
+    return k_along * (g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
 
 
 # ---- FEM ----------------------------------------------------------------------------------------
@@ -216,117 +218,35 @@ def bem_flat_punch(E, nu, a, n_in=BEM_N_IN) -> float:
     return float(np.linalg.solve(C, np.ones(len(xy))).sum())
 
 
-# ---- MSM ----------------------------------------------------------------------------------------
+# ---- MSM (tissue/msm.py) -----------------------------------------------------------------------
 
-_EDGE = ((1, 0, 0), (0, 1, 0), (0, 0, 1))
-_DIAG = ((1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1))
-
-
-def msm_springs(nx, ny, nz, h, cube_E):
-    """The lattice's springs: (i, j, stiffness, unit direction) for nodes on an (nx, ny, nz) grid of
-    spacing h; ``cube_E[cx, cy, cz]`` is each cube's Young's modulus. A spring's stiffness is the sum
-    over the cubes it borders of 0.1 E h (an edge, up to four cubes) or 0.2 E h (a face diagonal, up
-    to two): inside a homogeneous lattice every spring is 2 E h / 5."""
-    idx = np.arange(nx * ny * nz).reshape(nx, ny, nz)
-    rows = []
-    for off, share in [(o, 0.1) for o in _EDGE] + [(o, 0.2) for o in _DIAG]:
-        dx, dy, dz = off
-        ax = np.arange(nx - abs(dx)) + (max(0, -dx))
-        ay = np.arange(ny - abs(dy)) + (max(0, -dy))
-        az = np.arange(nz - abs(dz)) + (max(0, -dz))
-        I, J, L = np.meshgrid(ax, ay, az, indexing="ij")
-        i0 = idx[I, J, L].ravel()
-        i1 = idx[I + dx, J + dy, L + dz].ravel()
-        # the cubes bordering this spring: cube (cx, cy, cz) spans nodes cx..cx+1 etc.
-        kk = np.zeros(i0.size)
-        lo = np.stack([np.minimum(I, I + dx), np.minimum(J, J + dy), np.minimum(L, L + dz)], -1).reshape(-1, 3)
-        # the cubes bordering the spring start at lo, or one cell back along each axis it lies across
-        choices = [(0, -1) if dv == 0 else (0,) for dv in off]
-        shape = cube_E.shape
-        for m in itertools.product(*choices):
-            cx, cy, cz = lo[:, 0] + m[0], lo[:, 1] + m[1], lo[:, 2] + m[2]
-            ok = (cx >= 0) & (cy >= 0) & (cz >= 0) & (cx < shape[0]) & (cy < shape[1]) & (cz < shape[2])
-            kk[ok] += share * cube_E[cx[ok], cy[ok], cz[ok]] * h
-        n = np.array(off, float) / np.linalg.norm(off)
-        good = kk > 0
-        rows.append((i0[good], i1[good], kk[good], np.tile(n, (int(good.sum()), 1))))
-    i = np.concatenate([r[0] for r in rows])
-    j = np.concatenate([r[1] for r in rows])
-    k = np.concatenate([r[2] for r in rows])
-    n = np.concatenate([r[3] for r in rows])
-    return i, j, k, n
+@nb.njit(cache=True, nogil=True)
+def msm_response(inp, m, s, k, idx, dep, ax):
+    """The MSM's pressed layer ``k`` with the tip ``dep`` below its rest surface: one backward-Euler
+    step of its lattice (``msm.msm_tick``; the lattice's state in ``State.msm_qv``, started from rest
+    whenever the pressed layer changes), (the contact force along grad(-d), N; broken?). The layer
+    breaks when a spring at the tip's node reaches ``msm_eps`` scaled by the approach speed as the
+    force net's threshold is."""
+    sv = s.servo[0]
+    for c in range(3):
+        sv.slot_q[idx, c] = s.work[0].q[c]
+    lay = m.layer[k]
+    qv = s.msm_qv
+    if sv.msm_layer != k + 1:
+        qv[:, :] = 0.0
+        sv.msm_layer = k + 1
+    fn, strain = msm_tick(m.msm, k, lay.msm_n, lay.msm_g, qv[0], qv[1], dep, m.params[0].dt)
+    broke = strain > puncture_threshold(lay.msm_eps, inp.v, ax, m.params[0])
+    return fn, broke
 
 
-def msm_stiffness_matrix(nnodes, i, j, k, n):
-    """The linearised lattice's stiffness matrix (3 nnodes square, sparse CSR)."""
-    import scipy.sparse as sp
-
-    blocks = k[:, None, None] * n[:, :, None] * n[:, None, :]  # (m, 3, 3)
-    r, c, v = [], [], []
-    for a_, b_, sgn in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
-        for p in range(3):
-            for q in range(3):
-                r.append(3 * a_ + p)
-                c.append(3 * b_ + q)
-                v.append(sgn * blocks[:, p, q])
-    return sp.csr_matrix((np.concatenate(v), (np.concatenate(r), np.concatenate(c))), shape=(3 * nnodes, 3 * nnodes))
-
-
-def _solve_fixed(K, fixed_dofs, fixed_vals):
-    import scipy.sparse.linalg as spla
-
-    n = K.shape[0]
-    u = np.zeros(n)
-    u[fixed_dofs] = fixed_vals
-    free = np.setdiff1d(np.arange(n), fixed_dofs)
-    rhs = -(K[free][:, fixed_dofs] @ u[fixed_dofs])
-    u[free] = spla.spsolve(K[free][:, free].tocsc(), rhs)
-    return u
-
-
-def msm_compression_modulus(E, h, cells=6) -> float:
-    """A homogeneous lattice cube of ``cells`` cells a side, compressed 0.1% between a rolling bottom
-    and a rolling top (sides free): its effective Young's modulus, stress over strain (Pa)."""
-    n = cells + 1
-    i, j, k, nv = msm_springs(n, n, n, h, np.full((cells, cells, cells), float(E)))
-    K = msm_stiffness_matrix(n ** 3, i, j, k, nv)
-    idx = np.arange(n ** 3).reshape(n, n, n)
-    bottom, top = idx[:, :, 0].ravel(), idx[:, :, -1].ravel()
-    strain = 1e-3
-    dz = strain * cells * h
-    fixed = np.concatenate([3 * bottom + 2, 3 * top + 2, [3 * idx[0, 0, 0], 3 * idx[0, 0, 0] + 1,
-                                                          3 * idx[-1, 0, 0] + 1]])
-    vals = np.concatenate([np.zeros(bottom.size), np.full(top.size, -dz), [0.0, 0.0, 0.0]])
-    u = _solve_fixed(K, fixed, vals)
-    force = -(K @ u)[3 * top + 2].sum()
-    return force / (cells * h) ** 2 / strain
-
-
-def msm_press(E, thick, h, half_cells=MSM_HALF_CELLS, depth=MSM_DEPTH_M):
-    """The lattice of the layers (moduli ``E`` Pa, thicknesses ``thick`` m from the top, the last one
-    continuing to ``depth``), bottom fixed, its centre surface node pushed down: (stiffness N/m, the
-    largest strain of a spring at that node per metre of push)."""
-    nz = max(2, int(round(min(depth, float(np.sum(thick))) / h)) + 1)
-    n = 2 * half_cells + 1
-    zc = (np.arange(nz - 1) + 0.5) * h  # cube centre depths, node layer 0 = surface
-    bounds = np.concatenate([[0.0], np.cumsum(thick)[:-1], [np.inf]])
-    layer = np.searchsorted(bounds, zc, side="right") - 1
-    cube_E = np.broadcast_to(np.asarray(E, float)[layer][None, None, ::-1], (n - 1, n - 1, nz - 1)).copy()
-    i, j, k, nv = msm_springs(n, n, nz, h, cube_E)  # node z index 0 = bottom, nz-1 = surface
-    K = msm_stiffness_matrix(n * n * nz, i, j, k, nv)
-    idx = np.arange(n * n * nz).reshape(n, n, nz)
-    bottom = idx[:, :, 0].ravel()
-    tip = idx[half_cells, half_cells, nz - 1]
-    fixed = np.concatenate([3 * bottom, 3 * bottom + 1, 3 * bottom + 2, [3 * tip + 2]])
-    vals = np.zeros(fixed.size)
-    vals[-1] = -1.0  # a unit push (linear)
-    u = _solve_fixed(K, fixed, vals)
-    stiff = -(K @ u)[3 * tip + 2]
-    at = (i == tip) | (j == tip)
-    du = u.reshape(-1, 3)[j[at]] - u.reshape(-1, 3)[i[at]]
-    L = np.where(np.abs(nv[at]).sum(axis=1) > 1.5, math.sqrt(2.0) * h, h)
-    strain = np.abs((du * nv[at]).sum(axis=1)) / L
-    return float(stiff), float(strain.max())
+@nb.njit(cache=True, nogil=True)
+def msm_release(m, s, k):
+    """The tip off layer ``k``'s surface: its lattice moves on freely (one step, no contact)."""
+    sv = s.servo[0]
+    if sv.msm_layer != k + 1:
+        return
+    msm_tick(m.msm, k, m.layer[k].msm_n, m.layer[k].msm_g, s.msm_qv[0], s.msm_qv[1], -1.0, m.params[0].dt)
 
 
 # ---- per layer, per config ----------------------------------------------------------------------
@@ -341,6 +261,11 @@ class Contact:
     crit_depth: np.ndarray  # m: the depth at which each layer breaks (at the reference speed)
     build_s: float = 0.0  # seconds the precomputation took (0: from the cache)
     table_bytes: int = 0  # memory of what was precomputed and kept
+    # the MSM's lattices (msm.pack): the modes' table, per layer their count and the contact's
+    # backward-Euler compliance (m/N); empty for the other models
+    msm_tab: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    msm_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    msm_g: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _layers(cfg, k):
@@ -356,7 +281,8 @@ def contact_key(cfg) -> str:
     text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.puncture_depth_mm, m.shf_stiffness_n_per_mm,
                  m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_puncture_strain,
                  tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, FEM_N_IN, FEM_RATIO,
-                 FEM_HALF_WIDTH_M, FEM_DEPTH_M, FEM_PATCH_M, BEM_N_IN, MSM_HALF_CELLS, MSM_DEPTH_M))
+                 FEM_HALF_WIDTH_M, FEM_DEPTH_M, FEM_PATCH_M, BEM_N_IN, msm.HALF_CELLS, msm.DEPTH_M,
+                 msm.DAMPING_RATIO, msm.DENSITY_KG_M3, msm.DT))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
@@ -369,6 +295,7 @@ def build_contact(cfg) -> Contact:
     k = np.zeros(n)
     crit = np.zeros(n)
     nbytes = 0
+    layer_modes = []
     for j in range(n):
         E, nu, thick = _layers(cfg, j)
         if m.kind == "shf":
@@ -384,10 +311,17 @@ def build_contact(cfg) -> Contact:
             crit[j] = m.puncture_depth_mm[j] * 1e-3
             nbytes += bem_elements(BEM_N_IN) ** 2 * 8  # the compliance matrix
         elif m.kind == "msm":
-            stiff, strain_per_m = msm_press(E, thick, m.msm_spacing_mm * 1e-3)
-            k[j] = stiff
-            crit[j] = m.msm_puncture_strain[j] / strain_per_m
-    return Contact(m.kind, k, crit, time.perf_counter() - t0, int(nbytes) + k.nbytes + crit.nbytes)
+            md = msm.modes(E, nu, msm.DENSITY_KG_M3[j:], thick, m.msm_spacing_mm * 1e-3)
+            layer_modes.append(md)
+            k[j] = md.stiffness
+            crit[j] = m.msm_puncture_strain[j] / md.strain_per_m
+    out = Contact(m.kind, k, crit)
+    if m.kind == "msm":
+        out.msm_tab, out.msm_count, out.msm_g = msm.pack(layer_modes, n)
+        nbytes += out.msm_tab.nbytes
+    out.build_s = time.perf_counter() - t0
+    out.table_bytes = int(nbytes) + k.nbytes + crit.nbytes
+    return out
 
 
 _MEMO: dict[str, Contact] = {}
@@ -407,7 +341,8 @@ def contact_for(cfg) -> Contact | None:
     if path is not None and path.is_file():
         try:
             with np.load(path) as z:
-                out = Contact(cfg.model.kind, z["k"].copy(), z["crit"].copy(), 0.0, int(z["nbytes"]))
+                out = Contact(cfg.model.kind, z["k"].copy(), z["crit"].copy(), 0.0, int(z["nbytes"]),
+                              z["msm_tab"].copy(), z["msm_count"].copy(), z["msm_g"].copy())
         except (OSError, ValueError, KeyError):
             out = None
     if out is None:
@@ -417,7 +352,8 @@ def contact_for(cfg) -> Contact | None:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
                 with os.fdopen(fd, "wb") as f:
-                    np.savez(f, k=out.stiffness, crit=out.crit_depth, nbytes=out.table_bytes)
+                    np.savez(f, k=out.stiffness, crit=out.crit_depth, nbytes=out.table_bytes, msm_tab=out.msm_tab,
+                             msm_count=out.msm_count, msm_g=out.msm_g)
                 os.replace(tmp, path)
             except OSError:
                 pass

@@ -82,3 +82,31 @@ def write_obj(path, vertices_mm, faces, header: str = "") -> None:
     out += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices_mm]
     out += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
     Path(path).write_text("\n".join(out) + "\n", encoding="ascii")
+
+
+def fit_radial(path, pts: np.ndarray, lines: np.ndarray, lmax: int):
+    """The vertices ``pts`` (m; ``lines``: their lines in the file ``path``) fitted as a radial
+    spherical-harmonic surface r(theta, phi) of degree ``lmax`` about their centroid: (coefficients,
+    centroid, each vertex's distance from it, each vertex's fit residual). UserError (one line naming
+    the file, and the line of a vertex at the centroid) when the vertices cannot be fitted."""
+    from . import shf  # the numba kernels, once the input is known to be good
+
+    need = shf.n_coeffs(lmax)
+    if len(pts) < need:
+        raise UserError(f"{path}: {len(pts)} vertices are too few for lmax {lmax}: "
+                        f"need at least (lmax+1)^2 = {need}")
+    centre = pts.mean(axis=0)
+    d = pts - centre
+    rho = np.linalg.norm(d, axis=1)
+    # Relative test: a vertex at the centroid (to rounding) has no direction to fit along.
+    at_centre = rho <= 1e-9 * max(float(rho.max()), 1e-300)
+    if at_centre.any():
+        raise UserError(f"{path}: line {lines[np.argmax(at_centre)]}: vertex lies at the vertices' centroid, "
+                        "so its direction is undefined (the mesh is not a surface around its centroid)")
+    theta = np.arccos(np.clip(d[:, 2] / rho, -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    try:
+        coeffs = shf.fit(theta, phi, rho, lmax)
+    except ValueError as e:
+        raise UserError(f"{path}: cannot fit the vertices' distances from their centroid: {e}") from None
+    return coeffs, centre, rho, shf.evaluate(coeffs, theta, phi) - rho
