@@ -264,17 +264,19 @@ def servo(sizes: Sizes, progress=False) -> dict:
 def models(sizes: Sizes, progress=False) -> dict:
     """Each tissue model (model.kind): the compiled tick pressing the skin and inside the muscle
     (microseconds per tick, p50/p99 of :data:`BLOCK`-tick means), the precomputation's build time
-    (the baselines' contact, uncached; the force net's three response tables) and its tables' memory."""
+    (the baselines' contact, uncached; the force net's three response tables; wall and CPU seconds)
+    and its tables' memory."""
     from haptic_acu.base.config import MODEL_KINDS, load_config
     from haptic_acu.tissue import baselines, netresponse
     from haptic_acu.tissue.forcenet import NetParams
 
-    out = {"model_tick_us": {}, "model_build_s": {}, "model_table_bytes": {}}
+    out = {"model_tick_us": {}, "model_build_s": {}, "model_build_cpu_s": {}, "model_table_bytes": {}}
     base = load_config()
     for kind in MODEL_KINDS:
         cfg = scenarios.with_kind(base, kind)
         _log(progress, f"tissue model {kind}: precomputation")
         t0 = time.perf_counter()
+        c0 = time.process_time()
         if kind == "forcenet":
             tol = cfg.solver.static_tolerance_um * 1e-6
             tabs = [netresponse.build(NetParams.from_layer(layer), tol) for layer in cfg.layers]
@@ -282,6 +284,7 @@ def models(sizes: Sizes, progress=False) -> dict:
         else:
             nbytes = baselines.build_contact(cfg).table_bytes
         out["model_build_s"][kind] = round(time.perf_counter() - t0, 3)
+        out["model_build_cpu_s"][kind] = round(time.process_time() - c0, 3)  # on a loaded host, what an idle one pays
         out["model_table_bytes"][kind] = int(nbytes)
         ticks = {}
         for sc in (scenarios.press(sizes.servo_ticks, layer=0, base=cfg), scenarios.inside_muscle(sizes.servo_ticks, base=cfg)):
@@ -1102,15 +1105,16 @@ def _fmt(x, digits=3):
 
 def model_lines(md) -> list:
     """One row per tissue model (model.kind): compiled tick pressing the skin and inside the muscle
-    (p50 / p99, us), precomputation time and table memory."""
+    (p50 / p99, us), precomputation time (wall, CPU) and table memory."""
     if not md:
         return []
     lines = ["tissue models (model.kind): compiled tick, us (p50 / p99); precomputation; tables",
-             f"  {'':10s}{'press skin':>16s}{'inside muscle':>16s}{'build s':>10s}{'tables kB':>11s}"]
+             f"  {'':10s}{'press skin':>16s}{'inside muscle':>16s}{'build s':>9s}{'cpu s':>7s}{'tables kB':>11s}"]
     for kind, ticks in md["model_tick_us"].items():
         cells = "".join(f"{(_fmt(t['p50']) + ' / ' + _fmt(t['p99'])) if t else '-':>16s}"
                         for t in (ticks.get("press_skin"), ticks.get("inside_muscle")))
-        lines.append(f"  {kind:10s}{cells}{_fmt(md['model_build_s'][kind]):>10s}"
+        cpu = md.get("model_build_cpu_s", {}).get(kind)
+        lines.append(f"  {kind:10s}{cells}{_fmt(md['model_build_s'][kind]):>9s}{_fmt(cpu) if cpu is not None else '-':>7s}"
                      f"{_fmt(md['model_table_bytes'][kind] / 1e3):>11s}")
     return lines
 

@@ -1,9 +1,10 @@
 """Test-session set-up shared by every test module.
 
-``serial``: modules whose tests run real-time threads, device emulators, terminals or timing
-measurements. `make test` runs every other test in parallel (pytest-xdist) and these afterwards, alone,
-so no test's timing depends on another test running beside it. The marker is given here by module so
-that a new test in one of these modules is serial without thinking about it.
+``serial``: modules whose tests run real-time threads against the clock, device emulators or
+terminals, whose results a busy neighbour could change (a late tick skipped, a stall taken for a
+frozen device). `make test` runs every other test in parallel (pytest-xdist) and these afterwards,
+alone. The marker is given here by module so that a new test in one of these modules is serial
+without thinking about it; a test elsewhere that needs it carries ``@pytest.mark.serial`` itself.
 """
 from __future__ import annotations
 
@@ -12,9 +13,8 @@ from pathlib import Path
 import pytest
 
 SERIAL_MODULES = {
-    "test_affinity", "test_bench", "test_engine", "test_hd_physical", "test_keyboard", "test_omni",
-    "test_omni_closed_loop", "test_omni_stylus", "test_rtloop", "test_run_cli", "test_run_omni",
-    "test_sinkproc", "test_study", "test_study_kinds", "test_ux", "test_keyboard_debrief", "test_live_equals_replay",
+    "test_engine", "test_hd_physical", "test_keyboard", "test_omni", "test_omni_closed_loop", "test_omni_stylus",
+    "test_rtloop", "test_run_cli", "test_run_omni", "test_study", "test_study_kinds", "test_keyboard_debrief",
 }
 
 

@@ -240,6 +240,7 @@ def test_sh_rows_say_pyshtools_is_missing_when_it_is(monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # counts the ticks of a real-time second
 def test_loop_runs_without_the_rerun_sink_and_says_so(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "haptic_acu.session.rerun_log", None)
     traj = tmp_path / "short.csv"
@@ -324,6 +325,7 @@ def test_split_by_steal_counts_misses_inside_and_outside_steal_free_windows():
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # counts the ticks of a real-time second
 def test_omni_loop_runs_both_callbacks_through_the_emulator():
     sys.path.insert(0, os.path.dirname(__file__))
     try:

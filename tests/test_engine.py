@@ -413,8 +413,9 @@ def test_recorder_keeps_only_rows_later_than_all_before_them(tmp_path):
         rows = np.zeros((len(times), NCOL))
         rows[:, COL["t_s"]] = times
         rows[:, COL["z_m"]] = 0.01 * np.array(times) + 1e-6 * np.arange(len(times))  # which row it was
+        rows[:, COL["dev_z_m"]] = rows[:, COL["z_m"]]  # the device where the needle is (what is recorded)
         sink.on_frame(SimpleNamespace(samples=rows))
-        for t, z in zip(times, rows[:, COL["z_m"]]):
+        for t, z in zip(times, rows[:, COL["dev_z_m"]]):
             if t > latest:
                 expected.append((t, z))
                 latest = t

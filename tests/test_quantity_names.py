@@ -1,7 +1,8 @@
 """One name per quantity: every output's per-insertion columns map one to one onto
 haptic_acu.analysis.quantities (the replay's summary.json, compare's table and compare.json, the
-cohort's insertion table), and the twirl amplitude is one number (its peak-to-peak swing) in the
-replay's text, compare.json and the cohort."""
+cohort's insertion table, and the insertions.csv a batch replay and a cohort write), and the twirl
+amplitude is one number (its peak-to-peak swing) in the replay's text, compare.json, the cohort and
+the written tables."""
 from __future__ import annotations
 
 import json
@@ -99,3 +100,48 @@ def test_twirl_amplitude_is_one_number_in_text_compare_and_cohort(outputs, capsy
     cfg = load_config()
     _, rows = insertion_table(replay_rows(TWIRL, cfg), cfg)
     assert rows[0]["twirl_swing_deg"] == swing
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """The tables the tools write, read back from disk: a batch replay's insertions.csv and a
+    cohort's insertions.csv (one session: the bundled twirl_even, by name)."""
+    import csv
+
+    tmp = tmp_path_factory.mktemp("written")
+    assert main(["replay", str(TWIRL), "default", "--out", str(tmp / "batch"), "--no-rrd", "--quiet"]) == 0
+    man = tmp / "m.csv"
+    man.write_text("session,trainee,file,level\ns1,ann,twirl_even,novice\n")
+    assert main(["cohort", str(man), "--out", str(tmp / "cohort"), "--jobs", "1", "--quiet"]) == 0
+
+    def read(path):
+        with open(path, newline="") as fh:
+            r = csv.reader(fh)
+            header = next(r)
+            return header, [dict(zip(header, row)) for row in r]
+    return read(tmp / "batch" / "insertions.csv"), read(tmp / "cohort" / "insertions.csv")
+
+
+@pytest.mark.slow  # a batch replay and a cohort run (~25 s)
+def test_written_tables_name_each_quantity_once(written):
+    from haptic_acu.cohort.sessions import INSERTION_COLUMNS
+
+    (batch, _), (cohort, _) = written
+    named = [q for q in QUANTITIES if q.path]
+    for header in (batch, cohort):
+        assert len(set(header)) == len(header)
+        # no quantity under a second name: its summary path flattened is not a column beside its name
+        assert not [q.name for q in named if "_".join(q.path) != q.name and "_".join(q.path) in header]
+    assert {q.name for q in named} <= set(batch)
+    assert [c.name for c in INSERTION_COLUMNS] == [c for c in cohort if c in BY_NAME]
+    shared = (set(batch) & set(cohort)) - {"insertion", "trajectory"}
+    assert shared and shared <= set(BY_NAME)  # a column both tables have is one quantity, one name
+
+
+@pytest.mark.slow
+def test_twirl_amplitude_is_one_number_in_the_written_tables(outputs, written):
+    summary = json.loads((outputs / "replay" / "summary.json").read_text())
+    swing = value(summary["metrics"]["per_insertion"][0], BY_NAME["twirl_swing_deg"])
+    (_, batch), (_, cohort) = written
+    assert float(batch[0]["twirl_swing_deg"]) == pytest.approx(swing, abs=1e-9)
+    assert float(cohort[0]["twirl_swing_deg"]) == pytest.approx(swing, abs=1e-9)

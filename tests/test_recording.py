@@ -8,7 +8,9 @@ event gives fresh tissue on replay.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import os
 import re
@@ -17,12 +19,14 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from haptic_acu.session import trajectory as T
 from haptic_acu.base.errors import UserError
+from haptic_acu.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "trajectories" / "default.csv"
@@ -33,6 +37,16 @@ def cli(*args, timeout=300, **kw):
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, args)], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def cli_here(*args):
+    """The command in this process (``haptic_acu.cli.main``: the same parser, checks, exit status and
+    streams as the console entry, without a child's start-up); an exception that escapes it fails
+    the test, as a traceback would."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
 
 
 # progress lines ("haptic-acu: step...", "haptic-acu: step: done in 1.2 s") may precede the one error line
@@ -52,7 +66,7 @@ def one_line(r, status, *names):
 def test_record_refuses_an_existing_file(tmp_path):
     rec = tmp_path / "mine.csv"
     rec.write_text("precious\n")
-    r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
+    r = cli_here("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
             "--duration", 0.2)
     one_line(r, 2, "mine.csv", "--overwrite")
     assert rec.read_text() == "precious\n"
@@ -62,7 +76,7 @@ def test_record_refuses_the_input_trajectory_even_with_overwrite(tmp_path):
     src = tmp_path / "in.csv"
     src.write_bytes(DEFAULT.read_bytes())
     for extra in ((), ("--overwrite",)):
-        r = cli("run", "--device", "scripted", "--trajectory", src, "--record", src, "--no-status",
+        r = cli_here("run", "--device", "scripted", "--trajectory", src, "--record", src, "--no-status",
                 "--duration", 0.2, *extra)
         one_line(r, 2, "in.csv", "input")
         assert src.read_bytes() == DEFAULT.read_bytes()
@@ -72,11 +86,11 @@ def test_record_creates_nothing_when_the_session_cannot_start(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.001,0,0,-5\n")  # 10 m/s: refused
     rec = tmp_path / "rec.csv"
-    r = cli("run", "--device", "scripted", "--trajectory", bad, "--record", rec, "--no-status")
+    r = cli_here("run", "--device", "scripted", "--trajectory", bad, "--record", rec, "--no-status")
     one_line(r, 2, "bad.csv")
     assert not rec.exists()
     rec.write_text("old\n")  # with --overwrite an existing file is kept until the session starts
-    r = cli("run", "--device", "scripted", "--trajectory", bad, "--record", rec, "--no-status",
+    r = cli_here("run", "--device", "scripted", "--trajectory", bad, "--record", rec, "--no-status",
             "--overwrite")
     one_line(r, 2, "bad.csv")
     assert rec.read_text() == "old\n"
@@ -161,7 +175,7 @@ def test_hostile_trajectory_one_line(tmp_path, case):
     data, line = HOSTILE[case]
     f = tmp_path / f"{case}.csv"
     f.write_bytes(data)
-    r = cli("replay", f, "--no-rrd", "--out", tmp_path / "out", timeout=120)
+    r = cli_here("replay", f, "--no-rrd", "--out", tmp_path / "out")
     msg = one_line(r, 2, f"{case}.csv")
     assert f"line {line}:" in msg, msg
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
@@ -230,14 +244,14 @@ def test_replay_honours_a_reset_fresh_tissue(tmp_path):
     """second_insertion_same_site.csv goes in twice through one hole: one skin puncture. With a
     reset between the passes the tissue is fresh: the second pass punctures the skin again."""
     plain = tmp_path / "plain"
-    r = cli("replay", SAME_SITE, "--no-rrd", "--quiet", "--out", plain)
+    r = cli_here("replay", SAME_SITE, "--no-rrd", "--quiet", "--out", plain)
     assert r.returncode == 0, r.stderr
     layers = [p["layer"] for p in json.loads((plain / "summary.json").read_text())["punctures"]]
     assert layers.count("skin") == 1
     # the pause between the passes: the tip is back at +5 mm from about 4.2 s to 5.7 s
     reset = with_reset(SAME_SITE, tmp_path / "reset.csv", 5.0)
     out = tmp_path / "fresh"
-    r = cli("replay", reset, "--no-rrd", "--quiet", "--out", out)
+    r = cli_here("replay", reset, "--no-rrd", "--quiet", "--out", out)
     assert r.returncode == 0, r.stderr
     pts = json.loads((out / "summary.json").read_text())["punctures"]
     skin = [p for p in pts if p["layer"] == "skin"]
@@ -338,12 +352,13 @@ def test_recorder_places_events_on_their_ticks(tmp_path):
 
 
 def test_live_scripted_session_honours_a_reset(tmp_path):
-    """Played on the wall clock, a file with a reset event gives fresh tissue too (the servo loop
-    that reads the device tick by tick honours DeviceState.reset): two skin punctures, as in the
-    headless replay of the same file."""
+    """Played on the wall clock (paced 8 times as fast: the same ticks), a file with a reset event
+    gives fresh tissue too (the compiled loop honours the feed's reset flags): two skin punctures,
+    as in the headless replay of the same file."""
     reset = with_reset(SAME_SITE, tmp_path / "reset.csv", 5.0)
     rec = tmp_path / "live.csv"
-    r = cli("run", "--device", "scripted", "--trajectory", reset, "--record", rec, "--no-status")
+    r = cli_here("run", "--device", "scripted", "--trajectory", reset, "--speed", 8, "--record", rec, "--no-status",
+                 "--out", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     tr = T.load(rec, max_hand_speed_m_per_s=10.0, extra_columns=("state_skin", "event"))
     s = tr.extra["state_skin"]

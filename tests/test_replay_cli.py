@@ -5,23 +5,39 @@ no output folder left behind (a partial one, or one that looks complete).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+
+from haptic_acu.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAJ = ROOT / "trajectories"
 
 
 def replay(*args, timeout=600):
+    """``haptic-acu replay`` as a user runs it: a child process (the console entry, exit status, streams)."""
     return subprocess.run([sys.executable, "-m", "haptic_acu", "replay", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def replay_here(*args):
+    """``haptic-acu replay`` in this process (``haptic_acu.cli.main``: the same parser, checks, exit
+    status and streams as the console entry, without a child's start-up); an exception that escapes
+    it fails the test, as a traceback would."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["replay", *map(str, args)])
+    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
 
 
 def write(path: Path, text: str) -> Path:
@@ -64,7 +80,7 @@ def test_bad_trajectory_one_line_error_and_no_output(tmp_path, case):
     text, line = BAD_CASES[case]
     f = write(tmp_path / f"{case}.csv", text)
     out = tmp_path / "out"
-    r = replay(f, "--out", out, "--no-rrd")
+    r = replay_here(f, "--out", out, "--no-rrd")
     assert_one_line_error(r, f.name, line)
     assert not out.exists()
     assert not (tmp_path / "out.partial").exists()
@@ -72,7 +88,7 @@ def test_bad_trajectory_one_line_error_and_no_output(tmp_path, case):
 
 def test_missing_file(tmp_path):
     out = tmp_path / "out"
-    r = replay(tmp_path / "nope.csv", "--out", out)
+    r = replay_here(tmp_path / "nope.csv", "--out", out)
     assert_one_line_error(r, "nope.csv")
     assert not out.exists()
 
@@ -81,7 +97,7 @@ def test_binary_garbage(tmp_path):
     f = tmp_path / "garbage.csv"
     f.write_bytes(bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8)))
     out = tmp_path / "out"
-    r = replay(f, "--out", out)
+    r = replay_here(f, "--out", out)
     assert_one_line_error(r, "garbage.csv")
     assert not out.exists()
 
@@ -90,7 +106,7 @@ def test_bad_config_names_the_key(tmp_path):
     text, n = re.subn(r"(?m)^rings = \d+", "rings = 1", (ROOT / "config" / "tissue.toml").read_text(), count=1)
     assert n == 1  # the first layer's (the skin's) ring count
     cfg = write(tmp_path / "bad.toml", text)
-    r = replay("--config", cfg, "--out", tmp_path / "out", "--no-rrd")
+    r = replay_here("--config", cfg, "--out", tmp_path / "out", "--no-rrd")
     assert_one_line_error(r, "bad.toml")
     assert "skin.rings" in r.stderr
 
@@ -106,7 +122,7 @@ def test_million_rows_stream(tmp_path):
         fh.write("t_s,x_mm,y_mm,z_mm\n")
         np.savetxt(fh, np.column_stack([t, np.zeros(n), np.zeros(n), z]), fmt="%.6f,%.1f,%.1f,%.4f")
     out = tmp_path / "out"
-    r = replay(f, "--out", out, "--no-rrd", "--quiet", timeout=900)
+    r = replay_here(f, "--out", out, "--no-rrd", "--quiet")
     assert r.returncode == 0, r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ticks"] == n - 1  # ticks at 1 ms up to, not including, the last sample's time
@@ -163,7 +179,7 @@ def test_existing_output_folder_is_refused(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    r = replay(TRAJ / "fast_insertion.csv", "--out", out, "--no-rrd")
+    r = replay_here(TRAJ / "fast_insertion.csv", "--out", out, "--no-rrd")
     assert_one_line_error(r, "out")
     assert (out / "keep.txt").read_text() == "mine"
 

@@ -118,6 +118,18 @@ def test_realtime_forces_equal_the_headless_replay(cfg, tissue):
     assert rt[:, COL["state_fat"]].max() == 2  # the comparison went through two punctures
     assert dev.force_commands >= result.ticks and dev.max_force_n == pytest.approx(np.abs(rt[:, COL["fz_n"]]).max(), abs=1e-3)
     assert not np.any(dev.last_force_n)  # the session ended with zero force
+    # The same session paced 8 times as fast as real time: the ticks keep their session times, so the
+    # rows are the same bit for bit; its deadlines 125 us apart make it no shorter than 2500 of them,
+    # and shorter than the same session at real pace (a ratio within one run, with a margin of 4).
+    dev3 = ScriptedDevice(DEFAULT_TRAJ, realtime=True)
+    dev3.open()
+    s3, fast, paced = run(cfg, tissue, dev3, "realtime", 2.5, speed=8.0)
+    dev3.close()
+    assert s3.compiled_loop and fast.fault is None and fast.ticks == 2501
+    np.testing.assert_array_equal(paced[:, COL["tick"]].astype(int), np.arange(2501))
+    np.testing.assert_array_equal(paced[:, cols], sim[:, cols])
+    assert fast.stats["wall_s"] >= 2500 * 125e-6
+    assert fast.stats["wall_s"] < 0.5 * result.stats["wall_s"], (fast.stats["wall_s"], result.stats["wall_s"])
 
 
 def _loop_on_a_fixed_feed(cfg, tissue, period_ns, k_limit, skip_after):

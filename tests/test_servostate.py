@@ -101,7 +101,7 @@ def test_damping_of_the_layers_held_is_table_1(fresh, depth):
     bounds = m.rec["bounds"].copy()
     m.state.work[0]["s_p"] = depth
     v = np.array([0.001, 0.0, -0.02])  # 20 mm/s into the tissue, a little sideways
-    m.inp.v[:] = v
+    m.state.work[0]["tip_v"] = v  # the needle's tip (step.device_tip: the device's, the handle off the skin)
     out = np.zeros(1, ss.DIAG)
     try:
         _damping_phase(m.inp, m.model, m.state, out)
@@ -118,7 +118,7 @@ def test_damping_of_the_layers_held_is_table_1(fresh, depth):
 
 def test_lateral_guidance_pulls_back_to_the_insertion_line(fresh):
     m = fresh
-    m.inp.p[:] = [0.002, -0.001, -0.010]  # 10 mm deep, (2, -1) mm off the line
+    m.state.work[0]["tip"] = [0.002, -0.001, -0.010]  # the needle's tip 10 mm deep, (2, -1) mm off the line
     m.rec["lengths"][:] = [0.001, 0.005, 0.004]  # the shaft held over 10 mm
     out = np.zeros(1, ss.DIAG)
     _lateral_phase(m.inp, m.model, m.state, out)

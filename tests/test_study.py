@@ -422,6 +422,7 @@ def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_p
             got += os.read(proc.stdout.fileno(), 4096).decode()
         assert got.count("/7 ") >= 3, got
         proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=TIMEOUT_S)  # before communicate() closes stdin: an EOF at the prompt is another ending
         out, err = proc.communicate(timeout=TIMEOUT_S)
     finally:
         if proc.poll() is None:

@@ -171,6 +171,7 @@ def test_spawn_without_display_is_one_line_at_once(tmp_path):
 def _row(x_mm=0.0, y_mm=0.0, layer=-1, states=(0, 0, 0), clamped=0, force=(0.0, 0.0, 0.0)):
     r = np.zeros(NCOL)
     r[COL["x_m"]], r[COL["y_m"]] = x_mm * 1e-3, y_mm * 1e-3
+    r[COL["dev_x_m"]], r[COL["dev_y_m"]] = x_mm * 1e-3, y_mm * 1e-3  # the device where the needle's tip is
     r[COL["layer"]] = layer
     r[COL["state_skin"]:COL["state_skin"] + 3] = states
     r[COL["clamped"]] = clamped
@@ -192,6 +193,12 @@ def test_status_in_air_pressing_on_bone_and_at_the_force_limit():
     for want in ("bone ", "(target 15-30)", "ON BONE: withdraw", "FORCE LIMIT", "last puncture muscle 1.913 N",
                  "v 0.0 mm/s (set 5)", "|F| 3.30 N"):
         assert want in bone, want
+    # the handle on the skin: the device (dev_*) further along the needle than its tip, 40 mm in
+    handle = _row(layer=2, states=(2, 2, 2), clamped=1, force=(0, 0, 3.3))
+    handle[COL["depth_skin_m"]], handle[COL["z_m"]], handle[COL["dev_z_m"]] = 0.040, -0.040, -0.042
+    line = format_status(1.0, handle, RATES, 0, width=80, target_mm=(15, 30))
+    assert "FORCE LIMIT" in line and "40.00 mm deep: HANDLE ON SKIN" in line and "|F| 3.30 N" in line
+    assert len(line) <= 80 and "HANDLE" not in format_status(1.0, _row(layer=2), RATES, 0, target_mm=(15, 30))
     # on a narrow terminal the warnings stay, the rates and position go
     narrow = format_status(1.0, _row(layer=3, states=(2, 2, 2), clamped=1), RATES, 0, width=110,
                            last_puncture={"layer": "muscle", "peak_force_n": 1.9})

@@ -140,7 +140,7 @@ class ModelParams:
     kind: str  # "forcenet" (the force net), "msm", "fem", "bem" or "shf"
     young_modulus_kpa: tuple[float, float, float]  # MSM, FEM, BEM: each layer's Young's modulus
     poisson_ratio: tuple[float, float, float]  # MSM, FEM, BEM
-    puncture_depth_mm: tuple[float, float, float]  # FEM, BEM: indentation at which the layer breaks
+    fracture_toughness_j_per_m2: tuple[float, float, float]  # FEM, BEM: the energy criterion's toughness
     shf_stiffness_n_per_mm: tuple[float, float, float]  # SHF: penalty stiffness along the surface normal
     shf_puncture_force_n: tuple[float, float, float]  # SHF: force at which the layer breaks
     msm_spacing_mm: float  # MSM: the lattice's spacing
@@ -172,7 +172,7 @@ class TissueConfig:
 # Keys whose value must be > 0 (by field name, in any section).
 _POSITIVE = {
     "thickness_mm", "k_virtual_n_per_mm", "spring_length_mm", "k_surface_n_per_mm",
-    "puncture_threshold_um", "lateral_stiffness_n_per_mm", "young_modulus_kpa", "puncture_depth_mm",
+    "puncture_threshold_um", "lateral_stiffness_n_per_mm", "young_modulus_kpa", "fracture_toughness_j_per_m2",
     "shf_stiffness_n_per_mm", "shf_puncture_force_n", "msm_spacing_mm", "msm_puncture_strain",
     "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
     "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
@@ -211,7 +211,9 @@ _BOUNDS = {
     # rupture speed dependence: ratio in (0, 1] (1: off), speeds up to 10 m/s
     "high_speed_ratio": (1e-3, 1.0), "speed_scale_mm_s": (1e-3, 1e4), "reference_speed_mm_s": (0.0, 1e4),
     # baseline tissue models: moduli from a soft gel (0.1 kPa) to cartilage (100 MPa); nu in [0, 0.5)
-    "young_modulus_kpa": (0.1, 1e5), "poisson_ratio": (0.0, 0.4999), "puncture_depth_mm": (1e-3, 100.0),
+    "young_modulus_kpa": (0.1, 1e5), "poisson_ratio": (0.0, 0.4999),
+    # fracture toughness from a gel's 1 J/m^2 to a tendon's 10^5
+    "fracture_toughness_j_per_m2": (1.0, 1e5),
     "shf_stiffness_n_per_mm": (1e-6, 1_000.0), "shf_puncture_force_n": (1e-3, 100.0),
     "msm_spacing_mm": (0.1, 5.0), "msm_puncture_strain": (1e-3, 100.0),
 }
@@ -220,6 +222,8 @@ _BOUNDS = {
 _REMOVED = {
     "needle.hole_radius_mm": "re-entry is decided by the insertion tracks, whose damage decays over the "
                              "needle's radius (docs/model.md section 9.2)",
+    "model.puncture_depth_mm": "the FEM and BEM break by an energy criterion, model.fracture_toughness_j_per_m2 "
+                               "(docs/model.md section 12.5)",
 }
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,

@@ -64,6 +64,10 @@ def register(sub) -> None:
                    help="also print the servo loop's timing statistics (always in summary.json's loop)")
     p.add_argument("--python-servo", action="store_true",
                    help="run the servo tick as Python instead of compiled and GIL-free (for comparison)")
+    p.add_argument("--speed", type=float, default=1.0, metavar="X",
+                   help="--device scripted: play the path X times as fast as real time (default 1). Session time "
+                        "stays the tick's own, so the results and the recording are those at real pace; the "
+                        "loop's timing is against the shorter period (a quick live check, e.g. in CI)")
     p.add_argument("--pin-cores", action="store_true",
                    help="pin the servo thread (the scripted device's, or the OMNI's HD scheduler thread) to one "
                         "core and the rerun logging child to the others")
@@ -87,6 +91,8 @@ def make_device(args, cfg):
         return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
     if args.trajectory:
         raise UserError(f"--trajectory is for --device scripted, not {args.device}")
+    if getattr(args, "speed", 1.0) != 1.0:  # (study trial has no --speed)
+        raise UserError(f"--speed is for --device scripted, not {args.device}")
     if args.travel_axis and args.device != "omni":
         raise UserError(f"--travel-axis is for --device omni, not {args.device}")
     if args.device == "keyboard":
@@ -138,6 +144,9 @@ def run(args) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION_S):
         raise UserError(f"--duration must be a number of seconds > 0 and at most {MAX_DURATION_S:g}, got "
                         f"{args.duration}")
+    from ..session.engine import MAX_SPEED
+    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
+        raise UserError(f"--speed must be a number > 0 and at most {MAX_SPEED:g}, got {args.speed}")
     cfg = config_from_args(args)
     check_layout_arg(args)
     from ..session.point import setup_from_args
@@ -193,7 +202,7 @@ def _run(args, cfg, device, out: Path, rec: Path, ps=None) -> int:
     # Compile and warm everything before the device opens: the OMNI's scheduler (and its device
     # time) starts in open(), and should not run for seconds with force output on and no servo.
     session = Session(cfg, device, sinks, clock="realtime", duration_s=args.duration,
-                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores,
+                      compiled_loop=not args.python_servo, pin_cores=args.pin_cores, speed=args.speed,
                       model=ps.model() if ps is not None else None)  # the compiled loop honours resets
     if args.device == "scripted":
         from ..session.replay import check_start

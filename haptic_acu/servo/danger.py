@@ -5,7 +5,7 @@ Two small compiled phases of the step (:mod:`haptic_acu.servo.step`), both a no-
 ``--point`` computes exactly what the step computes without these phases):
 
 * :func:`danger_phase` after the bone wall: each structure of ``Model.danger`` (:data:`DANGER`, one
-  row each, SI units, the scene frame) acts on the tip (the device's position ``inp.p``) once the
+  row each, SI units, the scene frame) acts on the tip (the needle's, ``work.tip``) once the
   skin is pierced:
 
   - ``MEMBRANE`` (pleura, dura, peritoneum): a plane; the tip pressing past it meets a spring
@@ -104,7 +104,7 @@ def danger_phase(inp, m, s, d):
             s.dstate[i] = 0.0
         return
     wk = s.work[0]
-    p = inp.p
+    p = wk.tip  # the needle's tip
     t = sv.tick * m.params[0].dt
     for i in range(z.shape[0]):
         st = z[i]

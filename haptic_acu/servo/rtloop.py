@@ -16,11 +16,14 @@ The clock calls are LLVM declarations of libc's ``clock_gettime`` / ``clock_nano
 pointers), so the functions stay cacheable like every other kernel.
 
 Ticks happen at ``t0 + k * period``; tick k reads the position at session time ``k * period`` and
-its sample row carries that time and its lateness (``period_err_s``). A stall longer than
-``ctl[0].skip_after`` periods (the session's default: 10) skips ahead to the present (the skipped
-ticks count as missed) instead of bursting through them; with :data:`NO_END` there the loop never
-skips and runs late ticks back to back, so every tick of the trajectory is a row whatever the host
-does (what a comparison against the headless replay needs).
+its sample row carries that time and its lateness (``period_err_s``). A paced loop
+(``ctl[0].wall_ns`` shorter than the period: a scripted session played faster than real time) keeps
+its deadlines ``wall_ns`` apart and its lateness against ``wall_ns``, while each tick's session time
+stays ``k * period``: the ticks, and so every number they make, are those of a session at real
+pace. A stall longer than ``ctl[0].skip_after`` periods (the session's default: 10) skips ahead
+to the present (the skipped ticks count as missed) instead of bursting through them; with
+:data:`NO_END` there the loop never skips and runs late ticks back to back, so every tick of the
+trajectory is a row whatever the host does (what a comparison against the headless replay needs).
 """
 from __future__ import annotations
 
@@ -52,6 +55,7 @@ CTL = np.dtype([
     ("t0", "i8"),  # tick 0's deadline (ns)
     ("ran", "i8"),  # ticks run (fewer than tick if a stall skipped some)
     ("skip_after", "i8"),  # a tick later than this many periods skips ahead to the present (0 reads as 10)
+    ("wall_ns", "i8"),  # wall-clock ns between two ticks' deadlines (0 reads as the period: real time)
 ])
 # statuses
 RUNNING, ENDED, STOPPED, FAULTED, STARVED, LIMIT = range(6)
@@ -215,7 +219,8 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
     (:func:`~haptic_acu.servo.tick.tick_table`: sample rows into its ring, lateness into its timing).
     Returns the status (also in ``ctl[0].status``; STALE: see
     :func:`~haptic_acu.servo.tick.call_driver`). A loop entered after tick ``ctl[0].tick``'s
-    deadline moves ``t0_ns`` to now (written to ``ctl[0].t0``)."""
+    deadline moves ``t0_ns`` to now (written to ``ctl[0].t0``). Deadlines are ``ctl[0].wall_ns``
+    apart when that is set (a paced loop), else ``period_ns``; session time is ``k * period_ns``."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE
     sv, ring, timing = unpack_tick(table)
@@ -226,24 +231,25 @@ def servo_loop(lp, t0_ns, period_ns, k_limit, feed, table):
     k = ctl[0].tick
     status = RUNNING
     skip_after = ctl[0].skip_after if ctl[0].skip_after > 0 else 10
+    wall_ns = ctl[0].wall_ns if ctl[0].wall_ns > 0 else period_ns  # between two deadlines
     start = now_ns(ts)
-    if start > t0_ns + k * period_ns:
-        t0_ns = start - k * period_ns  # entered late (thread start-up): the clock starts now
+    if start > t0_ns + k * wall_ns:
+        t0_ns = start - k * wall_ns  # entered late (thread start-up): the clock starts now
     ctl[0].t0 = t0_ns
     while True:
         if ctl[0].stop != 0:
             status = STOPPED
             break
-        deadline = t0_ns + k * period_ns
+        deadline = t0_ns + k * wall_ns
         now = wait_until(ts, deadline)
-        skip = skip_ahead(ctl, timing, k, k_limit, now - deadline, period_ns, skip_after)
+        skip = skip_ahead(ctl, timing, k, k_limit, now - deadline, wall_ns, skip_after)
         k += skip
-        deadline += skip * period_ns
+        deadline += skip * wall_ns
         late = now - deadline
         status = stop_reason(ctl, k, k_limit)
         if status != RUNNING:
             break
-        account(timing, late, period_ns, 1e-9)
+        account(timing, late, wall_ns, 1e-9)
         j = k % fcap
         for c in range(3):
             sv.inp.p[c] = feed.p[j, c]

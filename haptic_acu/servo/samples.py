@@ -31,12 +31,17 @@ COLUMNS = (
     # before that the axis the device gives (the OMNI's stylus, a trajectory's columns; NaN: none, the
     # direction of travel will decide it at entry)
     "axis_x", "axis_y", "axis_z",
+    # the device's tip (the input: where the hand put it). x_m, y_m, z_m and the velocity are the
+    # needle's tip, the same but for the handle on the skin: then the device is further along the
+    # insertion than the needle's length (haptic_acu.servo.step.hold_at_handle)
+    "dev_x_m", "dev_y_m", "dev_z_m",
 )
 COL = {name: i for i, name in enumerate(COLUMNS)}
 NCOL = len(COLUMNS)
 
 C_T, C_TICK = COL["t_s"], COL["tick"]
 C_X, C_V, C_F = COL["x_m"], COL["vx_m_s"], COL["fx_n"]
+C_DEV = COL["dev_x_m"]
 
 
 # column indices, by name (numba reads module-level integers as constants)
@@ -50,22 +55,26 @@ _PERIOD_ERR = COL["period_err_s"]
 _FR, _RSTAT = COL["fr_x_n"], COL["render_status"]
 _ROLL, _TORQUE = COL["roll_deg"], COL["torque_nmm"]
 _AXIS = COL["axis_x"]
+_DEV = COL["dev_x_m"]
 _DEG = 180.0 / 3.141592653589793
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def write_sample(buf, row, t, tick, inp, s, diag, period_err):
-    """Fill ``buf[row]`` from one tick: its time and index, the input ``inp`` (TickIn), the servo
-    state ``s`` (State) and output ``diag`` (the one-row DIAG record array). Allocation-free."""
+    """Fill ``buf[row]`` from one tick: its time and index, the input ``inp`` (TickIn: the device's
+    tip), the servo state ``s`` (State: the needle's tip, ``work.tip``) and output ``diag`` (the
+    one-row DIAG record array). Allocation-free."""
     r = buf[row]
     d = diag[0]
     sv = s.servo[0]
+    wk = s.work[0]
     r[_T] = t
     r[_TICK] = tick
     for k in range(3):
-        r[_X + k] = inp.p[k]
-        r[_V + k] = inp.v[k]
+        r[_X + k] = wk.tip[k]
+        r[_V + k] = wk.tip_v[k]
         r[_F + k] = d.force[k]
+        r[_DEV + k] = inp.p[k]
     r[_F_SURFACE] = d.f_surface
     r[_F_DAMP] = d.f_damp
     r[_F_LATERAL] = d.f_lateral

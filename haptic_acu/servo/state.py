@@ -107,13 +107,17 @@ SERVO = np.dtype([  # the servo's mutable scalars (State.servo[0])
 ])
 HOLE = np.dtype([("point", "f8", 3), ("layer", "f8"), ("axis", "f8", 3)])
 WORK = np.dtype([  # the step's scratch: values one phase hands the next within a tick
-    ("q", "f8", 3),  # tip lifted by the offset
+    ("tip", "f8", 3),  # the needle's tip: the device's, held at the needle's length below the entry (handle_stop)
+    ("tip_v", "f8", 3),  # its velocity (the device's, without the part along the axis while it is held)
+    ("over", "f8"),  # how far the device is past the needle's length along the insertion (m; 0: the handle is off the skin)
+    ("q", "f8", 3),  # the needle's tip lifted by the offset
     ("rho", "f8"),  # its distance from the centre
     ("front", "i8"),  # first layer not punctured (N_LAYERS: all)
     ("f", "f8", 3),  # force accumulated by the phases
     ("cpt", "f8", 3), ("nrm", "f8", 3), ("fo", "f8", 3),
     ("r", "f8", 3),  # tip relative to N1's rest position
-    ("dz1", "f8"), ("s_p", "f8"),
+    ("dz1", "f8"),
+    ("s_p", "f8"),  # the needle tip's depth along the insertion from the entry (m; at most the needle's length)
     ("gd", "f8", 3),  # grad(-d) of the tip's depth d below the pressed layer's rest surface (needle.depth_gradient)
     ("gs", "f8", 3),  # the front layer's rest surface: its gradient on the unit sphere at the tip's direction (tip_radii)
     ("wr", "f8", MAX_RINGS), ("cnt", "f8", MAX_RINGS),

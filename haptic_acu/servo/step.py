@@ -3,9 +3,10 @@
 One servo tick is one call of :func:`step_kernel` (numba, ``nogil``, allocation-free), a short
 sequence of named phases, each a small kernel of its own:
 
-    check_input -> track_entry -> (tip radii) -> touch / press [recentre, table_response or
-    sweep_net] -> puncture or surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
-    handle_stop (the handle on the skin: no more than the needle's length goes in) ->
+    check_input -> track_entry [hold_at_handle: no more than the needle's length goes in] ->
+    (tip radii) -> touch / press [recentre, table_response or sweep_net] -> puncture or
+    surface_force -> post_puncture [shaft_forces, lateral_guidance] ->
+    handle_stop (the handle on the skin: the stop's spring from the needle to the device) ->
     twirl_phase (winding: torque, grasp) -> bone_wall -> danger_phase -> locate -> clamp
     -> render_local -> danger_render   (the danger phases: a point's structures, servo/danger.py)
 
@@ -46,6 +47,12 @@ Lateral constraint. Once the skin is pierced the tip is pulled back to the inser
 the entry point along the axis by a spring as stiff as the shaft is held (``lateral_stiffness``
 times the inserted fraction of the needle), as a needle in tissue cannot slide sideways. Bone: a
 penalty wall at the muscle/bone boundary.
+
+The handle. No more of the needle than its length goes in: the needle's tip (``work.tip``, what
+every phase, the sample row and so every output reads) is the device's, except that along the
+insertion it stays at most the needle's length below the entry; a device further in has the
+handle on the skin and is pulled back to the needle by a spring as stiff as the bone wall, out
+along the axis (:func:`hold_at_handle`, :func:`handle_stop`).
 
 Safety. A non-finite tip position or velocity gives zero force and latches a fault; the output is
 always finite and its magnitude never exceeds ``force_limit``.
@@ -202,20 +209,53 @@ def check_input(inp, s, d):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def lift_tip(inp, s):
-    """The tip in the compressed tissue's frame: ``q = p - offset * axis``."""
+def lift_tip(s):
+    """The needle's tip in the compressed tissue's frame: ``q = tip - offset * axis``."""
     sv = s.servo[0]
     wk = s.work[0]
     o = sv.offset
     for c in range(3):
-        wk.q[c] = inp.p[c] - o * sv.axis[c]
+        wk.q[c] = wk.tip[c] - o * sv.axis[c]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def track_entry(inp, s):
-    """Depth along the insertion since the entry point (``work.s_p``); back above the entry point the
-    needle has left the tissue (the holes stay); on withdrawal the offset never exceeds that depth
-    (the skin tents up with the needle). Lifts the tip."""
+def device_tip(inp, s):
+    """The needle's tip where the device puts it (``work.tip``, ``work.tip_v``): what every phase
+    reads; :func:`hold_at_handle` holds it at the needle's length."""
+    wk = s.work[0]
+    for c in range(3):
+        wk.tip[c] = inp.p[c]
+        wk.tip_v[c] = inp.v[c]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def hold_at_handle(inp, m, s, s_p):
+    """The needle is a real needle: no more of it than its length goes into the tissue. A device
+    ``s_p`` along the insertion from the entry, past the needle's length L, puts the handle on the
+    skin: the needle's tip stays L below the entry on the insertion line (``work.tip``: the device's
+    tip moved back along the axis; its velocity without the part along the axis) and the device's
+    excess goes into ``work.over`` (the stop's spring, :func:`handle_stop`). Returns the needle's
+    depth, min(s_p, L)."""
+    wk = s.work[0]
+    length = m.params[0].needle_length
+    over = s_p - length
+    if over <= 0.0:
+        return s_p
+    a = s.servo[0].axis
+    va = inp.v[0] * a[0] + inp.v[1] * a[1] + inp.v[2] * a[2]
+    for c in range(3):
+        wk.tip[c] = inp.p[c] - over * a[c]
+        wk.tip_v[c] = inp.v[c] - va * a[c]
+    wk.over = over
+    return length
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def track_entry(inp, m, s):
+    """Depth along the insertion since the entry point (``work.s_p``: the needle's, held at its
+    length by the handle, :func:`hold_at_handle`); back above the entry point the needle has left
+    the tissue (the holes stay); on withdrawal the offset never exceeds that depth (the skin tents
+    up with the needle). Lifts the tip."""
     sv = s.servo[0]
     wk = s.work[0]
     p = inp.p
@@ -224,7 +264,6 @@ def track_entry(inp, s):
     o = sv.offset
     if sv.inserted != 0:
         s_p = ((p[0] - e[0]) * a[0] + (p[1] - e[1]) * a[1] + (p[2] - e[2]) * a[2])
-        wk.s_p = s_p
         if s_p < -1e-6:
             sv.inserted = 0
             sv.engaged = 0
@@ -232,10 +271,13 @@ def track_entry(inp, s):
             for k in range(N_LAYERS):
                 sv.state[k] = UNTOUCHED
                 sv.lengths[k] = 0.0
-        elif o > s_p:
-            o = max(s_p, 0.0)
+        else:
+            s_p = hold_at_handle(inp, m, s, s_p)
+            if o > s_p:
+                o = max(s_p, 0.0)
+        wk.s_p = s_p
     sv.offset = o
-    lift_tip(inp, s)
+    lift_tip(s)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -465,7 +507,7 @@ def puncture(inp, m, s, d, k, idx, use_table):
     comp = wk.dz1 / cosn
     if comp > 0.0:
         sv.offset += comp
-    lift_tip(inp, s)
+    lift_tip(s)
     tip_radii(m, s, N_LAYERS)
     wk.front = k + 1
 
@@ -524,7 +566,7 @@ def press(inp, m, s, d, k):
             fn, rw = table_response(m, s, k, idx)
         else:
             fn, rw = sweep_net(m, s, k, idx, sweeps)
-        broke = rw > puncture_threshold(m.layer[k].threshold, inp.v, ax, m.params[0])
+        broke = rw > puncture_threshold(m.layer[k].threshold, wk.tip_v, ax, m.params[0])
     d.ringw = rw
     d.dz1 = dep
     if broke:
@@ -561,7 +603,7 @@ def lateral_guidance(inp, m, s, d):
     sv = s.servo[0]
     wk = s.work[0]
     a = sv.axis
-    p = inp.p
+    p = wk.tip
     ex = p[0] - sv.entry[0]
     ey = p[1] - sv.entry[1]
     ez = p[2] - sv.entry[2]
@@ -591,19 +633,18 @@ def post_puncture(inp, m, s, d):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def handle_stop(m, s, d):
-    """The needle is a real needle: no more of it than its length goes into the tissue. Once the
-    depth along the insertion from the entry (``work.s_p``) passes the needle's length, the handle
-    is on the skin: a stop as stiff as the bone wall (``k_bone``) pushes the needle back out along
-    its axis, and the depth reported (``d.depth_skin``) is the needle's, at most its length."""
+    """The handle on the skin: the needle's tip is held at the needle's length below the entry
+    (:func:`hold_at_handle`) and the device, ``work.over`` further along the insertion, is pulled
+    back to it by a spring as stiff as the bone wall (``k_bone``), out along the axis. The tissue's
+    forces act at the needle's tip; this is the part the hand feels of the stop (with the device's
+    limit, a stop the hand cannot push through)."""
     wk = s.work[0]
-    length = m.params[0].needle_length
-    pen = wk.s_p - length
-    if pen > 0.0:
+    over = wk.over
+    if over > 0.0:
         a = s.servo[0].axis  # handle to tip: the stop pushes along -axis
         kh = m.params[0].k_bone
         for c in range(3):
-            wk.f[c] -= kh * pen * a[c]
-        d.depth_skin = length
+            wk.f[c] -= kh * over * a[c]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -765,9 +806,10 @@ def step_kernel(inp, m, s, out):
     d.puncture = -1.0
     d.layer = -1.0
     s.servo[0].tick += 1
+    device_tip(inp, s)
     if not check_input(inp, s, d):
         return
-    track_entry(inp, s)
+    track_entry(inp, m, s)
     front_layer(s)
     tip_radii(m, s, s.work[0].front)
     if s.work[0].front < N_LAYERS:
@@ -1065,6 +1107,12 @@ class NeedleModel:
     @property
     def entry(self) -> np.ndarray:
         return self.rec["entry"].copy()
+
+    @property
+    def tip(self) -> np.ndarray:
+        """The needle's tip after the last tick (m): the device's, but with the handle on the skin
+        held at the needle's length below the entry along the insertion."""
+        return self.state.work[0]["tip"].copy()
 
     @property
     def holes_list(self) -> np.ndarray:

@@ -133,6 +133,7 @@ def patch_grid(half_angle: float = 0.5, n_theta: int = 24, n_phi: int = 48):
 
 
 PATCH_GRID = patch_grid()
+MAX_SPEED = 100.0  # a paced session (Session's speed): at most this many times real time
 
 
 def layer_dent(model: NeedleModel, k: int, theta, phi) -> np.ndarray:
@@ -173,15 +174,26 @@ class Session:
     ``skip_after_ticks`` (the compiled real-time loop of a device read ahead): a tick later than this
     many periods skips ahead to the present, the skipped ticks counted missed; ``None``: never skip,
     run late ticks back to back so every tick of the trajectory is a row.
+
+    ``speed`` (real time on a device read ahead, the scripted device): the servo's deadlines come
+    ``speed`` times as often as real time, each tick's session time still ``k / servo_hz``, so the
+    session's ticks and every number they make are those at real pace (a replay of its recording
+    gives them again, whatever the host's load: a paced session never skips ticks, it runs late ones
+    back to back); its period errors are against the shorter wall period. 1.0: real time.
     """
 
     def __init__(self, cfg, device, sinks=(), clock: str = "sim", duration_s: float | None = None,
                  model: NeedleModel | None = None, servo_hz: float = 1000.0, visual_hz: float = 60.0,
                  realtime_priority: bool = True, dents: bool = True, stale_s: float = 0.05,
                  servo_watchdog_s: float = 2.0, compiled_loop: bool = True, skip_after_ticks: int | None = 10,
-                 pin_cores: bool = False):
+                 pin_cores: bool = False, speed: float = 1.0):
         if clock not in ("sim", "realtime"):
             raise ValueError(f"clock must be 'sim' or 'realtime', got {clock!r}")
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and 0.0 < speed <= MAX_SPEED):
+            raise ValueError(f"speed must be a number > 0 and at most {MAX_SPEED:g}, got {speed!r}")
+        if speed != 1.0 and not (clock == "realtime" and device.reads_ahead and not device.info.drives_clock):
+            raise ValueError("speed is for a real-time session of a device read ahead (the scripted device)")
+        self.speed = float(speed)
         self.cfg = cfg
         self.device = device
         self.sinks = list(sinks)
@@ -205,7 +217,7 @@ class Session:
         # real time: the servo thread on one core, a logging child process on the others (affinity.py)
         self.pin_cores = bool(pin_cores)
         self.pinned = False
-        self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz)))
+        self.ring = SampleRing(capacity=max(8192, int(4 * servo_hz * self.speed)))  # 4 s (wall) of ticks at least
         self.tick = 0
         self.frame_index = 0
         self.fault: str | None = None
@@ -723,7 +735,7 @@ class Session:
                         last_ticks = self.tick
                     frames = 0
                     last = now
-                self._visual_frame(now - t0)
+                self._visual_frame((now - t0) * self.speed)  # session time (speed: a paced session)
         except BaseException as e:
             self._set_fault(f"visual loop: {type(e).__name__}: {e}")
 
@@ -738,14 +750,18 @@ class Session:
         dt = self.servo_dt
         ctl = np.zeros(1, rtloop.CTL)
         ctl["end"] = rtloop.NO_END
-        ctl["skip_after"] = rtloop.NO_END if self.skip_after_ticks is None else min(self.skip_after_ticks, rtloop.NO_END)
+        # a paced session never skips: its late ticks run back to back, every tick of the path a row
+        ctl["skip_after"] = (rtloop.NO_END if self.skip_after_ticks is None or self.speed != 1.0
+                             else min(self.skip_after_ticks, rtloop.NO_END))
         fl = np.zeros(1, rtloop.FL)
-        feed = rtloop.Feed(self.device, ctl, dt)
+        ahead = max(1, math.ceil(self.speed))  # the feed a second (wall) ahead at any pace
+        feed = rtloop.Feed(self.device, ctl, dt, capacity=4096 * ahead, lead=1000 * ahead)
         feed.fill()  # the first second before the clock starts
         k_limit = rtloop.NO_END
         if self.duration_s is not None:
             k_limit = int(math.floor(self.duration_s / dt + 1e-9)) + 1
         period_ns = int(round(dt * 1e9))
+        ctl["wall_ns"] = max(1, int(round(period_ns / self.speed)))
         rows = Ring(self.ring.buf, self.ring.ctr)
         table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
         dm = self.device_model if self.device_model is not None else devicemodel.new(dt, on=False)
@@ -833,11 +849,12 @@ class Session:
                 self._restore_sched(prev)  # the calling thread (often the main one) must not stay real-time
 
     def _timer_loop(self, t0: float) -> None:
-        """Tick k at ``t0 + k * servo_dt`` (sleep, then spin), read the device at session time
+        """Tick k at ``t0 + k * servo_dt / speed`` (sleep, then spin), read the device at session time
         ``k * servo_dt`` then :meth:`_servo_tick`; a device time stuck while a force is commanded is
         a fault."""
         dev = self.device
         dt = self.servo_dt
+        wall_dt = dt / self.speed  # between two deadlines (a paced session: shorter than dt)
         limit = self.duration_s if self.duration_s is not None else math.inf
         perf = time.perf_counter
         sleep = time.sleep
@@ -846,9 +863,9 @@ class Session:
         count_ticks = 0
         force = self._force  # the force the previous tick commanded (a view)
         dev_t, dev_t_since = math.nan, 0.0
-        anchor = t0  # tick k's deadline is anchor + k * dt
+        anchor = t0  # tick k's deadline is anchor + k * wall_dt
         while not self._stop.is_set():
-            deadline = anchor + k * dt
+            deadline = anchor + k * wall_dt
             now = perf()
             remaining = deadline - now
             if remaining > SLEEP_AFTER_NS / 1e9:  # servotick's rule, as the compiled loop's
@@ -871,11 +888,11 @@ class Session:
                 raise DeviceFault(f"{dev.info.name}: device time stuck at {dev_t:.3f} s for "
                                   f"{1e3 * (t - dev_t_since):.0f} ms while a force was commanded: "
                                   "device stopped updating")
-            self._servo_tick(t, state, err, dt)
+            self._servo_tick(t, state, err, wall_dt)
             self._t_session = t
             k += 1
             if err > 10 * dt:  # a long stall (debugger, suspend): re-anchor the deadlines instead of
-                anchor = perf() - k * dt  # bursting; session time (k * dt) moves on a tick at a time
+                anchor = perf() - k * wall_dt  # bursting; session time (k * dt) moves on a tick at a time
             count_ticks += 1
             if start - count_start >= 0.5:
                 self.rates["servo_hz"] = count_ticks / (start - count_start)

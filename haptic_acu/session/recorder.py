@@ -1,8 +1,11 @@
-"""Session recording: every tick's tip position (plus force and states) as a trajectory file.
+"""Session recording: every tick's device position (plus force and states) as a trajectory file.
 
 The file is the format :class:`devices.scripted.ScriptedDevice` plays (``t_s,x_mm,y_mm,z_mm``, the
 header on line 1; the extra columns are ignored on replay), so any OMNI or keyboard session
-replays headless later. ``layer`` and the ``state_*`` columns are names (``outside``, ``skin``...,
+replays headless later. ``x_mm, y_mm, z_mm`` are the device's tip (the servo's input: the samples'
+``dev_*`` columns), which the needle's tip follows but for the handle on the skin: a device further
+along the insertion than the needle's length holds the needle there (``depth_skin_mm``, the
+needle's depth in the tissue, is at most its length; :mod:`haptic_acu.servo.step`). ``layer`` and the ``state_*`` columns are names (``outside``, ``skin``...,
 ``untouched``, ``pressing``, ``punctured``), as in ``samples.csv``; ``event`` names what happened
 on that tick (``reset``: the keyboard's ``r``, fresh tissue; the replay honours it); ``roll_deg`` is
 the needle's roll (cumulative degrees, + clockwise seen from the handle: the OMNI's stylus roll, the
@@ -10,7 +13,7 @@ keyboard's twirl keys), which the replay plays into the servo, so a session repl
 appended once per visual frame, unbuffered: a crash or Ctrl-C loses at most the last frame, and on a
 fault the engine's final flush writes every tick up to the fault.
 
-A replay of the recording runs the session's own ticks: the tip's position and roll are written to
+A replay of the recording runs the session's own ticks: the device's position and roll are written to
 the last bit (``%.17g``: the replay derives the velocity from consecutive positions), and at the end
 one more row holds the last position half a tick after the last tick (:data:`END_AFTER_S`): a
 trajectory is done when the replay's time reaches its last row, so without it the replay would stop
@@ -34,15 +37,16 @@ from .trajectory import AXIS_COLUMNS, EVENT_COLUMN, EVENT_CODES, LAYER_CODES, RO
 from .sink import Sink
 
 EXTRA = ("fx_n", "fy_n", "fz_n", "layer", "state_skin", "state_fat", "state_muscle", "depth_mm",
+         "depth_skin_mm",  # the needle's depth in the tissue along the insertion (at most its length)
          "fr_x_n", "fr_y_n", "fr_z_n",  # the force rendered to the device (0 without one)
          ROLL_COLUMN, EVENT_COLUMN)
 PLACES = {code: name for name, code in LAYER_CODES.items()}  # layer codes -1..3 -> names
 STATES = {code: name for name, code in STATE_CODES.items()}
 EVENTS = {code: name for name, code in EVENT_CODES.items()}
-_SRC = [COL["t_s"], COL["x_m"], COL["y_m"], COL["z_m"], COL["fx_n"], COL["fy_n"], COL["fz_n"], COL["layer"],
-        COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"], COL["fr_x_n"], COL["fr_y_n"],
-        COL["fr_z_n"], COL["roll_deg"]]
-_DEPTH = _SRC.index(COL["depth_m"])
+_SRC = [COL["t_s"], COL["dev_x_m"], COL["dev_y_m"], COL["dev_z_m"], COL["fx_n"], COL["fy_n"], COL["fz_n"], COL["layer"],
+        COL["state_skin"], COL["state_fat"], COL["state_muscle"], COL["depth_m"], COL["depth_skin_m"],
+        COL["fr_x_n"], COL["fr_y_n"], COL["fr_z_n"], COL["roll_deg"]]
+_DEPTHS = [_SRC.index(COL["depth_m"]), _SRC.index(COL["depth_skin_m"])]
 _SRC_AXIS = [COL["axis_x"], COL["axis_y"], COL["axis_z"]]
 # with a device that gives the needle axis (the OMNI's stylus): axis_x,axis_y,axis_z before the event
 EXTRA_AXIS = EXTRA[:-1] + AXIS_COLUMNS + EXTRA[-1:]
@@ -126,7 +130,7 @@ class RecorderSink(Sink):
         if self._w is None:
             self.open()
         out = rows[:, _SRC].copy()
-        out[:, _DEPTH] *= 1e3  # depth in mm
+        out[:, _DEPTHS] *= 1e3  # depths in mm
         ticks = rows[:, COL["tick"]]
         # a recording must strictly increase in time (a device clock can repeat a timestamp): keep
         # the rows later than every row before them (not just the previous one, which may be dropped)

@@ -273,28 +273,15 @@ def check_start(trajectory, tissue) -> None:
 
 def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dict:
     """A finished session's summary, as replay and run both report it: the summary sink's numbers,
-    the trajectory's name, the metrics, the needle-length note (on stderr) and, with a ``point``,
+    the trajectory's name, the metrics and, with a ``point``,
     its grading."""
     summary = summary_sink.summary()
     summary["trajectory"] = name
     summary["metrics"] = summary_sink.metrics(summary["punctures"])
-    note = needle_note(summary, cfg)
-    if note:
-        print(note, file=sys.stderr)
     if point is not None:
         from .point import add_to_summary
         add_to_summary(summary, point, grade.result())
     return summary
-
-
-def needle_note(summary: dict, cfg) -> str | None:
-    """A warning when the tip went deeper than the needle is long (the handle would be in the tissue)."""
-    deepest = summary.get("max_tip_depth_mm") or 0.0
-    if deepest > cfg.needle.length_mm:
-        return (f"haptic-acu: warning: the tip went {deepest:.3g} mm deep with a {cfg.needle.length_mm:g} mm "
-                "needle (needle.length_mm): the handle would be in the tissue; forces past the needle's "
-                "length are not physical")
-    return None
 
 
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,

@@ -8,7 +8,8 @@ at most ``max_hz`` (10) times a second, rewrites the line with ``\\r`` (no scrol
 * for 1.5 s after a puncture (session time), ``SKIN PUNCTURED`` (``FAT``, ``MUSCLE``) first on the line;
 * the warnings, first: ``FORCE LIMIT`` while the commanded force is clamped to the safety limit,
   ``ON BONE: withdraw`` with the tip on the bone, and ``12.40 mm deep, 2.4 PAST 30`` in place of
-  the target once the needle is deeper than the target range;
+  the target once the needle is deeper than the target range, ``40.00 mm deep: HANDLE ON SKIN``
+  while the whole needle is in (the device pushes past its length);
 * the session time (s) of the newest servo tick;
 * the tip's position relative to the acupoint (x, y in mm, the scene frame's origin);
 * where the tip is: in the air with its height above the rest skin, ``pressing skin`` with how far
@@ -61,6 +62,7 @@ SEP = " | "
 
 
 _C_X = COL["x_m"]
+_C_DEV = COL["dev_x_m"]
 _C_CLAMP = COL["clamped"]
 _C_RSTAT = COL["render_status"]
 _LIMITING = 2  # haptic_acu.servo.rendering.LIMITING (not imported: the status line loads no numba kernels)
@@ -78,6 +80,13 @@ def loop_health(missed: int, ticks: int) -> str:
 
 
 FLASH_S = 1.5  # a puncture is announced this long (session time) after it happens
+
+
+def handle_on_skin(row: np.ndarray) -> bool:
+    """The handle on the skin: the device is further along the insertion than the needle's length,
+    so the needle's tip (``x_m``...) is not the device's (``dev_x_m``...; haptic_acu.servo.step)."""
+    dev, tip = row[_C_DEV:_C_DEV + 3], row[_C_X:_C_X + 3]
+    return bool(np.isfinite(dev).all() and np.any(dev != tip))
 
 
 def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, *, ticks: int | None = None,
@@ -104,7 +113,9 @@ def status_fields(t_s: float, row: np.ndarray, rates: dict, missed: int | None, 
         fields.append((1, f"{_PLACE.get(layer, '?')} {row[_C_DEPTH] * 1e3:.2f} mm"))
         depth = row[_C_DEPTH_SKIN] * 1e3
         deep = f"{depth:.2f} mm deep"
-        if target_mm is not None and depth > target_mm[1]:
+        if handle_on_skin(row):  # the whole needle in: before (and in place of) the target
+            deep += ": HANDLE ON SKIN"
+        elif target_mm is not None and depth > target_mm[1]:
             deep += f", {depth - target_mm[1]:.1f} PAST {target_mm[1]:g}"
         elif target_mm is not None:
             deep += f" (target {target_mm[0]:g}-{target_mm[1]:g})"

@@ -112,9 +112,10 @@ def set_axis(inp, s, fx, fy, fz):
         for c in range(3):
             sv.axis[c] = ia[c] / n
         return
-    dx = inp.p[0] - sv.touch[0]
-    dy = inp.p[1] - sv.touch[1]
-    dz = inp.p[2] - sv.touch[2]
+    p = s.work[0].tip
+    dx = p[0] - sv.touch[0]
+    dy = p[1] - sv.touch[1]
+    dz = p[2] - sv.touch[2]
     d = math.sqrt(dx * dx + dy * dy + dz * dz)
     if d > 2e-5:
         sv.axis[0] = dx / d
@@ -144,7 +145,7 @@ def begin_insertion(inp, m, s, j):
     else:
         set_axis(inp, s, sv.axis[0], sv.axis[1], sv.axis[2])
         a = sv.axis
-        p = inp.p
+        p = s.work[0].tip
         back = ((p[0] - sv.touch[0]) * a[0] + (p[1] - sv.touch[1]) * a[1] + (p[2] - sv.touch[2]) * a[2])
         t = line_crossing(m, 0, p, a, -back, -back - 1e-4)
         if not math.isfinite(t):
@@ -154,7 +155,7 @@ def begin_insertion(inp, m, s, j):
     sv.inserted = 1
     e = sv.entry
     a = sv.axis
-    p = inp.p
+    p = s.work[0].tip
     s.work[0].s_p = (p[0] - e[0]) * a[0] + (p[1] - e[1]) * a[1] + (p[2] - e[2]) * a[2]
     sv.deepest = s.work[0].s_p
     axis_bounds(m, s)
@@ -245,8 +246,8 @@ def rich_axial(inp, m, s, d, v):
             room = sv.bounds[kc + 1] - 1e-9 - s_tip
             if ahead > room:
                 ahead = room
-            dmg = track_damage(tracks_of(s), inp.p[0] + ahead * a[0], inp.p[1] + ahead * a[1],
-                               inp.p[2] + ahead * a[2], kc, r)
+            p = wk.tip
+            dmg = track_damage(tracks_of(s), p[0] + ahead * a[0], p[1] + ahead * a[1], p[2] + ahead * a[2], kc, r)
             cut = m.layer[kc].cut * (1.0 - dmg) * reach
     st = 0.0
     co = 0.0
@@ -289,7 +290,8 @@ def shaft_forces(inp, m, s, d):
     the track what an advancing tip opens."""
     sv = s.servo[0]
     a = sv.axis
-    v = inp.v[0] * a[0] + inp.v[1] * a[1] + inp.v[2] * a[2]
+    tv = s.work[0].tip_v  # the needle's (held by the handle: not along the axis)
+    v = tv[0] * a[0] + tv[1] * a[1] + tv[2] * a[2]
     held_lengths(m, s)
     if m.params[0].mechanics == TABLE1:
         fa = table1_axial(m, s, d, v)
