@@ -380,8 +380,8 @@ class ReadAtOnly(ScriptedDevice):
 
 
 def test_ticks_one_by_one_from_python_equal_the_compiled_blocks(cfg, tissue, tmp_path):
-    """The same trajectory on simulated time, read ahead (run_ticks, compiled blocks) and read tick by
-    tick (the Python driver): identical sample rows, so both call the one servo tick."""
+    """The same trajectory on simulated time, read ahead (run_frames, many frames per compiled call)
+    and read tick by tick (the Python driver): identical sample rows, so both call the one servo tick."""
     report = pytest.importorskip("haptic_acu.session.report")
     out = []
     for cls in (ScriptedDevice, ReadAtOnly):

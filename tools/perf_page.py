@@ -82,6 +82,9 @@ def end_to_end_lines(res: dict) -> list[str]:
          f"{fmt(get(e, 'cli_s', 'rrd'))} s", f"{times(r.get('replay_cli_rrd_vs_bound'))} the ticks' compute bound"],
         ["the same with `--no-rrd`", f"{fmt(get(e, 'cli_s', 'no_rrd'))} s",
          f"{times(r.get('replay_cli_no_rrd_vs_bound'))} the bound"],
+        ["the same two commands in CPU time (user + system: a loaded host's waiting left out, as the p50 "
+         "below leaves it out)", f"{fmt(get(e, 'cli_cpu_s', 'rrd'))} / {fmt(get(e, 'cli_cpu_s', 'no_rrd'))} s",
+         f"{times(r.get('replay_cli_rrd_cpu_vs_bound'))} / {times(r.get('replay_cli_no_rrd_cpu_vs_bound'))} the bound"],
         ["the ticks' compute bound: ticks x the compiled tick's p50 (pressing the skin)",
          f"{fmt(get(e, 'bound_s'))} s", f"{fmt(get(e, 'ticks'))} ticks x {fmt(get(e, 'tick_p50_us'))} us"],
         ["a batch of the same trajectory in one command, per file (`--jobs 1`)",
@@ -89,6 +92,8 @@ def end_to_end_lines(res: dict) -> list[str]:
         ["the replay's speed (simulated s per wall s, the session alone) against the compiled tick's",
          f"{times(get(res, 'replay_speed_x', 'no_rrd'))} real time",
          f"{fmt(r.get('replay_speed_vs_tick_bound'))} of {times(get(e, 'tick_bound_x'))}"],
+        ["the same speed in the session's CPU time", f"{times(get(res, 'replay_speed_x', 'cpu', 'no_rrd'))} real time",
+         f"{fmt(r.get('replay_speed_cpu_vs_tick_bound'))} of {times(get(e, 'tick_bound_x'))}"],
         ["first `haptic-acu replay` with empty numba and table caches / once they are filled",
          f"{fmt(fr.get('empty_caches'))} / {fmt(fr.get('after_install'))} s", times(r.get("first_run_vs_warm"))],
         ["first command after installing the wheel into a fresh venv / the same command warm",

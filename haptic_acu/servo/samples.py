@@ -134,15 +134,16 @@ class SampleRing:
     def commit(self) -> None:
         self.ctr[0] += 1
 
-    def drain(self) -> np.ndarray:
-        """Copy out every row written since the last drain, oldest first."""
+    def drain(self, most: int | None = None) -> np.ndarray:
+        """Copy out every row written since the last drain (at most its ``most`` oldest), oldest
+        first."""
         with self._lock:
             head = self.head
             tail = self.tail
             if head - tail > self.capacity:
                 self.dropped += head - tail - self.capacity
                 tail = head - self.capacity
-            n = head - tail
+            n = head - tail if most is None else min(head - tail, most)
             if n <= 0:
                 return np.zeros((0, NCOL))
             a = tail % self.capacity
@@ -151,5 +152,5 @@ class SampleRing:
                 out = self.buf[a:b].copy()
             else:
                 out = np.concatenate([self.buf[a:], self.buf[: b - self.capacity]])
-            self.tail = head
+            self.tail = tail + n
             return out

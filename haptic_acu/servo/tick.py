@@ -23,6 +23,7 @@ from . import state as ss
 from .cptr import address_of, i64p
 from .step import reset_servo, step_servo  # noqa: F401 (reset_servo: the compiled loop's)
 from .samples import write_sample
+from ..tissue.springback import springback_frame
 
 STALE = -1  # what a compiled driver returns for a table of another layout (see call_driver)
 # The wait for a tick's deadline on our timer, one rule for the compiled loop (rtloop.wait_until) and
@@ -136,6 +137,49 @@ def run_ticks(P, V, A, R, T, tick0, table):
         if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
             return i + 1
     return T.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def run_frames(P, V, A, R, T, tick0, ends, table, n_net, sb, goals):
+    """Headless replay of many visual frames in one call: :func:`servo_tick` on each of the
+    ticks ``T`` (as :func:`run_ticks`), and after each frame's last tick (``ends[j]`` is the index
+    in ``T`` just past frame ``j``'s last tick, increasing) one frame of springback
+    (:func:`haptic_acu.tissue.springback.springback_frame` on the servo's nets; ``n_net``, ``sb``,
+    ``goals``: :meth:`Springback.args`), the order a session's loops keep. Ticks after the last
+    end run without a frame. Stops after a faulting tick. Returns (ticks run, frames completed)
+    (ticks :data:`STALE`: see :func:`call_driver`)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE, 0
+    sv, ring, _ = unpack_tick(table)
+    st = sv.state
+    lay = sv.model.layout[0]
+    i = 0
+    n = T.shape[0]
+    for j in range(ends.shape[0] + 1):
+        e = ends[j] if j < ends.shape[0] else n
+        while i < e:
+            for c in range(3):
+                sv.inp.p[c] = P[i, c]
+                sv.inp.v[c] = V[i, c]
+                sv.inp.axis[c] = A[i, c]
+            sv.inp.roll[0] = R[i]
+            ok = servo_tick(sv, ring, T[i], tick0 + i, 0.0)
+            i += 1
+            if not ok:
+                return i, j
+        if j < ends.shape[0]:
+            rec = st.servo[0]
+            springback_frame(rec.owner, rec.gen, st.pos, lay.x, lay.X0, lay.n_all, n_net, sb, goals)
+    return i, ends.shape[0]
+
+
+def call_frames(*args):
+    """:func:`run_frames` through :func:`call_driver`'s rule (a stale cache entry recompiled)."""
+    r = run_frames(*args)
+    if r[0] == STALE:
+        run_frames.recompile()
+        r = run_frames(*args)
+    return r
 
 
 _TICK_C = None

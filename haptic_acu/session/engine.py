@@ -70,8 +70,11 @@ from ..base.errors import DeviceFault
 from ..tissue.forcenet import dent_on_grid
 from ..servo.step import NeedleModel
 from ..servo.state import FREE, N_LAYERS, N_SLOTS, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing, net_index
-from ..servo.tick import SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, roll_block, run_ticks, tick_table
-from ..servo.samples import NCOL, SampleRing
+from ..servo.tick import (SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, call_frames, roll_block,
+                          tick_table)
+from ..servo.samples import COL, NCOL, SampleRing
+
+_C_F = COL["fx_n"]
 from .sink import Sink
 from ..tissue.springback import Springback
 
@@ -256,11 +259,27 @@ class Session:
 
     # -- set-up -----------------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """Compile every kernel both loops call, warm the sinks, before any loop starts."""
+        """Compile every kernel both loops call, warm the sinks, before any loop starts. A replay
+        (simulated time, a device read ahead) loads only its one compiled loop: every tick and
+        springback runs in it (the visual side's other kernels load on first use, off any clock)."""
+        m = self.model
+        if self.clock == "sim" and self.device.reads_ahead:
+            z = np.zeros((1, 3))
+            rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))  # alive while the table is used
+            call_frames(z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1), 0, np.zeros(0, np.int64),
+                        tick_table(m.servo, rows, self._timing), *self.springback.args())
+            m.reset(keep_holes=False)
+        else:
+            self._warm_loops()
+        for s in self.sinks:
+            s.warm_up()
+        self._warm = True
+
+    def _warm_loops(self) -> None:
+        """The kernels of a live session's loops (and of a replay on a device not read ahead)."""
         self.model.warm_up()
         if self.device_model is not None:
             devicemodel.warm_up()
-        buf = np.zeros((1, NCOL))
         m = self.model
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
@@ -273,19 +292,13 @@ class Session:
                 self._omni_callback = omniloop.build_callback(lib)
         if self._python_ticks():
             self._warm_python_tick()
-        if self.clock == "sim" and self.device.reads_ahead:
-            z = np.zeros((1, 3))
-            rows = Ring(buf, np.zeros(1, np.int64))  # alive while the table is used
-            call_driver(run_ticks, z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1), 0,
-                        tick_table(m.servo, rows, self._timing))
-            self.model.reset(keep_holes=False)
-        layer_dent(self.model, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
-        # springback kernels: run once on a scratch copy of slot 0
-        from ..tissue.springback import springback_step
-        springback_step(self.model.x[0].copy(), self.model.X0[0].copy(), 1, 1.0, np.zeros_like(self.model.x[0]))
-        for s in self.sinks:
-            s.warm_up()
-        self._warm = True
+        layer_dent(m, 0, PATCH_GRID[0][:1, :1], PATCH_GRID[1][:1, :1])
+        # springback's kernel: loaded with every net's owner FREE on scratch copies (nothing moves)
+        from ..tissue.springback import springback_frame
+        lay = m.model.layout[0]
+        n_net, sb, goals = self.springback.args()
+        springback_frame(np.zeros_like(m.rec["owner"]), m.rec["gen"].copy(), m.state.pos.copy(), lay["x"], lay["X0"],
+                         lay["n_all"], n_net, sb.copy(), goals.copy())
 
     def _python_ticks(self) -> bool:
         """Whether this session's driver is a Python loop or callback (see the module docstring)."""
@@ -364,9 +377,18 @@ class Session:
 
     def _visual_frame(self, t: float) -> None:
         rows = self.ring.drain()
-        self.springback.frame()
+        if self._sim_table is not None:  # a replay's: the compiled frame, without ticks
+            z = np.zeros((0, 3))
+            call_frames(z, z, z, np.zeros(0), np.zeros(0), self.tick, np.zeros(1, np.int64), self._sim_table,
+                        *self.springback.args())
+        else:
+            self.springback.frame()
         dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
-        frame = Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents)
+        self._deliver(Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents))
+
+    def _deliver(self, frame: Frame) -> None:
+        """``frame`` to every sink (each gets it, even if one of them fails; the first failure is
+        raised after)."""
         self.frame_index += 1
         error = None
         for s in self.sinks:  # every sink gets the drained rows, even if one of them fails
@@ -452,7 +474,10 @@ class Session:
 
     def _run_sim(self) -> None:
         """Simulated time: ticks at exactly ``servo_dt``, a visual frame whenever session time
-        crosses a multiple of ``frame_dt``; each frame's ticks run as one block (:meth:`_sim_block`)."""
+        crosses a multiple of ``frame_dt``. A device read ahead: :meth:`_run_sim_ahead`; otherwise
+        each frame's ticks read and run one by one (:meth:`_sim_block`)."""
+        if self.device.reads_ahead:
+            return self._run_sim_ahead()
         dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
@@ -474,54 +499,139 @@ class Session:
                 next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
 
     def _sim_block(self, k0: int, k1: int) -> bool:
-        """Ticks ``k0..k1`` on simulated time; False if they did not all run (end, fault, stop). A
-        device read ahead: one :func:`run_ticks` call per block (split at reset events); otherwise a
-        read and a :meth:`_servo_tick` per tick."""
+        """Ticks ``k0..k1`` on simulated time from a device that cannot be read ahead: a read and a
+        :meth:`_servo_tick` per tick; False if they did not all run (end, fault, stop)."""
         dt = self.servo_dt
         dev = self.device
-        if not dev.reads_ahead:
-            for k in range(k0, k1 + 1):
-                t = k * dt
-                state = dev.read_at(t)
-                if state.done or self._stop.is_set():
-                    return False
-                self._servo_tick(t, state)
-                self._t_session = t
-            return not self._stop.is_set()
-        T = np.arange(k0, k1 + 1) * dt
-        P, V, done = dev.read_block(T)
-        if done.any():
-            cut = int(np.argmax(done))
-            T, P, V = T[:cut], P[:cut], V[:cut]
-        if T.size:
-            if self._sim_table is None:  # the ring's and the model's arrays outlive it
-                self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
+        for k in range(k0, k1 + 1):
+            t = k * dt
+            state = dev.read_at(t)
+            if state.done or self._stop.is_set():
+                return False
+            self._servo_tick(t, state)
+            self._t_session = t
+        return not self._stop.is_set()
+
+    def _frame_plan(self, k0: int, next_frame: float, limit: float, max_frames: int):
+        """The next frames from tick ``k0``: (each frame's last tick, the next frame time, whether
+        the last block ends at ``limit`` without a frame), the rule of :meth:`_run_sim`."""
+        dt = self.servo_dt
+        lasts = []
+        cut = False
+        k = k0
+        while len(lasts) < max_frames and k * dt <= limit + 1e-12:
+            k1 = max(k, math.ceil((next_frame - 1e-12) / dt))  # the tick that reaches the frame time
+            if limit != math.inf:
+                k1 = min(k1, math.floor((limit + 1e-12) / dt))
+            t = k1 * dt
+            if t + 1e-12 < next_frame:  # the session ends before this frame
+                lasts.append(k1)
+                cut = True
+                break
+            lasts.append(k1)
+            next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+            k = k1 + 1
+        return lasts, next_frame, cut
+
+    def _run_sim_ahead(self) -> None:
+        """Simulated time on a device read ahead: the positions of many frames read at once and
+        their ticks run by :func:`~haptic_acu.servo.tick.run_frames` with each frame's springback,
+        in one compiled call when every sink reads only the rows (:attr:`Sink.rows_only`: the
+        frames are handed over after the call), else a frame per call with the frame handed over
+        before the next one's ticks. Reset events cut a call (fresh tissue before their tick).
+        Identical input gives identical rows either way."""
+        dt = self.servo_dt
+        limit = self.duration_s if self.duration_s is not None else math.inf
+        dev = self.device
+        rows_only = all(s.rows_only for s in self.sinks)
+        # a call's rows stay in the ring until they are handed over: at most half of it
+        max_frames = max(1, int(self.ring.capacity // 2 * dt / self.frame_dt) - 1) if rows_only else 1
+        events = getattr(dev, "has_events", True)
+        if self._sim_table is None:  # the ring's and the model's arrays outlive it
+            self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
+        sb = self.springback.args()
+        t0 = time.perf_counter()
+        next_frame = self.frame_dt
+        while not self._stop.is_set():
+            k0 = self.tick
+            lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, max_frames)
+            if not lasts:
+                break
+            T = np.arange(k0, lasts[-1] + 1) * dt
+            P, V, done = dev.read_block(T)
+            n_read = int(np.argmax(done)) if done.any() else T.size
+            T_size = T.size
+            ends = np.array(lasts[:-1] if cut else lasts, dtype=np.int64) - (k0 - 1)
+            T, P, V = T[:n_read], P[:n_read], V[:n_read]
+            cuts = []
+            if events:  # per frame, as each frame's ticks were read
+                a = 0
+                for e in ends.tolist() + [T_size]:
+                    e = min(e, n_read)
+                    if e > a:
+                        cuts += [a + c for c in dev.reset_ticks(T[a:e])]
+                    a = e
             A = axis_block(dev, T)
             R = roll_block(dev, T)
-            n = self._run_ticks_resetting(P, V, A, R, T, k0, dev.reset_ticks(T), self._sim_table)
+            n, frames = self._run_frames_resetting(P, V, A, R, T, k0, ends[ends <= n_read], cuts, sb)
             self.tick += n
-            self._t_session = float(T[n - 1])
-            if self.model.diag["fault"] != 0.0:
+            if n:
+                self._t_session = float(T[n - 1])
+            faulted = self.model.diag["fault"] != 0.0
+            wall = time.perf_counter() - t0
+            if wall > 0:
+                self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
+            self._hand_over(ends[:frames], T)
+            if faulted:
                 self._state_fault(float(T[n - 1]), self.tick - 1)
-                return False
-            dev.set_force(self._force)
-        return T.size == k1 + 1 - k0
+                return
+            if cut or n < n_read or n_read < T_size:  # the session's end, a fault or the device's end
+                return
+            next_frame = next_after
 
-    def _run_ticks_resetting(self, P, V, A, R, T, k0, cuts, table) -> int:
-        """:func:`run_ticks` on a block, resetting the model (fresh tissue, as the keyboard's
-        ``r``) before each tick index in ``cuts`` (a recording's reset events)."""
+    def _run_frames_resetting(self, P, V, A, R, T, k0, ends, cuts, sb):
+        """:func:`run_frames` on a block, resetting the model (fresh tissue, as the keyboard's
+        ``r``) before each tick index in ``cuts`` (a recording's reset events); (ticks, frames)."""
         bounds = [0, *[c for c in cuts if 0 <= c < T.size], T.size]
-        n = 0
+        n = frames = 0
         for j in range(len(bounds) - 1):
             a, b = bounds[j], bounds[j + 1]
             if j > 0:
                 self.model.reset(keep_holes=False)
-            if b > a:
-                r = call_driver(run_ticks, P[a:b], V[a:b], A[a:b], R[a:b], T[a:b], k0 + a, table)
+            last = j == len(bounds) - 2
+            seg = ends[(ends > a) & (ends <= b)] if not last else ends[ends > a]
+            if b > a or len(seg):
+                r, f = call_frames(P[a:b], V[a:b], A[a:b], R[a:b], T[a:b], k0 + a, seg - a, self._sim_table, *sb)
                 n += r
+                frames += f
                 if r < b - a:  # a fault
                     break
-        return n
+        return n, frames
+
+    def _hand_over(self, ends, T) -> None:
+        """The rows of the frames just run (``ends``: the index past each one's last tick in
+        ``T``), each frame's to every sink (a live session's visual frame, its springback already
+        run); the force of each frame's last tick commanded. The rows of a frame not completed stay
+        in the ring (for the final frame)."""
+        frames = len(ends)
+        if not frames:
+            return
+        rows = self.ring.drain(int(ends[-1]))
+        F = rows[ends - 1, _C_F:_C_F + 3]
+        record = getattr(self.device, "record_forces", None)
+        if record is not None:
+            record(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
+        else:
+            for f in F:
+                self.device.set_force(f)
+        dents = self.want_dents and not all(s.rows_only for s in self.sinks)
+        rates = dict(self.rates)
+        a = 0
+        for e in ends.tolist():
+            t = float(T[e - 1])
+            self._deliver(Frame(t, self.frame_index, rows[a:e], self.model, rates,
+                                Dents(self.model, self.springback.settled) if dents else {}))
+            a = e
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..analysis.grading import WARN_MM, PointGrader, nearest, session_grade
 from ..base.errors import UserError
-from ..servo.step import NeedleModel
-from ..tissue.atlas import Point, load_point
-from ..tissue.patient import Anatomy, Patient, config_at, parse_patient, realise
 from .sink import Sink
+
+# the grading, the atlas, the patient and the servo model are imported where a point session
+# uses them: a command's parser (add_point_args) needs none of them
 
 FEEDBACK = ("guided", "exam")
 
@@ -28,6 +27,8 @@ class PointSetup:
 
     def model(self, tissue=None) -> NeedleModel:
         """The servo model at the point, its danger structures loaded."""
+        from ..servo.step import NeedleModel
+
         m = NeedleModel(self.cfg, tissue)
         m.set_structures(self.anatomy)
         m.anatomy = self.anatomy  # what the sinks draw (rerun, status)
@@ -37,6 +38,8 @@ class PointSetup:
         """The guided feedback's live warning for the tip at ``p_mm`` (mm), or ""."""
         if self.feedback != "guided":
             return ""
+        from ..analysis.grading import WARN_MM, nearest
+
         near = nearest(self.anatomy, p_mm, t_s)
         if near is None or near[1] > WARN_MM:
             return ""
@@ -66,6 +69,9 @@ def setup(cfg, point_spec: str | None, patient_spec: str | None = None, feedback
         return None
     if feedback not in FEEDBACK:
         raise UserError(f"--feedback: must be guided or exam, got {feedback!r}")
+    from ..tissue.atlas import load_point
+    from ..tissue.patient import config_at, parse_patient, realise
+
     point = load_point(point_spec)
     patient = parse_patient(patient_spec, source=source)
     anatomy = realise(point, patient)
@@ -80,7 +86,11 @@ def setup_from_args(cfg, args) -> PointSetup | None:
 class GradeSink(Sink):
     """Grades the session's insertions against the point as the rows arrive (bounded memory)."""
 
+    rows_only = True  # the rows (and the frame's time) only
+
     def __init__(self, ps: PointSetup):
+        from ..analysis.grading import PointGrader
+
         self.ps = ps
         self.grader = PointGrader(ps.anatomy, ps.cfg.needle.bone_stiffness_n_per_mm)
 
@@ -100,6 +110,8 @@ MERGED = ("angle_error_deg", "heading_error_deg", "direction_verdict", "danger_m
 def add_to_summary(summary: dict, ps: PointSetup, graded: list[dict]) -> dict:
     """``point``, ``patient``, ``anatomy`` and ``point_grading`` into ``summary``; each of
     ``metrics.per_insertion`` gains the grading's :data:`MERGED` keys (same insertions, same order)."""
+    from ..analysis.grading import session_grade
+
     summary["point"] = ps.point.code
     summary["patient"] = ps.patient.as_dict()
     summary["feedback"] = ps.feedback

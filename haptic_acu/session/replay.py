@@ -171,6 +171,8 @@ class Progress(Sink):
     """A percentage on stderr (a sink: called per visual frame): rewritten in place on a terminal;
     elsewhere (a pipe, a log) a plain line every 25 %, once the replay has taken over a second."""
 
+    rows_only = True  # the rows (and the frame's time) only
+
     def __init__(self, label: str, duration_s: float, stream=None):
         from ..base import progress
         self.stream = stream if stream is not None else sys.stderr
@@ -224,6 +226,7 @@ class _Guarded(Sink):
     def __init__(self, sink: Sink, errors: _IOErrors):
         self.sink = sink
         self.errors = errors
+        self.rows_only = sink.rows_only
 
     def warm_up(self) -> None:
         self.sink.warm_up()
@@ -385,6 +388,8 @@ def replay_rows(trajectory, cfg, roll: bool = True):
 
 class _Forces(Sink):
     """Frame sink keeping per row only its tick and force (the grasp felt's reference)."""
+
+    rows_only = True  # the rows (and the frame's time) only
 
     def __init__(self):
         from ..servo.samples import COL

@@ -53,6 +53,8 @@ class SummarySink(Sink):
     ``info``.
     """
 
+    rows_only = True  # the rows (and the frame's time) only
+
     BATCH_ROWS = 2048
 
     def __init__(self, cfg=None, keep_rows: bool = True, reference_rows=None):
@@ -775,7 +777,9 @@ class SamplesCsvSink(Sink):
     lengths 0.1 um, forces 10 uN), no negative zeros: identical rows give identical bytes.
     """
 
-    BATCH_ROWS = 1024
+    rows_only = True  # the rows (and the frame's time) only
+
+    BATCH_ROWS = SummarySink.BATCH_ROWS  # the same batches: the tip depth is computed once for both
 
     def __init__(self, path):
         self.path = Path(path)

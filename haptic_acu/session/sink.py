@@ -14,6 +14,11 @@ from __future__ import annotations
 
 
 class Sink:
+    #: True for a sink that reads only a frame's ``samples``, ``t_s`` and ``index`` (never the model,
+    #: its dents or the rates at that frame): a headless replay whose sinks all say so runs many
+    #: frames in one compiled call and hands each frame's rows over afterwards.
+    rows_only = False
+
     def warm_up(self) -> None:
         """Prepare before any loop starts (nothing by default)."""
 

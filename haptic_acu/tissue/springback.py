@@ -19,7 +19,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .layers import VISUAL_OWNS, net_layer
+from .layers import N_SLOTS, VISUAL_OWNS
 
 
 @nb.njit(cache=True, nogil=True)
@@ -82,12 +82,52 @@ def springback_step(x, X0, n_net, eta, goals):
     return np.sqrt(biggest)
 
 
+@nb.njit(cache=True, nogil=True)
+def springback_frame(owner, gen, pos, x_at, X0_at, n_all, n_net, sb, goals):
+    """One visual frame of springback on every handed-over net (owner VISUAL_OWNS) of the packed
+    particle storage ``pos`` (net ``idx`` of layer ``k = idx // N_SLOTS``: its particles at rows
+    ``x_at[idx]``, rest ones at ``X0_at[idx]``, ``n_all[k]`` of them, the first ``n_net[k]`` the
+    force net's). ``owner`` and ``gen`` are the servo's (layer, slot) arrays; ``sb``
+    (:data:`SB`, one record) holds each net's eta, the generation it was seen at and whether it has
+    settled, and the schedule; ``goals`` is scratch of at least ``max(n_all)`` rows. A net whose
+    generation changed restarts at eta 1. Returns how many nets moved."""
+    s = sb[0]
+    moved = 0
+    for idx in range(s.eta.shape[0]):
+        k = idx // N_SLOTS
+        sl = idx % N_SLOTS
+        if owner[k, sl] != VISUAL_OWNS:
+            continue
+        g = gen[k, sl]
+        if g != s.gen[idx]:
+            s.gen[idx] = g
+            s.eta[idx] = 1.0
+            s.settled[idx] = 0
+        if s.settled[idx]:
+            continue
+        na = n_all[k]
+        step = springback_step(pos[x_at[idx]:x_at[idx] + na], pos[X0_at[idx]:X0_at[idx] + na], n_net[k],
+                               s.eta[idx], goals[:na])
+        s.eta[idx] = max(s.eta_min, s.eta[idx] - s.eta_rate)
+        if s.eta[idx] <= s.eta_min and step < s.settle_m:
+            s.settled[idx] = 1
+        moved += 1
+    return moved
+
+
+def sb_dtype(n_nets: int) -> np.dtype:
+    """The springback record for ``n_nets`` nets (:func:`springback_frame`'s ``sb``)."""
+    return np.dtype([("eta", "f8", (n_nets,)), ("gen", "i8", (n_nets,)), ("settled", "u1", (n_nets,)),
+                     ("eta_rate", "f8"), ("eta_min", "f8"), ("settle_m", "f8")])
+
+
 class Springback:
     """Per-slot springback schedules for a :class:`~haptic_acu.servo.step.NeedleModel`.
 
-    Call :meth:`frame` once per visual frame. It runs only on slots the servo has handed over
-    (owner 2) and restarts a slot's eta at 1 whenever the slot's generation changes (a new
-    puncture, or the servo took the slot back for a new net).
+    Call :meth:`frame` once per visual frame (or pass :meth:`args` to a compiled loop that calls
+    :func:`springback_frame` itself). It runs only on slots the servo has handed over (owner 2) and
+    restarts a slot's eta at 1 whenever the slot's generation changes (a new puncture, or the servo
+    took the slot back for a new net).
     """
 
     def __init__(self, model, eta_rate: float, eta_min: float, settle_m: float = 1e-9):
@@ -96,32 +136,27 @@ class Springback:
         self.eta_min = float(eta_min)
         self.settle_m = settle_m
         n_slots = len(model.x)
-        self.eta = np.ones(n_slots)
-        self.gen = -np.ones(n_slots, dtype=np.int64)
-        self.settled = np.zeros(n_slots, dtype=bool)
-        self.goals = [np.zeros_like(x) for x in model.x]
+        self.sb = np.zeros(1, sb_dtype(n_slots))
+        rec = self.sb[0]
+        rec["eta"] = 1.0
+        rec["gen"] = -1
+        rec["eta_rate"], rec["eta_min"], rec["settle_m"] = self.eta_rate, self.eta_min, settle_m
+        self.eta, self.gen, self.settled = rec["eta"], rec["gen"], rec["settled"]  # views
+        self.n_net = np.asarray(model.n, dtype=np.int64)
+        self.goals = np.zeros((max(len(x) for x in model.x), 3))
 
     @classmethod
     def from_config(cls, model, cfg) -> "Springback":
         return cls(model, cfg.springback.eta_rate_per_frame, cfg.springback.eta_min)
 
+    def args(self) -> tuple:
+        """:func:`springback_frame`'s arguments after ``owner, gen, pos, x_at, X0_at, n_all`` (the
+        servo's): ``(n_net, sb, goals)``."""
+        return self.n_net, self.sb, self.goals
+
     def frame(self) -> int:
         """Advance every handed-over net by one frame; returns how many nets moved."""
         m = self.model
-        moved = 0
-        for idx in range(len(m.x)):
-            if m.owner(idx) != VISUAL_OWNS:
-                continue
-            g = m.generation(idx)
-            if g != self.gen[idx]:
-                self.gen[idx] = g
-                self.eta[idx] = 1.0
-                self.settled[idx] = False
-            if self.settled[idx]:
-                continue
-            step = springback_step(m.x[idx], m.X0[idx], m.n[net_layer(idx)], self.eta[idx], self.goals[idx])
-            self.eta[idx] = max(self.eta_min, self.eta[idx] - self.eta_rate)
-            if self.eta[idx] <= self.eta_min and step < self.settle_m:
-                self.settled[idx] = True
-            moved += 1
-        return moved
+        lay = m.model.layout[0]
+        return springback_frame(m.rec["owner"], m.rec["gen"], m.state.pos, lay["x"], lay["X0"], lay["n_all"],
+                                *self.args())

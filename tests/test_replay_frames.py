@@ -1,0 +1,133 @@
+"""A headless replay runs many visual frames per compiled call when every sink reads only the rows
+(session.engine's _run_sim_ahead, servo.tick.run_frames): the frames each sink sees, the rows and
+the springback's state must be those of the frame-by-frame replay (a sink that reads the model at
+each frame forces one frame per call), and the tip depth kept between sinks must be the depth."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from haptic_acu.base.config import load_config
+from haptic_acu.devices.scripted import ScriptedDevice
+from haptic_acu.servo.step import NeedleModel
+from haptic_acu.session import engine
+from haptic_acu.session.engine import Session
+from haptic_acu.session.sink import Sink
+from haptic_acu.tissue.body import Tissue
+
+DEFAULT_TRAJ = Path(__file__).resolve().parents[1] / "trajectories" / "default.csv"
+CALL_FRAMES = engine.call_frames
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+@pytest.fixture(scope="module")
+def tissue(cfg):
+    return Tissue.from_config(cfg)
+
+
+class Frames(Sink):
+    """Every frame's time, index and rows; ``rows_only`` as given."""
+
+    def __init__(self, rows_only: bool):
+        self.rows_only = rows_only
+        self.seen = []
+
+    def on_frame(self, frame):
+        self.seen.append((frame.t_s, frame.index, frame.samples.copy()))
+
+
+class ModelReader(Frames):
+    """Reads the model at its frame (as the rerun logger does): the surface of the skin's nets."""
+
+    def __init__(self):
+        super().__init__(rows_only=False)
+        self.nets = []
+
+    def on_frame(self, frame):
+        super().on_frame(frame)
+        self.nets.append(frame.model.state.pos.copy())
+
+
+def replay(cfg, tissue, sink, monkeypatch, duration_s=3.0):
+    calls = []
+    def counted(*args):
+        calls.append(len(args[4]))  # the call's ticks
+        return CALL_FRAMES(*args)
+
+    monkeypatch.setattr(engine, "call_frames", counted)
+    dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+    dev.open()
+    model = NeedleModel(cfg, tissue)
+    s = Session(cfg, dev, [sink], clock="sim", model=model, duration_s=duration_s)
+    s.warm_up()
+    calls.clear()  # the warm-up's
+    result = s.run()
+    dev.close()
+    assert result.fault is None
+    return result, model, calls, s
+
+
+def test_many_frames_per_call_equal_one_frame_per_call(cfg, tissue, monkeypatch):
+    batched = Frames(rows_only=True)
+    r1, m1, calls1, s1 = replay(cfg, tissue, batched, monkeypatch)
+    single = ModelReader()
+    r2, m2, calls2, s2 = replay(cfg, tissue, single, monkeypatch)
+    assert r1.ticks == r2.ticks == 3001  # 3 s: past the three punctures, the nets in springback
+    assert r1.stats["frames"] == r2.stats["frames"] == len(batched.seen) == len(single.seen) == 180
+    for (t1, i1, rows1), (t2, i2, rows2) in zip(batched.seen, single.seen):
+        assert (t1, i1) == (t2, i2)
+        assert rows1.tobytes() == rows2.tobytes()
+    # the springback ran after the same frames: every net's particles end where they ended
+    assert m1.state.pos.tobytes() == m2.state.pos.tobytes()
+    assert np.array_equal(s1.springback.sb, s2.springback.sb)
+    assert (m1.rec["owner"] == 2).any()  # a punctured layer's net was handed to springback
+    # one call per frame for the sink that reads the model; a few calls of many frames otherwise
+    assert len(calls2) >= 180
+    assert len(calls1) <= 2 and max(calls1) > 1000  # (a frame is 16-17 ticks)
+
+
+def test_frames_handed_over_carry_the_session_clock(cfg, tissue, monkeypatch):
+    """Each frame's time is its last tick's (k x 1 ms), crossing a multiple of 1/60 s, and its rows
+    are the ticks since the previous frame."""
+    sink = Frames(rows_only=True)
+    replay(cfg, tissue, sink, monkeypatch, duration_s=1.0)
+    from haptic_acu.servo.samples import COL
+
+    prev = -1
+    for n, (t, index, rows) in enumerate(sink.seen):
+        assert index == n
+        ticks = rows[:, COL["tick"]].astype(int)
+        assert ticks[0] == prev + 1 and np.all(np.diff(ticks) == 1)
+        prev = ticks[-1]
+        assert t == pytest.approx(ticks[-1] * 1e-3, abs=1e-12)
+        assert ticks[-1] * 1e-3 + 1e-12 >= (n + 1) / 60 > (ticks[-1] - 1) * 1e-3  # the first tick at the frame
+
+
+def test_tip_depth_kept_for_the_same_rows_only(cfg, tissue):
+    from haptic_acu.analysis.scan import tip_depth_m
+
+    rng = np.random.default_rng(3)
+    pts = tissue.centre + rng.normal(size=(2048, 3)) * 0.005 + [0.0, 0.0, 0.03]
+
+    def direct(p, t):  # the definition: the skin's SH radius in the point's direction minus its distance
+        d = p - t.centre
+        rho = np.linalg.norm(d, axis=1)
+        return t.radius(0, np.arccos(d[:, 2] / rho), np.arctan2(d[:, 1], d[:, 0])) - rho
+
+    first = tip_depth_m(pts, tissue)
+    np.testing.assert_allclose(first, direct(pts, tissue), rtol=0, atol=1e-12)
+    first[:] = 99.0  # a caller's change to its copy stays its own
+    again = tip_depth_m(pts.copy(), tissue)
+    np.testing.assert_allclose(again, direct(pts, tissue), rtol=0, atol=1e-12)
+    moved = pts.copy()
+    moved[7, 2] += 1e-3  # one point moved: computed again
+    got = tip_depth_m(moved, tissue)
+    assert got[7] == pytest.approx(direct(moved, tissue)[7], abs=1e-12) and got[7] != again[7]
+    other = Tissue.from_config(load_config(None, overrides=["body.bulge=0.15"]))
+    assert not np.allclose(tip_depth_m(pts, other), again)  # another body: its own depths
