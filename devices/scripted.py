@@ -142,7 +142,8 @@ class ScriptedDevice(Device):
         """The roll (rad, cumulative) at the times ``t_s``, or None if the file has no ``roll_deg``."""
         if not (self._reader.has_roll and self.roll):
             return None
-        return np.radians(self.pose_block(t_s)[1])
+        roll = self.pose_block(t_s)[1]  # None for no times (a block past the file's end)
+        return None if roll is None else np.radians(roll)
 
     def set_force(self, force_n) -> None:
         f = np.array(force_n, dtype=np.float64).reshape(3)

@@ -57,7 +57,7 @@ class ModelReader(Frames):
 def replay(cfg, tissue, sink, monkeypatch, duration_s=3.0):
     calls = []
     def counted(*args):
-        calls.append(len(args[4]))  # the call's ticks
+        calls.append(len(args[0]))  # the call's ticks
         return CALL_FRAMES(*args)
 
     monkeypatch.setattr(engine, "call_frames", counted)

@@ -139,13 +139,27 @@ def run_ticks(P, V, A, R, T, tick0, table):
     return T.shape[0]
 
 
+# A block of ticks' inputs for :func:`run_frames`, packed once by field name: tip position (m),
+# velocity (m/s), needle axis (unit, handle to tip; NaN: unknown), roll (rad), session time (s).
+TICK_BLOCK = np.dtype([("p", "f8", (3,)), ("v", "f8", (3,)), ("axis", "f8", (3,)), ("roll", "f8"), ("t", "f8")])
+
+
+def tick_block(P, V, A, R, T) -> np.ndarray:
+    """A :data:`TICK_BLOCK` array of ``len(T)`` ticks from positions ``P``, velocities ``V``, axes
+    ``A`` (each (n, 3)), rolls ``R`` and times ``T`` (each (n,))."""
+    b = np.empty(len(T), TICK_BLOCK)
+    b["p"], b["v"], b["axis"], b["roll"], b["t"] = P, V, A, R, T
+    return b
+
+
 @nb.njit(cache=True, nogil=True)
-def run_frames(P, V, A, R, T, tick0, ends, table, n_net, sb, goals):
+def run_frames(ticks, tick0, ends, table, sb, goals):
     """Headless replay of many visual frames in one call: :func:`servo_tick` on each of the
-    ticks ``T`` (as :func:`run_ticks`), and after each frame's last tick (``ends[j]`` is the index
-    in ``T`` just past frame ``j``'s last tick, increasing) one frame of springback
-    (:func:`haptic_acu.tissue.springback.springback_frame` on the servo's nets; ``n_net``, ``sb``,
-    ``goals``: :meth:`Springback.args`), the order a session's loops keep. Ticks after the last
+    ``ticks`` (a :data:`TICK_BLOCK` array from :func:`tick_block`; tick ``i`` has index
+    ``tick0 + i``), and after each frame's last tick (``ends[j]`` is the index in ``ticks`` just
+    past frame ``j``'s last tick, increasing) one frame of springback
+    (:func:`haptic_acu.tissue.springback.springback_frame` on the servo's nets; ``sb``, ``goals``:
+    :meth:`Springback.args`), the order a session's loops keep. Ticks after the last
     end run without a frame. Stops after a faulting tick. Returns (ticks run, frames completed)
     (ticks :data:`STALE`: see :func:`call_driver`)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
@@ -154,22 +168,23 @@ def run_frames(P, V, A, R, T, tick0, ends, table, n_net, sb, goals):
     st = sv.state
     lay = sv.model.layout[0]
     i = 0
-    n = T.shape[0]
+    n = ticks.shape[0]
     for j in range(ends.shape[0] + 1):
         e = ends[j] if j < ends.shape[0] else n
         while i < e:
+            tk = ticks[i]
             for c in range(3):
-                sv.inp.p[c] = P[i, c]
-                sv.inp.v[c] = V[i, c]
-                sv.inp.axis[c] = A[i, c]
-            sv.inp.roll[0] = R[i]
-            ok = servo_tick(sv, ring, T[i], tick0 + i, 0.0)
+                sv.inp.p[c] = tk.p[c]
+                sv.inp.v[c] = tk.v[c]
+                sv.inp.axis[c] = tk.axis[c]
+            sv.inp.roll[0] = tk.roll
+            ok = servo_tick(sv, ring, tk.t, tick0 + i, 0.0)
             i += 1
             if not ok:
                 return i, j
         if j < ends.shape[0]:
             rec = st.servo[0]
-            springback_frame(rec.owner, rec.gen, st.pos, lay.x, lay.X0, lay.n_all, n_net, sb, goals)
+            springback_frame(rec.owner, rec.gen, st.pos, lay.x, lay.X0, lay.n_all, sb, goals)
     return i, ends.shape[0]
 
 

@@ -71,7 +71,7 @@ from ..tissue.forcenet import dent_on_grid
 from ..servo.step import NeedleModel
 from ..servo.state import FREE, N_LAYERS, N_SLOTS, SERVO_OWNS, TIMING, VISUAL_OWNS, Ring, Timing, net_index
 from ..servo.tick import (SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_driver, call_frames, roll_block,
-                          tick_table)
+                          tick_block, tick_table)
 from ..servo.samples import COL, NCOL, SampleRing
 
 _C_F = COL["fx_n"]
@@ -266,8 +266,8 @@ class Session:
         if self.clock == "sim" and self.device.reads_ahead:
             z = np.zeros((1, 3))
             rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))  # alive while the table is used
-            call_frames(z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1), 0, np.zeros(0, np.int64),
-                        tick_table(m.servo, rows, self._timing), *self.springback.args())
+            call_frames(tick_block(z + [0.0, 0.0, 0.01], z, z + np.nan, np.zeros(1), np.zeros(1)), 0,
+                        np.zeros(0, np.int64), tick_table(m.servo, rows, self._timing), *self.springback.args())
             m.reset(keep_holes=False)
         else:
             self._warm_loops()
@@ -296,9 +296,9 @@ class Session:
         # springback's kernel: loaded with every net's owner FREE on scratch copies (nothing moves)
         from ..tissue.springback import springback_frame
         lay = m.model.layout[0]
-        n_net, sb, goals = self.springback.args()
+        sb, goals = self.springback.args()
         springback_frame(np.zeros_like(m.rec["owner"]), m.rec["gen"].copy(), m.state.pos.copy(), lay["x"], lay["X0"],
-                         lay["n_all"], n_net, sb.copy(), goals.copy())
+                         lay["n_all"], sb.copy(), goals.copy())
 
     def _python_ticks(self) -> bool:
         """Whether this session's driver is a Python loop or callback (see the module docstring)."""
@@ -379,8 +379,8 @@ class Session:
         rows = self.ring.drain()
         if self._sim_table is not None:  # a replay's: the compiled frame, without ticks
             z = np.zeros((0, 3))
-            call_frames(z, z, z, np.zeros(0), np.zeros(0), self.tick, np.zeros(1, np.int64), self._sim_table,
-                        *self.springback.args())
+            call_frames(tick_block(z, z, z, np.zeros(0), np.zeros(0)), self.tick, np.zeros(1, np.int64),
+                        self._sim_table, *self.springback.args())
         else:
             self.springback.frame()
         dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
@@ -546,7 +546,7 @@ class Session:
         rows_only = all(s.rows_only for s in self.sinks)
         # a call's rows stay in the ring until they are handed over: at most half of it
         max_frames = max(1, int(self.ring.capacity // 2 * dt / self.frame_dt) - 1) if rows_only else 1
-        events = getattr(dev, "has_events", True)
+        events = dev.has_events
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
         sb = self.springback.args()
@@ -601,7 +601,8 @@ class Session:
             last = j == len(bounds) - 2
             seg = ends[(ends > a) & (ends <= b)] if not last else ends[ends > a]
             if b > a or len(seg):
-                r, f = call_frames(P[a:b], V[a:b], A[a:b], R[a:b], T[a:b], k0 + a, seg - a, self._sim_table, *sb)
+                r, f = call_frames(tick_block(P[a:b], V[a:b], A[a:b], R[a:b], T[a:b]), k0 + a, seg - a,
+                                   self._sim_table, *sb)
                 n += r
                 frames += f
                 if r < b - a:  # a fault
@@ -611,19 +612,15 @@ class Session:
     def _hand_over(self, ends, T) -> None:
         """The rows of the frames just run (``ends``: the index past each one's last tick in
         ``T``), each frame's to every sink (a live session's visual frame, its springback already
-        run); the force of each frame's last tick commanded. The rows of a frame not completed stay
-        in the ring (for the final frame)."""
+        run); the forces of the frames' last ticks reported to the device
+        (:meth:`Device.record_forces`). The rows of a frame not completed stay in the ring (for the
+        final frame)."""
         frames = len(ends)
         if not frames:
             return
         rows = self.ring.drain(int(ends[-1]))
         F = rows[ends - 1, _C_F:_C_F + 3]
-        record = getattr(self.device, "record_forces", None)
-        if record is not None:
-            record(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
-        else:
-            for f in F:
-                self.device.set_force(f)
+        self.device.record_forces(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
         dents = self.want_dents and not all(s.rows_only for s in self.sinks)
         rates = dict(self.rates)
         a = 0

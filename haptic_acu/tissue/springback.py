@@ -83,13 +83,13 @@ def springback_step(x, X0, n_net, eta, goals):
 
 
 @nb.njit(cache=True, nogil=True)
-def springback_frame(owner, gen, pos, x_at, X0_at, n_all, n_net, sb, goals):
+def springback_frame(owner, gen, pos, x_at, X0_at, n_all, sb, goals):
     """One visual frame of springback on every handed-over net (owner VISUAL_OWNS) of the packed
     particle storage ``pos`` (net ``idx`` of layer ``k = idx // N_SLOTS``: its particles at rows
-    ``x_at[idx]``, rest ones at ``X0_at[idx]``, ``n_all[k]`` of them, the first ``n_net[k]`` the
+    ``x_at[idx]``, rest ones at ``X0_at[idx]``, ``n_all[k]`` of them, the first ``sb.n_net[k]`` the
     force net's). ``owner`` and ``gen`` are the servo's (layer, slot) arrays; ``sb``
-    (:data:`SB`, one record) holds each net's eta, the generation it was seen at and whether it has
-    settled, and the schedule; ``goals`` is scratch of at least ``max(n_all)`` rows. A net whose
+    (:func:`sb_dtype`, one record) holds each net's eta, the generation it was seen at and whether it
+    has settled, each layer's force-net size, and the schedule; ``goals`` is scratch of at least ``max(n_all)`` rows. A net whose
     generation changed restarts at eta 1. Returns how many nets moved."""
     s = sb[0]
     moved = 0
@@ -106,7 +106,7 @@ def springback_frame(owner, gen, pos, x_at, X0_at, n_all, n_net, sb, goals):
         if s.settled[idx]:
             continue
         na = n_all[k]
-        step = springback_step(pos[x_at[idx]:x_at[idx] + na], pos[X0_at[idx]:X0_at[idx] + na], n_net[k],
+        step = springback_step(pos[x_at[idx]:x_at[idx] + na], pos[X0_at[idx]:X0_at[idx] + na], s.n_net[k],
                                s.eta[idx], goals[:na])
         s.eta[idx] = max(s.eta_min, s.eta[idx] - s.eta_rate)
         if s.eta[idx] <= s.eta_min and step < s.settle_m:
@@ -115,10 +115,12 @@ def springback_frame(owner, gen, pos, x_at, X0_at, n_all, n_net, sb, goals):
     return moved
 
 
-def sb_dtype(n_nets: int) -> np.dtype:
-    """The springback record for ``n_nets`` nets (:func:`springback_frame`'s ``sb``)."""
+def sb_dtype(n_nets: int, n_layers: int) -> np.dtype:
+    """The springback record for ``n_nets`` nets of ``n_layers`` layers (:func:`springback_frame`'s
+    ``sb``): per net its eta, the generation it was seen at, whether it has settled; per layer the
+    force net's particle count (``n_net``); the schedule."""
     return np.dtype([("eta", "f8", (n_nets,)), ("gen", "i8", (n_nets,)), ("settled", "u1", (n_nets,)),
-                     ("eta_rate", "f8"), ("eta_min", "f8"), ("settle_m", "f8")])
+                     ("n_net", "i8", (n_layers,)), ("eta_rate", "f8"), ("eta_min", "f8"), ("settle_m", "f8")])
 
 
 class Springback:
@@ -136,13 +138,14 @@ class Springback:
         self.eta_min = float(eta_min)
         self.settle_m = settle_m
         n_slots = len(model.x)
-        self.sb = np.zeros(1, sb_dtype(n_slots))
+        self.sb = np.zeros(1, sb_dtype(n_slots, len(model.n)))
         rec = self.sb[0]
+        rec["n_net"] = np.asarray(model.n, dtype=np.int64)
         rec["eta"] = 1.0
         rec["gen"] = -1
         rec["eta_rate"], rec["eta_min"], rec["settle_m"] = self.eta_rate, self.eta_min, settle_m
         self.eta, self.gen, self.settled = rec["eta"], rec["gen"], rec["settled"]  # views
-        self.n_net = np.asarray(model.n, dtype=np.int64)
+        self.n_net = rec["n_net"]  # a view
         self.goals = np.zeros((max(len(x) for x in model.x), 3))
 
     @classmethod
@@ -151,8 +154,8 @@ class Springback:
 
     def args(self) -> tuple:
         """:func:`springback_frame`'s arguments after ``owner, gen, pos, x_at, X0_at, n_all`` (the
-        servo's): ``(n_net, sb, goals)``."""
-        return self.n_net, self.sb, self.goals
+        servo's): ``(sb, goals)``."""
+        return self.sb, self.goals
 
     def frame(self) -> int:
         """Advance every handed-over net by one frame; returns how many nets moved."""
