@@ -132,14 +132,15 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
       through numba's dispatcher;
     * ``dispatch``: :func:`empty_kernel` with the same arguments: the dispatcher's own cost;
     * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
-      (:func:`haptic_acu.servo.tick.run_ticks`, as the headless replay runs them); per-tick means.
+      (:func:`haptic_acu.servo.tick.run_ticks`, the loop the headless replay runs between frames); per-tick means.
 
     Optionally the NumPy reference on the same path (``numpy_ticks`` ticks, after the ones above).
     Returns percentile objects in microseconds.
     """
     from haptic_acu.servo.step import step_kernel
     from haptic_acu.servo.state import TIMING, Ring, Timing
-    from haptic_acu.servo.tick import call_driver, run_ticks, tick_table
+    from haptic_acu.servo.tick import call_frames, run_ticks, tick_block, tick_table
+    from haptic_acu.tissue.springback import Springback
     from haptic_acu.servo.samples import NCOL
 
     P = np.ascontiguousarray(sc.P[:n])
@@ -167,7 +168,10 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
         table = tick_table(c.servo, rows, timing)  # rows and timing outlive it
         snap = _snapshot(c)
         A = np.full_like(P, np.nan)  # no device axis: the step takes the direction of travel
-        call_driver(run_ticks, P[:1], V[:1], A[:1], R[:1], T[:1], 0, table)  # load the compiled loop
+        ticks = tick_block(P, V, A, R, T)
+        no_ends = np.zeros(0, np.int64)
+        sb = Springback.from_config(c, sc.cfg).args()
+        call_frames(ticks[:1], 0, no_ends, table, *sb)  # load the compiled loop
         _restore(c, snap)
     if "kernel" in models:
         k = models["kernel"]
@@ -197,7 +201,7 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
                 t0 = clock()
-                run_ticks(P[s:i + 1], V[s:i + 1], A[s:i + 1], R[s:i + 1], T[s:i + 1], s, table)
+                run_ticks(ticks, s, i + 1, 0, table)
                 times["compiled"].append((clock() - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path

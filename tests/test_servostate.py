@@ -169,7 +169,7 @@ def test_no_kernel_the_servo_tick_calls_counts_references():
     """The tick's arrays are owned by Python (the model's NamedTuples) or viewed from an address table
     without a reference count; a kernel compiled with numba's reference counting still calls
     NRT_incref / NRT_decref (not inlined) on every array it touches, hundreds of calls a tick. Every
-    kernel the step and the replay's loop reach, other than those inlined into their caller (which
+    kernel the step and the replay's tick loop reach, other than those inlined into their caller (which
     take the caller's flags), is compiled without it (``_nrt=False``: it also refuses to allocate)."""
     from haptic_acu.servo.tick import run_ticks
 

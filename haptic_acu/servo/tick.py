@@ -1,7 +1,7 @@
 """One servo tick, written once: the step, the period-error statistics, the sample row, publishing.
 
-Every driver of the servo calls :func:`servo_tick`: the headless replay (:func:`run_ticks`, on
-simulated time), the compiled real-time loop (:func:`haptic_acu.servo.rtloop.servo_loop`, on our timer),
+Every driver of the servo calls :func:`servo_tick`: the headless replay (:func:`run_ticks` inside
+:func:`run_frames`, on simulated time), the compiled real-time loop (:func:`haptic_acu.servo.rtloop.servo_loop`, on our timer),
 the OMNI's compiled callback (:mod:`haptic_acu.servo.omniloop`, on the device's clock), and the engine's
 drivers written in Python (a device that cannot be read ahead, on simulated time or our timer; the
 OMNI's Python callback) through its C entry point (:class:`PythonTick`: one ctypes call per tick).
@@ -118,27 +118,6 @@ def servo_tick(sv, ring, t, tick, err_s):
     return sv.out.diag[0].fault == 0.0
 
 
-@nb.njit(cache=True, nogil=True, _nrt=False)
-def run_ticks(P, V, A, R, T, tick0, table):
-    """Headless replay: :func:`servo_tick` for a block of ticks (positions ``P``, velocities ``V``,
-    needle axes ``A`` (unit, handle to tip; NaN rows: unknown), needle rolls ``R`` (rad) at times
-    ``T``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round trip per
-    tick. Stops after a faulting tick; returns the number of ticks run (:data:`STALE`: see
-    :func:`call_driver`)."""
-    if not ss.accept(table, ss.LAYOUT_KEY):
-        return STALE
-    sv, ring, _ = unpack_tick(table)
-    for i in range(T.shape[0]):
-        for c in range(3):
-            sv.inp.p[c] = P[i, c]
-            sv.inp.v[c] = V[i, c]
-            sv.inp.axis[c] = A[i, c]
-        sv.inp.roll[0] = R[i]
-        if not servo_tick(sv, ring, T[i], tick0 + i, 0.0):
-            return i + 1
-    return T.shape[0]
-
-
 # A block of ticks' inputs for :func:`run_frames`, packed once by field name: tip position (m),
 # velocity (m/s), needle axis (unit, handle to tip; NaN: unknown), roll (rad), session time (s).
 TICK_BLOCK = np.dtype([("p", "f8", (3,)), ("v", "f8", (3,)), ("axis", "f8", (3,)), ("roll", "f8"), ("t", "f8")])
@@ -152,9 +131,30 @@ def tick_block(P, V, A, R, T) -> np.ndarray:
     return b
 
 
+@nb.njit(cache=True, nogil=True, _nrt=False)
+def run_ticks(ticks, a, e, tick0, table):
+    """:func:`servo_tick` on ``ticks[a:e]`` (a :data:`TICK_BLOCK` array; tick ``i`` has index
+    ``tick0 + i``) on the servo and ring of ``table`` (:func:`tick_table`), without a Python round
+    trip or a reference count per tick. Stops after a faulting tick. Returns (the index past the
+    last tick run, no fault) (:data:`STALE` for a table of another layout: see :func:`call_driver`)."""
+    if not ss.accept(table, ss.LAYOUT_KEY):
+        return STALE, False
+    sv, ring, _ = unpack_tick(table)
+    for i in range(a, e):
+        tk = ticks[i]
+        for c in range(3):
+            sv.inp.p[c] = tk.p[c]
+            sv.inp.v[c] = tk.v[c]
+            sv.inp.axis[c] = tk.axis[c]
+        sv.inp.roll[0] = tk.roll
+        if not servo_tick(sv, ring, tk.t, tick0 + i, 0.0):
+            return i + 1, False
+    return e, True
+
+
 @nb.njit(cache=True, nogil=True)
 def run_frames(ticks, tick0, ends, table, sb, goals):
-    """Headless replay of many visual frames in one call: :func:`servo_tick` on each of the
+    """Headless replay of many visual frames in one call: :func:`run_ticks` on each frame's
     ``ticks`` (a :data:`TICK_BLOCK` array from :func:`tick_block`; tick ``i`` has index
     ``tick0 + i``), and after each frame's last tick (``ends[j]`` is the index in ``ticks`` just
     past frame ``j``'s last tick, increasing) one frame of springback
@@ -164,22 +164,17 @@ def run_frames(ticks, tick0, ends, table, sb, goals):
     (ticks :data:`STALE`: see :func:`call_driver`)."""
     if not ss.accept(table, ss.LAYOUT_KEY):
         return STALE, 0
-    sv, ring, _ = unpack_tick(table)
+    sv, _, _ = unpack_tick(table)
     st = sv.state
     lay = sv.model.layout[0]
     i = 0
     n = ticks.shape[0]
     for j in range(ends.shape[0] + 1):
         e = ends[j] if j < ends.shape[0] else n
-        while i < e:
-            tk = ticks[i]
-            for c in range(3):
-                sv.inp.p[c] = tk.p[c]
-                sv.inp.v[c] = tk.v[c]
-                sv.inp.axis[c] = tk.axis[c]
-            sv.inp.roll[0] = tk.roll
-            ok = servo_tick(sv, ring, tk.t, tick0 + i, 0.0)
-            i += 1
+        if e > i:
+            i, ok = run_ticks(ticks, i, e, tick0, table)
+            if i == STALE:
+                return STALE, 0
             if not ok:
                 return i, j
         if j < ends.shape[0]:
@@ -192,6 +187,7 @@ def call_frames(*args):
     """:func:`run_frames` through :func:`call_driver`'s rule (a stale cache entry recompiled)."""
     r = run_frames(*args)
     if r[0] == STALE:
+        run_ticks.recompile()
         run_frames.recompile()
         r = run_frames(*args)
     return r

@@ -6,7 +6,7 @@ into the lock-free :class:`~haptic_acu.servo.samples.SampleRing`, published), wi
 :func:`haptic_acu.servo.tick.account`. Three drivers, which differ in who keeps the clock:
 
 * simulated clock (:meth:`Session._run_sim`): a visual frame's ticks per block, read ahead and run
-  by :func:`~haptic_acu.servo.tick.run_ticks` in one compiled call, or (a device without
+  by :func:`~haptic_acu.servo.tick.run_frames` in one compiled call, or (a device without
   ``read_block``) read and ticked one by one;
 * our timer (:meth:`Session._run_realtime`): :func:`haptic_acu.servo.rtloop.servo_loop` (compiled, no GIL)
   for a device read ahead, else a Python loop on the same deadlines (:meth:`Session._timer_loop`);
@@ -229,7 +229,7 @@ class Session:
         self._zero = np.zeros(3)
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
-        self._sim_table = None  # run_ticks' table (simulated time, a device read ahead)
+        self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
