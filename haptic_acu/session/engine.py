@@ -475,28 +475,24 @@ class Session:
     def _run_sim(self) -> None:
         """Simulated time: ticks at exactly ``servo_dt``, a visual frame whenever session time
         crosses a multiple of ``frame_dt``. A device read ahead: :meth:`_run_sim_ahead`; otherwise
-        each frame's ticks read and run one by one (:meth:`_sim_block`)."""
+        each frame's ticks read and run one by one (:meth:`_sim_block`); frames as
+        :meth:`_frame_plan` plans them."""
         if self.device.reads_ahead:
             return self._run_sim_ahead()
-        dt = self.servo_dt
         limit = self.duration_s if self.duration_s is not None else math.inf
         t0 = time.perf_counter()
         next_frame = self.frame_dt
         while not self._stop.is_set():
             k0 = self.tick
-            if k0 * dt > limit + 1e-12:
+            lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, 1)
+            if not lasts or not self._sim_block(k0, lasts[0]):  # the end, a fault, or stopped
                 break
-            k1 = max(k0, math.ceil((next_frame - 1e-12) / dt))  # the tick that reaches the frame time
-            k_lim = math.floor((limit + 1e-12) / dt) if limit != math.inf else k1
-            if not self._sim_block(k0, min(k1, k_lim)):  # the device ended, a fault, or stopped
-                break
-            t = self._t_session
-            if t + 1e-12 >= next_frame:
+            if not cut:
                 wall = time.perf_counter() - t0
                 if wall > 0:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": self.frame_index / wall}
-                self._visual_frame(t)
-                next_frame = (math.floor(t / self.frame_dt + 1e-9) + 1) * self.frame_dt
+                self._visual_frame(self._t_session)
+                next_frame = next_after
 
     def _sim_block(self, k0: int, k1: int) -> bool:
         """Ticks ``k0..k1`` on simulated time from a device that cannot be read ahead: a read and a
@@ -514,7 +510,8 @@ class Session:
 
     def _frame_plan(self, k0: int, next_frame: float, limit: float, max_frames: int):
         """The next frames from tick ``k0``: (each frame's last tick, the next frame time, whether
-        the last block ends at ``limit`` without a frame), the rule of :meth:`_run_sim`."""
+        the last block ends at ``limit`` without a frame): a frame's last tick is the first to reach its
+        time, and a frame comes every ``frame_dt`` of session time."""
         dt = self.servo_dt
         lasts = []
         cut = False
