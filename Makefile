@@ -21,8 +21,13 @@ demo: $(STAMP)
 	$(VENV)/bin/haptic-acu replay
 
 # Every test: those that measure nothing in real time two at a time (pytest-xdist), then the real-time
-# ones (marked serial in tests/conftest.py) alone; one closing line counts both runs.
-XDIST := -n 2 --dist worksteal
+# ones (marked serial in tests/conftest.py) alone; one closing line counts both runs. The parallel run
+# hands out whole modules, longest first (tests/conftest.py orders them; xdist's own reordering off).
+XDIST := -n 2 --dist loadfile --no-loadscope-reorder
+# Python caches compiled bytecode (and pytest its rewritten test modules) even where the environment
+# says not to: every test process imports the whole package, and compiling it again each time costs
+# seconds per process.
+unexport PYTHONDONTWRITEBYTECODE
 test: $(STAMP)
 	@mkdir -p runs
 	@rm -f runs/junit-*.xml

@@ -5,6 +5,11 @@ terminals, whose results a busy neighbour could change (a late tick skipped, a s
 frozen device). `make test` runs every other test in parallel (pytest-xdist) and these afterwards,
 alone. The marker is given here by module so that a new test in one of these modules is serial
 without thinking about it; a test elsewhere that needs it carries ``@pytest.mark.serial`` itself.
+
+The parallel run hands whole modules to its two workers (``--dist loadfile``: a module's fixtures are
+built once), the next module to whichever worker is free. Modules run longest first
+(``PARALLEL_SECONDS``), so that the two workers end together instead of one running a long module
+alone at the end; a module not listed is short.
 """
 from __future__ import annotations
 
@@ -16,6 +21,40 @@ SERIAL_MODULES = {
     "test_engine", "test_hd_physical", "test_keyboard", "test_omni", "test_omni_closed_loop", "test_omni_stylus",
     "test_rtloop", "test_run_cli", "test_run_omni", "test_study", "test_study_kinds", "test_keyboard_debrief",
 }
+
+
+# Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
+# Only the order of the parallel run depends on these numbers.
+PARALLEL_SECONDS = {  # module: (not slow, slow)
+    "test_physics_properties": (4, 40), "test_wheel": (0, 55), "test_bench": (12, 45), "test_baselines": (20, 27),
+    "test_live_equals_replay": (2, 43), "test_cohort": (26, 0), "test_replay_cli": (12, 10), "test_outputs": (21, 0),
+    "test_recording": (18, 0), "test_replay_memory": (0, 15), "test_scoring": (14, 0), "test_cohort_cluster": (6, 6),
+    "test_hostile": (6, 6), "test_fit_cli": (11, 0), "test_compare": (4, 6), "test_cohort_memory": (0, 10),
+    "test_trajectory": (4, 6), "test_bundled_names": (9, 0), "test_compare_memory": (0, 9), "test_study_example": (1, 8),
+    "test_closed_loop": (8, 0), "test_quantity_names": (3, 10), "test_servostate": (6, 0), "test_atlas": (7, 0),
+}
+
+
+def _module_seconds(stem: str, items) -> float:
+    fast, slow = PARALLEL_SECONDS.get(stem, (0, 0))
+    has_slow = any(it.get_closest_marker("slow") for it in items)
+    has_fast = any(not it.get_closest_marker("slow") for it in items)
+    return (fast if has_fast else 0) + (slow if has_slow else 0) + 0.01 * len(items)
+
+
+class _LongestFirst:
+    @pytest.hookimpl(trylast=True)  # after -m has deselected
+    def pytest_collection_modifyitems(self, config, items):
+        modules: dict[str, list] = {}
+        for item in items:
+            modules.setdefault(Path(str(item.fspath)).stem, []).append(item)
+        order = sorted(modules, key=lambda m: -_module_seconds(m, modules[m]))  # stable: ties keep file order
+        items[:] = [it for m in order for it in modules[m]]
+
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput"):  # only the parallel run's workers (pytest-xdist) reorder
+        config.pluginmanager.register(_LongestFirst(), "haptic-acu-longest-first")
 
 
 def pytest_collection_modifyitems(config, items):
