@@ -87,6 +87,7 @@ def random_walk(seed, n):
     return np.array(ps), np.array(vs)
 
 
+@pytest.mark.slow  # forty random tissues, each building its own force-net tables (~40 s)
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(skin=layer_params, fat=layer_params, muscle=layer_params, needle=needle_params,
        limit=st.floats(0.05, 10.0), sweeps=st.integers(1, 8), seed=st.integers(0, 2 ** 32 - 1))

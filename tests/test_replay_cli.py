@@ -111,6 +111,7 @@ def test_bad_config_names_the_key(tmp_path):
     assert "skin.rings" in r.stderr
 
 
+@pytest.mark.slow  # a million ticks replayed and written (~15-40 s)
 def test_million_rows_stream(tmp_path):
     """A long recording (1,000,000 rows at 1 kHz: 1000 s of a tip hovering above the skin) is
     validated and replayed by streaming; the replay writes one sample row per tick."""
@@ -167,9 +168,10 @@ def test_default_replay_outputs_and_rrd(tmp_path):
 
 
 def test_replay_is_byte_identical(tmp_path):
+    # one replay in this process, the other in a child of its own: equal across processes
     a, b = tmp_path / "a", tmp_path / "b"
-    for out in (a, b):
-        r = replay(TRAJ / "fast_insertion.csv", "--out", out, "--no-rrd", "--quiet")
+    for run, out in ((replay_here, a), (replay, b)):
+        r = run(TRAJ / "fast_insertion.csv", "--out", out, "--no-rrd", "--quiet")
         assert r.returncode == 0, r.stderr
     for name in ("samples.csv", "summary.json", "force_depth.png"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
@@ -207,7 +209,7 @@ def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path):
     (src / "good.csv").write_text(insertion_csv())
     (src / "bad.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.01,0,0,nan\n")
     out = tmp_path / "batch"
-    r = replay(src, "--out", out, "--no-rrd", "--jobs", "1")
+    r = replay_here(src, "--out", out, "--no-rrd", "--jobs", "1")
     assert r.returncode == 2
     assert "bad.csv" in r.stderr and "line 3" in r.stderr and "Traceback" not in r.stderr
     assert (out / "good" / "summary.json").is_file()
@@ -223,7 +225,7 @@ def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path
     for name in ("fast_insertion.csv", "second_insertion_same_site.csv"):
         (src / name).write_bytes((TRAJ / name).read_bytes())
     out = tmp_path / "batch"
-    r = replay(src, "--out", out, "--no-rrd", "--jobs", "1")
+    r = replay_here(src, "--out", out, "--no-rrd", "--jobs", "1")
     assert r.returncode == 0, r.stderr
     read = lambda name: list(csv.DictReader(open(out / name, newline="")))  # noqa: E731
     summaries = {row["trajectory"]: row for row in read("summaries.csv")}
