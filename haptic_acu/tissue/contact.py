@@ -16,8 +16,8 @@ so on ``A`` the nodes sit on the tip, ``C_AA f_A = g_A``, and the force on the t
 the servo keeps it between ticks and, when nodes enter or leave the set, changes it by bordering,
 a rank-one update per node (the Sherman-Morrison-Woodbury identity on a principal submatrix),
 ``O(|A|^2)`` per node instead of a new ``O(|A|^3)`` factorisation. A tick starts from the last
-tick's set, or from the precomputed capacitance of the whole disc when that is closer to the nodes
-the tip reaches, and runs the active-set iteration (drop the most negative force, add the most
+tick's set (from the precomputed capacitance of the whole disc when a tip that reaches every node
+touches), and runs the active-set iteration (drop the most negative force, add the most
 penetrated node) until Signorini's conditions hold.
 
 Everything here is compiled without the GIL or reference counting; the arrays are the servo's
@@ -119,19 +119,15 @@ def contact_solve(C, Cref, r0, h, m, dep, P, act, n, flag, f, u):
     Returns (the set's new size, the force on the tip (N), rank-one changes made)."""
     if dep <= 0.0:
         return 0, 0.0, 0
-    # the nodes the tip reaches undeformed: is the last set or the whole disc the closer start?
-    for i in range(m):
-        flag[i] = 0
-    for p in range(n):
-        flag[act[p]] = 1
-    reach = 0
-    common = 0
-    for i in range(m):
-        if dep - h[i] > 0.0:
-            reach += 1
-            common += flag[i]
-    if m - reach < n + reach - 2 * common:
-        n = cap_load(Cref, r0, m, P, act)
+    # from the last tick's set; from none, the whole disc's precomputed capacitance when the tip
+    # reaches every node undeformed (a flat tip's first touch: no rank-one change at all)
+    if n == 0:
+        reach = 0
+        for i in range(m):
+            if dep - h[i] > 0.0:
+                reach += 1
+        if reach == m:
+            n = cap_load(Cref, r0, m, P, act)
     changes = 0
     gmax = dep
     for it in range(4 * m + 4):
