@@ -43,13 +43,15 @@ def test_rank_one_updates_equal_a_direct_solve_of_the_constrained_fem_for_random
     P = np.zeros((m, m))
     act = np.zeros(m, np.int64)
     u = np.zeros(m)
+    c = np.zeros(m)
     n = 0
     checked = 0
     for step in range(400):  # nodes join and leave at random; 40 sets checked along the way
         inside = set(act[:n].tolist())
         if n <= 1 or (n < m and rng.random() < 0.6):
             j = int(rng.choice([i for i in range(m) if i not in inside]))
-            n = ct.cap_add(C, 0, P, act, n, j, u)
+            assert ct.cap_add(C, 0, P, act, n, j, u, c) > 0  # C is positive definite: every node adds
+            n += 1
         else:
             n = ct.cap_remove(P, act, n, int(rng.integers(n)))
         if step % 10 == 9:

@@ -192,7 +192,7 @@ class State(NamedTuple):
     dstate: np.ndarray  # (MAX_DANGER,) 1.0 where a danger structure has given way (danger.py)
     msm_qv: np.ndarray  # (2, modes) the MSM's pressed lattice: modal coordinates, their velocities
     ct_p: np.ndarray  # (nodes, nodes) the FEM's / BEM's contact set's capacitance matrix (tissue.contact)
-    ct_f: np.ndarray  # (2, nodes) the forces on the set's nodes (N); scratch
+    ct_f: np.ndarray  # (3, nodes) the forces on the set's nodes (N); scratch
     ct_i: np.ndarray  # (2, nodes) int64: the set's nodes; scratch
 
 

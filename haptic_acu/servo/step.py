@@ -932,7 +932,7 @@ class NeedleModel:
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
                               tr_hi=tr, dstate=(MAX_DANGER,), msm_qv=(2, msm_tab.shape[1]),
-                              ct_p=(nodes, nodes), ct_f=(2, nodes), ct_i=(2, nodes))
+                              ct_p=(nodes, nodes), ct_f=(3, nodes), ct_i=(2, nodes))
         self.state.axes[:, 2] = 1.0
         self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan

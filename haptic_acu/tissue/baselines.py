@@ -99,7 +99,7 @@ def contact_response(inp, m, s, k, idx, dep, ax):
         sv.ct_n = 0
         sv.ct_layer = k + 1
     n, fn, changes = contact_solve(m.ct_c, m.ct_ref, lay.ct_row, m.ct_h[k], lay.ct_n, dep, s.ct_p, s.ct_i[0],
-                                   sv.ct_n, s.ct_i[1], s.ct_f[0], s.ct_f[1])
+                                   sv.ct_n, s.ct_i[1], s.ct_f[0], s.ct_f[1], s.ct_f[2])
     sv.ct_n = n
     broke = dep > puncture_threshold(lay.bl_crit, s.work[0].tip_v, ax, m.params[0])
     return fn, broke

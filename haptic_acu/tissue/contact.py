@@ -48,21 +48,24 @@ def tip_heights(rho, a: float, shape: str) -> np.ndarray:
 # ---- the capacitance matrix's rank-one changes ------------------------------------------------------
 
 @nb.njit(cache=True, nogil=True, _nrt=False)
-def cap_add(C, r0, P, act, n, j, u):
+def cap_add(C, r0, P, act, n, j, u, c):
     """Node ``j`` joins the set ``act[:n]`` whose capacitance matrix is ``P[:n, :n]``
-    (``(C_AA)^-1``, ``C``'s rows from ``r0``): bordering by the Schur complement
-    ``s = C_jj - c^T P c`` (``c = C_Aj``). Returns the new size (``n`` if ``s`` is not positive:
-    the node is already held by the others). ``u``: scratch of at least ``n``."""
+    (``(C_AA)^-1``, ``C``'s rows from ``r0``, ``C`` symmetric): bordering by the Schur complement
+    ``s = C_jj - c^T P c`` (``c = C_Aj``, gathered into ``c``; ``u = P c``). Returns ``s`` (not
+    positive: the node is already held by the others, nothing changed); ``act[n] = j`` when added.
+    ``u``, ``c``: scratch of at least ``n``, holding ``P c`` and ``c`` on return."""
+    row = r0 + j
+    for q in range(n):
+        c[q] = C[row, act[q]]
+    s = C[row, j]
     for p in range(n):
         acc = 0.0
         for q in range(n):
-            acc += P[p, q] * C[r0 + act[q], j]
+            acc += P[p, q] * c[q]
         u[p] = acc
-    s = C[r0 + j, j]
-    for p in range(n):
-        s -= C[r0 + act[p], j] * u[p]
-    if not s > 1e-12 * C[r0 + j, j]:
-        return n
+        s -= c[p] * acc
+    if not s > 1e-12 * C[row, j]:
+        return s
     inv = 1.0 / s
     for p in range(n):
         up = u[p] * inv
@@ -72,7 +75,7 @@ def cap_add(C, r0, P, act, n, j, u):
         P[n, p] = -up
     P[n, n] = inv
     act[n] = j
-    return n + 1
+    return s
 
 
 @nb.njit(cache=True, nogil=True, _nrt=False)
@@ -111,12 +114,15 @@ def cap_load(Cref, r0, m, P, act):
 # ---- one tick's contact ---------------------------------------------------------------------------
 
 @nb.njit(cache=True, nogil=True, _nrt=False)
-def contact_solve(C, Cref, r0, h, m, dep, P, act, n, flag, f, u):
+def contact_solve(C, Cref, r0, h, m, dep, P, act, n, flag, f, u, c):
     """Signorini's contact of the tip ``dep`` below the rest surface (module docstring) on the ``m``
-    nodes whose compliance is ``C[r0:r0+m, :m]`` (``Cref``: the capacitance of all ``m``; ``h``:
-    the tip's heights over them), starting from the set ``act[:n]`` with capacitance ``P``.
-    ``flag``: scratch (m ints); ``f`` receives the forces on ``act``'s nodes; ``u``: scratch (m).
-    Returns (the set's new size, the force on the tip (N), rank-one changes made)."""
+    nodes whose compliance is ``C[r0:r0+m, :m]`` (symmetric; ``Cref``: the capacitance of all ``m``;
+    ``h``: the tip's heights over them), starting from the set ``act[:n]`` with capacitance ``P``.
+    ``flag``: scratch (m ints); ``f`` receives the forces on ``act``'s nodes; ``u``, ``c``: scratch
+    (m). The forces follow each rank-one change in O(|A|) (a node ``j`` joining:
+    ``f_A -= u delta``, ``f_j = delta``, ``delta = (g_j - c^T f_A) / s``; node ``p`` leaving:
+    ``f_r -= P_rp f_p / P_pp``). Returns (the set's new size, the force on the tip (N), rank-one
+    changes made)."""
     if dep <= 0.0:
         return 0, 0.0, 0
     # from the last tick's set; from none, the whole disc's precomputed capacitance when the tip
@@ -128,50 +134,61 @@ def contact_solve(C, Cref, r0, h, m, dep, P, act, n, flag, f, u):
                 reach += 1
         if reach == m:
             n = cap_load(Cref, r0, m, P, act)
+    for p in range(n):  # the forces that hold the set on the tip: f = P g
+        acc = 0.0
+        for q in range(n):
+            acc += P[p, q] * (dep - h[act[q]])
+        f[p] = acc
+    for i in range(m):
+        flag[i] = 0
+    for p in range(n):
+        flag[act[p]] = 1
     changes = 0
-    gmax = dep
+    tol = 1e-12 * dep
     for it in range(4 * m + 4):
-        # the forces that hold the set on the tip: f = P g
+        # a node pulling on the tip leaves (the most negative force first)
         fsum = 0.0
         worst = -1
         fmin = 0.0
         for p in range(n):
-            acc = 0.0
-            for q in range(n):
-                acc += P[p, q] * (dep - h[act[q]])
-            f[p] = acc
-            fsum += abs(acc)
-        for p in range(n):
+            fsum += abs(f[p])
             if f[p] < fmin:
                 fmin = f[p]
                 worst = p
         if worst >= 0 and fmin < -1e-12 * fsum:
+            a = f[worst] / P[worst, worst]
+            for p in range(n):
+                f[p] -= P[p, worst] * a
+            flag[act[worst]] = 0
+            last = n - 1
             n = cap_remove(P, act, n, worst)
+            f[worst] = f[last]
             changes += 1
             continue
-        # a node outside the set that the tip would push through: the deepest joins
-        for i in range(m):
-            flag[i] = 0
-        for p in range(n):
-            flag[act[p]] = 1
+        # else the node the tip would push through the deepest joins (w_i = C_iA f_A < g_i)
         best = -1
-        vmax = 1e-12 * gmax
+        vmax = tol
         for i in range(m):
             if flag[i] == 1:
                 continue
-            g = dep - h[i]
             w = 0.0
+            row = r0 + i
             for p in range(n):
-                w += C[r0 + i, act[p]] * f[p]
-            if g - w > vmax:
-                vmax = g - w
+                w += C[row, act[p]] * f[p]
+            if dep - h[i] - w > vmax:
+                vmax = dep - h[i] - w
                 best = i
         if best < 0:
             break
-        n2 = cap_add(C, r0, P, act, n, best, u)
-        if n2 == n:
+        sj = cap_add(C, r0, P, act, n, best, u, c)
+        if not sj > 1e-12 * C[r0 + best, best]:
             break
-        n = n2
+        delta = vmax / sj
+        for p in range(n):
+            f[p] -= u[p] * delta
+        f[n] = delta
+        flag[best] = 1
+        n += 1
         changes += 1
     total = 0.0
     for p in range(n):
@@ -208,11 +225,12 @@ def press_curve(C, h, depths):
     flag = np.zeros(m, np.int64)
     f = np.zeros(m)
     u = np.zeros(m)
+    c = np.zeros(m)
     h = np.ascontiguousarray(h, float)
     n = 0
     F, N, K = [], [], []
     for d in depths:
-        n, tot, ch = contact_solve(C, Cref, 0, h, m, float(d), P, act, n, flag, f, u)
+        n, tot, ch = contact_solve(C, Cref, 0, h, m, float(d), P, act, n, flag, f, u, c)
         F.append(tot)
         N.append(n)
         K.append(ch)
