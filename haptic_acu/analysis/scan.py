@@ -7,6 +7,7 @@ the body centre: ``r_skin(theta, phi) - |p - c|`` (m; negative above the skin); 
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 from ..servo.samples import COL, NCOL
@@ -92,9 +93,9 @@ class SessionScan:
         self.clamped_ticks = 0
         self.fault_ticks = 0
         self._prev_place = -1
-        self._prev_state = [0, 0, 0]
-        self._press_peak = [0.0, 0.0, 0.0]
-        self._press_peak_depth = [0.0, 0.0, 0.0]
+        self._prev_state = np.zeros(N_LAYERS, dtype=np.int64)
+        self._press_peak = np.zeros(N_LAYERS)
+        self._press_peak_depth = np.zeros(N_LAYERS)
 
     def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> list[dict]:
         """Scan a block of rows (k, NCOL); returns the punctures found in it (also kept). ``depth``:
@@ -125,23 +126,41 @@ class SessionScan:
         self.max_depth = max(self.max_depth, float(depth.max()))
         self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
         self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
-        # pressing runs and punctures (a few rows per frame: a plain loop)
-        states = rows[:, C_STATE:C_STATE + N_LAYERS].astype(np.int64).tolist()
-        punct = rows[:, C_PUNCT].tolist()
-        found = []
-        for i in range(k):
-            st = states[i]
-            for j in range(N_LAYERS):
-                if st[j] == PRESSING:
-                    if self._prev_state[j] != PRESSING or f[i] > self._press_peak[j]:
-                        self._press_peak[j] = float(f[i])
-                        self._press_peak_depth[j] = float(depth[i])
-                self._prev_state[j] = st[j]
-            if punct[i] >= 0:
-                j = int(punct[i])
-                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
-                      "tip_depth_m": float(depth[i]), "peak_force_n": self._press_peak[j],
-                      "peak_depth_m": self._press_peak_depth[j]}
-                found.append(ev)
+        # pressing runs and punctures: one compiled pass over the block
+        punct = np.ascontiguousarray(rows[:, C_PUNCT])
+        ev = np.empty(int(np.count_nonzero(punct >= 0)), dtype=np.int64)
+        ev_peak = np.empty(ev.size)
+        ev_peak_depth = np.empty(ev.size)
+        _press_runs(np.ascontiguousarray(rows[:, C_STATE:C_STATE + N_LAYERS]).astype(np.int64), f,
+                    np.ascontiguousarray(depth, dtype=np.float64), punct, self._prev_state, self._press_peak,
+                    self._press_peak_depth, ev, ev_peak, ev_peak_depth)
+        found = [{"layer": LAYERS[int(punct[i])], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
+                  "tip_depth_m": float(depth[i]), "peak_force_n": float(pk), "peak_depth_m": float(pd)}
+                 for i, pk, pd in zip(ev.tolist(), ev_peak.tolist(), ev_peak_depth.tolist())]
         self.punctures.extend(found)
         return found
+
+
+@nb.njit(cache=True, nogil=True)
+def _press_runs(states, f, depth, punct, prev_state, peak, peak_depth, ev, ev_peak, ev_peak_depth):
+    """:meth:`SessionScan.feed`'s pressing runs over a block: per layer, the largest ``f`` (and the
+    ``depth`` there) over the uninterrupted run of PRESSING ``states`` (k, N_LAYERS), carried in
+    ``prev_state``, ``peak``, ``peak_depth`` across blocks; for each row with a puncture
+    (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``ev``,
+    ``ev_peak``, ``ev_peak_depth`` (sized to the punctures)."""
+    n = 0
+    for i in range(states.shape[0]):
+        for j in range(states.shape[1]):
+            s = states[i, j]
+            if s == PRESSING:
+                if prev_state[j] != PRESSING or f[i] > peak[j]:
+                    peak[j] = f[i]
+                    peak_depth[j] = depth[i]
+            prev_state[j] = s
+        if punct[i] >= 0:
+            j = int(punct[i])
+            ev[n] = i
+            ev_peak[n] = peak[j]
+            ev_peak_depth[n] = peak_depth[j]
+            n += 1
+    return n
