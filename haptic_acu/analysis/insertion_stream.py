@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 
 from .common import dot3
@@ -90,6 +91,152 @@ class ZigZag:
             self.d, self.xhi = 1, v
             return REV
         return NONE
+
+
+# ZigZag's state in a compiled pass: [d, xhi, xlo, started]
+ZZ_D, ZZ_HI, ZZ_LO, ZZ_STARTED = 0, 1, 2, 3
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _zz_step(zz, ms, v):
+    """:meth:`ZigZag.step` on the state array ``zz`` (ZZ_*), minimum swing ``ms``."""
+    if zz[ZZ_STARTED] == 0.0:
+        zz[ZZ_STARTED] = 1.0
+        zz[ZZ_HI] = v
+        zz[ZZ_LO] = v
+        return NONE
+    d = zz[ZZ_D]
+    if d == 0.0:
+        if v > zz[ZZ_HI]:
+            zz[ZZ_HI] = v
+        if v < zz[ZZ_LO]:
+            zz[ZZ_LO] = v
+        if v - zz[ZZ_LO] >= ms:
+            zz[ZZ_D] = 1.0
+            zz[ZZ_HI] = v
+            return NEW
+        if zz[ZZ_HI] - v >= ms:
+            zz[ZZ_D] = -1.0
+            zz[ZZ_LO] = v
+            return NEW
+        return NONE
+    if d > 0.0:
+        if v > zz[ZZ_HI]:
+            zz[ZZ_HI] = v
+            return NEW
+        if zz[ZZ_HI] - v >= ms:
+            zz[ZZ_D] = -1.0
+            zz[ZZ_LO] = v
+            return REV
+        return NONE
+    if v < zz[ZZ_LO]:
+        zz[ZZ_LO] = v
+        return NEW
+    if v - zz[ZZ_LO] >= ms:
+        zz[ZZ_D] = 1.0
+        zz[ZZ_HI] = v
+        return REV
+    return NONE
+
+
+@nb.njit(cache=True, nogil=True)
+def _twirl_pass(zz, ms, roll, t, cum, idx, cand, revs):
+    """:class:`_Twirl`'s reversals over the samples ``idx`` of a block: ``cand`` (roll, t, cumulative
+    rotation) the pending reversal, confirmed ones into ``revs`` (k, 3); returns their count."""
+    n = 0
+    for q in range(idx.shape[0]):
+        j = idx[q]
+        v = roll[j]
+        ev = _zz_step(zz, ms, v)
+        if ev == REV:
+            revs[n, 0] = cand[0]
+            revs[n, 1] = cand[1]
+            revs[n, 2] = cand[2]
+            n += 1
+        if ev != NONE:
+            cand[0] = v
+            cand[1] = t[j]
+            cand[2] = cum[j]
+    return n
+
+
+# _Strokes' pending reversal (cand) and last confirmed one (last): [set, index, dcm, P (20), Q (20)];
+# a withdrawal window: [set, start dcm, max res, max ref, sum res, sum ref, n, closed]
+NS = 20
+C_SET, C_IDX, C_DCM, C_P = 0, 1, 2, 3
+C_Q = C_P + NS
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _window_add(w, r, q, v):
+    if w[0] != 0.0 and w[7] == 0.0:
+        if r > w[2]:
+            w[2] = r
+        if q > w[3]:
+            w[3] = q
+        w[4] += r
+        w[5] += q
+        w[6] += 1.0
+        w[7] = 1.0 if v <= 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _strokes_pass(zz, ms, min_speed, i0, dcm, v_uni, v_non, f, res, rres, has_ref, carry, cand, last,
+                  win_cand, win_conf, out_sgn, out_sums):
+    """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
+    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
+    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
+    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
+    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+    n = 0
+    q_row = np.empty(NS)
+    for k in range(dcm.shape[0]):
+        for c in range(NS):
+            q_row[c] = carry[c]
+        col = 0
+        for form in range(2):
+            vel = v_uni[k] if form == 0 else v_non[k]
+            for sg in range(2):
+                sv = (1.0 if sg == 0 else -1.0) * vel
+                moving = sv > min_speed
+                carry[col] = carry[col] + (1.0 if moving else 0.0)
+                carry[col + 1] = carry[col + 1] + (sv if moving else 0.0)
+                for j in range(3):
+                    carry[col + 2 + j] = carry[col + 2 + j] + (f[k, j] if moving else 0.0)
+                col += 5
+        v = dcm[k]
+        ev = _zz_step(zz, ms, v)
+        if ev == REV:
+            if last[C_SET] != 0.0:
+                out_sgn[n] = 1.0 if cand[C_DCM] > last[C_DCM] else -1.0
+                for c in range(NS):
+                    out_sums[n, c] = cand[C_P + c] - last[C_Q + c]
+                n += 1
+            for c in range(last.shape[0]):
+                last[c] = cand[c]
+            if has_ref:
+                for c in range(win_conf.shape[0]):
+                    win_conf[c] = win_cand[c]
+        if ev != NONE:
+            cand[C_SET] = 1.0
+            cand[C_IDX] = i0 + k
+            cand[C_DCM] = v
+            for c in range(NS):
+                cand[C_P + c] = carry[c]
+                cand[C_Q + c] = q_row[c]
+            if has_ref:
+                win_cand[0] = 1.0
+                win_cand[1] = v
+                win_cand[2] = -np.inf
+                win_cand[3] = -np.inf
+                win_cand[4] = 0.0
+                win_cand[5] = 0.0
+                win_cand[6] = 0.0
+                win_cand[7] = 0.0
+        if has_ref:
+            _window_add(win_cand, res[k], rres[k], v)
+            _window_add(win_conf, res[k], rres[k], v)
+    return n
 
 
 class TroughScan:
@@ -178,9 +325,9 @@ class _Twirl:
     cumulative |roll increments| there), the first and last roll, the total rotation, peak torque."""
 
     def __init__(self):
-        self.zz = ZigZag(ROLL_MIN_SWING_DEG)
+        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing ROLL_MIN_SWING_DEG
         self.revs: list[tuple[float, float, float]] = []
-        self.cand = (0.0, 0.0, 0.0)
+        self.cand = np.zeros(3)  # the pending reversal: roll, t, cumulative rotation
         self.first = self.last = None
         self.total = 0.0
         self.peak = 0.0
@@ -195,17 +342,14 @@ class _Twirl:
         self.total = float(cum[-1])
         self.last = float(roll[-1])
         moved = np.flatnonzero(steps != 0.0)  # a repeated value never changes a zigzag
-        if self.zz.started:
+        if self.zz[ZZ_STARTED]:
             idx = moved
         else:
             idx = np.concatenate(([0], moved[moved > 0]))
-        zz = self.zz
-        for j, v, tj, cj in zip(idx.tolist(), roll[idx].tolist(), t[idx].tolist(), cum[idx].tolist()):
-            ev = zz.step(v)
-            if ev == REV:
-                self.revs.append(self.cand)
-            if ev:
-                self.cand = (v, tj, cj)
+        revs = np.empty((idx.size, 3))
+        n = _twirl_pass(self.zz, float(ROLL_MIN_SWING_DEG), np.ascontiguousarray(roll, dtype=np.float64),
+                        np.ascontiguousarray(t, dtype=np.float64), cum, idx.astype(np.int64), self.cand, revs)
+        self.revs.extend(map(tuple, revs[:n].tolist()))
 
     def result(self) -> dict:
         from .technique import _r
@@ -240,60 +384,29 @@ class _Strokes:
     prefix before a sample)."""
 
     def __init__(self, has_ref: bool):
-        self.zz = ZigZag(DEPTH_MIN_STROKE_MM)
-        self.carry = np.zeros(20)
-        self.cand = None  # (index, dcm, P row, Q row)
-        self.last_rev = None
+        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing DEPTH_MIN_STROKE_MM
+        self.carry = np.zeros(NS)
+        self.cand = np.zeros(C_Q + NS)  # the pending reversal (C_*: set, index, dcm, P row, Q row)
+        self.last_rev = np.zeros(C_Q + NS)  # the last confirmed one
         self.strokes: list[tuple[float, np.ndarray]] = []  # (sign, its 10 sums: 5 per formula)
         self.has_ref = has_ref
-        self.win_cand = self.win_conf = None  # [start dcm, max res, max ref, sum res, sum ref, n, closed]
+        # the withdrawal windows [set, start dcm, max res, max ref, sum res, sum ref, n, closed]
+        self.win_cand = np.zeros(8)
+        self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    @staticmethod
-    def _contrib(v_uni, v_non, f):
-        cols = []
-        for v in (v_uni, v_non):
-            for s in (1.0, -1.0):
-                sv = s * v
-                m = sv > MIN_SPEED_MM_S
-                cols += [m.astype(np.float64), np.where(m, sv, 0.0)]
-                cols += [np.where(m, f[:, j], 0.0) for j in range(3)]
-        return np.stack(cols, axis=1)  # (k, 20): formula-major, then sign, then (n, speed, fx, fy, fz)
-
     def feed(self, i0, dcm, v_uni, v_non, f, res, rres) -> None:
-        c = self._contrib(v_uni, v_non, f)
-        P = np.cumsum(np.vstack([self.carry, c]), axis=0)
-        Q, P = P[:-1], P[1:]
-        self.carry = P[-1].copy()
-        zz = self.zz
-        has_ref = self.has_ref
-        dl = dcm.tolist()
-        rl = res.tolist() if has_ref else None
-        ql = rres.tolist() if has_ref else None
-        for k, v in enumerate(dl):
-            ev = zz.step(v)
-            if ev == REV:
-                if self.last_rev is not None:
-                    sgn = 1.0 if self.cand[1] > self.last_rev[1] else -1.0
-                    self.strokes.append((sgn, self.cand[2] - self.last_rev[3]))
-                self.last_rev = self.cand
-                if has_ref:
-                    self.win_conf = self.win_cand
-            if ev:
-                self.cand = (i0 + k, v, P[k], Q[k])
-                if has_ref:
-                    self.win_cand = [v, -math.inf, -math.inf, 0.0, 0.0, 0, False]
-            if has_ref:
-                for w in (self.win_cand, self.win_conf):
-                    if w is not None and not w[6]:
-                        w[1] = max(w[1], rl[k])
-                        w[2] = max(w[2], ql[k])
-                        w[3] += rl[k]
-                        w[4] += ql[k]
-                        w[5] += 1
-                        w[6] = v <= 0.0
-        if dl:
-            self.last_dcm = dl[-1]
+        k = len(dcm)
+        if not k:
+            return
+        sgn = np.empty(k)
+        sums = np.empty((k, NS))
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)
+        n = _strokes_pass(self.zz, float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S), int(i0), f64(dcm), f64(v_uni),
+                          f64(v_non), f64(f), f64(res), f64(rres), self.has_ref, self.carry, self.cand, self.last_rev,
+                          self.win_cand, self.win_conf, sgn, sums)
+        self.strokes.extend(zip(sgn[:n].tolist(), sums[:n]))
+        self.last_dcm = float(dcm[-1])
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
         from .technique import summarise_strokes
@@ -312,10 +425,10 @@ class _Strokes:
     def grasp_result(self) -> dict:
         from .technique import _r
         w = self.win_conf
-        if self.last_rev is None or w is None or self.last_dcm >= self.last_rev[1]:
+        if not self.last_rev[C_SET] or not w[0] or self.last_dcm >= self.last_rev[C_DCM]:
             return {"peak_ratio": None, "mean_ratio": None, "peak_n": None, "reference_peak_n": None}
-        peak, ref_peak = w[1], w[2]
-        mean, ref_mean = w[3] / w[5], w[4] / w[5]
+        peak, ref_peak = float(w[2]), float(w[3])
+        mean, ref_mean = float(w[4]) / int(w[6]), float(w[5]) / int(w[6])
         return {
             "peak_ratio": _r(peak / ref_peak, 3) if ref_peak > 0 else None,
             "mean_ratio": _r(mean / ref_mean, 3) if ref_mean > 0 else None,
