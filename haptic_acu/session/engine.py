@@ -400,6 +400,20 @@ class Session:
         if error is not None:
             raise error
 
+    def _deliver_frames(self, frames: list) -> None:
+        """Consecutive ``frames`` to every sink at once (:meth:`Sink.on_frames`), as :meth:`_deliver`
+        (each sink gets them all, even if another fails; the first failure is raised after)."""
+        self.frame_index += len(frames)
+        error = None
+        for s in self.sinks:
+            try:
+                s.on_frames(frames)
+            except Exception as e:
+                if error is None:
+                    error = e
+        if error is not None:
+            raise error
+
     def _final_frame(self) -> None:
         """Flush whatever the servo wrote after the last visual frame. A sink that fails here is a
         fault (if none was reported yet), not an exception out of :meth:`run`."""
@@ -620,12 +634,18 @@ class Session:
         self.device.record_forces(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
         dents = self.want_dents and not all(s.rows_only for s in self.sinks)
         rates = dict(self.rates)
-        a = 0
-        for e in ends.tolist():
-            t = float(T[e - 1])
-            self._deliver(Frame(t, self.frame_index, rows[a:e], self.model, rates,
-                                Dents(self.model, self.springback.settled) if dents else {}))
-            a = e
+        if dents:  # a sink reads the model at its frame: only the last frame's is current
+            a = 0
+            for e in ends.tolist():
+                self._deliver(Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
+                                    Dents(self.model, self.springback.settled)))
+                a = e
+            return
+        starts = [0, *ends[:-1].tolist()]
+        k = self.frame_index
+        model = self.model
+        self._deliver_frames([Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
+                              enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))])
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):
