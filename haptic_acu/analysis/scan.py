@@ -23,19 +23,20 @@ def place_name(code: float) -> str:
     return PLACES[int(code) + 1]
 
 
-_LAST_DEPTH: tuple = (None, None, None)  # (tissue, points, depths) of the last call of tip_depth_m
+_RECENT_DEPTHS: list = []  # (tissue, points, depths) of tip_depth_m's last batches, newest last
+RECENT_DEPTHS = 8  # enough for each sink of a replay's block of frames to meet its batches again
 
 
 def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
-    negative above the skin. The last call's points and depths are kept: the same points of the same
-    tissue again (a session's sinks each reading the tip depth of one batch of rows: samples.csv,
-    the summary's scan, its metrics) are answered with a copy, not a second SH evaluation."""
-    global _LAST_DEPTH
+    negative above the skin. The last few batches' points and depths are kept: the same points of
+    the same tissue again (a session's sinks each reading the tip depth of the same batches of rows:
+    samples.csv, the summary's scan, its metrics) are answered with a copy, not a second SH
+    evaluation."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    last_tissue, last_xyz, last_depth = _LAST_DEPTH
-    if last_tissue is tissue and last_xyz.shape == xyz.shape and np.array_equal(last_xyz, xyz):
-        return last_depth.copy()
+    for last_tissue, last_xyz, last_depth in reversed(_RECENT_DEPTHS):
+        if last_tissue is tissue and last_xyz.shape == xyz.shape and np.array_equal(last_xyz, xyz):
+            return last_depth.copy()
     d = xyz - tissue.centre
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     safe = np.where(rho > 0.0, rho, 1.0)
@@ -43,7 +44,8 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     phi = np.arctan2(d[:, 1], d[:, 0])
     depth = tissue.radius(0, theta, phi) - rho
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
-        _LAST_DEPTH = (tissue, xyz.copy(), depth.copy())
+        _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy()))
+        del _RECENT_DEPTHS[:-RECENT_DEPTHS]
     return depth
 
 
