@@ -245,79 +245,132 @@ class TroughScan:
     sample after them yet) sit on a stack, each with its left base and the minimum of the samples
     from it to the next open peak; a peak is closed, and its prominence known, at the first
     strictly higher sample or at :meth:`finish`. ``found``: (index, t, prominence) of those with at
-    least ``prominence``."""
+    least ``prominence``. Each block is one compiled pass (:func:`_trough_pass`)."""
 
     def __init__(self, prominence: float):
         self.prom = float(prominence)
-        self.stack: list[list] = [[math.inf, -1, 0.0, math.inf, math.inf]]  # x, index, t, left, seg min
-        self.prev: float | None = None
-        self.rising = False
-        self.ps = 0  # first index of the current plateau after a rise
-        self.pt: list[float] = []  # its times (up to PLATEAU_T_CAP)
-        self.pt_last = 0.0
+        # the stack's rows: x, index, t, left base, segment minimum; row 0 a sentinel above every sample
+        self.stack = np.empty((64, 5))
+        self.stack[0] = (math.inf, -1, 0.0, math.inf, math.inf)
+        self.pt = np.empty(PLATEAU_T_CAP)  # the times of the current plateau after a rise (its first ones)
+        # [stack size, has prev, prev, rising, plateau start, plateau times kept, last plateau time]
+        self.state = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         self.found: list[tuple[int, float, float]] = []
 
-    def _mid_t(self, c: int, i_last: int) -> float:
-        k = c - self.ps
-        if k < len(self.pt):
-            return self.pt[k]
-        t0, n = self.pt[0], i_last - self.ps  # a very long flat trough: linear in the index
-        return t0 + (self.pt_last - t0) * k / n
-
-    def _push(self, xc: float, c: int, tc: float) -> None:
-        st = self.stack
-        acc = math.inf
-        j = len(st) - 1
-        while st[j][0] <= xc:  # equal peaks are not strictly higher: the base runs past them
-            acc = min(acc, st[j][4])
-            j -= 1
-        acc = min(acc, st[j][4])
-        st.append([xc, c, tc, acc, xc])
+    def feed(self, i0: int, x, t) -> None:
+        """Samples ``x`` (minus the depth) at times ``t``; ``i0`` the first one's index."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        k = x.shape[0]
+        if not k:
+            return
+        need = int(self.state[0]) + k + 1  # a sample pushes at most one peak
+        if need > self.stack.shape[0]:
+            grown = np.empty((max(need, 2 * self.stack.shape[0]), 5))
+            grown[:int(self.state[0])] = self.stack[:int(self.state[0])]
+            self.stack = grown
+        idx = np.empty(need, np.int64)
+        tf = np.empty((need, 2))
+        n = _trough_pass(self.stack, self.pt, self.state, self.prom, int(i0), x, t, idx, tf)
+        self.found.extend(zip(idx[:n].tolist(), tf[:n, 0].tolist(), tf[:n, 1].tolist()))
 
     def _emit(self, e, right: float) -> None:
         p = e[0] - max(e[3], right)
         if p >= self.prom:
-            self.found.append((e[1], e[2], p))
-
-    def feed(self, i0: int, x: list, t: list) -> None:
-        """Samples ``x`` (minus the depth) at times ``t``; ``i0`` the first one's index."""
-        st = self.stack
-        prev = self.prev
-        for k, (v, tk) in enumerate(zip(x, t)):
-            i = i0 + k
-            if prev is not None:
-                if v > prev:
-                    self.rising, self.ps, self.pt, self.pt_last = True, i, [tk], tk
-                elif v < prev:
-                    if self.rising:
-                        c = (self.ps + i - 1) // 2
-                        self._push(prev, c, self._mid_t(c, i - 1))
-                        self.rising = False
-                elif self.rising:
-                    if len(self.pt) < PLATEAU_T_CAP:
-                        self.pt.append(tk)
-                    self.pt_last = tk
-            if st[-1][0] < v:
-                acc = math.inf
-                while st[-1][0] < v:
-                    e = st.pop()
-                    acc = min(acc, e[4])
-                    self._emit(e, acc)
-                top = st[-1]
-                top[4] = min(top[4], acc)
-            top = st[-1]
-            if v < top[4]:
-                top[4] = v
-            prev = v
-        self.prev = prev
+            self.found.append((int(e[1]), float(e[2]), float(p)))
 
     def finish(self) -> list[tuple[int, float, float]]:
         acc = math.inf
-        while len(self.stack) > 1:
-            e = self.stack.pop()
+        size = int(self.state[0])
+        while size > 1:
+            size -= 1
+            e = self.stack[size].tolist()
             acc = min(acc, e[4])
             self._emit(e, acc)
+        self.state[0] = size
         return sorted(self.found)
+
+
+@nb.njit(cache=True, nogil=True)
+def _trough_pass(st, pt, state, prom, i0, x, t, out_idx, out_tp):
+    """:class:`TroughScan` over one block (its stack ``st``, plateau times ``pt`` and ``state`` carried
+    across blocks); the troughs closed in it, in order, into ``out_idx`` (index) and ``out_tp`` (t,
+    prominence). Returns their count."""
+    size = int(state[0])
+    has_prev = state[1] != 0.0
+    prev = state[2]
+    rising = state[3] != 0.0
+    ps = int(state[4])
+    npt = int(state[5])
+    pt_last = state[6]
+    n = 0
+    for q in range(x.shape[0]):
+        v = x[q]
+        tk = t[q]
+        i = i0 + q
+        if has_prev:
+            if v > prev:
+                rising = True
+                ps = i
+                pt[0] = tk
+                npt = 1
+                pt_last = tk
+            elif v < prev:
+                if rising:
+                    c = (ps + i - 1) // 2
+                    kk = c - ps  # the middle of the plateau: its time
+                    if kk < npt:
+                        tc = pt[kk]
+                    else:  # a very long flat trough: linear in the index
+                        t0 = pt[0]
+                        tc = t0 + (pt_last - t0) * kk / (i - 1 - ps)
+                    acc = np.inf  # push (prev, c, tc): equal peaks are not strictly higher
+                    j = size - 1
+                    while st[j, 0] <= prev:
+                        if st[j, 4] < acc:
+                            acc = st[j, 4]
+                        j -= 1
+                    if st[j, 4] < acc:
+                        acc = st[j, 4]
+                    st[size, 0] = prev
+                    st[size, 1] = c
+                    st[size, 2] = tc
+                    st[size, 3] = acc
+                    st[size, 4] = prev
+                    size += 1
+                    rising = False
+            elif rising:
+                if npt < pt.shape[0]:
+                    pt[npt] = tk
+                    npt += 1
+                pt_last = tk
+        if st[size - 1, 0] < v:
+            acc = np.inf
+            while st[size - 1, 0] < v:
+                size -= 1
+                if st[size, 4] < acc:
+                    acc = st[size, 4]
+                left = st[size, 3]
+                p = st[size, 0] - (acc if acc > left else left)
+                if p >= prom:
+                    out_idx[n] = np.int64(st[size, 1])
+                    out_tp[n, 0] = st[size, 2]
+                    out_tp[n, 1] = p
+                    n += 1
+            if acc < st[size - 1, 4]:
+                st[size - 1, 4] = acc
+        if v < st[size - 1, 4]:
+            st[size - 1, 4] = v
+        prev = v
+        has_prev = True
+    state[0] = size
+    state[1] = 1.0 if has_prev else 0.0
+    state[2] = prev
+    state[3] = 1.0 if rising else 0.0
+    state[4] = ps
+    state[5] = npt
+    state[6] = pt_last
+    return n
 
 
 class _Twirl:
@@ -633,7 +686,7 @@ class InsertionStream:
             v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
         g0 = self.next_i
         self.strokes.feed(g0, dcm[:m], v_uni, v_non, a[:m, 3:6], a[:m, 6], a[:m, 7])
-        self.troughs.feed(g0, (-a[:m, 1]).tolist(), t[:m].tolist())
+        self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))
         self.pend = a[m:]
