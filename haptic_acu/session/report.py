@@ -100,6 +100,21 @@ class SummarySink(Sink):
             if self._n_pending >= self.BATCH_ROWS:
                 self._scan_pending()
 
+    def on_frames(self, frames) -> None:
+        # on_frame's batches (the same rows in each), without a call per frame
+        pending, keep, batch = self._pending, self.keep_rows, self.BATCH_ROWS
+        for f in frames:
+            rows = f.samples
+            k = len(rows)
+            if k:
+                pending.append(rows)
+                if keep:
+                    self._blocks.append(rows)
+                self._n_pending += k
+                if self._n_pending >= batch:
+                    self._scan_pending()
+                    pending = self._pending
+
     def _scan_pending(self) -> None:
         if self._pending:
             rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
@@ -811,6 +826,18 @@ class SamplesCsvSink(Sink):
             self._n_pending += len(frame.samples)
             if self._n_pending >= self.BATCH_ROWS:
                 self._write_pending()
+
+    def on_frames(self, frames) -> None:
+        # on_frame's batches (the same rows in each), without a call per frame
+        pending, batch = self._pending, self.BATCH_ROWS
+        for f in frames:
+            k = len(f.samples)
+            if k:
+                pending.append(f.samples)
+                self._n_pending += k
+                if self._n_pending >= batch:
+                    self._write_pending()
+                    pending = self._pending
 
     def _write_pending(self) -> None:
         if self._pending:
