@@ -25,6 +25,7 @@ def place_name(code: float) -> str:
 
 _RECENT_DEPTHS: list = []  # (tissue, points, depths) of tip_depth_m's last batches, newest last
 RECENT_DEPTHS = 8  # enough for each sink of a replay's block of frames to meet its batches again
+RECENT_DEPTHS_ROWS = 65_536  # a larger batch is kept alone
 
 
 def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
@@ -44,6 +45,8 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     phi = np.arctan2(d[:, 1], d[:, 0])
     depth = tissue.radius(0, theta, phi) - rho
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
+        if xyz.shape[0] > RECENT_DEPTHS_ROWS:  # a whole session's rows: kept alone (memory as one batch)
+            _RECENT_DEPTHS.clear()
         _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy()))
         del _RECENT_DEPTHS[:-RECENT_DEPTHS]
     return depth
