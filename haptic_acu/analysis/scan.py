@@ -23,7 +23,7 @@ def place_name(code: float) -> str:
     return PLACES[int(code) + 1]
 
 
-_RECENT_DEPTHS: list = []  # (tissue, points, depths) of tip_depth_m's last batches, newest last
+_RECENT_DEPTHS: list = []  # (tissue, points, depths, first and last point) of the last batches, newest last
 RECENT_DEPTHS = 8  # enough for each sink of a replay's block of frames to meet its batches again
 RECENT_DEPTHS_ROWS = 65_536  # a larger batch is kept alone
 
@@ -35,9 +35,12 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     samples.csv, the summary's scan, its metrics) are answered with a copy, not a second SH
     evaluation."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    for last_tissue, last_xyz, last_depth in reversed(_RECENT_DEPTHS):
-        if last_tissue is tissue and last_xyz.shape == xyz.shape and np.array_equal(last_xyz, xyz):
-            return last_depth.copy()
+    if xyz.shape[0]:
+        ends = (xyz[0].tolist(), xyz[-1].tolist())  # a cheap look before comparing every point
+        for last_tissue, last_xyz, last_depth, last_ends in reversed(_RECENT_DEPTHS):
+            if (last_tissue is tissue and last_xyz.shape == xyz.shape and last_ends == ends
+                    and np.array_equal(last_xyz, xyz)):
+                return last_depth.copy()
     d = xyz - tissue.centre
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     safe = np.where(rho > 0.0, rho, 1.0)
@@ -47,7 +50,7 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
         if xyz.shape[0] > RECENT_DEPTHS_ROWS:  # a whole session's rows: kept alone (memory as one batch)
             _RECENT_DEPTHS.clear()
-        _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy()))
+        _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy(), (xyz[0].tolist(), xyz[-1].tolist())))
         del _RECENT_DEPTHS[:-RECENT_DEPTHS]
     return depth
 
