@@ -153,15 +153,15 @@ class Threads(Frames):
 def _sink_threads():
     import threading
 
-    return [t for t in threading.enumerate() if t.name == "haptic-acu-sinks"]
+    return [t for t in threading.enumerate() if t.name == "haptic-acu-sink"]
 
 
 def test_sinks_fed_from_their_own_thread_and_none_left(cfg, tissue, monkeypatch):
-    """Rows-only sinks get the blocks from the sinks' thread (the session's thread meanwhile runs the
-    next block's ticks), every frame in order, and the thread ends with the session."""
+    """A rows-only sink gets the blocks from a thread of its own (the session's thread meanwhile runs
+    the next block's ticks), every frame in order, and the thread ends with the session."""
     sink = Threads()
     result, *_ = replay(cfg, tissue, sink, monkeypatch, duration_s=9.0)
-    assert sink.threads == {"haptic-acu-sinks"}
+    assert sink.threads == {"haptic-acu-sink"}
     assert [i for _, i, _ in sink.seen] == list(range(len(sink.seen))) and len(sink.seen) == 540
     assert sum(len(r) for *_, r in sink.seen) == result.ticks == 9001
     assert not _sink_threads()

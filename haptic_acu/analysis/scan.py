@@ -7,6 +7,8 @@ the body centre: ``r_skin(theta, phi) - |p - c|`` (m; negative above the skin); 
 """
 from __future__ import annotations
 
+import threading
+
 import numba as nb
 import numpy as np
 
@@ -26,15 +28,21 @@ def place_name(code: float) -> str:
 _RECENT_DEPTHS: list = []  # (tissue, points, depths, first and last point) of the last batches, newest last
 RECENT_DEPTHS = 8  # enough for each sink of a replay's block of frames to meet its batches again
 RECENT_DEPTHS_ROWS = 65_536  # a larger batch is kept alone
+_DEPTH_LOCK = threading.Lock()
 
 
 def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
     negative above the skin. The last few batches' points and depths are kept: the same points of
     the same tissue again (a session's sinks each reading the tip depth of the same batches of rows:
-    samples.csv, the summary's scan, its metrics) are answered with a copy, not a second SH
-    evaluation."""
+    samples.csv, the summary's scan, its metrics; from threads of their own in a headless replay,
+    one evaluating while the other waits) are answered with a copy, not a second SH evaluation."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    with _DEPTH_LOCK:
+        return _tip_depth(xyz, tissue)
+
+
+def _tip_depth(xyz, tissue):
     if xyz.shape[0]:
         ends = (xyz[0].tolist(), xyz[-1].tolist())  # a cheap look before comparing every point
         for last_tissue, last_xyz, last_depth, last_ends in reversed(_RECENT_DEPTHS):

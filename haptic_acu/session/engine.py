@@ -166,11 +166,12 @@ def percentiles_us(values_s: np.ndarray) -> dict:
 
 
 class _SinkFeeder:
-    """Hands blocks of frames to the sinks (:meth:`Session._deliver_frames`) from a thread of its
-    own, in order, while the session's thread runs the next block's ticks (compiled, without the
-    GIL): a headless replay's sinks and its ticks on two cores. At most one block waits. Every block
-    put is delivered (every row the servo wrote reaches every sink that takes it); the first
-    exception of a delivery is kept (:attr:`error`) for the session's thread to raise."""
+    """Hands blocks of frames to one sink (its :meth:`Sink.on_frames`) from a thread of its own, in
+    order, while the session's thread runs the next block's ticks (compiled, without the GIL) and
+    the other sinks' threads theirs: a headless replay's sinks and its ticks on every core. At most
+    one block waits. Every block put is delivered (every row the servo wrote reaches every sink
+    that takes it); the first exception of a delivery is kept (:attr:`error`) for the session's
+    thread to raise."""
 
     def __init__(self, deliver):
         import queue
@@ -178,7 +179,7 @@ class _SinkFeeder:
         self._deliver = deliver
         self._q = queue.Queue(maxsize=1)
         self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="haptic-acu-sinks", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="haptic-acu-sink", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
@@ -266,8 +267,7 @@ class Session:
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
-        self._feeder: _SinkFeeder | None = None  # a replay's sinks fed from their own thread
-        self._frames_made = 0  # frames handed over so far (the sinks' thread may still be delivering)
+        self._feeders: list[_SinkFeeder] = []  # a replay's sinks, each fed from a thread of its own
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -601,16 +601,16 @@ class Session:
         sb = self.springback.args()
         # rows only: each block's frames go to the sinks from another thread while the next block's
         # ticks run (the sinks see the same rows in the same order)
-        self._feeder = _SinkFeeder(self._deliver_frames) if rows_only and max_frames > 1 else None
-        self._frames_made = self.frame_index
+        self._feeders = [_SinkFeeder(s.on_frames) for s in self.sinks] if rows_only and max_frames > 1 else []
         try:
             self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb)
         finally:
-            feeder, self._feeder = self._feeder, None
-            if feeder is not None:
-                feeder.close()
-                if feeder.error is not None:
-                    raise feeder.error
+            feeders, self._feeders = self._feeders, []
+            for f in feeders:
+                f.close()
+            error = next((f.error for f in feeders if f.error is not None), None)
+            if error is not None:
+                raise error
 
     def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb) -> None:
         """:meth:`_run_sim_ahead`'s blocks."""
@@ -644,7 +644,7 @@ class Session:
             faulted = self.model.diag["fault"] != 0.0
             wall = time.perf_counter() - t0
             if wall > 0:
-                self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self._frames_made + frames) / wall}
+                self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
             self._hand_over(ends[:frames], T)
             if faulted:
                 self._state_fault(float(T[n - 1]), self.tick - 1)
@@ -693,21 +693,21 @@ class Session:
                 self._deliver(Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
                                     Dents(self.model, self.springback.settled)))
                 a = e
-            self._frames_made = self.frame_index
             return
         starts = [0, *ends[:-1].tolist()]
-        k = self._frames_made
+        k = self.frame_index
         model = self.model
         block = [Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
                  enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))]
-        self._frames_made += frames
-        feeder = self._feeder
-        if feeder is None:
+        if not self._feeders:
             self._deliver_frames(block)
             return
-        feeder.put(block)
-        if feeder.error is not None:  # a sink failed on an earlier block: no more ticks
-            raise feeder.error
+        self.frame_index += frames
+        for f in self._feeders:
+            f.put(block)
+        error = next((f.error for f in self._feeders if f.error is not None), None)
+        if error is not None:  # a sink failed on an earlier block: no more ticks
+            raise error
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):
