@@ -602,15 +602,16 @@ class Session:
         # rows only: each block's frames go to the sinks from another thread while the next block's
         # ticks run (the sinks see the same rows in the same order)
         self._feeders = [_SinkFeeder(s.on_frames) for s in self.sinks] if rows_only and max_frames > 1 else []
+        feeders = self._feeders
         try:
             self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb)
-        finally:
-            feeders, self._feeders = self._feeders, []
+        finally:  # every block put delivered before the final frame and the sinks' close
+            self._feeders = []
             for f in feeders:
                 f.close()
-            error = next((f.error for f in feeders if f.error is not None), None)
-            if error is not None:
-                raise error
+        error = next((f.error for f in feeders if f.error is not None), None)
+        if error is not None:
+            raise error
 
     def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb) -> None:
         """:meth:`_run_sim_ahead`'s blocks."""
