@@ -8,8 +8,9 @@ is 600,000 of them. This module computes the same dict from the rows as they arr
 * the depth's *records* (ticks deeper than every earlier one) not shallower than 90% of the
   deepest so far: the insertion speed's end tick and the lift-thrust start are among them;
 * the reversals of the roll (twirling) and of the continuous depth (lift-thrust strokes) as found
-  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`), each
-  stroke's sums (moving samples, speed, force vector: the resistance is linear in u);
+  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`'s
+  rule, in one compiled pass over each block), each stroke's sums (moving samples, speed, force
+  vector: the resistance is linear in u);
 * the troughs of the continuous depth with their prominences, found sample by sample with a stack
   of open peaks (:class:`TroughScan`, the result of :func:`haptic_acu.analysis.metrics.find_troughs`);
   troughs before the lift-thrust start are dropped at the end (the start is a depth record, before
