@@ -326,6 +326,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             else:
                 sink = RerunSink.to_file(partial / "recording.rrd", layout)
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
+                sink.send_batches = 8  # sent 4 s of simulated time at a time
                 sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))
