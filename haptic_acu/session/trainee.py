@@ -327,7 +327,9 @@ class TraineeScene:
     @staticmethod
     def _p3(uw: np.ndarray, y: float) -> np.ndarray:
         uw = np.asarray(uw, dtype=np.float64).reshape(-1, 2)
-        return np.stack([uw[:, 0], np.full(len(uw), y), uw[:, 1]], axis=1)
+        out = np.empty((len(uw), 3))
+        out[:, 0], out[:, 1], out[:, 2] = uw[:, 0], y, uw[:, 1]
+        return out
 
     def _puncture_depths(self) -> list[float]:
         out = []
@@ -472,7 +474,8 @@ class TraineeScene:
 
 def seen_key(*arrays, decimals: int = 3) -> tuple:
     """What a drawing shows, rounded (mm to the micrometre): equal keys draw the same."""
-    return tuple(np.round(np.concatenate([np.ravel(a) for a in arrays]), decimals).tolist())
+    flat = np.ravel(arrays[0]) if len(arrays) == 1 else np.concatenate([np.ravel(a) for a in arrays])
+    return tuple(np.round(flat, decimals).tolist())
 
 
 def _slug(name: str) -> str:
