@@ -330,6 +330,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                 sink = RerunSink.to_file(partial / "recording.rrd", layout)
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
                 sink.send_batches = RRD_SEND_BATCHES
+                sink.flush_frames, sink.flush_before_send = 0, True
                 sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))

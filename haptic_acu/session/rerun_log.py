@@ -321,6 +321,10 @@ class RerunSink(Sink):
         # session, whose pipe then holds the visual thread back; never the servo thread).
         self.flush_frames = 60
         self.flush_timeout_s = 5.0
+        # Or (``flush_before_send``, a replay to a file): wait for the last send just before the next,
+        # so that the SDK encodes and writes one send while the frames of the next are drawn (the
+        # backlog stays one send's rows).
+        self.flush_before_send = False
         self._frames_since_flush = 0
 
     # -- constructors ---------------------------------------------------------------------------
@@ -485,6 +489,11 @@ class RerunSink(Sink):
 
     def _send_held(self) -> None:
         rec = self.rec
+        if self.flush_before_send:
+            try:
+                rec.flush(timeout_sec=self.flush_timeout_s)
+            except RuntimeError:
+                pass
         for path, parts in self._series_out.items():
             t_s, ticks, vals = (np.concatenate(x) if len(parts) > 1 else x[0] for x in zip(*parts))
             rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=_ns(t_s)),
