@@ -168,24 +168,56 @@ _watch: _CompileWatch | None = None
 
 
 def watch_compiles() -> None:
-    """Report numba compiles of over a second (once per process; a no-op without numba)."""
+    """Report numba compiles of over a second (once per process). A command that runs no kernel
+    does not import numba for it: the listener is registered when numba is first imported."""
     global _watch
     if _watch is not None:
         return
+    _watch = _CompileWatch()
+    if "numba" in sys.modules:
+        _listen(_watch)
+    else:
+        sys.meta_path.insert(0, _AfterImport("numba", lambda: _listen(_watch)))
+
+
+def _listen(watch: _CompileWatch) -> None:
     try:
         from numba.core import event
     except ImportError:  # pragma: no cover - numba is a dependency
         return
 
     class Listener(event.Listener):
-        def __init__(self, watch):
-            self.watch = watch
-
         def on_start(self, e):
-            self.watch.on_start(e)
+            watch.on_start(e)
 
         def on_end(self, e):
-            self.watch.on_end(e)
+            watch.on_end(e)
 
-    _watch = _CompileWatch()
-    event.register("numba:compile", Listener(_watch))
+    event.register("numba:compile", Listener())
+
+
+class _AfterImport:
+    """A one-shot import hook: calls ``then()`` once the top-level module ``name`` has been
+    imported (by whatever imports it first), then steps out of the way."""
+
+    def __init__(self, name: str, then):
+        self.name = name
+        self.then = then
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.name:
+            return None
+        import importlib.util
+
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(fullname)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        run, then = spec.loader.exec_module, self.then
+
+        def exec_module(module):
+            run(module)
+            then()
+
+        spec.loader.exec_module = exec_module
+        return spec

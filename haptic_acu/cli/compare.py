@@ -16,7 +16,6 @@ from ..base.bundled import bundled_names, resolve_trajectory
 from ..base.config import MODEL_KINDS
 from ..base.errors import UserError
 from ..base.outputs import fresh_folder
-from ..session.compare import compare_into, open_trajectory
 from .options import add_config_args, config_from_args
 
 
@@ -70,6 +69,8 @@ def _labels(args, paths) -> list[str]:
 
 
 def run(args) -> int:
+    from ..session.compare import compare_into, open_trajectory  # the servo's kernels: only to run
+
     cfg = config_from_args(args)
     from ..session.point import setup_from_args
     point = setup_from_args(cfg, args)  # --point: every session at the point, graded

@@ -287,6 +287,9 @@ def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dic
     return summary
 
 
+RRD_SEND_BATCHES = 8  # a replay's .rrd gets 8 batches (4 s of simulated time) per send_columns
+
+
 def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rrd: bool = True,
                spawn: bool = False, connect: str | None = None, progress: bool = True, cfg=None,
                point=None, layout: str | None = None) -> dict:
@@ -329,6 +332,8 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
             else:
                 sink = RerunSink.to_file(partial / "recording.rrd", layout)
                 sink.batch_frames = 30  # servo series in half-second batches of simulated time
+                sink.send_batches = RRD_SEND_BATCHES
+                sink.flush_frames, sink.flush_before_send = 0, True
                 sinks.append(io.guard(sink))
         if progress:
             sinks.append(Progress(trajectory.name, device.duration_s))

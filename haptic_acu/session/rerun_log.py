@@ -308,6 +308,12 @@ class RerunSink(Sink):
         self.batch_frames = 1
         self._pending: list[np.ndarray] = []
         self._frames_since_send = 0
+        # What batches compute is held and sent every ``send_batches`` batches (1 for a viewer):
+        # rerun's cost is per send_columns call (about 0.3 ms), not per row, so a replay to a file
+        # sends several batches' rows in one call per entity; the rows and their times are the same.
+        self.send_batches = 1
+        self._batches_held = 0
+        self._series_out: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
         # The SDK queues logged data for its encoder/writer thread without bound: when logging
         # outpaces it (a loaded machine, a headless replay) the queue grew ~30 MB per minute of
         # session. A flush every ``flush_frames`` frames waits for it, bounding the backlog to
@@ -315,6 +321,10 @@ class RerunSink(Sink):
         # session, whose pipe then holds the visual thread back; never the servo thread).
         self.flush_frames = 60
         self.flush_timeout_s = 5.0
+        # Or (``flush_before_send``, a replay to a file): wait for the last send just before the next,
+        # so that the SDK encodes and writes one send while the frames of the next are drawn (the
+        # backlog stays one send's rows).
+        self.flush_before_send = False
         self._frames_since_flush = 0
 
     # -- constructors ---------------------------------------------------------------------------
@@ -463,20 +473,45 @@ class RerunSink(Sink):
             self._log_patch(k, np.zeros(th_p.shape), 0.0, 0)
         self._started = True
 
-    def _send_series(self) -> None:
-        """Send the pending servo rows: one send_columns per series (one value per tick) and the
-        frame-rate columns; the puncture events among the rows."""
-        if not self._pending:
-            self._send_frames()
-            return
+    def _send_series(self, final: bool = False) -> None:
+        """A batch: the pending servo rows as one value per tick of each series, the target marks at
+        its ends, the puncture events among its rows; sent with the frame-rate columns every
+        ``send_batches`` batches (and when ``final``)."""
+        if self._pending:
+            self._batch()
+        self._batches_held += 1
+        if final or self._batches_held >= self.send_batches:
+            self._batches_held = 0
+            self._send_held()
+
+    def _hold(self, path: str, t_s: np.ndarray, ticks: np.ndarray, vals: np.ndarray) -> None:
+        self._series_out.setdefault(path, []).append((t_s, ticks, vals))
+
+    def _send_held(self) -> None:
+        rec = self.rec
+        if self.flush_before_send:
+            try:
+                rec.flush(timeout_sec=self.flush_timeout_s)
+            except RuntimeError:
+                pass
+        for path, parts in self._series_out.items():
+            t_s, ticks, vals = (np.concatenate(x) if len(parts) > 1 else x[0] for x in zip(*parts))
+            rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=_ns(t_s)),
+                                            rr.TimeColumn("tick", sequence=ticks.astype(np.int64))],
+                             columns=rr.Scalars.columns(scalars=vals))
+        self._series_out = {}
+        self._send_frames()
+        rec.set_time("sim_time", duration=_ns(self._last_t))  # this thread's time, as the frames left it
+        rec.set_time("tick", sequence=self._last_tick)
+
+    def _batch(self) -> None:
         rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
         self._pending = []
         rec = self.rec
         tip_depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
         inside = rows[:, COL["layer"]] >= 0
         depth_mm = np.where(inside, rows[:, COL["depth_skin_m"]], tip_depth) * 1e3
-        idx = [rr.TimeColumn("sim_time", duration=_ns(rows[:, COL["t_s"]])),
-               rr.TimeColumn("tick", sequence=rows[:, COL["tick"]].astype(np.int64))]
+        t_s, ticks = rows[:, COL["t_s"]].copy(), rows[:, COL["tick"]].copy()
         for path, (_, _, get, zero) in SERIES.items():
             vals = get(rows, depth_mm)
             if vals.shape[1] > len(SERIES[path][0]):  # a scene component and its distance from the rest
@@ -489,21 +524,15 @@ class RerunSink(Sink):
                     continue
                 self._started_series.add(path)
                 first = max(int(nz[0]) - 1, 0)  # from the last zero: the line starts at zero
-                sub = [rr.TimeColumn("sim_time", duration=_ns(rows[first:, COL["t_s"]])),
-                       rr.TimeColumn("tick", sequence=rows[first:, COL["tick"]].astype(np.int64))]
-                rec.send_columns(path, indexes=sub, columns=rr.Scalars.columns(scalars=vals[first:]))
+                self._hold(path, t_s[first:], ticks[first:], vals[first:])
                 continue
-            rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=vals))
+            self._hold(path, t_s, ticks, vals)
         # the target and the layer boundaries along the needle, at the batch's ends
         lo, hi = self._target
         marks = np.concatenate([[lo, hi], self.scene.depths[1:4]])
         ends = [0, len(rows) - 1] if len(rows) > 1 else [0]
-        rec.send_columns("depth/marks", indexes=[
-            rr.TimeColumn("sim_time", duration=_ns(rows[ends, COL["t_s"]])),
-            rr.TimeColumn("tick", sequence=rows[ends, COL["tick"]].astype(np.int64))],
-            columns=rr.Scalars.columns(scalars=np.tile(-marks, (len(ends), 1))))
+        self._hold("depth/marks", t_s[ends], ticks[ends], np.tile(-marks, (len(ends), 1)))
         self._events(rows, tip_depth)
-        self._send_frames()
         rec.set_time("sim_time", duration=_ns(self._last_t))  # _events moved this thread's time
         rec.set_time("tick", sequence=self._last_tick)
 
@@ -563,7 +592,7 @@ class RerunSink(Sink):
 
     def close(self, result=None) -> None:
         if self._started:
-            self._send_series()
+            self._send_series(final=True)
         fault = getattr(result, "fault", None)
         if fault and self._started:
             self.rec.set_time("sim_time", duration=_ns(self._last_t))  # this thread's time (thread-local)

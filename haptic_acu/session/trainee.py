@@ -83,6 +83,24 @@ def _strip_tris(n: int) -> np.ndarray:
     return np.concatenate([np.stack([i, i + n, i + 1], 1), np.stack([i + 1, i + n, i + n + 1], 1)]).astype(np.uint32)
 
 
+def strips_array(strips, arch):
+    """Line strips (a list of (n_i, 2 or 3) arrays) as the arrow array rerun would make of them
+    (float32 points, one list per strip), built in one piece rather than strip by strip."""
+    import pyarrow as pa
+
+    batch = rr.components.LineStrip3DBatch if arch is rr.LineStrips3D else rr.components.LineStrip2DBatch
+    dim = 3 if arch is rr.LineStrips3D else 2
+    if not strips:
+        return []
+    lengths = [len(x) for x in strips]
+    offsets = np.zeros(len(strips) + 1, dtype=np.int32)
+    np.cumsum(lengths, out=offsets[1:])
+    flat = np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=np.float32).reshape(-1, dim) for x in strips]))
+    dtype = batch._ARROW_DATATYPE
+    points = pa.FixedSizeListArray.from_arrays(flat.reshape(-1), type=dtype.value_type)
+    return pa.ListArray.from_arrays(pa.array(offsets), points, type=dtype)
+
+
 class Columns:
     """Rows of one entity's archetype collected frame by frame and sent as columns on ``send``: one
     ``send_columns`` per batch instead of one ``log`` per frame. ``partitioned``: each row holds a
@@ -119,8 +137,15 @@ class Columns:
                 cols[k] = vals if isinstance(vals[0], str) else np.asarray(vals)
             elif isinstance(vals[0], np.ndarray):
                 cols[k] = np.concatenate(vals)
+            elif k == "strips":
+                cols[k] = strips_array([x for row in vals for x in row], self.arch)
             else:
                 cols[k] = [x for row in vals for x in row]
+        if self.partitioned:
+            n = sum(self.lengths)
+            bad = [k for k, v in cols.items() if len(v) not in (n, 0)]
+            if bad:  # rerun would take the first rows' instances for the wrong rows, silently
+                raise ValueError(f"{path}: {bad} hold other than the rows' {n} instances")
         cc = self.arch.columns(**cols)
         if self.partitioned:
             cc = cc.partition(self.lengths)
@@ -302,7 +327,9 @@ class TraineeScene:
     @staticmethod
     def _p3(uw: np.ndarray, y: float) -> np.ndarray:
         uw = np.asarray(uw, dtype=np.float64).reshape(-1, 2)
-        return np.stack([uw[:, 0], np.full(len(uw), y), uw[:, 1]], axis=1)
+        out = np.empty((len(uw), 3))
+        out[:, 0], out[:, 1], out[:, 2] = uw[:, 0], y, uw[:, 1]
+        return out
 
     def _puncture_depths(self) -> list[float]:
         out = []
@@ -364,7 +391,7 @@ class TraineeScene:
                                     self._p3(np.stack([u, lower], 1), _Y_BAND)]).astype(np.float32)
             self._cols[f"section/scene/layers/{LAYERS4[k]}"].add(t, tick, n=len(verts), vertex_positions=verts)
         self._cols["section/scene/surfaces"].add(
-            t, tick, strips=[self._p3(np.stack([u, curves[k]], 1), _Y_LINE).astype(np.float32) for k in range(4)])
+            t, tick, n=4, strips=[self._p3(np.stack([u, curves[k]], 1), _Y_LINE).astype(np.float32) for k in range(4)])
         self.curves = [np.asarray(cv, dtype=np.float64).copy() for cv in curves]
 
     def _log_plane_labels(self) -> None:
@@ -447,7 +474,8 @@ class TraineeScene:
 
 def seen_key(*arrays, decimals: int = 3) -> tuple:
     """What a drawing shows, rounded (mm to the micrometre): equal keys draw the same."""
-    return tuple(np.round(np.concatenate([np.ravel(a) for a in arrays]), decimals).tolist())
+    flat = np.ravel(arrays[0]) if len(arrays) == 1 else np.concatenate([np.ravel(a) for a in arrays])
+    return tuple(np.round(flat, decimals).tolist())
 
 
 def _slug(name: str) -> str:

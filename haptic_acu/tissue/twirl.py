@@ -366,7 +366,9 @@ def twist_direction(axis_to_tip, roll_rad: float) -> np.ndarray:
     ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e0 = ref - (ref @ d) * d
     e0 /= np.linalg.norm(e0)
-    return math.cos(roll_rad) * e0 + math.sin(roll_rad) * np.cross(d, e0)
+    # d x e0, as np.cross computes it (the same products and differences) without its overhead
+    across = np.array([d[1] * e0[2] - d[2] * e0[1], d[2] * e0[0] - d[0] * e0[2], d[0] * e0[1] - d[1] * e0[0]])
+    return math.cos(roll_rad) * e0 + math.sin(roll_rad) * across
 
 
 # ----------------------------------------------------------------------------- protocols (Python)
