@@ -182,13 +182,18 @@ def _window_add(w, r, q, v):
 
 
 @nb.njit(cache=True, nogil=True)
-def _strokes_pass(zz, ms, min_speed, i0, dcm, v_uni, v_non, f, res, rres, has_ref, carry, cand, last,
-                  win_cand, win_conf, out_sgn, out_sums):
-    """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
-    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
-    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
-    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
-    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+def _strokes_pass(rules, i0, block, carried, out):
+    """:class:`_Strokes`' per-sample pass over a block (``block``: dcm, v_uni, v_non, f, res, rres
+    from sample ``i0``; ``rules``: the minimum swing, the minimum speed, has_ref): the running prefix
+    sums (``carry``, NS) of the per-sample contributions (for numpy.gradient's uniform and general
+    formulas, each sign: moving, speed, force x, y, z), the depth's reversals (``zz``), each
+    confirmed stroke's sign and sums (the pending reversal's P minus the last one's Q) into ``out``
+    (sgn, sums), and the withdrawal windows (with has_ref). ``carried`` (zz, carry, cand, last,
+    win_cand, win_conf) goes on to the next block. Returns the strokes' count."""
+    ms, min_speed, has_ref = rules
+    dcm, v_uni, v_non, f, res, rres = block
+    zz, carry, cand, last, win_cand, win_conf = carried
+    out_sgn, out_sums = out
     n = 0
     q_row = np.empty(NS)
     for k in range(dcm.shape[0]):
@@ -272,7 +277,7 @@ class TroughScan:
             self.stack = grown
         idx = np.empty(need, np.int64)
         tf = np.empty((need, 2))
-        n = _trough_pass(self.stack, self.pt, self.state, self.prom, int(i0), x, t, idx, tf)
+        n = _trough_pass((self.stack, self.pt, self.state), self.prom, int(i0), x, t, idx, tf)
         self.found.extend(zip(idx[:n].tolist(), tf[:n, 0].tolist(), tf[:n, 1].tolist()))
 
     def _emit(self, e, right: float) -> None:
@@ -293,10 +298,11 @@ class TroughScan:
 
 
 @nb.njit(cache=True, nogil=True)
-def _trough_pass(st, pt, state, prom, i0, x, t, out_idx, out_tp):
-    """:class:`TroughScan` over one block (its stack ``st``, plateau times ``pt`` and ``state`` carried
+def _trough_pass(scan, prom, i0, x, t, out_idx, out_tp):
+    """:class:`TroughScan` over one block (``scan``: its stack, plateau times and state, carried
     across blocks); the troughs closed in it, in order, into ``out_idx`` (index) and ``out_tp`` (t,
     prominence). Returns their count."""
+    st, pt, state = scan
     size = int(state[0])
     has_prev = state[1] != 0.0
     prev = state[2]
@@ -456,9 +462,10 @@ class _Strokes:
         sgn = np.empty(k)
         sums = np.empty((k, NS))
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)
-        n = _strokes_pass(self.zz, float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S), int(i0), f64(dcm), f64(v_uni),
-                          f64(v_non), f64(f), f64(res), f64(rres), self.has_ref, self.carry, self.cand, self.last_rev,
-                          self.win_cand, self.win_conf, sgn, sums)
+        rules = (float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S), self.has_ref)
+        block = (f64(dcm), f64(v_uni), f64(v_non), f64(f), f64(res), f64(rres))
+        carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
+        n = _strokes_pass(rules, int(i0), block, carried, (sgn, sums))
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n]))
         self.last_dcm = float(dcm[-1])
 

@@ -148,8 +148,8 @@ class SessionScan:
         ev_peak = np.empty(ev.size)
         ev_peak_depth = np.empty(ev.size)
         _press_runs(np.ascontiguousarray(rows[:, C_STATE:C_STATE + N_LAYERS]).astype(np.int64), f,
-                    np.ascontiguousarray(depth, dtype=np.float64), punct, self._prev_state, self._press_peak,
-                    self._press_peak_depth, ev, ev_peak, ev_peak_depth)
+                    np.ascontiguousarray(depth, dtype=np.float64), punct,
+                    (self._prev_state, self._press_peak, self._press_peak_depth), (ev, ev_peak, ev_peak_depth))
         found = [{"layer": LAYERS[int(punct[i])], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
                   "tip_depth_m": float(depth[i]), "peak_force_n": float(pk), "peak_depth_m": float(pd)}
                  for i, pk, pd in zip(ev.tolist(), ev_peak.tolist(), ev_peak_depth.tolist())]
@@ -158,12 +158,14 @@ class SessionScan:
 
 
 @nb.njit(cache=True, nogil=True)
-def _press_runs(states, f, depth, punct, prev_state, peak, peak_depth, ev, ev_peak, ev_peak_depth):
+def _press_runs(states, f, depth, punct, runs, out):
     """:meth:`SessionScan.feed`'s pressing runs over a block: per layer, the largest ``f`` (and the
     ``depth`` there) over the uninterrupted run of PRESSING ``states`` (k, N_LAYERS), carried in
-    ``prev_state``, ``peak``, ``peak_depth`` across blocks; for each row with a puncture
-    (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``ev``,
-    ``ev_peak``, ``ev_peak_depth`` (sized to the punctures)."""
+    ``runs`` (prev_state, peak, peak_depth) across blocks; for each row with a puncture
+    (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``out``
+    (ev, ev_peak, ev_peak_depth: sized to the punctures)."""
+    prev_state, peak, peak_depth = runs
+    ev, ev_peak, ev_peak_depth = out
     n = 0
     for i in range(states.shape[0]):
         for j in range(states.shape[1]):

@@ -1,13 +1,15 @@
 """Fast, deterministic CSV formatting of numeric sample blocks (numba).
 
-Python's per-value string formatting was most of a headless replay's time (16,000 rows x 25
-columns). :func:`format_rows` writes a whole block in one compiled call: each column is either a
-fixed-decimal number (rounded half away from zero at its number of decimals, never "-0.000") or a
-category (an integer code looked up in a table of names). Identical values give identical bytes.
+A headless replay writes one row per servo tick (16,000 rows of some 40 columns for the default
+insertion), too many for Python's per-value formatting. :class:`RowFormatter` writes a whole block
+in one compiled call: each column is either a fixed-decimal number (rounded half away from zero at
+its number of decimals, never "-0.000") or a category (an integer code looked up in a table of
+names). Identical values give identical bytes.
 """
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -50,49 +52,67 @@ def _put_fixed(out, pos, v, d, p10f):
     return pos + ln
 
 
+class Cells(NamedTuple):
+    """How each column is written (the compiled passes' view of a :class:`RowFormatter`): ``kinds``
+    (FIXED or CATEGORY), ``decimals``, and the category names' bytes (``table`` rows of
+    ``table_len`` bytes; a column's first name at row ``table_base``)."""
+    kinds: np.ndarray
+    decimals: np.ndarray
+    table: np.ndarray
+    table_len: np.ndarray
+    table_base: np.ndarray
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _put_cell(out, pos, v, c, cells, p10f):
+    """Column ``c``'s cell for the value ``v``; returns the new position."""
+    if cells.kinds[c] == 1:
+        if math.isfinite(v) and v >= 0.0:  # else an empty cell
+            t = cells.table_base[c] + int(v)
+            for b in range(cells.table_len[t]):
+                out[pos] = cells.table[t, b]
+                pos += 1
+    elif not math.isfinite(v):
+        out[pos] = 110  # "nan"
+        out[pos + 1] = 97
+        out[pos + 2] = 110
+        pos += 3
+    else:
+        pos = _put_fixed(out, pos, v, cells.decimals[c], p10f[c])
+    return pos
+
+
 @nb.njit(cache=True, nogil=True)
-def _format_rows(values, kinds, decimals, table, table_len, table_base, out):
+def _format_rows(values, cells, out):
     n, m = values.shape
     pos = 0
     p10f = np.empty(m)
     for c in range(m):
-        p10f[c] = 10.0 ** decimals[c]
+        p10f[c] = 10.0 ** cells.decimals[c]
     for i in range(n):
         for c in range(m):
             if c > 0:
                 out[pos] = 44  # ','
                 pos += 1
-            v = values[i, c]
-            if kinds[c] == 1:
-                if math.isfinite(v) and v >= 0.0:  # else an empty cell
-                    t = table_base[c] + int(v)
-                    for b in range(table_len[t]):
-                        out[pos] = table[t, b]
-                        pos += 1
-            elif not math.isfinite(v):
-                out[pos] = 110  # "nan"
-                out[pos + 1] = 97
-                out[pos + 2] = 110
-                pos += 3
-            else:
-                pos = _put_fixed(out, pos, v, decimals[c], p10f[c])
+            pos = _put_cell(out, pos, values[i, c], c, cells, p10f)
         out[pos] = 10  # '\n'
         pos += 1
     return pos
 
 
 @nb.njit(cache=True, nogil=True)
-def _format_gather(rows, extra, src, scale, offset, kinds, decimals, table, table_len, table_base, out):
-    """:func:`_format_rows` of the columns ``v * scale[c] + offset[c]`` (``offset`` added only where
-    it is not zero), ``v`` from ``rows[:, src[c]]``, or from ``extra[:, src[c] - rows.shape[1]]``
-    where ``src[c]`` is past ``rows``' columns."""
+def _format_gather(rows, extra, gather, cells, out):
+    """:func:`_format_rows` of the columns ``v * scale[c] + offset[c]`` (``gather``: src, scale,
+    offset; ``offset`` added only where it is not zero), ``v`` from ``rows[:, src[c]]``, or from
+    ``extra[:, src[c] - rows.shape[1]]`` where ``src[c]`` is past ``rows``' columns."""
+    src, scale, offset = gather
     n = rows.shape[0]
     w = rows.shape[1]
     m = src.shape[0]
     pos = 0
     p10f = np.empty(m)
     for c in range(m):
-        p10f[c] = 10.0 ** decimals[c]
+        p10f[c] = 10.0 ** cells.decimals[c]
     for i in range(n):
         for c in range(m):
             if c > 0:
@@ -102,19 +122,7 @@ def _format_gather(rows, extra, src, scale, offset, kinds, decimals, table, tabl
             v = (rows[i, k] if k < w else extra[i, k - w]) * scale[c]
             if offset[c] != 0.0:
                 v = v + offset[c]
-            if kinds[c] == 1:
-                if math.isfinite(v) and v >= 0.0:  # else an empty cell
-                    t = table_base[c] + int(v)
-                    for b in range(table_len[t]):
-                        out[pos] = table[t, b]
-                        pos += 1
-            elif not math.isfinite(v):
-                out[pos] = 110  # "nan"
-                out[pos + 1] = 97
-                out[pos + 2] = 110
-                pos += 3
-            else:
-                pos = _put_fixed(out, pos, v, decimals[c], p10f[c])
+            pos = _put_cell(out, pos, v, c, cells, p10f)
         out[pos] = 10  # '\n'
         pos += 1
     return pos
@@ -142,11 +150,12 @@ class RowFormatter:
             self.table[i, :len(n)] = np.frombuffer(n, dtype=np.uint8)
         self.table_base = np.array(base, dtype=np.int64)
         self.max_cell = max(24, width + 1)
+        self.cells = Cells(self.kinds, self.decimals, self.table, self.table_len, self.table_base)
 
     def format(self, values: np.ndarray) -> bytes:
         values = np.ascontiguousarray(values, dtype=np.float64)
         out = np.empty(values.shape[0] * (values.shape[1] * self.max_cell + 1), dtype=np.uint8)
-        n = _format_rows(values, self.kinds, self.decimals, self.table, self.table_len, self.table_base, out)
+        n = _format_rows(values, self.cells, out)
         return out[:n].tobytes()
 
     def format_gather(self, rows: np.ndarray, extra: np.ndarray, src, scale, offset) -> bytes:
@@ -160,6 +169,6 @@ class RowFormatter:
         if src.shape[0] != self.kinds.shape[0]:
             raise ValueError(f"{src.shape[0]} source columns for {self.kinds.shape[0]} formatted ones")
         out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
-        n = _format_gather(rows, extra, src, np.asarray(scale, dtype=np.float64), np.asarray(offset, dtype=np.float64),
-                           self.kinds, self.decimals, self.table, self.table_len, self.table_base, out)
+        gather = (src, np.asarray(scale, dtype=np.float64), np.asarray(offset, dtype=np.float64))
+        n = _format_gather(rows, extra, gather, self.cells, out)
         return out[:n].tobytes()
