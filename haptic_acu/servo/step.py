@@ -955,7 +955,7 @@ class NeedleModel:
             if cfg.model.kind == "msm":
                 lp["msm_n"] = contact.msm_count
                 lp["msm_g"] = contact.msm_g
-                lp["msm_eps"] = cfg.model.msm_puncture_strain
+                lp["msm_eps"] = cfg.model.msm_gauge_strain
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:

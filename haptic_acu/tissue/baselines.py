@@ -13,8 +13,8 @@ layer, and break at a depth ``d_c`` per layer; they differ in where ``k`` and ``
 * **MSM** (a volumetric mass-spring lattice, [38]'s family; ``tissue/msm.py``): a cubic lattice of
   the layers from the pressed one down with springs and a volume energy that give it the layers' E
   and nu, lumped masses, integrated at the servo's rate by backward Euler in its symmetric modes
-  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when a spring at the tip's node
-  reaches a strain. Its ``k`` and ``d_c`` here are its statics, for reports.
+  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when the tissue's mean strain over
+  a gauge below the tip reaches a threshold. Its ``k`` and ``d_c`` here are its statics, for reports.
 * **FEM** (linear elastostatics on tetrahedra, DiMaio & Salcudean 2005; Bro-Nielsen 1998;
   :mod:`haptic_acu.tissue.fem`): a structured tetrahedral mesh between the body's SH boundaries from
   the pressed layer down, around the acupoint, P1 elements assembled with scikit-fem, the stiffness
@@ -48,7 +48,7 @@ from .mechanics import puncture_threshold
 from .msm import msm_tick
 from .netresponse import cache_dir
 
-VERSION = 4  # bump when a precomputation changes (invalidates the cache)
+VERSION = 5  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -88,7 +88,8 @@ def msm_response(inp, m, s, k, idx, dep, ax):
     """The MSM's pressed layer ``k`` with the tip ``dep`` below its rest surface: one backward-Euler
     step of its lattice (``msm.msm_tick``; the lattice's state in ``State.msm_qv``, started from rest
     whenever the pressed layer changes), (the contact force along grad(-d), N; broken?). The layer
-    breaks when a spring at the tip's node reaches ``msm_eps`` scaled by the approach speed as the
+    breaks when the tissue's mean strain over the gauge below the tip (``msm.GAUGE_M``) reaches
+    ``msm_eps`` scaled by the approach speed as the
     force net's threshold is."""
     sv = s.servo[0]
     for c in range(3):
@@ -150,7 +151,7 @@ def rupture_depth(k: float, toughness: float, a: float) -> float:
 def contact_key(cfg) -> str:
     m = cfg.model
     text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.fracture_toughness_j_per_m2, m.shf_stiffness_n_per_mm,
-                 m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_puncture_strain,
+                 m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_gauge_strain, msm.GAUGE_M,
                  tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, fem.N_IN, fem.RATIO,
                  fem.HALF_WIDTH_M, fem.DEPTH_M, fem.PATCH_M, bem.N_IN, msm.HALF_CELLS, msm.DEPTH_M,
                  msm.DAMPING_RATIO, msm.DENSITY_KG_M3, msm.DT, fit_key(cfg) if m.kind == "fem" else None))
@@ -186,7 +187,7 @@ def build_contact(cfg) -> Contact:
             md = msm.modes(E, nu, msm.DENSITY_KG_M3[j:], thick, m.msm_spacing_mm * 1e-3)
             layer_modes.append(md)
             k[j] = md.stiffness
-            crit[j] = m.msm_puncture_strain[j] / md.strain_per_m
+            crit[j] = m.msm_gauge_strain[j] / md.strain_per_m
     out = Contact(m.kind, k, crit)
     if m.kind == "msm":
         out.msm_tab, out.msm_count, out.msm_g = msm.pack(layer_modes, n)
