@@ -264,6 +264,18 @@ def test_msm_point_contact_localises_under_refinement(msm_refinement):
     assert 1.2 < r[0.25e-3][1] / r[0.5e-3][1] < 2.0
 
 
+def test_the_energy_criterion_on_a_force_curve_meets_its_closed_forms():
+    # a linear contact: the curve's break depth is sqrt(2 J pi a^2 / k) (exact: trapezoids are exact
+    # on a line); Hertz's F = c d^1.5 stores 0.4 c d^2.5, so d_c = (J pi a^2 / (0.4 c))^0.4
+    J, k = 1136.0, 41.0
+    d = np.linspace(0.0, 10e-3, 2001)
+    assert B.rupture_depth_curve(d, k * d, J, A) == pytest.approx(B.rupture_depth(k, J, A), rel=1e-12)
+    c = 300.0
+    want = (J * math.pi * A * A / (0.4 * c)) ** 0.4
+    assert B.rupture_depth_curve(d, c * d ** 1.5, J, A) == pytest.approx(want, rel=1e-5)
+    assert B.rupture_depth_curve(d[:5], k * d[:5], J, A) == math.inf  # the curve ends first
+
+
 # ---- FEM against closed forms; BEM against the FEM ------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -141,11 +141,34 @@ def _layers(cfg, k):
 
 
 def rupture_depth(k: float, toughness: float, a: float) -> float:
-    """The energy criterion (Mahvash & Dupont 2010's rupture: the energy the press stored pays for
-    the crack): a linear contact of stiffness ``k`` (N/m) breaks when ``k d^2 / 2`` reaches
+    """The energy criterion (docs/model.md section 12.5: the energy the press stored pays for the
+    first crack): a linear contact of stiffness ``k`` (N/m) breaks when ``k d^2 / 2`` reaches
     ``toughness`` (J/m^2) times the crack's area, taken as the tip's cross-section ``pi a^2``
     (ours): ``d_c = sqrt(2 J pi a^2 / k)`` (m)."""
     return math.sqrt(2.0 * toughness * math.pi * a * a / k)
+
+
+def rupture_depth_curve(depth, force, toughness: float, a: float) -> float:
+    """The same criterion for any quasi-static force curve ``force(depth)`` (N at m, from 0, rising):
+    the depth at which the stored energy, its integral (trapezoids), reaches ``toughness`` times
+    ``pi a^2``; linear within the last interval. ``inf`` if the curve ends first."""
+    d = np.asarray(depth, float)
+    f = np.asarray(force, float)
+    w = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(d))])
+    need = toughness * math.pi * a * a
+    i = int(np.searchsorted(w, need))
+    if i >= len(w):
+        return math.inf
+    if i == 0:
+        return float(d[0])
+    # within [d[i-1], d[i]] the force is linear: solve the quadratic for the energy left
+    f0, f1, h = f[i - 1], f[i], d[i] - d[i - 1]
+    slope = (f1 - f0) / h
+    left = need - w[i - 1]
+    if abs(slope) < 1e-300:
+        return float(d[i - 1] + left / f0)
+    x = (-f0 + math.sqrt(max(f0 * f0 + 2.0 * slope * left, 0.0))) / slope
+    return float(d[i - 1] + x)
 
 
 def contact_key(cfg) -> str:
