@@ -276,6 +276,23 @@ def test_the_energy_criterion_on_a_force_curve_meets_its_closed_forms():
     assert B.rupture_depth_curve(d[:5], k * d[:5], J, A) == math.inf  # the curve ends first
 
 
+def test_a_hemispherical_tip_breaks_by_the_stored_energy_of_its_own_contact():
+    # the BEM's skin with a rounded tip: its force lies below the flat tip's k d (less of the disc is
+    # held) and above the flat tip's moved back by the tip's height a (the rounded end lies within a
+    # of the flat one), so the energy criterion's depth lies between the flat tip's and that plus a
+    flat = B.contact_for(load_config(overrides=["model.kind=bem"]))
+    round_ = B.contact_for(load_config(overrides=["model.kind=bem", "model.tip_shape=hemisphere"]))
+    d0, d1 = flat.crit_depth, round_.crit_depth
+    assert np.all(d1 > d0 * 1.001) and np.all(d1 < d0 + A)
+    # and the force curve it integrates is the servo's own contact solve, which at that depth holds
+    # less force than the flat tip's k d
+    from haptic_acu.tissue import contact
+    C = round_.ct_c[:round_.ct_n[0], :round_.ct_n[0]]
+    rho = np.hypot(*bem.disc_elements(A)[1].T)
+    f, _, _ = contact.press_curve(C, contact.tip_heights(rho, A, "hemisphere"), np.linspace(0, d1[0], 200))
+    assert 0 < f[-1] < flat.stiffness[0] * d1[0]
+
+
 # ---- FEM against closed forms; BEM against the FEM ------------------------------------------------
 
 @pytest.fixture(scope="module")

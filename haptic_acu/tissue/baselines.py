@@ -49,7 +49,7 @@ from .contact import contact_solve
 from .msm import msm_tick
 from .netresponse import cache_dir
 
-VERSION = 6  # bump when a precomputation changes (invalidates the cache)
+VERSION = 7  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -207,6 +207,21 @@ def rupture_depth_curve(depth, force, toughness: float, a: float) -> float:
     return float(d[i - 1] + x)
 
 
+def _tip_rupture_depth(k: float, disc, toughness: float, a: float, shape: str) -> float:
+    """The FEM's or BEM's break depth by the energy criterion for the tip's shape: the flat tip's
+    closed form (its force is ``k d``), else the energy stored along the disc's quasi-static contact
+    curve (``contact.press_curve``, the servo's own solve) reaching ``toughness`` times ``pi a^2``."""
+    flat = rupture_depth(k, toughness, a)
+    if shape == "flat":
+        return flat
+    C, rho = disc
+    h = contact.tip_heights(rho, a, shape)
+    reach = flat + float(h.max())  # the curve lies above the flat tip's moved by the tip's height
+    depths = np.linspace(0.0, 1.5 * reach, 3001)
+    force, _, _ = contact.press_curve(C, h, depths)
+    return rupture_depth_curve(depths, force, toughness, a)
+
+
 def contact_key(cfg) -> str:
     m = cfg.model
     text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.fracture_toughness_j_per_m2, m.shf_stiffness_n_per_mm,
@@ -238,12 +253,12 @@ def build_contact(cfg) -> Contact:
             res = fem.tissue_press(tissue, j, E, nu, a)
             discs.append(fem.disc_compliance(res, a))
             k[j] = res.stiffness
-            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
+            crit[j] = _tip_rupture_depth(k[j], discs[-1], m.fracture_toughness_j_per_m2[j], a, m.tip_shape)
         elif m.kind == "bem":
             s_, xy = bem.disc_elements(a)
             discs.append((bem.compliance(E[0], nu[0], a), np.hypot(xy[:, 0], xy[:, 1])))
             k[j] = bem.flat_punch(E[0], nu[0], a)
-            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
+            crit[j] = _tip_rupture_depth(k[j], discs[-1], m.fracture_toughness_j_per_m2[j], a, m.tip_shape)
         elif m.kind == "msm":
             md = msm.modes(E, nu, msm.DENSITY_KG_M3[j:], thick, m.msm_spacing_mm * 1e-3)
             layer_modes.append(md)
