@@ -46,7 +46,7 @@ def config_copy(base=None, layer: int | None = None, w: int | None = None, never
             md = cfg.model
             cfg = dataclasses.replace(cfg, model=dataclasses.replace(
                 md, fracture_toughness_j_per_m2=huge(md.fracture_toughness_j_per_m2, 1e12), shf_puncture_force_n=huge(md.shf_puncture_force_n, 1e6),
-                msm_puncture_strain=huge(md.msm_puncture_strain, 1e9)))
+                msm_gauge_strain=huge(md.msm_gauge_strain, 1e9)))
     if solver:
         cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, **solver))
     return cfg

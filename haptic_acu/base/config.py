@@ -145,7 +145,7 @@ class ModelParams:
     shf_stiffness_n_per_mm: tuple[float, float, float]  # SHF: penalty stiffness along the surface normal
     shf_puncture_force_n: tuple[float, float, float]  # SHF: force at which the layer breaks
     msm_spacing_mm: float  # MSM: the lattice's spacing
-    msm_puncture_strain: tuple[float, float, float]  # MSM: strain of a spring at the tip at which the layer breaks
+    msm_gauge_strain: tuple[float, float, float]  # MSM: the tissue's mean strain below the tip at which the layer breaks
     tip_shape: str  # FEM, BEM: the tip's end over its contact disc, "flat" or "hemisphere" (tissue.contact)
 
 
@@ -175,7 +175,7 @@ class TissueConfig:
 _POSITIVE = {
     "thickness_mm", "k_virtual_n_per_mm", "spring_length_mm", "k_surface_n_per_mm",
     "puncture_threshold_um", "lateral_stiffness_n_per_mm", "young_modulus_kpa", "fracture_toughness_j_per_m2",
-    "shf_stiffness_n_per_mm", "shf_puncture_force_n", "msm_spacing_mm", "msm_puncture_strain",
+    "shf_stiffness_n_per_mm", "shf_puncture_force_n", "msm_spacing_mm", "msm_gauge_strain",
     "bone_stiffness_n_per_mm", "force_limit_n", "fit_samples", "sweeps_per_tick",
     "static_tolerance_um", "scale", "max_hand_speed_m_per_s",
     "diameter_mm", "length_mm", "stick_stiffness_n_per_mm", "stiction_ratio",
@@ -217,7 +217,7 @@ _BOUNDS = {
     # fracture toughness from a gel's 1 J/m^2 to a tendon's 10^5
     "fracture_toughness_j_per_m2": (1.0, 1e5),
     "shf_stiffness_n_per_mm": (1e-6, 1_000.0), "shf_puncture_force_n": (1e-3, 100.0),
-    "msm_spacing_mm": (0.1, 5.0), "msm_puncture_strain": (1e-3, 100.0),
+    "msm_spacing_mm": (0.1, 5.0), "msm_gauge_strain": (1e-3, 10.0),
 }
 # Retired keys, not read: a file that still has one is accepted with a one-line warning on stderr
 # (the key has no effect on the model, so such a config means what it says); the message says why.
@@ -226,6 +226,8 @@ _REMOVED = {
                              "needle's radius (docs/model.md section 9.2)",
     "model.puncture_depth_mm": "the FEM and BEM break by an energy criterion, model.fracture_toughness_j_per_m2 "
                                "(docs/model.md section 12.5)",
+    "model.msm_puncture_strain": "the MSM breaks at the tissue's mean strain over a 1 mm gauge below the tip, "
+                                 "model.msm_gauge_strain, not at a spring's strain (docs/model.md section 12.2)",
 }
 _SECTIONS = {
     "body": BodyParams, "skin": LayerParams, "fat": LayerParams, "muscle": LayerParams,

@@ -57,7 +57,7 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
     ("bl_crit", "f8"),  # its break depth at the reference speed (m)
     ("msm_n", "i8"),  # the MSM: modes of this layer's lattice (Model.msm; tissue.msm)
     ("msm_g", "f8"),  # its contact's compliance within one backward-Euler step (m/N)
-    ("msm_eps", "f8"),  # the strain of a spring at the tip at which the layer breaks (reference speed)
+    ("msm_eps", "f8"),  # the gauge strain below the tip at which the layer breaks (reference speed; tissue.msm)
     ("ct_n", "i8"),  # the FEM, BEM: nodes of this layer's contact disc (Model.ct_*; tissue.contact)
     ("ct_row", "i8"),  # their first row in Model.ct_c and Model.ct_ref
 ])

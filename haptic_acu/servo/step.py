@@ -966,7 +966,7 @@ class NeedleModel:
             if cfg.model.kind == "msm":
                 lp["msm_n"] = contact.msm_count
                 lp["msm_g"] = contact.msm_g
-                lp["msm_eps"] = cfg.model.msm_puncture_strain
+                lp["msm_eps"] = cfg.model.msm_gauge_strain
             if len(contact.ct_n):
                 lp["ct_n"] = contact.ct_n
                 lp["ct_row"] = np.arange(N_LAYERS) * contact.ct_c.shape[1]

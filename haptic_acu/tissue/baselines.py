@@ -13,8 +13,8 @@ layer, and break at a depth ``d_c`` per layer; they differ in where ``k`` and ``
 * **MSM** (a volumetric mass-spring lattice, [38]'s family; ``tissue/msm.py``): a cubic lattice of
   the layers from the pressed one down with springs and a volume energy that give it the layers' E
   and nu, lumped masses, integrated at the servo's rate by backward Euler in its symmetric modes
-  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when a spring at the tip's node
-  reaches a strain. Its ``k`` and ``d_c`` here are its statics, for reports.
+  (:func:`msm_response`, its state in ``State.msm_qv``); breaks when the tissue's mean strain over
+  a gauge below the tip reaches a threshold. Its ``k`` and ``d_c`` here are its statics, for reports.
 * **FEM** (linear elastostatics on tetrahedra, DiMaio & Salcudean 2005; Bro-Nielsen 1998;
   :mod:`haptic_acu.tissue.fem`): a structured tetrahedral mesh between the body's SH boundaries from
   the pressed layer down, around the acupoint, P1 elements assembled with scikit-fem, the stiffness
@@ -49,7 +49,7 @@ from .contact import Disc, Scratch, contact_solve
 from .msm import msm_tick
 from .netresponse import cache_dir
 
-VERSION = 5  # bump when a precomputation changes (invalidates the cache)
+VERSION = 7  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -118,7 +118,8 @@ def msm_response(inp, m, s, k, idx, dep, ax):
     """The MSM's pressed layer ``k`` with the tip ``dep`` below its rest surface: one backward-Euler
     step of its lattice (``msm.msm_tick``; the lattice's state in ``State.msm_qv``, started from rest
     whenever the pressed layer changes), (the contact force along grad(-d), N; broken?). The layer
-    breaks when a spring at the tip's node reaches ``msm_eps`` scaled by the approach speed as the
+    breaks when the tissue's mean strain over the gauge below the tip (``msm.GAUGE_M``) reaches
+    ``msm_eps`` scaled by the approach speed as the
     force net's threshold is."""
     sv = s.servo[0]
     for c in range(3):
@@ -176,17 +177,55 @@ def _layers(cfg, k):
 
 
 def rupture_depth(k: float, toughness: float, a: float) -> float:
-    """The energy criterion (Mahvash & Dupont 2010's rupture: the energy the press stored pays for
-    the crack): a linear contact of stiffness ``k`` (N/m) breaks when ``k d^2 / 2`` reaches
+    """The energy criterion (docs/model.md section 12.5: the energy the press stored pays for the
+    first crack): a linear contact of stiffness ``k`` (N/m) breaks when ``k d^2 / 2`` reaches
     ``toughness`` (J/m^2) times the crack's area, taken as the tip's cross-section ``pi a^2``
     (ours): ``d_c = sqrt(2 J pi a^2 / k)`` (m)."""
     return math.sqrt(2.0 * toughness * math.pi * a * a / k)
 
 
+def rupture_depth_curve(depth, force, toughness: float, a: float) -> float:
+    """The same criterion for any quasi-static force curve ``force(depth)`` (N at m, from 0, rising):
+    the depth at which the stored energy, its integral (trapezoids), reaches ``toughness`` times
+    ``pi a^2``; linear within the last interval. ``inf`` if the curve ends first."""
+    d = np.asarray(depth, float)
+    f = np.asarray(force, float)
+    w = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(d))])
+    need = toughness * math.pi * a * a
+    i = int(np.searchsorted(w, need))
+    if i >= len(w):
+        return math.inf
+    if i == 0:
+        return float(d[0])
+    # within [d[i-1], d[i]] the force is linear: solve the quadratic for the energy left
+    f0, f1, h = f[i - 1], f[i], d[i] - d[i - 1]
+    slope = (f1 - f0) / h
+    left = need - w[i - 1]
+    if abs(slope) < 1e-300:
+        return float(d[i - 1] + left / f0)
+    x = (-f0 + math.sqrt(max(f0 * f0 + 2.0 * slope * left, 0.0))) / slope
+    return float(d[i - 1] + x)
+
+
+def _tip_rupture_depth(k: float, disc, toughness: float, a: float, shape: str) -> float:
+    """The FEM's or BEM's break depth by the energy criterion for the tip's shape: the flat tip's
+    closed form (its force is ``k d``), else the energy stored along the disc's quasi-static contact
+    curve (``contact.press_curve``, the servo's own solve) reaching ``toughness`` times ``pi a^2``."""
+    flat = rupture_depth(k, toughness, a)
+    if shape == "flat":
+        return flat
+    C, rho = disc
+    h = contact.tip_heights(rho, a, shape)
+    reach = flat + float(h.max())  # the curve lies above the flat tip's moved by the tip's height
+    depths = np.linspace(0.0, 1.5 * reach, 3001)
+    force, _, _ = contact.press_curve(C, h, depths)
+    return rupture_depth_curve(depths, force, toughness, a)
+
+
 def contact_key(cfg) -> str:
     m = cfg.model
     text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.fracture_toughness_j_per_m2, m.shf_stiffness_n_per_mm,
-                 m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_puncture_strain,
+                 m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_gauge_strain, msm.GAUGE_M,
                  tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, m.tip_shape, fem.N_IN, fem.RATIO,
                  fem.HALF_WIDTH_M, fem.DEPTH_M, fem.PATCH_M, bem.N_IN, msm.HALF_CELLS, msm.DEPTH_M,
                  msm.DAMPING_RATIO, msm.DENSITY_KG_M3, msm.DT, fit_key(cfg) if m.kind == "fem" else None))
@@ -214,17 +253,17 @@ def build_contact(cfg) -> Contact:
             res = fem.tissue_press(tissue, j, E, nu, a)
             discs.append(fem.disc_compliance(res, a))
             k[j] = res.stiffness
-            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
+            crit[j] = _tip_rupture_depth(k[j], discs[-1], m.fracture_toughness_j_per_m2[j], a, m.tip_shape)
         elif m.kind == "bem":
             s_, xy = bem.disc_elements(a)
             discs.append((bem.compliance(E[0], nu[0], a), np.hypot(xy[:, 0], xy[:, 1])))
             k[j] = bem.flat_punch(E[0], nu[0], a)
-            crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
+            crit[j] = _tip_rupture_depth(k[j], discs[-1], m.fracture_toughness_j_per_m2[j], a, m.tip_shape)
         elif m.kind == "msm":
             md = msm.modes(E, nu, msm.DENSITY_KG_M3[j:], thick, m.msm_spacing_mm * 1e-3)
             layer_modes.append(md)
             k[j] = md.stiffness
-            crit[j] = m.msm_puncture_strain[j] / md.strain_per_m
+            crit[j] = m.msm_gauge_strain[j] / md.strain_per_m
     out = Contact(m.kind, k, crit)
     if m.kind == "msm":
         out.msm_tab, out.msm_count, out.msm_g = msm.pack(layer_modes, n)

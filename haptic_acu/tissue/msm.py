@@ -19,6 +19,13 @@ symmetries) and is driven only there, so only its fully symmetric motions are ex
 lattice's equations are projected onto them (an exact reduction), their modes computed once, and
 the servo advances each mode by backward Euler (:func:`msm_tick`), the contact force solved
 implicitly with them.
+
+Puncture: the tissue's mean axial strain over a gauge of ``GAUGE_M`` below the tip (the relative
+shortening of the column under the pushed node, its displacement at the gauge's depth interpolated
+between nodes), a linear function of the modal coordinates like every quantity here. A spring's
+strain at the pushed node would not do: under a point push it is ``d / h`` times a factor set by
+``nu`` and the layers' modulus ratios alone, so a threshold on it is a break depth proportional to
+the spacing ``h`` (:func:`static_press` measures both).
 """
 from __future__ import annotations
 
@@ -39,7 +46,8 @@ DAMPING_RATIO = 0.2  # every mode's damping ratio (ours)
 # skin, fat, muscle (kg/m^3): the IT'IS Foundation's tissue properties database (docs/model.md s12.2)
 DENSITY_KG_M3 = (1109.0, 911.0, 1090.0)
 DT = 1e-3  # the servo period the modes are integrated at (s)
-N_STRAIN = 4  # springs at the tip's node, up to symmetry: edge x, edge z, diagonal xy, diagonal xz
+GAUGE_M = 1e-3  # the puncture strain's gauge below the tip (ours: two cells of the default spacing)
+N_STRAIN = 1  # strain rows per layer in the servo's table: the gauge's
 # the rows of one layer's block in the model's table (msm_pack): per mode
 ROW_PHI, ROW_W2DT, ROW_INVD, ROW_G = 0, 1, 2, 3
 ROWS = ROW_G + N_STRAIN
@@ -164,6 +172,47 @@ def compression_test(E, nu, h, cells=6, strain=1e-3):
     return float(E_eff), float(lateral / strain)
 
 
+def gauge_row(uz, column, nz, h, gauge=GAUGE_M):
+    """The gauge's strain (the column's relative shortening over ``gauge`` below its surface node,
+    positive in compression) as a linear function: ``uz(node)`` is the node's upward displacement
+    (a number or a row of them), ``column`` the first node of the column (``column + nz - 1`` its
+    surface node), ``h`` the spacing. The gauge is cut to the patch's depth."""
+    ell = min(gauge, (nz - 1) * h)
+    j = min(int(ell / h), nz - 2)
+    t = ell / h - j
+    top = column + nz - 1
+    below = (1.0 - t) * uz(top - j) + t * uz(top - j - 1)
+    return (below - uz(top)) / ell
+
+
+def static_press(E, nu, thick, h, half_width, depth, gauge=GAUGE_M):
+    """The patch of :func:`modes`, ``half_width`` (m) on each side of the tip, statically pressed
+    by a unit push of its tip's node (every degree of freedom, a sparse solve): (its stiffness, N/m;
+    the gauge's strain per metre of push; the largest strain of a spring at the tip's node per
+    metre of push)."""
+    half_cells = max(1, int(round(half_width / h)))
+    n, nz, cmu, clv, _ = _patch(E, nu, np.ones(len(E)), thick, h, half_cells, depth)
+    K, (si, sj, _, sn) = stiffness_matrix(n, n, nz, h, cmu, clv)
+    c = n // 2
+    col = (c * n + c) * nz
+    tip = col + nz - 1
+    bottom = np.arange(n * n) * nz
+    fixed = np.concatenate([3 * bottom, 3 * bottom + 1, 3 * bottom + 2, [3 * tip + 2]])
+    vals = np.zeros(fixed.size)
+    vals[-1] = -1.0
+    u = _solve_fixed(K, fixed, vals)
+    force = -(K @ u)[3 * tip + 2]
+    U = u.reshape(-1, 3)
+    at = (si == tip) | (sj == tip)
+    ext = ((U[sj[at]] - U[si[at]]) * sn[at]).sum(axis=1)
+
+    def xyz(i):
+        return np.stack([(i // nz) // n, (i // nz) % n, i % nz], axis=-1) * h
+
+    length = np.linalg.norm(xyz(sj[at]) - xyz(si[at]), axis=1)
+    return float(force), float(gauge_row(lambda node: U[node, 2], col, nz, h, gauge)), float(np.abs(ext / length).max())
+
+
 # ---- the patch around the tip --------------------------------------------------------------------
 
 def _patch(E, nu, rho, thick, h, half_cells, depth):
@@ -259,9 +308,9 @@ class MsmModes:
 
     phi: np.ndarray  # (modes,) each mass-normalised mode's normal displacement at the tip's node (down +)
     omega: np.ndarray  # (modes,) rad/s
-    strain: np.ndarray  # (N_STRAIN, modes) the springs' strain (extension + per metre of modal coordinate)
+    strain: np.ndarray  # (N_STRAIN, modes) the gauge's strain (shortening +) per unit modal coordinate
     stiffness: float  # N/m: the static force per metre of push
-    strain_per_m: float  # the largest |strain| of a spring at the tip's node per metre of static push
+    strain_per_m: float  # the gauge's strain per metre of static push
     nodes: int  # the patch's nodes
     mass: float  # kg: the patch's mass
 
@@ -288,14 +337,7 @@ def modes(E, nu, rho, thick, h, half_cells=HALF_CELLS, depth=DEPTH_M) -> MsmMode
     tip = (c * n + c) * nz + nz - 1
     Phi = _Rows(P, V)  # mass-normalised modes, full grid (the rows asked for)
     phi = -Phi[3 * tip + 2]  # a push is downward: +phi is a mode's downward displacement at the tip
-    # the springs at the tip's node, one of each kind (the rest are their images)
-    nb_nodes = [((c + 1) * n + c) * nz + nz - 1, (c * n + c) * nz + nz - 2, ((c + 1) * n + c + 1) * nz + nz - 1,
-                ((c + 1) * n + c) * nz + nz - 2]
-    G = np.zeros((N_STRAIN, V.shape[1]))
-    for t, other in enumerate(nb_nodes):
-        dvec = np.array([(other // nz) // n - c, (other // nz) % n - c, other % nz - (nz - 1)], float)
-        L = np.linalg.norm(dvec) * h
-        G[t] = (dvec / np.linalg.norm(dvec)) @ (Phi[3 * other:3 * other + 3] - Phi[3 * tip:3 * tip + 3]) / L
+    G = gauge_row(lambda node: Phi[3 * node + 2], (c * n + c) * nz, nz, h)[None, :]
     keep = np.abs(phi) > 1e-12 * np.abs(phi).max()
     phi, w2, G = phi[keep], w2[keep], G[:, keep]
     omega = np.sqrt(np.maximum(w2, 0.0))
@@ -336,8 +378,7 @@ def msm_tick(tab, k, nm, g, q, v, dep, dt):
     """One backward-Euler step of layer ``k``'s lattice (its ``nm`` modes in ``tab``; their
     coordinates ``q`` and velocities ``v``, updated in place) with the tip ``dep`` below the rest
     surface: the unilateral contact's force f >= 0 is solved with the step (the tip's node ends at
-    ``dep`` while pressed, free otherwise). Returns (f, N; the largest |strain| of a spring at the
-    tip's node)."""
+    ``dep`` while pressed, free otherwise). Returns (f, N; the gauge's |strain|)."""
     b = k * ROWS
     free = 0.0  # the tip node's displacement after the step without the contact's force
     for i in range(nm):
