@@ -41,6 +41,7 @@ def run_wall(lib, tmp_path, scenario, **emu):
     tmp_path.mkdir(parents=True, exist_ok=True)
     (tmp_path / "scenario.json").write_text(json.dumps(scenario))
     out = tmp_path / "result.json"
+    emu.setdefault("speed", "max")  # device time only: the ticks back to back
     proc = subprocess.run([sys.executable, str(RUN_WALL), str(tmp_path / "scenario.json"), str(out)],
                           env=emulator_env(lib, **emu), cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr

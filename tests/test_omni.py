@@ -21,7 +21,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_SESSION = REPO / "tests" / "hd_emulator" / "run_session.py"
@@ -57,7 +57,7 @@ def run_session(lib, tmp_path, scenario: dict, env=None, **emu) -> dict:
     out = tmp_path / "result.json"
     proc = subprocess.run(
         [sys.executable, str(RUN_SESSION), str(tmp_path / "scenario.json"), str(out)],
-        env=env if env is not None else emulator_env(lib, **emu),
+        env=env if env is not None else emulator_env(lib, **{"speed": FAST, **emu}),
         cwd=REPO, capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
@@ -360,7 +360,7 @@ def test_bad_force_limit_is_a_user_error_before_any_library_is_loaded():
 def test_a_step_that_blocks_the_servo_is_a_fault_with_the_output_off(emulator, tmp_path):
     res = run_session(emulator, tmp_path, {"workspace": WS, "spring_k_n_per_m": K, "duration_s": 3.0,
                                             "sleep_at_s": FAULT_AT, "sleep_s": 0.6,
-                                            "options": {"watchdog_s": 0.1}}, path=DEEP)
+                                            "options": {"watchdog_s": 0.1}}, path=DEEP, speed=1)  # the wall's watchdog
     assert res["outcome"] == "DeviceFault" and "has not returned" in res["message"]
     assert "\n" not in res["message"]
     log = res["log"]

@@ -27,7 +27,7 @@ from scipy.signal import butter, sosfiltfilt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
@@ -75,10 +75,10 @@ def hand_path():
 def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=(), extra=()):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults)
+    env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults, speed=FAST)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status", *extra],
+                           "--record", str(rec), "--out", str(tmp_path / "out"), "--no-status", *extra],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))
     return proc, rows[rows[:, 1] == FRAME], rec

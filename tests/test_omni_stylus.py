@@ -23,7 +23,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
@@ -70,7 +70,7 @@ def run_cli(emulator, tmp_path, path, duration, *, extra_args=(), config=None, *
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     out = tmp_path / "out"
-    env = emulator_env(emulator, path=path, log=log, **emu)
+    env = emulator_env(emulator, path=path, log=log, **{"speed": FAST, **emu})
     env["OPENBLAS_NUM_THREADS"] = "1"
     cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
            "--record", str(rec), "--out", str(out), "--no-status", *extra_args]
