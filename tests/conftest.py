@@ -5,6 +5,9 @@ terminals, whose results a busy neighbour could change (a late tick skipped, a s
 frozen device). `make test` runs every other test in parallel (pytest-xdist) and these afterwards,
 alone. The marker is given here by module so that a new test in one of these modules is serial
 without thinking about it; a test elsewhere that needs it carries ``@pytest.mark.serial`` itself.
+Sessions against the HD API emulator run on its virtual clock (tests/hd_emulator: device time only,
+whatever the load), so their modules run in parallel; their few tests about wall time (a watchdog, a
+blocked step) carry the marker.
 """
 from __future__ import annotations
 
@@ -13,8 +16,8 @@ from pathlib import Path
 import pytest
 
 SERIAL_MODULES = {
-    "test_engine", "test_hd_physical", "test_keyboard", "test_omni", "test_omni_closed_loop", "test_omni_stylus",
-    "test_rtloop", "test_run_cli", "test_run_omni", "test_study", "test_study_kinds", "test_keyboard_debrief",
+    "test_engine", "test_keyboard", "test_rtloop", "test_run_cli", "test_study", "test_study_kinds",
+    "test_keyboard_debrief",
 }
 
 

@@ -25,6 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from hd_emulator.build import TRACE_COLUMNS, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 RUN_WALL = REPO / "tests" / "hd_emulator" / "run_wall.py"
 T = 1e-3
 COL = {name: i for i, name in enumerate(TRACE_COLUMNS)}

@@ -35,6 +35,9 @@ from haptic_acu.base.config import load_config  # noqa: E402
 from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 # the emulated device's nominal maximum: below the config's 3.3 N, so it is the limit, and below the
 # ~0.2 N the rendering layer's coupling (0.63 N/mm in series with the skin) passes at the press path's
@@ -178,6 +181,7 @@ FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin
 @pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("comm_error", "HD_COMM_ERROR"),
                                            ("nan", "non-finite position")])
 @pytest.mark.parametrize("servo", ["compiled", "python"])
+@pytest.mark.serial  # the fault path (exit 3) of a live session, with the device's 100 ms watchdog on the wall
 def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message, servo):
     path = press_path(workspace)
     proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0, servo=servo)
@@ -227,6 +231,7 @@ def test_omni_frozen_under_a_steady_force_is_a_still_hand_through_the_cli(emulat
     assert np.all(frames[-1, 5:8] == 0.0)
 
 
+@pytest.mark.serial  # the watchdog's 100 ms of wall time, on the real device's free-running clock
 def test_omni_scheduler_that_stops_calling_is_a_fault_through_the_cli(emulator, tmp_path, workspace):
     # The compiled callback is not called any more: the device's watchdog (100 ms) stops the session
     # with the output switched off, and every tick that ran is recorded.
