@@ -63,9 +63,10 @@ NOMINAL_VARS = {"stiffness_n_per_mm": "HD_EMU_NOMINAL_MAX_STIFFNESS", "damping_n
 LOOSE_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 0.3, "hand_damping_n_s_per_m": 2.0}
 FIRM_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 2.0, "hand_damping_n_s_per_m": 5.0}
 # The pace of a session that needs device time only (a simulated hand on the simulated device): a
-# session through the CLI drains its sample ring at the visual rate on the wall, so it gets a bounded
-# multiple, not "max" (a raw HD API driver, with no ring, can take "max").
-FAST = 8.0
+# session through the CLI drains its sample ring (8192 rows) at the visual rate on the wall, so it gets
+# a bounded multiple with seconds of slack for a starved visual thread, not "max" (a raw HD API driver,
+# with no ring, can take "max").
+FAST = 4.0
 TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "hand_vy_mm_s", "hand_vz_mm_s",
                  "x_mm", "y_mm", "z_mm", "vx_mm_s", "vy_mm_s", "vz_mm_s", "motor_fx_n", "motor_fy_n", "motor_fz_n",
                  "hand_fx_n", "hand_fy_n", "hand_fz_n")
