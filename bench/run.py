@@ -132,7 +132,9 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
       through numba's dispatcher;
     * ``dispatch``: :func:`empty_kernel` with the same arguments: the dispatcher's own cost;
     * ``compiled``: every :data:`BLOCK` ticks, those ticks inside one compiled loop
-      (:func:`haptic_acu.servo.tick.run_ticks`, the loop the headless replay runs between frames); per-tick means.
+      (:func:`haptic_acu.servo.tick.run_ticks`, the loop the headless replay runs between frames); per-tick means,
+      of wall time and (``compiled_cpu``) of the thread's CPU time: the tick's own cost without the
+      host's preemptions.
 
     Optionally the NumPy reference on the same path (``numpy_ticks`` ticks, after the ones above).
     Returns percentile objects in microseconds.
@@ -178,8 +180,9 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
         k_args = k.kernel_args()
         kp, kv, kr = k.inp.p, k.inp.v, k.inp.roll
         empty_kernel(*k_args)
-    times = {w: [] for w in ("step", "kernel", "dispatch", "compiled")}
+    times = {w: [] for w in ("step", "kernel", "dispatch", "compiled", "compiled_cpu")}
     clock = time.perf_counter_ns
+    cpu_clock = time.thread_time_ns
     with measure.gc_paused():
         for i in range(n):
             if "step" in models:
@@ -200,9 +203,12 @@ def servo_scenario(sc: scenarios.Scenario, n: int, numpy_ticks: int = 0, ways=("
                 times["dispatch"].append(t2 - t1)
             if "compiled" in models and (i + 1) % BLOCK == 0:
                 s = i + 1 - BLOCK
+                c0 = cpu_clock()
                 t0 = clock()
                 run_ticks(ticks, s, i + 1, 0, table)
-                times["compiled"].append((clock() - t0) / BLOCK)
+                t1 = clock()
+                times["compiled_cpu"].append((cpu_clock() - c0) / BLOCK)
+                times["compiled"].append((t1 - t0) / BLOCK)
     for m in models.values():
         scenarios.check_state(m, sc)  # still the state being measured at the end of the path
     for way, t in times.items():
@@ -265,20 +271,27 @@ def servo(sizes: Sizes, progress=False) -> dict:
     return res
 
 
+# The tissue models the bench times: every model.kind, then the FEM and BEM with a hemispherical tip
+# (their contact set changes as the tip presses: the capacitance matrix's rank-one updates).
+MODEL_VARIANTS = {"fem-hemi": ("fem", {"tip_shape": "hemisphere"}), "bem-hemi": ("bem", {"tip_shape": "hemisphere"})}
+
+
 def models(sizes: Sizes, progress=False) -> dict:
-    """Each tissue model (model.kind): the compiled tick pressing the skin and inside the muscle
-    (microseconds per tick, p50/p99 of :data:`BLOCK`-tick means), the precomputation's build time
-    (the baselines' contact, uncached; the force net's three response tables; wall and CPU seconds)
-    and its tables' memory."""
+    """Each tissue model (model.kind, and :data:`MODEL_VARIANTS`): the compiled tick pressing the
+    skin and inside the muscle (microseconds per tick, p50/p99 of :data:`BLOCK`-tick means, of wall
+    time and of the thread's CPU time), the precomputation's build time (the baselines' contact,
+    uncached; the force net's three response tables; wall and CPU seconds) and its tables' memory."""
     from haptic_acu.base.config import MODEL_KINDS, load_config
     from haptic_acu.tissue import baselines, netresponse
     from haptic_acu.tissue.forcenet import NetParams
 
-    out = {"model_tick_us": {}, "model_build_s": {}, "model_build_cpu_s": {}, "model_table_bytes": {}}
+    out = {"model_tick_us": {}, "model_tick_cpu_us": {}, "model_build_s": {}, "model_build_cpu_s": {},
+           "model_table_bytes": {}}
     base = load_config()
-    for kind in MODEL_KINDS:
-        cfg = scenarios.with_kind(base, kind)
-        _log(progress, f"tissue model {kind}: precomputation")
+    runs = {kind: (kind, {}) for kind in MODEL_KINDS} | MODEL_VARIANTS
+    for label, (kind, extra) in runs.items():
+        cfg = scenarios.with_kind(base, kind, **extra)
+        _log(progress, f"tissue model {label}: precomputation")
         t0 = time.perf_counter()
         c0 = time.process_time()
         if kind == "forcenet":
@@ -287,14 +300,17 @@ def models(sizes: Sizes, progress=False) -> dict:
             nbytes = sum(t.F.nbytes + t.R.nbytes + t.D.nbytes for t in tabs)
         else:
             nbytes = baselines.build_contact(cfg).table_bytes
-        out["model_build_s"][kind] = round(time.perf_counter() - t0, 3)
-        out["model_build_cpu_s"][kind] = round(time.process_time() - c0, 3)  # on a loaded host, what an idle one pays
-        out["model_table_bytes"][kind] = int(nbytes)
-        ticks = {}
+        out["model_build_s"][label] = round(time.perf_counter() - t0, 3)
+        out["model_build_cpu_s"][label] = round(time.process_time() - c0, 3)  # on a loaded host, what an idle one pays
+        out["model_table_bytes"][label] = int(nbytes)
+        ticks, cpu = {}, {}
         for sc in (scenarios.press(sizes.servo_ticks, layer=0, base=cfg), scenarios.inside_muscle(sizes.servo_ticks, base=cfg)):
-            _log(progress, f"tissue model {kind}: {sc.name}")
-            ticks[sc.name.split("_w")[0]] = servo_scenario(sc, sizes.servo_ticks, ways=("compiled",)).get("compiled")
-        out["model_tick_us"][kind] = ticks
+            _log(progress, f"tissue model {label}: {sc.name}")
+            r = servo_scenario(sc, sizes.servo_ticks, ways=("compiled",))
+            ticks[sc.name.split("_w")[0]] = r.get("compiled")
+            cpu[sc.name.split("_w")[0]] = r.get("compiled_cpu")
+        out["model_tick_us"][label] = ticks
+        out["model_tick_cpu_us"][label] = cpu
     return {"models": out}
 
 
@@ -1033,6 +1049,11 @@ def targets(res: dict) -> list[dict]:
         ("first command after a wheel install / warm (x)", _get(res, "ratios", "wheel_first_vs_warm"), "<=", 4.0),
         ("cohort on Dask / the local pool (x)", _get(res, "ratios", "dask_vs_local"), "<=", 1.1),
     ]
+    md = res.get("models") or {}
+    skin = [t["press_skin"]["p99"] for t in md.get("model_tick_cpu_us", {}).values() if t.get("press_skin")]
+    rows.append(("tissue model tick p99 pressing skin, worst, CPU (us)", max(skin) if skin else None, "<=", 50.0))
+    build = list(md.get("model_build_cpu_s", {}).values())
+    rows.append(("tissue model precomputation, worst, CPU (s)", max(build) if build else None, "<=", 30.0))
     cl = res.get("closed_loop") or {}
     for grip in ("loose", "firm"):
         m = (cl.get(grip) or {}).get("rendered")
@@ -1109,17 +1130,20 @@ def _fmt(x, digits=3):
 
 def model_lines(md) -> list:
     """One row per tissue model (model.kind): compiled tick pressing the skin and inside the muscle
-    (p50 / p99, us), precomputation time (wall, CPU) and table memory."""
+    (p50 / p99 of wall time, p99 of CPU time, us), precomputation time (wall, CPU) and table memory."""
     if not md:
         return []
-    lines = ["tissue models (model.kind): compiled tick, us (p50 / p99); precomputation; tables",
-             f"  {'':10s}{'press skin':>16s}{'inside muscle':>16s}{'build s':>9s}{'cpu s':>7s}{'tables kB':>11s}"]
+    lines = ["tissue models: compiled tick, us (wall p50 / p99, CPU p99); precomputation; tables",
+             f"  {'':9s}{'press skin':>22s}{'inside muscle':>22s}{'build s':>8s}{'cpu s':>7s}{'kB':>10s}"]
+    cpu_ticks = md.get("model_tick_cpu_us", {})
     for kind, ticks in md["model_tick_us"].items():
-        cells = "".join(f"{(_fmt(t['p50']) + ' / ' + _fmt(t['p99'])) if t else '-':>16s}"
-                        for t in (ticks.get("press_skin"), ticks.get("inside_muscle")))
+        cells = ""
+        for sc in ("press_skin", "inside_muscle"):
+            t, c = ticks.get(sc), cpu_ticks.get(kind, {}).get(sc)
+            cells += f"{(_fmt(t['p50']) + ' / ' + _fmt(t['p99'])) if t else '-':>15s}{_fmt(c['p99']) if c else '-':>7s}"
         cpu = md.get("model_build_cpu_s", {}).get(kind)
-        lines.append(f"  {kind:10s}{cells}{_fmt(md['model_build_s'][kind]):>9s}{_fmt(cpu) if cpu is not None else '-':>7s}"
-                     f"{_fmt(md['model_table_bytes'][kind] / 1e3):>11s}")
+        lines.append(f"  {kind:9s}{cells}{_fmt(md['model_build_s'][kind]):>8s}{_fmt(cpu) if cpu is not None else '-':>7s}"
+                     f"{_fmt(md['model_table_bytes'][kind] / 1e3):>10s}")
     return lines
 
 

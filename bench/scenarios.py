@@ -55,9 +55,10 @@ def config_copy(base=None, layer: int | None = None, w: int | None = None, never
 _TISSUES: dict = {}
 
 
-def with_kind(cfg, kind: str):
-    """``cfg`` with ``model.kind`` set to ``kind`` (a baseline tissue model, or the force net)."""
-    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind))
+def with_kind(cfg, kind: str, **model):
+    """``cfg`` with ``model.kind`` set to ``kind`` (a baseline tissue model, or the force net) and
+    any other ``model`` keys given (``tip_shape="hemisphere"``)."""
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, kind=kind, **model))
 
 
 def tissue_for(cfg) -> Tissue:

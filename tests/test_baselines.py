@@ -461,7 +461,7 @@ def test_a_live_session_runs_a_baseline_with_rerun_logging_and_its_recording_rep
                  "--no-status", "--quiet"]) == 0
     live = json.loads((out / "summary.json").read_text())
     skin = [p for p in live["punctures"] if p["layer"] == "skin"]
-    # the half-space of skin's stiffness (0.133 N/mm) at its energy-criterion break (0.92 mm): 0.12 N, not
+    # the half-space of skin's stiffness (0.131 N/mm) at its energy-criterion break (0.92 mm): 0.12 N, not
     # the force net's 0.5 N
     c = B.contact_for(load_config(overrides=["model.kind=bem"]))
     assert len(skin) == 1 and skin[0]["peak_force_n"] == pytest.approx(c.stiffness[0] * c.crit_depth[0], abs=0.03)

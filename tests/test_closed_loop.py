@@ -120,16 +120,20 @@ def baseline_sessions():
     from haptic_acu.base.config import load_config
 
     out = {}
-    for kind in ("msm", "fem", "bem", "shf"):
-        cfg = load_config(overrides=[f"model.kind={kind}"])
+    for kind in BASELINE_RUNS:  # "fem-hemisphere": the FEM with model.tip_shape = "hemisphere"
+        name, _, tip = kind.partition("-")
+        cfg = load_config(overrides=[f"model.kind={name}"] + ([f"model.tip_shape={tip}"] if tip else []))
         for grip in (C.LOOSE, C.FIRM):
             out[kind, grip.name] = C.metrics(C.run(grip, "rendered", cfg=cfg))
     return out
 
 
+BASELINE_RUNS = ("msm", "fem", "bem", "shf", "fem-hemisphere", "bem-hemisphere")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("grip", ["loose", "firm"])
-@pytest.mark.parametrize("kind", ["msm", "fem", "bem", "shf"])
+@pytest.mark.parametrize("kind", BASELINE_RUNS)
 def test_each_baseline_model_meets_the_closed_loop_targets(baseline_sessions, kind, grip):
     m = baseline_sessions[kind, grip]
     assert max(m["buzz_n"].values()) <= 0.02, m["buzz_n"]

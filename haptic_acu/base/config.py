@@ -129,6 +129,7 @@ class WorkspaceParams:
 
 
 MODEL_KINDS = ("forcenet", "msm", "fem", "bem", "shf")  # model.kind: the tissue model before a layer breaks
+TIP_SHAPES = ("flat", "hemisphere")  # model.tip_shape: the tip's end the FEM and BEM press with
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,7 @@ class ModelParams:
     shf_puncture_force_n: tuple[float, float, float]  # SHF: force at which the layer breaks
     msm_spacing_mm: float  # MSM: the lattice's spacing
     msm_puncture_strain: tuple[float, float, float]  # MSM: strain of a spring at the tip at which the layer breaks
+    tip_shape: str  # FEM, BEM: the tip's end over its contact disc, "flat" or "hemisphere" (tissue.contact)
 
 
 @dataclass(frozen=True)
@@ -336,6 +338,8 @@ def _check_relations(path: Path, cfg: TissueConfig) -> None:
         _fail(path, "solver.servo_net", f"must be \"table\" or \"sweeps\", got {cfg.solver.servo_net!r}")
     if cfg.model.kind not in MODEL_KINDS:
         _fail(path, "model.kind", f"must be one of {', '.join(MODEL_KINDS)}, got {cfg.model.kind!r}")
+    if cfg.model.tip_shape not in TIP_SHAPES:
+        _fail(path, "model.tip_shape", f"must be one of {', '.join(TIP_SHAPES)}, got {cfg.model.tip_shape!r}")
     if cfg.workspace.roll_sign not in (1.0, -1.0):
         _fail(path, "workspace.roll_sign", f"must be 1 or -1, got {cfg.workspace.roll_sign}")
     lo, hi = cfg.scene.target_depth_mm

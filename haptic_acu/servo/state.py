@@ -58,6 +58,8 @@ LAYER = np.dtype([  # per layer (Model.layer[k])
     ("msm_n", "i8"),  # the MSM: modes of this layer's lattice (Model.msm; tissue.msm)
     ("msm_g", "f8"),  # its contact's compliance within one backward-Euler step (m/N)
     ("msm_eps", "f8"),  # the strain of a spring at the tip at which the layer breaks (reference speed)
+    ("ct_n", "i8"),  # the FEM, BEM: nodes of this layer's contact disc (Model.ct_*; tissue.contact)
+    ("ct_row", "i8"),  # their first row in Model.ct_c and Model.ct_ref
 ])
 PARAMS = np.dtype([  # needle, solver and safety (Model.params[0])
     ("lmax", "i8"), ("lateral_on", "i8"), ("k_lateral", "f8"), ("k_bone", "f8"),
@@ -104,6 +106,8 @@ SERVO = np.dtype([  # the servo's mutable scalars (State.servo[0])
     ("twist", "f8", N_LAYERS), ("engage", "f8", N_LAYERS), ("wind_len", "f8", N_LAYERS),
     ("torque_layer", "f8", N_LAYERS), ("roll_play", "f8", (1,)), ("wind_primed", "i8", (1,)),
     ("msm_layer", "i8"),  # the MSM: 1 + the layer whose lattice State.msm_qv holds (0: none)
+    ("ct_layer", "i8"),  # the FEM, BEM: 1 + the layer whose contact set State.ct_* holds (0: none)
+    ("ct_n", "i8"),  # the size of that contact set
 ])
 HOLE = np.dtype([("point", "f8", 3), ("layer", "f8"), ("axis", "f8", 3)])
 WORK = np.dtype([  # the step's scratch: values one phase hands the next within a tick
@@ -167,6 +171,9 @@ class Model(NamedTuple):
     tmeta: np.ndarray  # (N_LAYERS,) netresponse.TMETA: where each layer's table lies in ``tab``
     danger: np.ndarray  # (MAX_DANGER,) danger.DANGER: a point's structures (all NONE without a point)
     msm: np.ndarray  # (N_LAYERS * msm.ROWS, modes) the MSM's lattices' modes (tissue.msm.pack; (1, 1) otherwise)
+    ct_c: np.ndarray  # (N_LAYERS * nodes, nodes) the FEM's / BEM's contact discs' compliances (m/N; tissue.contact)
+    ct_ref: np.ndarray  # (N_LAYERS * nodes, nodes) their inverses: each whole disc's capacitance matrix (N/m)
+    ct_h: np.ndarray  # (N_LAYERS, nodes) the tip's height above its apex over each node (m)
 
 
 class State(NamedTuple):
@@ -184,6 +191,9 @@ class State(NamedTuple):
     tr_count: np.ndarray  # (1,) int64: tracks ever begun
     dstate: np.ndarray  # (MAX_DANGER,) 1.0 where a danger structure has given way (danger.py)
     msm_qv: np.ndarray  # (2, modes) the MSM's pressed lattice: modal coordinates, their velocities
+    ct_p: np.ndarray  # (nodes, nodes) the FEM's / BEM's contact set's capacitance matrix (tissue.contact)
+    ct_f: np.ndarray  # (3, nodes) the forces on the set's nodes (N); scratch
+    ct_i: np.ndarray  # (2, nodes) int64: the set's nodes; scratch
 
 
 class TickIn(NamedTuple):
@@ -223,10 +233,12 @@ class Servo(NamedTuple):
 SPEC = {  # (dtype, ndim) of every field
     Model: dict(coeffs=("f8", 2), centre=("f8", 1), layer=(LAYER, 1), params=(PARAMS, 1), layout=(LAYOUT, 1),
                 nbr=("i8", 2), ring=("i8", 1), plane=("f8", 2), tab=("f8", 1), tmeta=(TMETA, 1),
-                danger=(DANGER, 1), msm=("f8", 2)),
+                danger=(DANGER, 1), msm=("f8", 2), ct_c=("f8", 2),
+                ct_ref=("f8", 2), ct_h=("f8", 2)),
     State: dict(servo=(SERVO, 1), pos=("f8", 2), rest=("f8", 2), axes=("f8", 2), holes=(HOLE, 1), radii=("f8", 1),
                 work=(WORK, 1), tr_entry=("f8", 2), tr_axis=("f8", 2), tr_lo=("f8", 2), tr_hi=("f8", 2),
-                tr_count=("i8", 1), dstate=("f8", 1), msm_qv=("f8", 2)),
+                tr_count=("i8", 1), dstate=("f8", 1), msm_qv=("f8", 2),
+                ct_p=("f8", 2), ct_f=("f8", 2), ct_i=("i8", 2)),
     TickIn: dict(p=("f8", 1), v=("f8", 1), fr=("f8", 1), rstat=("f8", 1), axis=("f8", 1), roll=("f8", 1)),
     Out: dict(diag=(DIAG, 1)),
     Ring: dict(buf=("f8", 2), ctr=("i8", 1)),

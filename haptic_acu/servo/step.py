@@ -85,8 +85,8 @@ from ..tissue.netresponse import table_for
 from ..tissue.postpuncture import begin_insertion, find_track, shaft_forces
 from .state import (DIAG, FREE, MAX_HOLES, N_LAYERS, N_SLOTS, PRESSING, PUNCTURED, SERVO_OWNS,
                          STATE_NAMES, UNTOUCHED, VISUAL_OWNS, Model, State, TickIn)
-from ..tissue.baselines import (KIND_CODES, MSM, baseline_response, baseline_slope, contact_for, msm_release,
-                                msm_response)
+from ..tissue.baselines import (BEM, FEM, KIND_CODES, MSM, baseline_response, baseline_slope, contact_for,
+                                contact_release, contact_response, msm_release, msm_response)
 from ..tissue.body import Tissue, boundary_radii_grad
 from ..tissue.twirl import TwirlParams, WindState, wind_step
 from ..tissue.twirl import params_from_config as twirl_params
@@ -543,6 +543,8 @@ def press(inp, m, s, d, k):
         sv.owner[k, ss.net_slot(idx)] = FREE
         if m.params[0].kind == MSM:
             msm_release(m, s, k)
+        elif m.params[0].kind == FEM or m.params[0].kind == BEM:
+            contact_release(s)
         return
     X0f = net_views(m, s, idx)[1]
     ax = s.axes[idx]
@@ -557,6 +559,9 @@ def press(inp, m, s, d, k):
     depth_gradient(m, s, k)
     if m.params[0].kind == MSM:  # the MSM's lattice, one step (docs/model.md s12.2)
         fn, broke = msm_response(inp, m, s, k, idx, dep, ax)
+        rw = 0.0
+    elif m.params[0].kind == FEM or m.params[0].kind == BEM:  # the contact set on the disc (s12.6)
+        fn, broke = contact_response(inp, m, s, k, idx, dep, ax)
         rw = 0.0
     elif m.params[0].kind != 0:  # a baseline model (docs/model.md s12); the net is only drawn
         fn, broke = baseline_response(inp, m, s, k, idx, dep, ax)
@@ -912,16 +917,22 @@ class NeedleModel:
         layout, rows, rest_rows = self._layout()
         contact = contact_for(cfg)  # the MSM's lattices' modes (a (1, 1) stand-in otherwise)
         msm_tab = np.ascontiguousarray(contact.msm_tab if contact is not None else np.zeros((1, 1)))
+        # the FEM's / BEM's contact discs ((1, 1) stand-ins otherwise)
+        ct = [np.ascontiguousarray(getattr(contact, f) if contact is not None else np.zeros((1, 1)))
+              for f in ("ct_c", "ct_ref", "ct_h")]
+        nodes = ct[0].shape[1]
         self.model = Model(coeffs=self.coeffs, centre=self.centre, layer=self._layer_params(cfg),
                            params=self._needle_params(cfg), layout=layout,
                            nbr=np.ascontiguousarray(np.concatenate([lat.nbr for lat in self.lattices])),
                            ring=np.ascontiguousarray(np.concatenate([lat.ring for lat in self.lattices])),
                            plane=np.ascontiguousarray(np.concatenate([lat.plane for lat in self.lattices])),
-                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER), msm=msm_tab)
+                           tab=tab, tmeta=tmeta, danger=np.zeros(MAX_DANGER, DANGER), msm=msm_tab,
+                           ct_c=ct[0], ct_ref=ct[1], ct_h=ct[2])
         tr = (ss.MAX_TRACKS, 3)
         self.state = ss.zeros(State, pos=(rows, 3), rest=(rest_rows, 6), axes=(N_LAYERS * N_SLOTS, 3),
                               holes=(MAX_HOLES,), radii=(N_LAYERS + 1,), tr_entry=tr, tr_axis=tr, tr_lo=tr,
-                              tr_hi=tr, dstate=(MAX_DANGER,), msm_qv=(2, msm_tab.shape[1]))
+                              tr_hi=tr, dstate=(MAX_DANGER,), msm_qv=(2, msm_tab.shape[1]),
+                              ct_p=(nodes, nodes), ct_f=(3, nodes), ct_i=(2, nodes))
         self.state.axes[:, 2] = 1.0
         self.inp = ss.zeros(TickIn, p=(3,), v=(3,), fr=(3,), axis=(3,), roll=(1,))
         self.inp.axis[:] = np.nan
@@ -956,6 +967,9 @@ class NeedleModel:
                 lp["msm_n"] = contact.msm_count
                 lp["msm_g"] = contact.msm_g
                 lp["msm_eps"] = cfg.model.msm_puncture_strain
+            if len(contact.ct_n):
+                lp["ct_n"] = contact.ct_n
+                lp["ct_row"] = np.arange(N_LAYERS) * contact.ct_c.shape[1]
         return lp
 
     def _needle_params(self, cfg) -> np.ndarray:

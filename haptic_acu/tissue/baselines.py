@@ -42,13 +42,14 @@ import numba as nb
 import numpy as np
 
 from ..base.config import MODEL_KINDS
-from . import bem, fem, msm
+from . import bem, contact, fem, msm
 from .body import Tissue, fit_key
 from .mechanics import puncture_threshold
+from .contact import contact_solve
 from .msm import msm_tick
 from .netresponse import cache_dir
 
-VERSION = 4  # bump when a precomputation changes (invalidates the cache)
+VERSION = 5  # bump when a precomputation changes (invalidates the cache)
 KIND_CODES = {name: i for i, name in enumerate(MODEL_KINDS)}  # PARAMS.kind (0: the force net)
 FORCENET, MSM, FEM, BEM, SHF = (KIND_CODES[n] for n in MODEL_KINDS)
 
@@ -79,6 +80,35 @@ def baseline_slope(m, s, k):
     if m.params[0].kind == MSM and m.layer[k].msm_g > 0.0:
         k_along = 1.0 / m.layer[k].msm_g
     return k_along * (g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+
+
+# ---- FEM, BEM: the contact set (tissue/contact.py) -------------------------------------------------
+
+@nb.njit(cache=True, nogil=True, _nrt=False)
+def contact_response(inp, m, s, k, idx, dep, ax):
+    """The FEM's or BEM's pressed layer ``k`` with the tip's apex ``dep`` below its rest surface:
+    Signorini's contact on the layer's disc (``contact.contact_solve``; the set and its capacitance
+    matrix kept in ``State.ct_*`` from tick to tick, emptied when the pressed layer changes), (the
+    force along grad(-d), N; broken?). The layer breaks past ``bl_crit`` scaled by the approach speed
+    as the force net's threshold is."""
+    sv = s.servo[0]
+    for c in range(3):
+        sv.slot_q[idx, c] = s.work[0].q[c]
+    lay = m.layer[k]
+    if sv.ct_layer != k + 1:
+        sv.ct_n = 0
+        sv.ct_layer = k + 1
+    n, fn, changes = contact_solve(m.ct_c, m.ct_ref, lay.ct_row, m.ct_h[k], lay.ct_n, dep, s.ct_p, s.ct_i[0],
+                                   sv.ct_n, s.ct_i[1], s.ct_f[0], s.ct_f[1], s.ct_f[2])
+    sv.ct_n = n
+    broke = dep > puncture_threshold(lay.bl_crit, s.work[0].tip_v, ax, m.params[0])
+    return fn, broke
+
+
+@nb.njit(cache=True, nogil=True, _nrt=False)
+def contact_release(s):
+    """The tip off the surface: the contact set empties."""
+    s.servo[0].ct_n = 0
 
 
 # ---- MSM (tissue/msm.py) -----------------------------------------------------------------------
@@ -129,6 +159,12 @@ class Contact:
     msm_tab: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
     msm_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     msm_g: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # the FEM's / BEM's contact discs (contact.pack): compliances, whole-disc capacitances, the tip's
+    # heights over the nodes, per layer the node count; (1, 1) and empty for the other models
+    ct_c: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    ct_ref: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    ct_h: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    ct_n: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def _layers(cfg, k):
@@ -151,7 +187,7 @@ def contact_key(cfg) -> str:
     m = cfg.model
     text = repr((VERSION, m.kind, m.young_modulus_kpa, m.poisson_ratio, m.fracture_toughness_j_per_m2, m.shf_stiffness_n_per_mm,
                  m.shf_puncture_force_n, m.msm_spacing_mm, m.msm_puncture_strain,
-                 tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, fem.N_IN, fem.RATIO,
+                 tuple(layer.thickness_mm for layer in cfg.layers), cfg.needle.diameter_mm, m.tip_shape, fem.N_IN, fem.RATIO,
                  fem.HALF_WIDTH_M, fem.DEPTH_M, fem.PATCH_M, bem.N_IN, msm.HALF_CELLS, msm.DEPTH_M,
                  msm.DAMPING_RATIO, msm.DENSITY_KG_M3, msm.DT, fit_key(cfg) if m.kind == "fem" else None))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
@@ -167,6 +203,7 @@ def build_contact(cfg) -> Contact:
     crit = np.zeros(n)
     nbytes = 0
     layer_modes = []
+    discs = []  # FEM, BEM: per layer (compliance, lateral distances of its nodes)
     tissue = Tissue.from_config(cfg) if m.kind == "fem" else None
     for j in range(n):
         E, nu, thick = _layers(cfg, j)
@@ -175,13 +212,14 @@ def build_contact(cfg) -> Contact:
             crit[j] = m.shf_puncture_force_n[j] / k[j]
         elif m.kind == "fem":
             res = fem.tissue_press(tissue, j, E, nu, a)
+            discs.append(fem.disc_compliance(res, a))
             k[j] = res.stiffness
             crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
-            nbytes += res.schur.nbytes + res.patch_xy.nbytes
         elif m.kind == "bem":
+            s_, xy = bem.disc_elements(a)
+            discs.append((bem.compliance(E[0], nu[0], a), np.hypot(xy[:, 0], xy[:, 1])))
             k[j] = bem.flat_punch(E[0], nu[0], a)
             crit[j] = rupture_depth(k[j], m.fracture_toughness_j_per_m2[j], a)
-            nbytes += bem.element_count() ** 2 * 8  # the compliance matrix
         elif m.kind == "msm":
             md = msm.modes(E, nu, msm.DENSITY_KG_M3[j:], thick, m.msm_spacing_mm * 1e-3)
             layer_modes.append(md)
@@ -191,6 +229,9 @@ def build_contact(cfg) -> Contact:
     if m.kind == "msm":
         out.msm_tab, out.msm_count, out.msm_g = msm.pack(layer_modes, n)
         nbytes += out.msm_tab.nbytes
+    if discs:
+        out.ct_c, out.ct_ref, out.ct_h, out.ct_n = contact.pack(discs, n, a, m.tip_shape)
+        nbytes += out.ct_c.nbytes + out.ct_ref.nbytes + out.ct_h.nbytes
     out.build_s = time.perf_counter() - t0
     out.table_bytes = int(nbytes) + k.nbytes + crit.nbytes
     return out
@@ -214,7 +255,8 @@ def contact_for(cfg) -> Contact | None:
         try:
             with np.load(path) as z:
                 out = Contact(cfg.model.kind, z["k"].copy(), z["crit"].copy(), 0.0, int(z["nbytes"]),
-                              z["msm_tab"].copy(), z["msm_count"].copy(), z["msm_g"].copy())
+                              z["msm_tab"].copy(), z["msm_count"].copy(), z["msm_g"].copy(), z["ct_c"].copy(),
+                              z["ct_ref"].copy(), z["ct_h"].copy(), z["ct_n"].copy())
         except (OSError, ValueError, KeyError):
             out = None
     if out is None:
@@ -225,7 +267,8 @@ def contact_for(cfg) -> Contact | None:
                 fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
                 with os.fdopen(fd, "wb") as f:
                     np.savez(f, k=out.stiffness, crit=out.crit_depth, nbytes=out.table_bytes, msm_tab=out.msm_tab,
-                             msm_count=out.msm_count, msm_g=out.msm_g)
+                             msm_count=out.msm_count, msm_g=out.msm_g, ct_c=out.ct_c, ct_ref=out.ct_ref,
+                             ct_h=out.ct_h, ct_n=out.ct_n)
                 os.replace(tmp, path)
             except OSError:
                 pass

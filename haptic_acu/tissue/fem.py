@@ -247,6 +247,16 @@ def press(bnd: Boundaries, point, E, nu, a, n_in=N_IN, ratio=RATIO, half_width=H
     return FemResult(k, np.stack([X[pnodes], Y[pnodes]], 1), S, X[along].copy(), inward, nn, mesh.t.shape[1])
 
 
+def disc_compliance(res: FemResult, a: float):
+    """The compliance (m/N) of the condensed surface nodes within ``a`` of the contact point, the
+    rest of the patch free: that block of the Schur complement's inverse; and the nodes' lateral
+    distances (m). The contact's precomputed matrix (``tissue.contact``)."""
+    rho = np.hypot(res.patch_xy[:, 0], res.patch_xy[:, 1])
+    d = np.nonzero(rho <= a * (1 + 1e-9))[0]
+    C = np.linalg.inv(res.schur)[np.ix_(d, d)]
+    return 0.5 * (C + C.T), rho[d]
+
+
 def flat_punch(E, nu, thick, a, n_in=N_IN, ratio=RATIO, half_width=HALF_WIDTH_M, depth=DEPTH_M, patch=PATCH_M,
                radius_m=1.0) -> FemResult:
     """:func:`press` on concentric spheres of ``radius_m`` (1 m: flat within 0.1 mm over the block,
