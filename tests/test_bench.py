@@ -283,7 +283,13 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     assert set(res["scaling"]["servo_tick_us"]) == {"3", "4"} and set(res["scaling"]["sh_eval_ms"]) == {"2", "4"}
     assert set(res["scaling"]["servo_tick_sweeps_us"]) == {"3", "4"}
     assert res["cohort"] is None and res["first_run_s"] is None  # not asked for (measured below)
-    assert len(res["targets"]) == 22 and all(t["pass"] in (True, False, None) for t in res["targets"])
+    assert len(res["targets"]) == 24 and all(t["pass"] in (True, False, None) for t in res["targets"])
+    md = res["models"]  # every tissue model's tick, wall and CPU, and the FEM's and BEM's hemispherical tips
+    from haptic_acu.base.config import MODEL_KINDS
+    assert set(md["model_tick_us"]) == set(md["model_tick_cpu_us"]) == set(MODEL_KINDS) | set(run.MODEL_VARIANTS)
+    for label, cpu in md["model_tick_cpu_us"].items():
+        _percentile_object(cpu["press_skin"])
+        assert cpu["press_skin"]["p50"] > 0
     if res["pyshtools_eval_ms"] is not None:
         assert res["sh_agreement_m"]["fit_surface_max_abs"] < 1e-10
     table = run.format_table(res)

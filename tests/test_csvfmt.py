@@ -30,3 +30,22 @@ def test_categories_empty_cells_and_nan():
     fmt = RowFormatter([("category", ("outside", "skin")), ("fixed", 2), ("category", ("a", "bb"))])
     rows = np.array([[0, 1.234, 1], [1, np.nan, np.nan], [1, -0.001, 0]])
     assert fmt.format(rows).decode() == "outside,1.23,bb\nskin,nan,\nskin,0.00,a\n"
+
+
+def test_gather_equals_format_of_the_built_columns():
+    """format_gather (columns taken, scaled and offset inside the compiled pass) writes the bytes
+    format writes for the same columns built with numpy; negative category codes are empty cells."""
+    rng = np.random.default_rng(3)
+    rows = rng.normal(0, 1, (500, 6))
+    rows[:, 2] = rng.integers(-1, 3, 500)  # a category code column, -1: none
+    rows[::7, 1] = np.nan
+    extra = rng.normal(0, 1e-3, (500, 2))
+    cols = [("fixed", 4), ("category", ("a", "bb", "ccc", "d")), ("category", ("x", "y", "z")), ("fixed", 6),
+            ("fixed", 0)]
+    fmt = RowFormatter(cols)
+    src, scale, offset = [1, 2, 2, 6, 0], [1e3, 1.0, 1.0, 1e3, 1.0], [0.0, 1.0, 0.0, 0.0, 0.0]
+    punct = rows[:, 2].copy()
+    punct[punct < 0] = np.nan
+    built = np.column_stack([rows[:, 1] * 1e3, rows[:, 2] + 1, punct, extra[:, 0] * 1e3, rows[:, 0]])
+    assert fmt.format_gather(rows, extra, src, scale, offset) == fmt.format(built)
+    assert b",," in fmt.format_gather(rows, extra, src, scale, offset)  # some -1 codes: empty cells

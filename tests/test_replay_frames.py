@@ -131,3 +131,52 @@ def test_tip_depth_kept_for_the_same_rows_only(cfg, tissue):
     assert got[7] == pytest.approx(direct(moved, tissue)[7], abs=1e-12) and got[7] != again[7]
     other = Tissue.from_config(load_config(None, overrides=["body.bulge=0.15"]))
     assert not np.allclose(tip_depth_m(pts, other), again)  # another body: its own depths
+
+
+class Threads(Frames):
+    """Frames, and the thread each one arrived on; fails at frame ``fail_at`` if given."""
+
+    def __init__(self, fail_at=None):
+        super().__init__(rows_only=True)
+        self.threads = set()
+        self.fail_at = fail_at
+
+    def on_frame(self, frame):
+        import threading
+
+        self.threads.add(threading.current_thread().name)
+        super().on_frame(frame)
+        if frame.index == self.fail_at:
+            raise RuntimeError("probe failed")
+
+
+def _sink_threads():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "haptic-acu-sink"]
+
+
+def test_sinks_fed_from_their_own_thread_and_none_left(cfg, tissue, monkeypatch):
+    """A rows-only sink gets the blocks from a thread of its own (the session's thread meanwhile runs
+    the next block's ticks), every frame in order, and the thread ends with the session."""
+    sink = Threads()
+    result, *_ = replay(cfg, tissue, sink, monkeypatch, duration_s=9.0)
+    assert sink.threads == {"haptic-acu-sink"}
+    assert [i for _, i, _ in sink.seen] == list(range(len(sink.seen))) and len(sink.seen) == 540
+    assert sum(len(r) for *_, r in sink.seen) == result.ticks == 9001
+    assert not _sink_threads()
+
+
+def test_a_failing_sink_is_the_sessions_fault_and_the_others_get_every_row(cfg, tissue):
+    """A sink failing in the second block of frames: the session ends with that fault (at the latest
+    after the block its thread was running), the other sink has every row the servo wrote, and no
+    thread is left."""
+    bad, good = Threads(fail_at=300), Threads()
+    dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+    dev.open()
+    result = Session(cfg, dev, [bad, good], clock="sim", model=NeedleModel(cfg, tissue), duration_s=12.0).run()
+    dev.close()
+    assert result.fault is not None and "probe failed" in result.fault
+    assert result.ticks > 5000  # past the failing frame (the blocks already run are not undone)
+    assert sum(len(r) for *_, r in good.seen) == result.ticks
+    assert not _sink_threads()

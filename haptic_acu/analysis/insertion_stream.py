@@ -8,8 +8,9 @@ is 600,000 of them. This module computes the same dict from the rows as they arr
 * the depth's *records* (ticks deeper than every earlier one) not shallower than 90% of the
   deepest so far: the insertion speed's end tick and the lift-thrust start are among them;
 * the reversals of the roll (twirling) and of the continuous depth (lift-thrust strokes) as found
-  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`), each
-  stroke's sums (moving samples, speed, force vector: the resistance is linear in u);
+  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`'s
+  rule, in one compiled pass over each block), each stroke's sums (moving samples, speed, force
+  vector: the resistance is linear in u);
 * the troughs of the continuous depth with their prominences, found sample by sample with a stack
   of open peaks (:class:`TroughScan`, the result of :func:`haptic_acu.analysis.metrics.find_troughs`);
   troughs before the lift-thrust start are dropped at the end (the start is a depth record, before
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 
 from .common import dot3
@@ -92,85 +94,284 @@ class ZigZag:
         return NONE
 
 
+# ZigZag's state in a compiled pass: [d, xhi, xlo, started]
+ZZ_D, ZZ_HI, ZZ_LO, ZZ_STARTED = 0, 1, 2, 3
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _zz_step(zz, ms, v):
+    """:meth:`ZigZag.step` on the state array ``zz`` (ZZ_*), minimum swing ``ms``."""
+    if zz[ZZ_STARTED] == 0.0:
+        zz[ZZ_STARTED] = 1.0
+        zz[ZZ_HI] = v
+        zz[ZZ_LO] = v
+        return NONE
+    d = zz[ZZ_D]
+    if d == 0.0:
+        if v > zz[ZZ_HI]:
+            zz[ZZ_HI] = v
+        if v < zz[ZZ_LO]:
+            zz[ZZ_LO] = v
+        if v - zz[ZZ_LO] >= ms:
+            zz[ZZ_D] = 1.0
+            zz[ZZ_HI] = v
+            return NEW
+        if zz[ZZ_HI] - v >= ms:
+            zz[ZZ_D] = -1.0
+            zz[ZZ_LO] = v
+            return NEW
+        return NONE
+    if d > 0.0:
+        if v > zz[ZZ_HI]:
+            zz[ZZ_HI] = v
+            return NEW
+        if zz[ZZ_HI] - v >= ms:
+            zz[ZZ_D] = -1.0
+            zz[ZZ_LO] = v
+            return REV
+        return NONE
+    if v < zz[ZZ_LO]:
+        zz[ZZ_LO] = v
+        return NEW
+    if v - zz[ZZ_LO] >= ms:
+        zz[ZZ_D] = 1.0
+        zz[ZZ_HI] = v
+        return REV
+    return NONE
+
+
+@nb.njit(cache=True, nogil=True)
+def _twirl_pass(zz, ms, roll, t, cum, idx, cand, revs):
+    """:class:`_Twirl`'s reversals over the samples ``idx`` of a block: ``cand`` (roll, t, cumulative
+    rotation) the pending reversal, confirmed ones into ``revs`` (k, 3); returns their count."""
+    n = 0
+    for q in range(idx.shape[0]):
+        j = idx[q]
+        v = roll[j]
+        ev = _zz_step(zz, ms, v)
+        if ev == REV:
+            revs[n, 0] = cand[0]
+            revs[n, 1] = cand[1]
+            revs[n, 2] = cand[2]
+            n += 1
+        if ev != NONE:
+            cand[0] = v
+            cand[1] = t[j]
+            cand[2] = cum[j]
+    return n
+
+
+# _Strokes' pending reversal (cand) and last confirmed one (last): [set, index, dcm, P (20), Q (20)];
+# a withdrawal window: [set, start dcm, max res, max ref, sum res, sum ref, n, closed]
+NS = 20
+C_SET, C_IDX, C_DCM, C_P = 0, 1, 2, 3
+C_Q = C_P + NS
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _window_add(w, r, q, v):
+    if w[0] != 0.0 and w[7] == 0.0:
+        if r > w[2]:
+            w[2] = r
+        if q > w[3]:
+            w[3] = q
+        w[4] += r
+        w[5] += q
+        w[6] += 1.0
+        w[7] = 1.0 if v <= 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _strokes_pass(zz, ms, min_speed, i0, dcm, v_uni, v_non, f, res, rres, has_ref, carry, cand, last,
+                  win_cand, win_conf, out_sgn, out_sums):
+    """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
+    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
+    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
+    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
+    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+    n = 0
+    q_row = np.empty(NS)
+    for k in range(dcm.shape[0]):
+        for c in range(NS):
+            q_row[c] = carry[c]
+        col = 0
+        for form in range(2):
+            vel = v_uni[k] if form == 0 else v_non[k]
+            for sg in range(2):
+                sv = (1.0 if sg == 0 else -1.0) * vel
+                moving = sv > min_speed
+                carry[col] = carry[col] + (1.0 if moving else 0.0)
+                carry[col + 1] = carry[col + 1] + (sv if moving else 0.0)
+                for j in range(3):
+                    carry[col + 2 + j] = carry[col + 2 + j] + (f[k, j] if moving else 0.0)
+                col += 5
+        v = dcm[k]
+        ev = _zz_step(zz, ms, v)
+        if ev == REV:
+            if last[C_SET] != 0.0:
+                out_sgn[n] = 1.0 if cand[C_DCM] > last[C_DCM] else -1.0
+                for c in range(NS):
+                    out_sums[n, c] = cand[C_P + c] - last[C_Q + c]
+                n += 1
+            for c in range(last.shape[0]):
+                last[c] = cand[c]
+            if has_ref:
+                for c in range(win_conf.shape[0]):
+                    win_conf[c] = win_cand[c]
+        if ev != NONE:
+            cand[C_SET] = 1.0
+            cand[C_IDX] = i0 + k
+            cand[C_DCM] = v
+            for c in range(NS):
+                cand[C_P + c] = carry[c]
+                cand[C_Q + c] = q_row[c]
+            if has_ref:
+                win_cand[0] = 1.0
+                win_cand[1] = v
+                win_cand[2] = -np.inf
+                win_cand[3] = -np.inf
+                win_cand[4] = 0.0
+                win_cand[5] = 0.0
+                win_cand[6] = 0.0
+                win_cand[7] = 0.0
+        if has_ref:
+            _window_add(win_cand, res[k], rres[k], v)
+            _window_add(win_conf, res[k], rres[k], v)
+    return n
+
+
 class TroughScan:
     """Troughs of a depth signal with their prominences (:func:`haptic_acu.analysis.metrics.find_troughs`,
     i.e. scipy's peak rules on minus the depth), sample by sample. Open peaks (no strictly higher
     sample after them yet) sit on a stack, each with its left base and the minimum of the samples
     from it to the next open peak; a peak is closed, and its prominence known, at the first
     strictly higher sample or at :meth:`finish`. ``found``: (index, t, prominence) of those with at
-    least ``prominence``."""
+    least ``prominence``. Each block is one compiled pass (:func:`_trough_pass`)."""
 
     def __init__(self, prominence: float):
         self.prom = float(prominence)
-        self.stack: list[list] = [[math.inf, -1, 0.0, math.inf, math.inf]]  # x, index, t, left, seg min
-        self.prev: float | None = None
-        self.rising = False
-        self.ps = 0  # first index of the current plateau after a rise
-        self.pt: list[float] = []  # its times (up to PLATEAU_T_CAP)
-        self.pt_last = 0.0
+        # the stack's rows: x, index, t, left base, segment minimum; row 0 a sentinel above every sample
+        self.stack = np.empty((64, 5))
+        self.stack[0] = (math.inf, -1, 0.0, math.inf, math.inf)
+        self.pt = np.empty(PLATEAU_T_CAP)  # the times of the current plateau after a rise (its first ones)
+        # [stack size, has prev, prev, rising, plateau start, plateau times kept, last plateau time]
+        self.state = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         self.found: list[tuple[int, float, float]] = []
 
-    def _mid_t(self, c: int, i_last: int) -> float:
-        k = c - self.ps
-        if k < len(self.pt):
-            return self.pt[k]
-        t0, n = self.pt[0], i_last - self.ps  # a very long flat trough: linear in the index
-        return t0 + (self.pt_last - t0) * k / n
-
-    def _push(self, xc: float, c: int, tc: float) -> None:
-        st = self.stack
-        acc = math.inf
-        j = len(st) - 1
-        while st[j][0] <= xc:  # equal peaks are not strictly higher: the base runs past them
-            acc = min(acc, st[j][4])
-            j -= 1
-        acc = min(acc, st[j][4])
-        st.append([xc, c, tc, acc, xc])
+    def feed(self, i0: int, x, t) -> None:
+        """Samples ``x`` (minus the depth) at times ``t``; ``i0`` the first one's index."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        k = x.shape[0]
+        if not k:
+            return
+        need = int(self.state[0]) + k + 1  # a sample pushes at most one peak
+        if need > self.stack.shape[0]:
+            grown = np.empty((max(need, 2 * self.stack.shape[0]), 5))
+            grown[:int(self.state[0])] = self.stack[:int(self.state[0])]
+            self.stack = grown
+        idx = np.empty(need, np.int64)
+        tf = np.empty((need, 2))
+        n = _trough_pass(self.stack, self.pt, self.state, self.prom, int(i0), x, t, idx, tf)
+        self.found.extend(zip(idx[:n].tolist(), tf[:n, 0].tolist(), tf[:n, 1].tolist()))
 
     def _emit(self, e, right: float) -> None:
         p = e[0] - max(e[3], right)
         if p >= self.prom:
-            self.found.append((e[1], e[2], p))
-
-    def feed(self, i0: int, x: list, t: list) -> None:
-        """Samples ``x`` (minus the depth) at times ``t``; ``i0`` the first one's index."""
-        st = self.stack
-        prev = self.prev
-        for k, (v, tk) in enumerate(zip(x, t)):
-            i = i0 + k
-            if prev is not None:
-                if v > prev:
-                    self.rising, self.ps, self.pt, self.pt_last = True, i, [tk], tk
-                elif v < prev:
-                    if self.rising:
-                        c = (self.ps + i - 1) // 2
-                        self._push(prev, c, self._mid_t(c, i - 1))
-                        self.rising = False
-                elif self.rising:
-                    if len(self.pt) < PLATEAU_T_CAP:
-                        self.pt.append(tk)
-                    self.pt_last = tk
-            if st[-1][0] < v:
-                acc = math.inf
-                while st[-1][0] < v:
-                    e = st.pop()
-                    acc = min(acc, e[4])
-                    self._emit(e, acc)
-                top = st[-1]
-                top[4] = min(top[4], acc)
-            top = st[-1]
-            if v < top[4]:
-                top[4] = v
-            prev = v
-        self.prev = prev
+            self.found.append((int(e[1]), float(e[2]), float(p)))
 
     def finish(self) -> list[tuple[int, float, float]]:
         acc = math.inf
-        while len(self.stack) > 1:
-            e = self.stack.pop()
+        size = int(self.state[0])
+        while size > 1:
+            size -= 1
+            e = self.stack[size].tolist()
             acc = min(acc, e[4])
             self._emit(e, acc)
+        self.state[0] = size
         return sorted(self.found)
+
+
+@nb.njit(cache=True, nogil=True)
+def _trough_pass(st, pt, state, prom, i0, x, t, out_idx, out_tp):
+    """:class:`TroughScan` over one block (its stack ``st``, plateau times ``pt`` and ``state`` carried
+    across blocks); the troughs closed in it, in order, into ``out_idx`` (index) and ``out_tp`` (t,
+    prominence). Returns their count."""
+    size = int(state[0])
+    has_prev = state[1] != 0.0
+    prev = state[2]
+    rising = state[3] != 0.0
+    ps = int(state[4])
+    npt = int(state[5])
+    pt_last = state[6]
+    n = 0
+    for q in range(x.shape[0]):
+        v = x[q]
+        tk = t[q]
+        i = i0 + q
+        if has_prev:
+            if v > prev:
+                rising = True
+                ps = i
+                pt[0] = tk
+                npt = 1
+                pt_last = tk
+            elif v < prev:
+                if rising:
+                    c = (ps + i - 1) // 2
+                    kk = c - ps  # the middle of the plateau: its time
+                    if kk < npt:
+                        tc = pt[kk]
+                    else:  # a very long flat trough: linear in the index
+                        t0 = pt[0]
+                        tc = t0 + (pt_last - t0) * kk / (i - 1 - ps)
+                    acc = np.inf  # push (prev, c, tc): equal peaks are not strictly higher
+                    j = size - 1
+                    while st[j, 0] <= prev:
+                        if st[j, 4] < acc:
+                            acc = st[j, 4]
+                        j -= 1
+                    if st[j, 4] < acc:
+                        acc = st[j, 4]
+                    st[size, 0] = prev
+                    st[size, 1] = c
+                    st[size, 2] = tc
+                    st[size, 3] = acc
+                    st[size, 4] = prev
+                    size += 1
+                    rising = False
+            elif rising:
+                if npt < pt.shape[0]:
+                    pt[npt] = tk
+                    npt += 1
+                pt_last = tk
+        if st[size - 1, 0] < v:
+            acc = np.inf
+            while st[size - 1, 0] < v:
+                size -= 1
+                if st[size, 4] < acc:
+                    acc = st[size, 4]
+                left = st[size, 3]
+                p = st[size, 0] - (acc if acc > left else left)
+                if p >= prom:
+                    out_idx[n] = np.int64(st[size, 1])
+                    out_tp[n, 0] = st[size, 2]
+                    out_tp[n, 1] = p
+                    n += 1
+            if acc < st[size - 1, 4]:
+                st[size - 1, 4] = acc
+        if v < st[size - 1, 4]:
+            st[size - 1, 4] = v
+        prev = v
+        has_prev = True
+    state[0] = size
+    state[1] = 1.0 if has_prev else 0.0
+    state[2] = prev
+    state[3] = 1.0 if rising else 0.0
+    state[4] = ps
+    state[5] = npt
+    state[6] = pt_last
+    return n
 
 
 class _Twirl:
@@ -178,9 +379,9 @@ class _Twirl:
     cumulative |roll increments| there), the first and last roll, the total rotation, peak torque."""
 
     def __init__(self):
-        self.zz = ZigZag(ROLL_MIN_SWING_DEG)
+        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing ROLL_MIN_SWING_DEG
         self.revs: list[tuple[float, float, float]] = []
-        self.cand = (0.0, 0.0, 0.0)
+        self.cand = np.zeros(3)  # the pending reversal: roll, t, cumulative rotation
         self.first = self.last = None
         self.total = 0.0
         self.peak = 0.0
@@ -195,17 +396,14 @@ class _Twirl:
         self.total = float(cum[-1])
         self.last = float(roll[-1])
         moved = np.flatnonzero(steps != 0.0)  # a repeated value never changes a zigzag
-        if self.zz.started:
+        if self.zz[ZZ_STARTED]:
             idx = moved
         else:
             idx = np.concatenate(([0], moved[moved > 0]))
-        zz = self.zz
-        for j, v, tj, cj in zip(idx.tolist(), roll[idx].tolist(), t[idx].tolist(), cum[idx].tolist()):
-            ev = zz.step(v)
-            if ev == REV:
-                self.revs.append(self.cand)
-            if ev:
-                self.cand = (v, tj, cj)
+        revs = np.empty((idx.size, 3))
+        n = _twirl_pass(self.zz, float(ROLL_MIN_SWING_DEG), np.ascontiguousarray(roll, dtype=np.float64),
+                        np.ascontiguousarray(t, dtype=np.float64), cum, idx.astype(np.int64), self.cand, revs)
+        self.revs.extend(map(tuple, revs[:n].tolist()))
 
     def result(self) -> dict:
         from .technique import _r
@@ -240,60 +438,29 @@ class _Strokes:
     prefix before a sample)."""
 
     def __init__(self, has_ref: bool):
-        self.zz = ZigZag(DEPTH_MIN_STROKE_MM)
-        self.carry = np.zeros(20)
-        self.cand = None  # (index, dcm, P row, Q row)
-        self.last_rev = None
+        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing DEPTH_MIN_STROKE_MM
+        self.carry = np.zeros(NS)
+        self.cand = np.zeros(C_Q + NS)  # the pending reversal (C_*: set, index, dcm, P row, Q row)
+        self.last_rev = np.zeros(C_Q + NS)  # the last confirmed one
         self.strokes: list[tuple[float, np.ndarray]] = []  # (sign, its 10 sums: 5 per formula)
         self.has_ref = has_ref
-        self.win_cand = self.win_conf = None  # [start dcm, max res, max ref, sum res, sum ref, n, closed]
+        # the withdrawal windows [set, start dcm, max res, max ref, sum res, sum ref, n, closed]
+        self.win_cand = np.zeros(8)
+        self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    @staticmethod
-    def _contrib(v_uni, v_non, f):
-        cols = []
-        for v in (v_uni, v_non):
-            for s in (1.0, -1.0):
-                sv = s * v
-                m = sv > MIN_SPEED_MM_S
-                cols += [m.astype(np.float64), np.where(m, sv, 0.0)]
-                cols += [np.where(m, f[:, j], 0.0) for j in range(3)]
-        return np.stack(cols, axis=1)  # (k, 20): formula-major, then sign, then (n, speed, fx, fy, fz)
-
     def feed(self, i0, dcm, v_uni, v_non, f, res, rres) -> None:
-        c = self._contrib(v_uni, v_non, f)
-        P = np.cumsum(np.vstack([self.carry, c]), axis=0)
-        Q, P = P[:-1], P[1:]
-        self.carry = P[-1].copy()
-        zz = self.zz
-        has_ref = self.has_ref
-        dl = dcm.tolist()
-        rl = res.tolist() if has_ref else None
-        ql = rres.tolist() if has_ref else None
-        for k, v in enumerate(dl):
-            ev = zz.step(v)
-            if ev == REV:
-                if self.last_rev is not None:
-                    sgn = 1.0 if self.cand[1] > self.last_rev[1] else -1.0
-                    self.strokes.append((sgn, self.cand[2] - self.last_rev[3]))
-                self.last_rev = self.cand
-                if has_ref:
-                    self.win_conf = self.win_cand
-            if ev:
-                self.cand = (i0 + k, v, P[k], Q[k])
-                if has_ref:
-                    self.win_cand = [v, -math.inf, -math.inf, 0.0, 0.0, 0, False]
-            if has_ref:
-                for w in (self.win_cand, self.win_conf):
-                    if w is not None and not w[6]:
-                        w[1] = max(w[1], rl[k])
-                        w[2] = max(w[2], ql[k])
-                        w[3] += rl[k]
-                        w[4] += ql[k]
-                        w[5] += 1
-                        w[6] = v <= 0.0
-        if dl:
-            self.last_dcm = dl[-1]
+        k = len(dcm)
+        if not k:
+            return
+        sgn = np.empty(k)
+        sums = np.empty((k, NS))
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)
+        n = _strokes_pass(self.zz, float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S), int(i0), f64(dcm), f64(v_uni),
+                          f64(v_non), f64(f), f64(res), f64(rres), self.has_ref, self.carry, self.cand, self.last_rev,
+                          self.win_cand, self.win_conf, sgn, sums)
+        self.strokes.extend(zip(sgn[:n].tolist(), sums[:n]))
+        self.last_dcm = float(dcm[-1])
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
         from .technique import summarise_strokes
@@ -312,10 +479,10 @@ class _Strokes:
     def grasp_result(self) -> dict:
         from .technique import _r
         w = self.win_conf
-        if self.last_rev is None or w is None or self.last_dcm >= self.last_rev[1]:
+        if not self.last_rev[C_SET] or not w[0] or self.last_dcm >= self.last_rev[C_DCM]:
             return {"peak_ratio": None, "mean_ratio": None, "peak_n": None, "reference_peak_n": None}
-        peak, ref_peak = w[1], w[2]
-        mean, ref_mean = w[3] / w[5], w[4] / w[5]
+        peak, ref_peak = float(w[2]), float(w[3])
+        mean, ref_mean = float(w[4]) / int(w[6]), float(w[5]) / int(w[6])
         return {
             "peak_ratio": _r(peak / ref_peak, 3) if ref_peak > 0 else None,
             "mean_ratio": _r(mean / ref_mean, 3) if ref_mean > 0 else None,
@@ -520,7 +687,7 @@ class InsertionStream:
             v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
         g0 = self.next_i
         self.strokes.feed(g0, dcm[:m], v_uni, v_non, a[:m, 3:6], a[:m, 6], a[:m, 7])
-        self.troughs.feed(g0, (-a[:m, 1]).tolist(), t[:m].tolist())
+        self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))
         self.pend = a[m:]

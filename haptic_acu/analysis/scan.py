@@ -7,6 +7,9 @@ the body centre: ``r_skin(theta, phi) - |p - c|`` (m; negative above the skin); 
 """
 from __future__ import annotations
 
+import threading
+
+import numba as nb
 import numpy as np
 
 from ..servo.samples import COL, NCOL
@@ -22,19 +25,30 @@ def place_name(code: float) -> str:
     return PLACES[int(code) + 1]
 
 
-_LAST_DEPTH: tuple = (None, None, None)  # (tissue, points, depths) of the last call of tip_depth_m
+_RECENT_DEPTHS: list = []  # (tissue, points, depths, first and last point) of the last batches, newest last
+RECENT_DEPTHS = 8  # enough for each sink of a replay's block of frames to meet its batches again
+RECENT_DEPTHS_ROWS = 65_536  # a larger batch is kept alone
+_DEPTH_LOCK = threading.Lock()
 
 
 def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
-    negative above the skin. The last call's points and depths are kept: the same points of the same
-    tissue again (a session's sinks each reading the tip depth of one batch of rows: samples.csv,
-    the summary's scan, its metrics) are answered with a copy, not a second SH evaluation."""
-    global _LAST_DEPTH
+    negative above the skin. The last few batches' points and depths are kept: the same points of
+    the same tissue again (a session's sinks each reading the tip depth of the same batches of rows:
+    samples.csv, the summary's scan, its metrics; from threads of their own in a headless replay,
+    one evaluating while the other waits) are answered with a copy, not a second SH evaluation."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    last_tissue, last_xyz, last_depth = _LAST_DEPTH
-    if last_tissue is tissue and last_xyz.shape == xyz.shape and np.array_equal(last_xyz, xyz):
-        return last_depth.copy()
+    with _DEPTH_LOCK:
+        return _tip_depth(xyz, tissue)
+
+
+def _tip_depth(xyz, tissue):
+    if xyz.shape[0]:
+        ends = (xyz[0].tolist(), xyz[-1].tolist())  # a cheap look before comparing every point
+        for last_tissue, last_xyz, last_depth, last_ends in reversed(_RECENT_DEPTHS):
+            if (last_tissue is tissue and last_xyz.shape == xyz.shape and last_ends == ends
+                    and np.array_equal(last_xyz, xyz)):
+                return last_depth.copy()
     d = xyz - tissue.centre
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     safe = np.where(rho > 0.0, rho, 1.0)
@@ -42,7 +56,10 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     phi = np.arctan2(d[:, 1], d[:, 0])
     depth = tissue.radius(0, theta, phi) - rho
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
-        _LAST_DEPTH = (tissue, xyz.copy(), depth.copy())
+        if xyz.shape[0] > RECENT_DEPTHS_ROWS:  # a whole session's rows: kept alone (memory as one batch)
+            _RECENT_DEPTHS.clear()
+        _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy(), (xyz[0].tolist(), xyz[-1].tolist())))
+        del _RECENT_DEPTHS[:-RECENT_DEPTHS]
     return depth
 
 
@@ -92,9 +109,9 @@ class SessionScan:
         self.clamped_ticks = 0
         self.fault_ticks = 0
         self._prev_place = -1
-        self._prev_state = [0, 0, 0]
-        self._press_peak = [0.0, 0.0, 0.0]
-        self._press_peak_depth = [0.0, 0.0, 0.0]
+        self._prev_state = np.zeros(N_LAYERS, dtype=np.int64)
+        self._press_peak = np.zeros(N_LAYERS)
+        self._press_peak_depth = np.zeros(N_LAYERS)
 
     def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> list[dict]:
         """Scan a block of rows (k, NCOL); returns the punctures found in it (also kept). ``depth``:
@@ -125,23 +142,41 @@ class SessionScan:
         self.max_depth = max(self.max_depth, float(depth.max()))
         self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
         self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
-        # pressing runs and punctures (a few rows per frame: a plain loop)
-        states = rows[:, C_STATE:C_STATE + N_LAYERS].astype(np.int64).tolist()
-        punct = rows[:, C_PUNCT].tolist()
-        found = []
-        for i in range(k):
-            st = states[i]
-            for j in range(N_LAYERS):
-                if st[j] == PRESSING:
-                    if self._prev_state[j] != PRESSING or f[i] > self._press_peak[j]:
-                        self._press_peak[j] = float(f[i])
-                        self._press_peak_depth[j] = float(depth[i])
-                self._prev_state[j] = st[j]
-            if punct[i] >= 0:
-                j = int(punct[i])
-                ev = {"layer": LAYERS[j], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
-                      "tip_depth_m": float(depth[i]), "peak_force_n": self._press_peak[j],
-                      "peak_depth_m": self._press_peak_depth[j]}
-                found.append(ev)
+        # pressing runs and punctures: one compiled pass over the block
+        punct = np.ascontiguousarray(rows[:, C_PUNCT])
+        ev = np.empty(int(np.count_nonzero(punct >= 0)), dtype=np.int64)
+        ev_peak = np.empty(ev.size)
+        ev_peak_depth = np.empty(ev.size)
+        _press_runs(np.ascontiguousarray(rows[:, C_STATE:C_STATE + N_LAYERS]).astype(np.int64), f,
+                    np.ascontiguousarray(depth, dtype=np.float64), punct, self._prev_state, self._press_peak,
+                    self._press_peak_depth, ev, ev_peak, ev_peak_depth)
+        found = [{"layer": LAYERS[int(punct[i])], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
+                  "tip_depth_m": float(depth[i]), "peak_force_n": float(pk), "peak_depth_m": float(pd)}
+                 for i, pk, pd in zip(ev.tolist(), ev_peak.tolist(), ev_peak_depth.tolist())]
         self.punctures.extend(found)
         return found
+
+
+@nb.njit(cache=True, nogil=True)
+def _press_runs(states, f, depth, punct, prev_state, peak, peak_depth, ev, ev_peak, ev_peak_depth):
+    """:meth:`SessionScan.feed`'s pressing runs over a block: per layer, the largest ``f`` (and the
+    ``depth`` there) over the uninterrupted run of PRESSING ``states`` (k, N_LAYERS), carried in
+    ``prev_state``, ``peak``, ``peak_depth`` across blocks; for each row with a puncture
+    (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``ev``,
+    ``ev_peak``, ``ev_peak_depth`` (sized to the punctures)."""
+    n = 0
+    for i in range(states.shape[0]):
+        for j in range(states.shape[1]):
+            s = states[i, j]
+            if s == PRESSING:
+                if prev_state[j] != PRESSING or f[i] > peak[j]:
+                    peak[j] = f[i]
+                    peak_depth[j] = depth[i]
+            prev_state[j] = s
+        if punct[i] >= 0:
+            j = int(punct[i])
+            ev[n] = i
+            ev_peak[n] = peak[j]
+            ev_peak_depth[n] = peak_depth[j]
+            n += 1
+    return n

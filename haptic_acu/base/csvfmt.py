@@ -15,33 +15,48 @@ import numpy as np
 FIXED, CATEGORY = 0, 1
 
 
-@nb.njit(cache=True, nogil=True)
-def _put_uint(out, pos, v):
-    """Write the decimal digits of the non-negative int64 ``v``; return the new position."""
-    if v == 0:
-        out[pos] = 48
-        return pos + 1
-    start = pos
-    while v > 0:
-        out[pos] = 48 + v % 10
-        v //= 10
+_U10 = np.uint64(10)
+_POW10 = np.array([10 ** k for k in range(20)], dtype=np.uint64)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _put_fixed(out, pos, v, d, p10f):
+    """``v`` (finite) rounded half away from zero to ``d`` decimals (``p10f`` = 10.0**d), without a
+    negative zero; returns the new position. Its digits are written from the last one back, by
+    unsigned division by the constant 10 (a multiply, not a division, once compiled)."""
+    iv = np.int64(math.floor(abs(v) * p10f + 0.5))
+    if iv != 0 and v < 0:
+        out[pos] = 45  # '-'
         pos += 1
-    # reverse in place
-    i = start
-    j = pos - 1
-    while i < j:
-        t = out[i]
-        out[i] = out[j]
-        out[j] = t
-        i += 1
+    u = np.uint64(iv)
+    n = 1
+    while n < 19 and u >= _POW10[n]:
+        n += 1
+    if n < d + 1:
+        n = d + 1  # "0.0012": a zero before the point
+    ln = n + 1 if d > 0 else n
+    j = pos + ln - 1
+    for _ in range(d):
+        out[j] = np.uint8(48 + u % _U10)
+        u //= _U10
         j -= 1
-    return pos
+    if d > 0:
+        out[j] = 46  # '.'
+        j -= 1
+    while j >= pos:
+        out[j] = np.uint8(48 + u % _U10)
+        u //= _U10
+        j -= 1
+    return pos + ln
 
 
 @nb.njit(cache=True, nogil=True)
 def _format_rows(values, kinds, decimals, table, table_len, table_base, out):
     n, m = values.shape
     pos = 0
+    p10f = np.empty(m)
+    for c in range(m):
+        p10f[c] = 10.0 ** decimals[c]
     for i in range(n):
         for c in range(m):
             if c > 0:
@@ -49,41 +64,57 @@ def _format_rows(values, kinds, decimals, table, table_len, table_base, out):
                 pos += 1
             v = values[i, c]
             if kinds[c] == 1:
-                if not math.isfinite(v):
-                    continue  # empty cell
-                t = table_base[c] + int(v)
-                for b in range(table_len[t]):
-                    out[pos] = table[t, b]
-                    pos += 1
-                continue
-            if not math.isfinite(v):
+                if math.isfinite(v) and v >= 0.0:  # else an empty cell
+                    t = table_base[c] + int(v)
+                    for b in range(table_len[t]):
+                        out[pos] = table[t, b]
+                        pos += 1
+            elif not math.isfinite(v):
                 out[pos] = 110  # "nan"
                 out[pos + 1] = 97
                 out[pos + 2] = 110
                 pos += 3
-                continue
-            d = decimals[c]
-            scale = 10.0 ** d
-            r = math.floor(abs(v) * scale + 0.5)
-            iv = np.int64(r)
-            if iv != 0 and v < 0:
-                out[pos] = 45  # '-'
+            else:
+                pos = _put_fixed(out, pos, v, decimals[c], p10f[c])
+        out[pos] = 10  # '\n'
+        pos += 1
+    return pos
+
+
+@nb.njit(cache=True, nogil=True)
+def _format_gather(rows, extra, src, scale, offset, kinds, decimals, table, table_len, table_base, out):
+    """:func:`_format_rows` of the columns ``v * scale[c] + offset[c]`` (``offset`` added only where
+    it is not zero), ``v`` from ``rows[:, src[c]]``, or from ``extra[:, src[c] - rows.shape[1]]``
+    where ``src[c]`` is past ``rows``' columns."""
+    n = rows.shape[0]
+    w = rows.shape[1]
+    m = src.shape[0]
+    pos = 0
+    p10f = np.empty(m)
+    for c in range(m):
+        p10f[c] = 10.0 ** decimals[c]
+    for i in range(n):
+        for c in range(m):
+            if c > 0:
+                out[pos] = 44  # ','
                 pos += 1
-            if d == 0:
-                pos = _put_uint(out, pos, iv)
-                continue
-            p10 = np.int64(1)
-            for _ in range(d):
-                p10 *= 10
-            pos = _put_uint(out, pos, iv // p10)
-            out[pos] = 46  # '.'
-            pos += 1
-            frac = iv % p10
-            div = p10 // 10
-            for _ in range(d):
-                out[pos] = 48 + (frac // div) % 10
-                div //= 10
-                pos += 1
+            k = src[c]
+            v = (rows[i, k] if k < w else extra[i, k - w]) * scale[c]
+            if offset[c] != 0.0:
+                v = v + offset[c]
+            if kinds[c] == 1:
+                if math.isfinite(v) and v >= 0.0:  # else an empty cell
+                    t = table_base[c] + int(v)
+                    for b in range(table_len[t]):
+                        out[pos] = table[t, b]
+                        pos += 1
+            elif not math.isfinite(v):
+                out[pos] = 110  # "nan"
+                out[pos + 1] = 97
+                out[pos + 2] = 110
+                pos += 3
+            else:
+                pos = _put_fixed(out, pos, v, decimals[c], p10f[c])
         out[pos] = 10  # '\n'
         pos += 1
     return pos
@@ -91,7 +122,8 @@ def _format_rows(values, kinds, decimals, table, table_len, table_base, out):
 
 class RowFormatter:
     """Formats (k, m) float blocks as CSV lines. ``columns`` is a list of ``("fixed", decimals)`` or
-    ``("category", names)``; a category cell holds an integer code indexing ``names`` (NaN: empty)."""
+    ``("category", names)``; a category cell holds an integer code indexing ``names`` (NaN or
+    negative: empty)."""
 
     def __init__(self, columns):
         self.kinds = np.array([FIXED if c[0] == "fixed" else CATEGORY for c in columns], dtype=np.int64)
@@ -115,4 +147,19 @@ class RowFormatter:
         values = np.ascontiguousarray(values, dtype=np.float64)
         out = np.empty(values.shape[0] * (values.shape[1] * self.max_cell + 1), dtype=np.uint8)
         n = _format_rows(values, self.kinds, self.decimals, self.table, self.table_len, self.table_base, out)
+        return out[:n].tobytes()
+
+    def format_gather(self, rows: np.ndarray, extra: np.ndarray, src, scale, offset) -> bytes:
+        """Lines of the columns taken from ``rows`` (k, w) and ``extra`` (k, e) without building
+        them first: column ``c`` is ``rows[:, src[c]]`` (``extra[:, src[c] - w]`` past ``rows``'
+        columns) times ``scale[c]``, plus ``offset[c]`` where that is not zero; then as
+        :meth:`format` (the same bytes as :meth:`format` on those columns)."""
+        rows = np.ascontiguousarray(rows, dtype=np.float64)
+        extra = np.ascontiguousarray(extra, dtype=np.float64).reshape(rows.shape[0], -1)
+        src = np.asarray(src, dtype=np.int64)
+        if src.shape[0] != self.kinds.shape[0]:
+            raise ValueError(f"{src.shape[0]} source columns for {self.kinds.shape[0]} formatted ones")
+        out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
+        n = _format_gather(rows, extra, src, np.asarray(scale, dtype=np.float64), np.asarray(offset, dtype=np.float64),
+                           self.kinds, self.decimals, self.table, self.table_len, self.table_base, out)
         return out[:n].tobytes()

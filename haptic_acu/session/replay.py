@@ -240,6 +240,9 @@ class _Guarded(Sink):
     def on_frame(self, frame) -> None:
         self._call(self.sink.on_frame, frame)
 
+    def on_frames(self, frames) -> None:
+        self._call(self.sink.on_frames, frames)
+
     def close(self, result=None) -> None:
         self._call(self.sink.close, result)
 

@@ -100,6 +100,21 @@ class SummarySink(Sink):
             if self._n_pending >= self.BATCH_ROWS:
                 self._scan_pending()
 
+    def on_frames(self, frames) -> None:
+        # on_frame's batches (the same rows in each), without a call per frame
+        pending, keep, batch = self._pending, self.keep_rows, self.BATCH_ROWS
+        for f in frames:
+            rows = f.samples
+            k = len(rows)
+            if k:
+                pending.append(rows)
+                if keep:
+                    self._blocks.append(rows)
+                self._n_pending += k
+                if self._n_pending >= batch:
+                    self._scan_pending()
+                    pending = self._pending
+
     def _scan_pending(self) -> None:
         if self._pending:
             rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
@@ -792,14 +807,15 @@ class SamplesCsvSink(Sink):
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the CSV formatter before the loops start."""
-        from ..base.csvfmt import RowFormatter
-        RowFormatter([("fixed", 3), ("category", ("a",))]).format(np.zeros((1, 2)))
+        self._fmt = _csv_layout()
+        fmt, *spec = self._fmt
+        fmt.format_gather(np.zeros((1, NCOL)), np.zeros((1, 2)), *spec)
 
     def start(self, info: dict) -> None:
         self.tissue = info["model"].tissue
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "w", newline="", encoding="ascii")
-        self._f.write(",".join(CSV_FIELDS) + "\n")
+        self._f = open(self.path, "wb")  # the formatter's ASCII bytes, written as they are
+        self._f.write((",".join(CSV_FIELDS) + "\n").encode("ascii"))
 
     def on_frame(self, frame) -> None:
         # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
@@ -810,6 +826,18 @@ class SamplesCsvSink(Sink):
             self._n_pending += len(frame.samples)
             if self._n_pending >= self.BATCH_ROWS:
                 self._write_pending()
+
+    def on_frames(self, frames) -> None:
+        # on_frame's batches (the same rows in each), without a call per frame
+        pending, batch = self._pending, self.BATCH_ROWS
+        for f in frames:
+            k = len(f.samples)
+            if k:
+                pending.append(f.samples)
+                self._n_pending += k
+                if self._n_pending >= batch:
+                    self._write_pending()
+                    pending = self._pending
 
     def _write_pending(self) -> None:
         if self._pending:
@@ -835,27 +863,33 @@ class SamplesCsvSink(Sink):
         if k == 0:
             return
         if self._fmt is None:
-            from ..base.csvfmt import RowFormatter
-            cols = [("fixed", 0)] + [("fixed", nd) for *_, nd in _CSV_NUMERIC]
-            cols += [("category", PLACES)] + [("category", STATE_NAMES)] * N_LAYERS
-            cols += [("fixed", nd) for *_, nd in _CSV_TAIL]
-            cols += [("category", LAYERS), ("fixed", 0), ("fixed", 0)]
-            self._fmt = RowFormatter(cols)
-        computed = {"tip_depth_mm": tip_depth_m(rows[:, C_X:C_X + 3], self.tissue),
-                    "f_n": np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)}
-
-        def col(spec):
-            name, src, scale, nd = spec
-            return (computed[name] if src is None else rows[:, COL[src]]) * scale
-
-        punct = rows[:, C_PUNCT].copy()
-        punct[punct < 0] = np.nan  # empty cell
-        table = np.column_stack(
-            [rows[:, C_TICK]] + [col(s) for s in _CSV_NUMERIC]
-            + [rows[:, C_LAYER] + 1] + [rows[:, C_STATE + j] for j in range(N_LAYERS)]
-            + [col(s) for s in _CSV_TAIL] + [punct, rows[:, COL["clamped"]], rows[:, COL["fault"]]])
-        self._f.write(self._fmt.format(table).decode("ascii"))
+            self._fmt = _csv_layout()
+        fmt, src, scale, offset = self._fmt
+        extra = np.empty((k, 2))  # the computed columns, after the row's own: tip_depth_m, |F|
+        extra[:, 0] = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        extra[:, 1] = np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)
+        self._f.write(fmt.format_gather(rows, extra, src, scale, offset))
         self.rows_written += k
+
+
+def _csv_layout():
+    """samples.csv's formatter (:class:`~haptic_acu.base.csvfmt.RowFormatter`) and, per column, its
+    source (a sample column, or past them the computed tip depth and |F|), scale and offset."""
+    from ..base.csvfmt import RowFormatter
+    computed = {"tip_depth_mm": NCOL, "f_n": NCOL + 1}
+
+    def numeric(specs):
+        return [(computed[name] if s is None else COL[s], scale, 0.0, ("fixed", nd)) for name, s, scale, nd in specs]
+
+    cols = [(C_TICK, 1.0, 0.0, ("fixed", 0))] + numeric(_CSV_NUMERIC)
+    cols += [(C_LAYER, 1.0, 1.0, ("category", PLACES))]  # codes -1..3: outside..bone
+    cols += [(C_STATE + j, 1.0, 0.0, ("category", STATE_NAMES)) for j in range(N_LAYERS)]
+    cols += numeric(_CSV_TAIL)
+    cols += [(C_PUNCT, 1.0, 0.0, ("category", LAYERS)),  # -1 (none): an empty cell
+             (COL["clamped"], 1.0, 0.0, ("fixed", 0)), (COL["fault"], 1.0, 0.0, ("fixed", 0))]
+    fmt = RowFormatter([c[3] for c in cols])
+    return (fmt, np.array([c[0] for c in cols], np.int64), np.array([c[1] for c in cols]),
+            np.array([c[2] for c in cols]))
 
 
 def read_samples_csv(path) -> list[dict]:

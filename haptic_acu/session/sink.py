@@ -6,7 +6,8 @@ of :class:`Sink` and calls these methods on each, in this order; a sink override
 - :meth:`Sink.pin` with ``--pin-cores``, before the servo starts (move a child process off its core);
 - :meth:`Sink.start` once, with ``{"config", "model", "device", "clock"}``;
 - :meth:`Sink.on_frame` for every visual frame (60 Hz, and once more at the end), from the visual
-  thread: ``frame`` carries the sample rows drained since the last one;
+  thread: ``frame`` carries the sample rows drained since the last one; a headless replay hands a
+  block of consecutive frames to :meth:`Sink.on_frames` at once (by default ``on_frame`` on each);
 - :meth:`Sink.close` once, with the :class:`~haptic_acu.session.engine.SessionResult`, even after a fault or
   another sink's failure (an exception there is the session's fault, never lost).
 """
@@ -31,6 +32,12 @@ class Sink:
 
     def on_frame(self, frame) -> None:
         """One visual frame and the rows since the last (nothing by default)."""
+
+    def on_frames(self, frames) -> None:
+        """Consecutive visual frames at once, oldest first (a headless replay's block of frames run
+        in one compiled call): by default :meth:`on_frame` on each."""
+        for f in frames:
+            self.on_frame(f)
 
     def close(self, result=None) -> None:
         """The session has ended (nothing by default)."""

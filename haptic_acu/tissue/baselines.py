@@ -45,7 +45,7 @@ from ..base.config import MODEL_KINDS
 from . import bem, contact, fem, msm
 from .body import Tissue, fit_key
 from .mechanics import puncture_threshold
-from .contact import contact_solve
+from .contact import Disc, Scratch, contact_solve
 from .msm import msm_tick
 from .netresponse import cache_dir
 
@@ -98,8 +98,8 @@ def contact_response(inp, m, s, k, idx, dep, ax):
     if sv.ct_layer != k + 1:
         sv.ct_n = 0
         sv.ct_layer = k + 1
-    n, fn, changes = contact_solve(m.ct_c, m.ct_ref, lay.ct_row, m.ct_h[k], lay.ct_n, dep, s.ct_p, s.ct_i[0],
-                                   sv.ct_n, s.ct_i[1], s.ct_f[0], s.ct_f[1], s.ct_f[2])
+    n, fn, changes = contact_solve(Disc(m.ct_c, m.ct_ref, m.ct_h), k, lay.ct_row, lay.ct_n, dep,
+                                   Scratch(s.ct_p, s.ct_f, s.ct_i), sv.ct_n)
     sv.ct_n = n
     broke = dep > puncture_threshold(lay.bl_crit, s.work[0].tip_v, ax, m.params[0])
     return fn, broke

@@ -26,6 +26,7 @@ Everything here is compiled without the GIL or reference counting; the arrays ar
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -43,6 +44,23 @@ def tip_heights(rho, a: float, shape: str) -> np.ndarray:
     if shape == "hemisphere":
         return a - np.sqrt(np.maximum(a * a - rho * rho, 0.0))
     raise ValueError(f"unknown tip shape {shape!r}")
+
+
+class Disc(NamedTuple):
+    """The contact discs' precomputed tables (the servo's ``Model.ct_c``, ``ct_ref``, ``ct_h``)."""
+
+    c: np.ndarray  # (layers * nodes, nodes) each disc's compliance (m/N), layer k's from row r0
+    ref: np.ndarray  # (layers * nodes, nodes) its inverse: the whole disc's capacitance matrix (N/m)
+    h: np.ndarray  # (layers, nodes) the tip's height above its apex over each node (m)
+
+
+class Scratch(NamedTuple):
+    """The contact set between ticks and the solve's scratch (the servo's ``State.ct_p``, ``ct_f``,
+    ``ct_i``)."""
+
+    p: np.ndarray  # (nodes, nodes) the set's capacitance matrix
+    f: np.ndarray  # (3, nodes) the forces on the set's nodes (N); scratch u, c
+    i: np.ndarray  # (2, nodes) int64: the set's nodes; scratch flags
 
 
 # ---- the capacitance matrix's rank-one changes ------------------------------------------------------
@@ -114,15 +132,24 @@ def cap_load(Cref, r0, m, P, act):
 # ---- one tick's contact ---------------------------------------------------------------------------
 
 @nb.njit(cache=True, nogil=True, _nrt=False)
-def contact_solve(C, Cref, r0, h, m, dep, P, act, n, flag, f, u, c):
-    """Signorini's contact of the tip ``dep`` below the rest surface (module docstring) on the ``m``
-    nodes whose compliance is ``C[r0:r0+m, :m]`` (symmetric; ``Cref``: the capacitance of all ``m``;
-    ``h``: the tip's heights over them), starting from the set ``act[:n]`` with capacitance ``P``.
-    ``flag``: scratch (m ints); ``f`` receives the forces on ``act``'s nodes; ``u``, ``c``: scratch
-    (m). The forces follow each rank-one change in O(|A|) (a node ``j`` joining:
+def contact_solve(disc, k, r0, m, dep, sc, n):
+    """Signorini's contact of the tip ``dep`` below the rest surface (module docstring) on layer
+    ``k``'s ``m`` nodes, whose compliance is ``disc.c[r0:r0+m, :m]`` (symmetric; ``disc.ref``: the
+    capacitance of all ``m``; ``disc.h[k]``: the tip's heights over them), starting from the set
+    ``sc.i[0][:n]`` with capacitance ``sc.p`` (:class:`Scratch`; ``sc.f[0]`` receives the forces
+    on the set's nodes). The forces follow each rank-one change in O(|A|) (a node ``j`` joining:
     ``f_A -= u delta``, ``f_j = delta``, ``delta = (g_j - c^T f_A) / s``; node ``p`` leaving:
     ``f_r -= P_rp f_p / P_pp``). Returns (the set's new size, the force on the tip (N), rank-one
     changes made)."""
+    C = disc.c
+    Cref = disc.ref
+    h = disc.h[k]
+    P = sc.p
+    act = sc.i[0]
+    flag = sc.i[1]
+    f = sc.f[0]
+    u = sc.f[1]
+    c = sc.f[2]
     if dep <= 0.0:
         return 0, 0.0, 0
     # from the last tick's set; from none, the whole disc's precomputed capacitance when the tip
@@ -219,18 +246,12 @@ def press_curve(C, h, depths):
     (forces (N), contact set sizes, rank-one changes per depth). For tests and figures."""
     C = np.ascontiguousarray(C, float)
     m = C.shape[0]
-    Cref = np.ascontiguousarray(np.linalg.inv(C))
-    P = np.zeros((m, m))
-    act = np.zeros(m, np.int64)
-    flag = np.zeros(m, np.int64)
-    f = np.zeros(m)
-    u = np.zeros(m)
-    c = np.zeros(m)
-    h = np.ascontiguousarray(h, float)
+    disc = Disc(C, np.ascontiguousarray(np.linalg.inv(C)), np.ascontiguousarray(np.reshape(h, (1, m)), float))
+    sc = Scratch(np.zeros((m, m)), np.zeros((3, m)), np.zeros((2, m), np.int64))
     n = 0
     F, N, K = [], [], []
     for d in depths:
-        n, tot, ch = contact_solve(C, Cref, 0, h, m, float(d), P, act, n, flag, f, u, c)
+        n, tot, ch = contact_solve(disc, 0, 0, m, float(d), sc, n)
         F.append(tot)
         N.append(n)
         K.append(ch)
