@@ -553,7 +553,7 @@ def omni_loop(sizes: Sizes, progress=False) -> dict:
             _log(progress, f"OMNI through the HD emulator, {sizes.omni_s:.0f} s, {servo} servo callback")
             env = emulator_env(lib, path=knots, nominal_max_force=3.3, sched_fifo=10)
             cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(sizes.omni_s),
-                   "--no-status", "--rrd", str(Path(tmp) / f"{servo}.rrd")] + (["--python-servo"] if servo == "python" else [])
+                   "--no-status", "--rrd", str(Path(tmp) / f"{servo}.rrd"), "--out", str(Path(tmp) / f"{servo}-session")] + (["--python-servo"] if servo == "python" else [])
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
             m = _SESSION_LINE.search(proc.stderr)
             if proc.returncode != 0 or not m:

@@ -10,6 +10,10 @@ The parallel run hands whole modules to its two workers (``--dist loadfile``: a 
 built once), the next module to whichever worker is free. Modules run longest first
 (``PARALLEL_SECONDS``), so that the two workers end together instead of one running a long module
 alone at the end; a module not listed is short.
+
+Sessions against the HD API emulator run on its virtual clock (tests/hd_emulator: device time only,
+whatever the load), so their modules run in parallel; their few tests about wall time (a watchdog, a
+blocked step) carry the marker.
 """
 from __future__ import annotations
 
@@ -18,8 +22,8 @@ from pathlib import Path
 import pytest
 
 SERIAL_MODULES = {
-    "test_engine", "test_hd_physical", "test_keyboard", "test_omni", "test_omni_closed_loop", "test_omni_stylus",
-    "test_rtloop", "test_run_cli", "test_run_omni", "test_study", "test_study_kinds", "test_keyboard_debrief",
+    "test_engine", "test_keyboard", "test_rtloop", "test_run_cli", "test_study", "test_study_kinds",
+    "test_keyboard_debrief",
 }
 
 
@@ -32,6 +36,9 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     "test_hostile": (6, 6), "test_fit_cli": (11, 0), "test_compare": (4, 6), "test_cohort_memory": (0, 10),
     "test_trajectory": (4, 6), "test_bundled_names": (9, 0), "test_compare_memory": (0, 9), "test_study_example": (1, 8),
     "test_closed_loop": (8, 0), "test_quantity_names": (3, 10), "test_servostate": (6, 0), "test_atlas": (7, 0),
+    # the OMNI emulator's modules on its virtual clock (estimates from their serial times at real pace)
+    "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
+    "test_hd_physical": (0, 8),
 }
 
 

@@ -25,6 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from hd_emulator.build import TRACE_COLUMNS, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 RUN_WALL = REPO / "tests" / "hd_emulator" / "run_wall.py"
 T = 1e-3
 COL = {name: i for i, name in enumerate(TRACE_COLUMNS)}
@@ -41,6 +44,7 @@ def run_wall(lib, tmp_path, scenario, **emu):
     tmp_path.mkdir(parents=True, exist_ok=True)
     (tmp_path / "scenario.json").write_text(json.dumps(scenario))
     out = tmp_path / "result.json"
+    emu.setdefault("speed", "max")  # device time only: the ticks back to back
     proc = subprocess.run([sys.executable, str(RUN_WALL), str(tmp_path / "scenario.json"), str(out)],
                           env=emulator_env(lib, **emu), cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr

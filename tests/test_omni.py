@@ -21,9 +21,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 RUN_SESSION = REPO / "tests" / "hd_emulator" / "run_session.py"
 FRAME, OUTPUT_DISABLED = 0, 1  # emulator log record kinds
 
@@ -57,7 +60,7 @@ def run_session(lib, tmp_path, scenario: dict, env=None, **emu) -> dict:
     out = tmp_path / "result.json"
     proc = subprocess.run(
         [sys.executable, str(RUN_SESSION), str(tmp_path / "scenario.json"), str(out)],
-        env=env if env is not None else emulator_env(lib, **emu),
+        env=env if env is not None else emulator_env(lib, **{"speed": FAST, **emu}),
         cwd=REPO, capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
@@ -192,6 +195,7 @@ FAULTS = {
 }
 
 
+@pytest.mark.serial  # the 100 ms watchdog counts wall time: a starved thread would be another fault
 @pytest.mark.parametrize("kind", sorted(FAULTS))
 def test_fault_mid_session_zeroes_the_force_and_raises_device_fault(emulator, tmp_path, kind):
     # The force wobbles by 1 N at 5 Hz (falling from the fault on: 0.5 N less within 17 ms), so a
@@ -357,10 +361,11 @@ def test_bad_force_limit_is_a_user_error_before_any_library_is_loaded():
     dev.close()  # closing a device that was never opened is a no-op
 
 
+@pytest.mark.serial  # a step blocked 0.6 s on the wall against the 100 ms watchdog
 def test_a_step_that_blocks_the_servo_is_a_fault_with_the_output_off(emulator, tmp_path):
     res = run_session(emulator, tmp_path, {"workspace": WS, "spring_k_n_per_m": K, "duration_s": 3.0,
                                             "sleep_at_s": FAULT_AT, "sleep_s": 0.6,
-                                            "options": {"watchdog_s": 0.1}}, path=DEEP)
+                                            "options": {"watchdog_s": 0.1}}, path=DEEP, speed=1)  # the wall's watchdog
     assert res["outcome"] == "DeviceFault" and "has not returned" in res["message"]
     assert "\n" not in res["message"]
     log = res["log"]

@@ -13,13 +13,17 @@ and physics bounds, never from the code under test:
 * the recording replays (`haptic-acu replay`), and its rows are stamped with the device's tick
   time, even when the emulated scheduler wakes 30 ms late and catches up.
 
-Subprocesses run with OPENBLAS_NUM_THREADS=1 (see test_run_omni).
+Sessions run as subprocesses (the emulator is configured per process) with OPENBLAS_NUM_THREADS=1
+(see test_run_omni); their replays run in-process.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -27,13 +31,17 @@ from scipy.signal import butter, sosfiltfilt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
+from haptic_acu.cli import main  # noqa: E402
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
 from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 TIMEOUT_S = 300
 TREMOR = (0.05, 9.0)  # a hand's physiological tremor: 0.05 mm at 9 Hz
@@ -75,20 +83,22 @@ def hand_path():
 def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=(), extra=()):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults)
+    env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults, speed=FAST)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status", *extra],
+                           "--record", str(rec), "--out", str(tmp_path / "out"), "--no-status", *extra],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))
     return proc, rows[rows[:, 1] == FRAME], rec
 
 
 def replay(tmp_path, rec, extra=()):
+    """`haptic-acu replay` of the recording, headless, in-process (the exit status and stderr)."""
     out = tmp_path / "replay"
-    return subprocess.run([sys.executable, "-m", "haptic_acu", "replay", str(rec), "--no-rrd", "--quiet", "--out",
-                           str(out), *extra], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S,
-                          env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"}), out
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = main(["replay", str(rec), "--no-rrd", "--quiet", "--out", str(out), *extra])
+    return SimpleNamespace(returncode=rc, stderr=err.getvalue()), out
 
 
 def buzz_per_phase(frames, phases, punctures_t, fs=1000.0):

@@ -9,11 +9,14 @@ a hand on a scripted path (physical stylus mode, closed loop). Expectations come
 direction, the workspace formula of config/tissue.toml and the emulator's own log, never from the
 code under test.
 
-Subprocesses run with OPENBLAS_NUM_THREADS=1 (see test_run_omni).
+Sessions run as subprocesses (the emulator is configured per process) with OPENBLAS_NUM_THREADS=1
+(see test_run_omni); their replays run in-process.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -23,13 +26,17 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
 
+from haptic_acu.cli import main  # noqa: E402
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
 from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 TIMEOUT_S = 300
 TREMOR = (0.05, 9.0)  # a hand's physiological tremor: 0.05 mm at 9 Hz
@@ -70,7 +77,7 @@ def run_cli(emulator, tmp_path, path, duration, *, extra_args=(), config=None, *
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     out = tmp_path / "out"
-    env = emulator_env(emulator, path=path, log=log, **emu)
+    env = emulator_env(emulator, path=path, log=log, **{"speed": FAST, **emu})
     env["OPENBLAS_NUM_THREADS"] = "1"
     cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
            "--record", str(rec), "--out", str(out), "--no-status", *extra_args]
@@ -133,10 +140,10 @@ def test_an_oblique_insertion_takes_the_stylus_axis_in_closed_loop(emulator, tmp
     tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
     assert len(tr.t_s) == len(s["t_s"])
     # the recording carries the axis: its headless replay inserts along the same line
-    rep = subprocess.run([sys.executable, "-m", "haptic_acu", "replay", str(rec), "--no-rrd", "--quiet", "--out",
-                          str(tmp_path / "replay")], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S,
-                         env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
-    assert rep.returncode == 0, rep.stderr
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):  # in-process: the exit status and stderr are what a subprocess gives
+        rc = main(["replay", str(rec), "--no-rrd", "--quiet", "--out", str(tmp_path / "replay")])
+    assert rc == 0, err.getvalue()
     r = samples(tmp_path / "replay")
     r_in = r["state_skin"] == "punctured"
     assert r_in.sum() > 800 and np.all(angle_deg(r["axis"][r_in], OBLIQUE) < 2.0)

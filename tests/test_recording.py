@@ -100,7 +100,7 @@ def test_overwrite_replaces_and_the_recording_is_plain_csv(tmp_path):
     rec = tmp_path / "rec.csv"
     rec.write_text("old\n")
     r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
-            "--duration", 2.0, "--overwrite")
+            "--duration", 2.0, "--overwrite", "--out", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     with open(rec, newline="") as f:
         rows = list(csv.DictReader(f))  # header on line 1: a plain CSV reader needs no options
@@ -125,7 +125,7 @@ def test_full_disk_mid_session_is_a_fault_and_the_recording_replays(tmp_path):
         resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
 
     r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
-            preexec_fn=small_files)
+            "--out", tmp_path / "out", preexec_fn=small_files)
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr
     stopped = [ln for ln in r.stderr.splitlines() if "stopped:" in ln]
@@ -141,7 +141,7 @@ def test_full_disk_mid_session_is_a_fault_and_the_recording_replays(tmp_path):
 
 def test_record_to_dev_full_is_a_fault(tmp_path):
     r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", "/dev/full",
-            "--overwrite", "--no-status", "--duration", 0.5)
+            "--overwrite", "--no-status", "--duration", 0.5, "--out", tmp_path / "out")
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr
     assert len([ln for ln in r.stderr.splitlines() if "stopped:" in ln and "/dev/full" in ln]) == 1
@@ -273,7 +273,7 @@ def test_keyboard_session_with_reset_records_the_event_and_replays(tmp_path):
     master, slave = os.openpty()
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     p = subprocess.Popen([sys.executable, "-m", "haptic_acu", "run", "--device", "keyboard",
-                          "--record", rec, "--no-status"], stdin=slave, stdout=subprocess.PIPE,
+                          "--record", rec, "--no-status", "--out", tmp_path / "out"], stdin=slave, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, cwd=ROOT, env=env, start_new_session=True)
     os.close(slave)
     err: list[bytes] = []

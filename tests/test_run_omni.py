@@ -28,13 +28,16 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, build_emulator, emulator_env, find_compiler  # noqa: E402
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
 from haptic_acu.session.recorder import EXTRA, tick_rows  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
+# that measures the wall (a watchdog, a blocked step) carries @pytest.mark.serial. Slow: a session each.
+pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 # the emulated device's nominal maximum: below the config's 3.3 N, so it is the limit, and below the
 # ~0.2 N the rendering layer's coupling (0.63 N/mm in series with the skin) passes at the press path's
@@ -68,14 +71,15 @@ def device_z_of_scene_z(z_scene_mm, workspace):
     return (z_scene_mm - offset[2]) / scale  # a turn about z leaves z alone
 
 
-def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, servo="compiled", config=None):
+def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, servo="compiled", config=None,
+            speed=FAST):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
-                       velocity=velocity)
+                       velocity=velocity, speed=speed)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--no-status"] + (["--python-servo"] if servo == "python" else [])
+                           "--record", str(rec), "--out", str(tmp_path / "out"), "--no-status"] + (["--python-servo"] if servo == "python" else [])
                           + (["--config", str(config)] if config is not None else []),
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     frames = np.zeros((0, 8))
@@ -177,6 +181,7 @@ FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin
 @pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("comm_error", "HD_COMM_ERROR"),
                                            ("nan", "non-finite position")])
 @pytest.mark.parametrize("servo", ["compiled", "python"])
+@pytest.mark.serial  # the fault path (exit 3) of a live session, with the device's 100 ms watchdog on the wall
 def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message, servo):
     path = press_path(workspace)
     proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0, servo=servo)
@@ -226,11 +231,12 @@ def test_omni_frozen_under_a_steady_force_is_a_still_hand_through_the_cli(emulat
     assert np.all(frames[-1, 5:8] == 0.0)
 
 
+@pytest.mark.serial  # the watchdog's 100 ms of wall time, on the real device's free-running clock
 def test_omni_scheduler_that_stops_calling_is_a_fault_through_the_cli(emulator, tmp_path, workspace):
     # The compiled callback is not called any more: the device's watchdog (100 ms) stops the session
     # with the output switched off, and every tick that ran is recorded.
     proc, frames, rec = run_cli(emulator, tmp_path, press_path(workspace), faults=[("stop_calling", FAULT_AT)],
-                                duration=3.0)
+                                duration=3.0, speed=1)  # the watchdog counts wall time
     assert proc.returncode == 3, proc.stderr
     assert "compiled servo loop" in proc.stderr and "Traceback" not in proc.stderr
     reasons = [ln for ln in proc.stderr.splitlines() if "stopped:" in ln]
@@ -271,7 +277,7 @@ def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, worksp
               (1.4, 0.0, 0.4, -2.0)]
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal)
+    env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal, speed=FAST)
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", "1.6",
                            "--record", str(rec), "--no-status", "--out", str(tmp_path / "out")] + (["--python-servo"] if servo == "python" else []),

@@ -62,6 +62,11 @@ NOMINAL_VARS = {"stiffness_n_per_mm": "HD_EMU_NOMINAL_MAX_STIFFNESS", "damping_n
 # The issue's grips: a 45 g stylus held loosely (0.3 N/mm) or firmly (2 N/mm).
 LOOSE_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 0.3, "hand_damping_n_s_per_m": 2.0}
 FIRM_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 2.0, "hand_damping_n_s_per_m": 5.0}
+# The pace of a session that needs device time only (a simulated hand on the simulated device): a
+# session through the CLI drains its sample ring (8192 rows) at the visual rate on the wall, so it gets
+# a bounded multiple with seconds of slack for a starved visual thread, not "max" (a raw HD API driver,
+# with no ring, can take "max").
+FAST = 4.0
 TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "hand_vy_mm_s", "hand_vz_mm_s",
                  "x_mm", "y_mm", "z_mm", "vx_mm_s", "vy_mm_s", "vz_mm_s", "motor_fx_n", "motor_fy_n", "motor_fz_n",
                  "hand_fx_n", "hand_fy_n", "hand_fz_n")
@@ -69,7 +74,7 @@ TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "
 
 def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velocity=True,
                  init_error=None, buttons=None, device_name=None, log=None, sched_fifo=None, base=None,
-                 stylus=None, nominal=None, gimbal=None, trace=None, stylus_axis=None) -> dict:
+                 stylus=None, nominal=None, gimbal=None, trace=None, stylus_axis=None, speed=None) -> dict:
     """An environment whose dynamic loader finds the emulator as ``libHD.so``.
 
     ``path``: knots ``(t_s, x_mm, y_mm, z_mm)`` of the stylus path in the device frame;
@@ -83,6 +88,9 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
     (rad, c the stylus roll); ``trace``: a CSV file of the stylus physics per tick (:data:`TRACE_COLUMNS`);
     ``stylus_axis``: knots ``(t_s, x, y, z)`` of the stylus direction, handle to tip (device frame), that
     HD_CURRENT_TRANSFORM's rotation reports (turned about the stylus by the gimbal's roll).
+    ``speed``: the emulated clock's pace, device ms per wall ms (``"max"``: ticks back to back); the
+    ticks, path, faults and physics are the same at any pace, so a test that needs only device time
+    (:data:`FAST`) runs in a fraction of it; None or 1 is the real device's pace (tests about timing).
     """
     env = dict(os.environ if base is None else base)
     for key in [k for k in env if k.startswith("HD_EMU_")]:
@@ -125,6 +133,8 @@ def emulator_env(lib_path, *, path=None, faults=(), nominal_max_force=None, velo
         env["HD_EMU_TRACE"] = str(trace)
     if stylus_axis is not None:
         env["HD_EMU_STYLUS_AXIS"] = _path_spec(stylus_axis)
+    if speed is not None:
+        env["HD_EMU_SPEED"] = "max" if speed == "max" else repr(float(speed))
     return env
 
 

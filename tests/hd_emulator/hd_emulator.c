@@ -33,6 +33,18 @@
  *   HD_EMU_BUTTONS=1                     HD_CURRENT_BUTTONS
  *   HD_EMU_DEVICE_NAME=name              an extra device name hdInitDevice accepts
  *   HD_EMU_LOG=file                      the force log as CSV, written by hdDisableDevice and at exit
+ *   HD_EMU_SPEED=1                       how many device milliseconds the scheduler ticks per millisecond of
+ *                                        wall time (default 1: the real device, free-running at 1 kHz), or
+ *                                        "max": tick after tick with no wait, as fast as the callbacks
+ *                                        allow. Any speed but 1 is a virtual clock: the device ticks only
+ *                                        while a callback is scheduled, so a client's set-up between
+ *                                        hdStartScheduler and its servo callback takes no device time, however
+ *                                        long it takes on a loaded machine. The device's time is its tick
+ *                                        count x 1 ms either way, and a tick is the same tick (path, faults,
+ *                                        physics); only its pace on the wall changes (the late fault's 30 ms
+ *                                        and hdGetSchedulerTimeStamp are device time). For a simulated hand
+ *                                        on the simulated device, which needs no wall time; tests about the
+ *                                        wall clock keep 1, the real device's free-running 1 kHz
  *   HD_EMU_SCHED_FIFO=10                 the scheduler thread asks for SCHED_FIFO at this priority, as a
  *                                        servo thread on a real-time setup runs; refused: one line on
  *                                        stderr, and it runs as an ordinary thread
@@ -200,6 +212,7 @@ typedef struct {
 static pthread_mutex_t mu = PTHREAD_MUTEX_INITIALIZER;    /* all device state */
 static pthread_mutex_t cb_mu = PTHREAD_MUTEX_INITIALIZER; /* held while callbacks run */
 static pthread_cond_t cond = PTHREAD_COND_INITIALIZER;
+static pthread_cond_t sched_cond = PTHREAD_COND_INITIALIZER; /* a callback scheduled, or a stop (virtual clock) */
 
 static struct {
     int initialized;
@@ -223,6 +236,8 @@ static struct {
     double *axis_t, *axis_xyz;
     int axis_n;
     long sched_tid; /* the scheduler thread's kernel thread id (0 before it runs) */
+    double speed;   /* device ms per wall ms (HD_EMU_SPEED) while a callback is scheduled; 0: no wait ("max") */
+    double pace;    /* that of the current tick (1 with no callback scheduled, or no wait) */
 
     /* physical stylus mode */
     int physical;
@@ -480,15 +495,45 @@ static void *scheduler_main(void *arg)
             fprintf(stderr, "hd_emulator: SCHED_FIFO priority %d refused (%s); the scheduler thread runs as an ordinary thread\n",
                     E.fifo_priority, strerror(rc));
     }
+    pthread_mutex_lock(&mu);
+    const double speed = E.speed; /* fixed while the scheduler runs */
+    const int virtual_clock = speed != 1.0;
+    pthread_mutex_unlock(&mu);
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
     for (;;) {
-        ts_add_ns(&next, 1000000L);
-        struct timespec now;
-        clock_gettime(CLOCK_MONOTONIC, &now);
-        if (ts_diff(&now, &next) > 0.05) /* far behind (loaded machine): no catch-up burst */
-            next = now;
-        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR) {
+        /* The virtual clock (speed other than 1) ticks only while a callback is scheduled: device time
+         * is the servo's ticks, so a client's set-up between hdStartScheduler and its first callback
+         * (or after its last) takes none, however long it takes on the wall. */
+        pthread_mutex_lock(&mu);
+        int serving = 0;
+        for (int i = 0; i < MAX_ASYNC; i++)
+            if (E.entries[i].state == 1 && E.entries[i].handle != 0)
+                serving = 1;
+        int idle = virtual_clock && !serving && !E.stop;
+        if (idle) { /* wait for a callback (hdSchedule*, hdStopScheduler signal cond) */
+            struct timespec until;
+            clock_gettime(CLOCK_MONOTONIC, &until);
+            ts_add_ns(&until, 1000000L);
+            pthread_cond_timedwait(&sched_cond, &mu, &until);
+        }
+        E.pace = speed > 0.0 ? speed : 1.0;
+        pthread_mutex_unlock(&mu);
+        if (idle) {
+            clock_gettime(CLOCK_MONOTONIC, &next); /* the first tick served comes one period from now */
+            continue;
+        }
+        const long period_ns = speed > 0.0 ? (long)(1e6 / speed + 0.5) : 0; /* the wall time of one 1 ms tick */
+        if (period_ns > 0) {
+            ts_add_ns(&next, period_ns);
+            struct timespec now;
+            clock_gettime(CLOCK_MONOTONIC, &now);
+            if (ts_diff(&now, &next) > 50e-9 * period_ns) /* far behind (loaded machine): no catch-up burst */
+                next = now;
+            while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR) {
+            }
+        } else {
+            clock_gettime(CLOCK_MONOTONIC, &next); /* no wait; a paced tick after it counts from now */
         }
         pthread_mutex_lock(&mu);
         int late = 0;
@@ -498,9 +543,9 @@ static void *scheduler_main(void *arg)
                 late = 1;
             }
         pthread_mutex_unlock(&mu);
-        if (late) {
+        if (late && period_ns > 0) { /* LATE_S of device time (with no wait every tick is as early as can be) */
             struct timespec until = next;
-            ts_add_ns(&until, (long)(LATE_S * 1e9));
+            ts_add_ns(&until, (long)(LATE_S / DT * period_ns));
             while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &until, NULL) == EINTR) {
             }
         }
@@ -990,6 +1035,7 @@ static void stop_scheduler_locked(void)
         return;
     }
     E.stop = 1;
+    pthread_cond_broadcast(&sched_cond);
     pthread_t th = E.thread;
     pthread_mutex_unlock(&mu);
     if (in_scheduler_thread)
@@ -1018,6 +1064,7 @@ static Entry *add_entry(HDSchedulerCallback cb, void *data, HDushort prio, int s
             e->prio = prio;
             e->sync = sync;
             e->state = 1;
+            pthread_cond_broadcast(&sched_cond); /* a virtual clock waiting for a callback ticks again */
             return e;
         }
     }
@@ -1111,7 +1158,7 @@ EXPORT double hdGetSchedulerTimeStamp(void)
     struct timespec now;
     clock_gettime(CLOCK_MONOTONIC, &now);
     pthread_mutex_lock(&mu);
-    double dt = ts_diff(&now, &E.tick_start);
+    double dt = ts_diff(&now, &E.tick_start) * (E.pace > 0.0 ? E.pace : 1.0); /* device time */
     pthread_mutex_unlock(&mu);
     return dt;
 }
@@ -1147,6 +1194,18 @@ EXPORT int emu_set_path(const double *t, const double *xyz, int n)
     E.path_n = n;
     pthread_mutex_unlock(&mu);
     return 0;
+}
+
+/* HD_EMU_SPEED in-process: device ms per wall ms (> 0), or 0 for no wait between ticks. Taken at the
+ * next hdStartScheduler; -1 while the scheduler runs or for a bad value. */
+EXPORT int emu_set_speed(double speed)
+{
+    pthread_mutex_lock(&mu);
+    int ok = !E.running && isfinite(speed) && speed >= 0.0;
+    if (ok)
+        E.speed = speed;
+    pthread_mutex_unlock(&mu);
+    return ok ? 0 : -1;
 }
 
 /* code > 0: hdGetError reports that HD error code from at_s on; EMU_FREEZE / EMU_NAN /
@@ -1458,6 +1517,10 @@ __attribute__((constructor)) static void emu_init(void)
 {
     E.nominal_max_force = 3.3;
     E.velocity_supported = 1;
+    E.speed = 1.0;
+    if (env_set("HD_EMU_SPEED"))
+        E.speed = strcmp(getenv("HD_EMU_SPEED"), "max") ? env_number("HD_EMU_SPEED", 1e-3, 1e6, "expected a positive factor or max")
+                                                        : 0.0;
     snprintf(E.model, sizeof E.model, "PHANTOM Omni (hd_emulator)");
     const char *v;
     if ((v = getenv("HD_EMU_PATH")) && *v)
