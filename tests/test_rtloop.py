@@ -167,9 +167,14 @@ def test_a_loop_late_by_more_than_its_threshold_skips_ahead_and_counts_what_it_s
     # A period of 100 ns (far shorter than any tick) keeps the loop late by many periods at every
     # tick: with the threshold at 2 periods, every late tick jumps to the present.
     missed, ticks, late = _loop_on_a_fixed_feed(cfg, tissue, 100, 3000, 2)
+    # The whole session is 0.3 ms of the clock: a host that takes the core away for longer (this VM
+    # deschedules its vCPU for 1-12 ms) leaves one tick run, or none, and every other one skipped.
+    if len(ticks) == 0:
+        assert missed == 3000
+        return
     gaps = np.diff(ticks)
     # the first tick may itself be skipped: on a loaded host the loop can start more than 200 ns late
-    assert ticks[0] >= 0 and np.all(gaps >= 1) and gaps.max() > 1
+    assert ticks[0] >= 0 and np.all(gaps >= 1) and (len(ticks) == 1 or gaps.max() > 1)
     assert ticks[-1] < 3000 and len(ticks) < 3000  # ticks were skipped, none past the limit
     assert np.all(late[1:] <= 2 + 1e-9)  # after a skip a tick is never more than the threshold late
     # skipped: before the first row, between rows, and after the last up to the limit

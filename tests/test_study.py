@@ -12,6 +12,7 @@ import io
 import json
 import os
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -405,8 +406,11 @@ def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_p
     before = study.ratings_path.read_bytes()
     cmd = [sys.executable, "-u", "-m", "haptic_acu", "study", "trial", str(study.folder), "--participant", "P01",
            "--device", "scripted", "--trajectory", str(world["long_path"])]
+    # Ctrl-C's default action in the child whatever the runner's (a shell without job control starts
+    # a background job with SIGINT ignored, and a child inherits that; the prompt's Ctrl-C then does nothing)
     proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, bufsize=1)
+                            stderr=subprocess.PIPE, text=True, bufsize=1,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     rec = study.sessions / "P01-T1" / "recording.csv"
     try:
         deadline = time.monotonic() + TIMEOUT_S
@@ -419,7 +423,8 @@ def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_p
         got = ""
         deadline = time.monotonic() + TIMEOUT_S  # the report (a figure) is drawn first
         while got.count("/7 ") < 3 and time.monotonic() < deadline and proc.poll() is None:
-            got += os.read(proc.stdout.fileno(), 4096).decode()
+            if select.select([proc.stdout.fileno()], [], [], 1.0)[0]:  # never blocks past the deadline
+                got += os.read(proc.stdout.fileno(), 4096).decode()
         assert got.count("/7 ") >= 3, got
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=TIMEOUT_S)  # before communicate() closes stdin: an EOF at the prompt is another ending

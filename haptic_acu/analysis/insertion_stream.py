@@ -182,35 +182,33 @@ def _window_add(w, r, q, v):
 
 
 @nb.njit(cache=True, nogil=True)
-def _strokes_pass(rules, i0, block, carried, out):
-    """:class:`_Strokes`' per-sample pass over a block (``block``: dcm, v_uni, v_non, f, res, rres
-    from sample ``i0``; ``rules``: the minimum swing, the minimum speed, has_ref): the running prefix
-    sums (``carry``, NS) of the per-sample contributions (for numpy.gradient's uniform and general
-    formulas, each sign: moving, speed, force x, y, z), the depth's reversals (``zz``), each
-    confirmed stroke's sign and sums (the pending reversal's P minus the last one's Q) into ``out``
-    (sgn, sums), and the withdrawal windows (with has_ref). ``carried`` (zz, carry, cand, last,
-    win_cand, win_conf) goes on to the next block. Returns the strokes' count."""
-    ms, min_speed, has_ref = rules
-    dcm, v_uni, v_non, f, res, rres = block
+def _strokes_pass(rules, has_ref, i0, block, carried, out_sgn, out_sums):
+    """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
+    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
+    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
+    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
+    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+    # block's columns from sample i0: dcm, v_uni, v_non, f (3), res, rres; rules: the minimum swing
+    # and speed; carried (to the next block): zz, carry, cand, last, win_cand, win_conf
+    ms, min_speed = rules
     zz, carry, cand, last, win_cand, win_conf = carried
-    out_sgn, out_sums = out
     n = 0
     q_row = np.empty(NS)
-    for k in range(dcm.shape[0]):
+    for k in range(block.shape[0]):
         for c in range(NS):
             q_row[c] = carry[c]
         col = 0
         for form in range(2):
-            vel = v_uni[k] if form == 0 else v_non[k]
+            vel = block[k, 1] if form == 0 else block[k, 2]
             for sg in range(2):
                 sv = (1.0 if sg == 0 else -1.0) * vel
                 moving = sv > min_speed
                 carry[col] = carry[col] + (1.0 if moving else 0.0)
                 carry[col + 1] = carry[col + 1] + (sv if moving else 0.0)
                 for j in range(3):
-                    carry[col + 2 + j] = carry[col + 2 + j] + (f[k, j] if moving else 0.0)
+                    carry[col + 2 + j] = carry[col + 2 + j] + (block[k, 3 + j] if moving else 0.0)
                 col += 5
-        v = dcm[k]
+        v = block[k, 0]
         ev = _zz_step(zz, ms, v)
         if ev == REV:
             if last[C_SET] != 0.0:
@@ -240,8 +238,8 @@ def _strokes_pass(rules, i0, block, carried, out):
                 win_cand[6] = 0.0
                 win_cand[7] = 0.0
         if has_ref:
-            _window_add(win_cand, res[k], rres[k], v)
-            _window_add(win_conf, res[k], rres[k], v)
+            _window_add(win_cand, block[k, 6], block[k, 7], v)
+            _window_add(win_conf, block[k, 6], block[k, 7], v)
     return n
 
 
@@ -299,7 +297,7 @@ class TroughScan:
 
 @nb.njit(cache=True, nogil=True)
 def _trough_pass(scan, prom, i0, x, t, out_idx, out_tp):
-    """:class:`TroughScan` over one block (``scan``: its stack, plateau times and state, carried
+    """:class:`TroughScan` over one block (its stack ``st``, plateau times ``pt`` and ``state`` carried
     across blocks); the troughs closed in it, in order, into ``out_idx`` (index) and ``out_tp`` (t,
     prominence). Returns their count."""
     st, pt, state = scan
@@ -462,11 +460,11 @@ class _Strokes:
         sgn = np.empty(k)
         sums = np.empty((k, NS))
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)
-        rules = (float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S), self.has_ref)
-        block = (f64(dcm), f64(v_uni), f64(v_non), f64(f), f64(res), f64(rres))
+        block = np.column_stack((f64(dcm), f64(v_uni), f64(v_non), f64(f).reshape(k, 3), f64(res), f64(rres)))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
-        n = _strokes_pass(rules, int(i0), block, carried, (sgn, sums))
-        self.strokes.extend(zip(sgn[:n].tolist(), sums[:n]))
+        n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0), block, carried,
+                          sgn, sums)
+        self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
         self.last_dcm = float(dcm[-1])
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:

@@ -35,8 +35,8 @@ def tip_depth_m(xyz: np.ndarray, tissue) -> np.ndarray:
     """Depth (m) of points ``xyz`` (k, 3) below the rest skin surface, radially from the body centre;
     negative above the skin. The last few batches' points and depths are kept: the same points of
     the same tissue again (a session's sinks each reading the tip depth of the same batches of rows:
-    samples.csv, the summary's scan, its metrics; from threads of their own in a headless replay,
-    one evaluating while the other waits) are answered with a copy, not a second SH evaluation."""
+    samples.csv, the summary's scan, its metrics; a lock keeps the memo whole if two threads ask) are
+    answered with a copy, not a second SH evaluation."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     with _DEPTH_LOCK:
         return _tip_depth(xyz, tissue)

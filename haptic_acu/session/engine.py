@@ -165,43 +165,6 @@ def percentiles_us(values_s: np.ndarray) -> dict:
             "p999": float(np.percentile(v, 99.9)), "max": float(v.max())}
 
 
-class _SinkFeeder:
-    """Hands blocks of frames to one sink (its :meth:`Sink.on_frames`) from a thread of its own, in
-    order, while the session's thread runs the next block's ticks (compiled, without the GIL) and
-    the other sinks' threads theirs: a headless replay's sinks and its ticks on every core. At most
-    one block waits. Every block put is delivered (every row the servo wrote reaches every sink
-    that takes it); the first exception of a delivery is kept (:attr:`error`) for the session's
-    thread to raise."""
-
-    def __init__(self, deliver):
-        import queue
-
-        self._deliver = deliver
-        self._q = queue.Queue(maxsize=1)
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="haptic-acu-sink", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while True:
-            frames = self._q.get()
-            if frames is None:
-                return
-            try:
-                self._deliver(frames)
-            except BaseException as e:  # raised in the session's thread (_hand_over, or at the end)
-                if self.error is None:
-                    self.error = e
-
-    def put(self, frames: list) -> None:
-        self._q.put(frames)
-
-    def close(self) -> None:
-        """Every block put so far delivered (or an error kept); the thread ended."""
-        self._q.put(None)
-        self._thread.join()
-
-
 class Session:
     """One simulation session: a model, a device, sinks, and the two loops.
 
@@ -267,7 +230,6 @@ class Session:
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
-        self._feeders: list[_SinkFeeder] = []  # a replay's sinks, each fed from a thread of its own
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -599,19 +561,7 @@ class Session:
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
         sb = self.springback.args()
-        # rows only: each block's frames go to the sinks from another thread while the next block's
-        # ticks run (the sinks see the same rows in the same order)
-        self._feeders = [_SinkFeeder(s.on_frames) for s in self.sinks] if rows_only and max_frames > 1 else []
-        feeders = self._feeders
-        try:
-            self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb)
-        finally:  # every block put delivered before the final frame and the sinks' close
-            self._feeders = []
-            for f in feeders:
-                f.close()
-        error = next((f.error for f in feeders if f.error is not None), None)
-        if error is not None:
-            raise error
+        self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb)
 
     def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb) -> None:
         """:meth:`_run_sim_ahead`'s blocks."""
@@ -700,15 +650,7 @@ class Session:
         model = self.model
         block = [Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
                  enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))]
-        if not self._feeders:
-            self._deliver_frames(block)
-            return
-        self.frame_index += frames
-        for f in self._feeders:
-            f.put(block)
-        error = next((f.error for f in self._feeders if f.error is not None), None)
-        if error is not None:  # a sink failed on an earlier block: no more ticks
-            raise error
+        self._deliver_frames(block)
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):
