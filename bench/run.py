@@ -723,19 +723,6 @@ def replay(sizes: Sizes, progress=False) -> dict:
     runs = {"no_rrd": [], "rrd": []}
     cpu_runs = {"no_rrd": [], "rrd": []}
     notes = []
-    from haptic_acu.session import engine
-
-    session_cpu = []
-    real_run = engine.Session.run
-
-    def timed_run(self):  # the session's CPU time beside the wall time replay_one reports
-        c0 = time.process_time()
-        try:
-            return real_run(self)
-        finally:
-            session_cpu.append(time.process_time() - c0)
-
-    engine.Session.run = timed_run
     with tempfile.TemporaryDirectory(prefix="haptic-acu-bench-") as tmp:
         for mode in ("no_rrd", "rrd"):
             _log(progress, f"replay, {mode.replace('_', ' ')}")
@@ -750,8 +737,7 @@ def replay(sizes: Sizes, progress=False) -> dict:
                     notes.append(f"replay with .rrd not available ({e})")
                     break
                 runs[mode].append(s["duration_s"] / s["_wall_s"])
-                cpu_runs[mode].append(s["duration_s"] / session_cpu[-1])
-    engine.Session.run = real_run
+                cpu_runs[mode].append(s["duration_s"] / s["_cpu_s"])
     med = {k: (float(np.median(v)) if v else None) for k, v in runs.items()}
     cpu = {k: (float(np.median(v)) if v else None) for k, v in cpu_runs.items()}
     return {"replay_speed_x": {**med, "runs": runs, "cpu": cpu, "cpu_runs": cpu_runs, "trajectory": Path(traj).name},

@@ -221,13 +221,13 @@ def test_a_terminated_local_pool_takes_its_workers(tmp_path, sig):
             time.sleep(0.2)
         assert len(workers) >= 2, "the pool did not start"
         p.send_signal(sig)
-        p.communicate(timeout=60)
+        _, err = p.communicate(timeout=60)
         end = time.monotonic() + 30
         while time.monotonic() < end and any(_alive(w) for w in workers):
             time.sleep(0.2)
         assert not any(_alive(w) for w in workers)
         if sig == signal.SIGTERM:
-            assert p.returncode == 143
+            assert p.returncode == 143, err.decode(errors="replace")[-2000:]
     finally:
         for w in workers:
             try:

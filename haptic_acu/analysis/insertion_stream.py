@@ -8,8 +8,8 @@ is 600,000 of them. This module computes the same dict from the rows as they arr
 * the depth's *records* (ticks deeper than every earlier one) not shallower than 90% of the
   deepest so far: the insertion speed's end tick and the lift-thrust start are among them;
 * the reversals of the roll (twirling) and of the continuous depth (lift-thrust strokes) as found
-  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:class:`ZigZag`'s
-  rule, in one compiled pass over each block), each stroke's sums (moving samples, speed, force
+  by :func:`haptic_acu.analysis.technique.turning_points` run sample by sample (:func:`_zz_step`,
+  in one compiled pass over each block), each stroke's sums (moving samples, speed, force
   vector: the resistance is linear in u);
 * the troughs of the continuous depth with their prominences, found sample by sample with a stack
   of open peaks (:class:`TroughScan`, the result of :func:`haptic_acu.analysis.metrics.find_troughs`);
@@ -46,61 +46,16 @@ PLATEAU_T_CAP = 4096  # times kept for the middle of a flat trough (beyond: inte
 NONE, NEW, REV = 0, 1, 2
 
 
-class ZigZag:
-    """:func:`haptic_acu.analysis.technique.turning_points` one sample at a time. :meth:`step` returns NEW when
-    the pending reversal (the running extreme, once the signal has moved ``min_swing`` from its
-    start) moves to this sample, REV when the pending one is confirmed (this sample becomes the next
-    pending one), else NONE."""
-
-    __slots__ = ("ms", "d", "xhi", "xlo", "started")
-
-    def __init__(self, min_swing: float):
-        self.ms = float(min_swing)
-        self.d = 0
-        self.xhi = self.xlo = 0.0
-        self.started = False
-
-    def step(self, v: float) -> int:
-        if not self.started:
-            self.started = True
-            self.xhi = self.xlo = v
-            return NONE
-        if self.d == 0:
-            if v > self.xhi:
-                self.xhi = v
-            if v < self.xlo:
-                self.xlo = v
-            if v - self.xlo >= self.ms:
-                self.d, self.xhi = 1, v
-                return NEW
-            if self.xhi - v >= self.ms:
-                self.d, self.xlo = -1, v
-                return NEW
-            return NONE
-        if self.d > 0:
-            if v > self.xhi:
-                self.xhi = v
-                return NEW
-            if self.xhi - v >= self.ms:
-                self.d, self.xlo = -1, v
-                return REV
-            return NONE
-        if v < self.xlo:
-            self.xlo = v
-            return NEW
-        if v - self.xlo >= self.ms:
-            self.d, self.xhi = 1, v
-            return REV
-        return NONE
-
-
-# ZigZag's state in a compiled pass: [d, xhi, xlo, started]
+# the reversal rule's state: [d (the direction, 0 before the first swing), xhi, xlo, started]
 ZZ_D, ZZ_HI, ZZ_LO, ZZ_STARTED = 0, 1, 2, 3
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _zz_step(zz, ms, v):
-    """:meth:`ZigZag.step` on the state array ``zz`` (ZZ_*), minimum swing ``ms``."""
+    """:func:`haptic_acu.analysis.technique.turning_points` one sample ``v`` at a time (state ``zz``,
+    ZZ_*; minimum swing ``ms``): NEW when the pending reversal (the running extreme, once the signal
+    has moved ``ms`` from its start) moves to this sample, REV when the pending one is confirmed
+    (this sample becomes the next pending one), else NONE."""
     if zz[ZZ_STARTED] == 0.0:
         zz[ZZ_STARTED] = 1.0
         zz[ZZ_HI] = v
@@ -383,7 +338,7 @@ class _Twirl:
     cumulative |roll increments| there), the first and last roll, the total rotation, peak torque."""
 
     def __init__(self):
-        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing ROLL_MIN_SWING_DEG
+        self.zz = np.zeros(4)  # the reversal rule's state (_zz_step, ZZ_*), minimum swing ROLL_MIN_SWING_DEG
         self.revs: list[tuple[float, float, float]] = []
         self.cand = np.zeros(3)  # the pending reversal: roll, t, cumulative rotation
         self.first = self.last = None
@@ -442,7 +397,7 @@ class _Strokes:
     prefix before a sample)."""
 
     def __init__(self, has_ref: bool):
-        self.zz = np.zeros(4)  # a ZigZag's state (ZZ_*), minimum swing DEPTH_MIN_STROKE_MM
+        self.zz = np.zeros(4)  # the reversal rule's state (_zz_step, ZZ_*), minimum swing DEPTH_MIN_STROKE_MM
         self.carry = np.zeros(NS)
         self.cand = np.zeros(C_Q + NS)  # the pending reversal (C_*: set, index, dcm, P row, Q row)
         self.last_rev = np.zeros(C_Q + NS)  # the last confirmed one

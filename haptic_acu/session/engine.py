@@ -384,25 +384,11 @@ class Session:
         else:
             self.springback.frame()
         dents = Dents(self.model, self.springback.settled) if self.want_dents else {}
-        self._deliver(Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents))
+        self._deliver([Frame(t, self.frame_index, rows, self.model, dict(self.rates), dents)])
 
-    def _deliver(self, frame: Frame) -> None:
-        """``frame`` to every sink (each gets it, even if one of them fails; the first failure is
-        raised after)."""
-        self.frame_index += 1
-        error = None
-        for s in self.sinks:  # every sink gets the drained rows, even if one of them fails
-            try:
-                s.on_frame(frame)
-            except Exception as e:
-                if error is None:
-                    error = e
-        if error is not None:
-            raise error
-
-    def _deliver_frames(self, frames: list) -> None:
-        """Consecutive ``frames`` to every sink at once (:meth:`Sink.on_frames`), as :meth:`_deliver`
-        (each sink gets them all, even if another fails; the first failure is raised after)."""
+    def _deliver(self, frames: list) -> None:
+        """Consecutive ``frames`` to every sink at once (:meth:`Sink.on_frames`): each sink gets them
+        all, even if another fails; the first failure is raised after."""
         self.frame_index += len(frames)
         error = None
         for s in self.sinks:
@@ -561,10 +547,6 @@ class Session:
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
         sb = self.springback.args()
-        self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb)
-
-    def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb) -> None:
-        """:meth:`_run_sim_ahead`'s blocks."""
         t0 = time.perf_counter()
         next_frame = self.frame_dt
         while not self._stop.is_set():
@@ -641,8 +623,8 @@ class Session:
         if dents:  # a sink reads the model at its frame: only the last frame's is current
             a = 0
             for e in ends.tolist():
-                self._deliver(Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
-                                    Dents(self.model, self.springback.settled)))
+                self._deliver([Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
+                                     Dents(self.model, self.springback.settled))])
                 a = e
             return
         starts = [0, *ends[:-1].tolist()]
@@ -650,7 +632,7 @@ class Session:
         model = self.model
         block = [Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
                  enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))]
-        self._deliver_frames(block)
+        self._deliver(block)
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):

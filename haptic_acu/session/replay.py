@@ -348,8 +348,9 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         session.warm_up()
         if not realtime:
             preload_figure_modules()  # matplotlib's import overlaps the session's compiled ticks
-        wall0 = time.perf_counter()
+        wall0, cpu0 = time.perf_counter(), time.process_time()
         result = session.run()
+        cpu = time.process_time() - cpu0
         wall = time.perf_counter() - wall0
         device.close()
         if io.error is not None:  # a full disk: bad ground to write on, not a fault of the session
@@ -374,6 +375,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
         plot_force_depth(fig_rows, partial / "force_depth.png", summary_sink.tissue, summary=summary,
                          index=fig_index)
     summary["_wall_s"] = wall
+    summary["_cpu_s"] = cpu  # the process's CPU time over the session (the bench's replay speed)
     summary["_stats"] = result.stats
     return summary
 

@@ -89,19 +89,11 @@ class SummarySink(Sink):
         self._n_pending = 0
 
     def on_frame(self, frame) -> None:
-        # Rows are scanned in batches of BATCH_ROWS (a frame holds ~17): the scan's per-call cost,
-        # not its per-row cost, dominated a headless replay.
-        rows = frame.samples
-        if len(rows):
-            self._pending.append(rows)
-            self._n_pending += len(rows)
-            if self.keep_rows:
-                self._blocks.append(rows)
-            if self._n_pending >= self.BATCH_ROWS:
-                self._scan_pending()
+        self.on_frames((frame,))
 
     def on_frames(self, frames) -> None:
-        # on_frame's batches (the same rows in each), without a call per frame
+        # Rows are scanned in batches of BATCH_ROWS (a frame holds ~17): the scan's per-call cost,
+        # not its per-row cost, dominated a headless replay.
         pending, keep, batch = self._pending, self.keep_rows, self.BATCH_ROWS
         for f in frames:
             rows = f.samples
@@ -818,17 +810,12 @@ class SamplesCsvSink(Sink):
         self._f.write((",".join(CSV_FIELDS) + "\n").encode("ascii"))
 
     def on_frame(self, frame) -> None:
+        self.on_frames((frame,))
+
+    def on_frames(self, frames) -> None:
         # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
         # live session loses at most BATCH_ROWS rows of this file on a crash (the recording sink
         # is the one that flushes every frame).
-        if len(frame.samples):
-            self._pending.append(frame.samples)
-            self._n_pending += len(frame.samples)
-            if self._n_pending >= self.BATCH_ROWS:
-                self._write_pending()
-
-    def on_frames(self, frames) -> None:
-        # on_frame's batches (the same rows in each), without a call per frame
         pending, batch = self._pending, self.BATCH_ROWS
         for f in frames:
             k = len(f.samples)
