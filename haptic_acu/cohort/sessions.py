@@ -32,6 +32,7 @@ import math
 import os
 import re
 import shutil
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -400,15 +401,17 @@ class Job:
 
 
 _TISSUE: dict = {}  # config hash -> Tissue (a worker builds it once, not per session)
+_TISSUE_LOCK = threading.Lock()  # a worker's threads run sessions side by side: one builds, the rest wait
 
 
 def _tissue(job: Job, cfg=None):
     from ..tissue.body import Tissue
 
-    t = _TISSUE.get(job.config_sha256)
-    if t is None:
-        _TISSUE.clear()
-        t = _TISSUE[job.config_sha256] = Tissue.from_config(cfg if cfg is not None else job.cfg)
+    with _TISSUE_LOCK:
+        t = _TISSUE.get(job.config_sha256)
+        if t is None:
+            _TISSUE.clear()
+            t = _TISSUE[job.config_sha256] = Tissue.from_config(cfg if cfg is not None else job.cfg)
     return t
 
 
