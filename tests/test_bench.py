@@ -246,11 +246,12 @@ def test_loop_runs_without_the_rerun_sink_and_says_so(monkeypatch, tmp_path):
     with TrajectoryWriter(traj) as w:
         w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.2, 0.0, 0.0, -1e-3]])
     policy = os.sched_getscheduler(0)
-    res = run.loop(dataclasses.replace(run.QUICK, loop_s=0.3, trajectory=str(traj)))
+    res = run.loop(dataclasses.replace(run.QUICK, loop_s=0.3, floor_s=0.2, trajectory=str(traj)))
     assert os.sched_getscheduler(0) == policy  # the engine's SCHED_FIFO does not outlive the loop
     assert res["loop"]["rerun_rrd"] is False and any("rerun logging not available" in n for n in res["notes"])
     assert 200 < res["ticks"] < 400 and res["loop"]["frames"] > 5  # 0.3 s at 1 kHz, visual frames ran
     _percentile_object(res["loop_period_error_us"])
+    assert res["machine_floor"]["duration_s"] == 0.2 and res["compiled_floor"]["ticks"] == 200  # the floors ran, 0.2 s
 
 
 @pytest.mark.slow
