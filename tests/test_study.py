@@ -1,5 +1,6 @@
-"""`haptic-acu study` as an experimenter runs it: plan, trials on the scripted device (real time,
-a short path), ratings at the prompts, rate, status, replay, analyze.
+"""`haptic-acu study` as an experimenter runs it: plan, trials on the scripted device (a short path;
+paced with --speed where a test checks what a trial writes, at real pace where it checks how a
+signal ends one), ratings at the prompts, rate, status, replay, analyze.
 
 The models here are two configs that differ in the fat's cutting force (what the needle meets
 after the skin breaks), named so that a leak of either name is unmistakable; the model kinds of
@@ -32,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 NAMES = ("Zetamodel", "Kappamodel")
 TIMEOUT_S = 300  # a loaded 2-core machine
 GOOD = ["7", "8.5", "6", "9", "10", "7.5", "8"]
+SPEED = 4.0  # the trials that check what a trial writes, paced (study trial --speed)
 
 
 def write_path(path: Path, t_end: float = 1.2) -> Path:
@@ -166,7 +168,9 @@ def test_prompts_reask_and_record_only_all_seven(world, tmp_path, monkeypatch, c
 @pytest.fixture(scope="module")
 def ran(world, tmp_path_factory):
     """A study whose P01 ran trial 1 (with --rrd, the status line drawn, ratings at the prompts),
-    trial 2 with --ratings-later, then trial 1 again with --redo; every line shown kept."""
+    trial 2 with --ratings-later, then trial 1 again with --redo; every line shown kept. The trials
+    are paced at 4 times real time (``--speed``: the compiled loop's ticks and forces as at real
+    pace, tests/test_rtloop.py), which trial.json records."""
     from haptic_acu.session import status as status_mod
 
     mp = pytest.MonkeyPatch()
@@ -184,7 +188,7 @@ def ran(world, tmp_path_factory):
         mp.setattr(sys, "stdout", o)
         mp.setattr(sys, "stderr", e)
         rc = main(["study", "trial", str(out), "--participant", "P01", "--device", "scripted", "--trajectory",
-                   str(world["path"]), *argv])
+                   str(world["path"]), "--speed", str(SPEED), *argv])
         mp.setattr(sys, "stdout", sys.__stdout__)
         mp.setattr(sys, "stderr", sys.__stderr__)
         runs.append((rc, o.getvalue(), e.getvalue()))
@@ -201,7 +205,7 @@ def test_trials_run_and_record(ran):
     assert folders == ["P01-T1", "P01-T1.2", "P01-T2"]
     for name in folders:
         doc = json.loads((study.sessions / name / "trial.json").read_text())
-        assert doc["status"] == "complete"
+        assert doc["status"] == "complete" and doc["speed"] == SPEED
         for f in ("recording.csv", "samples.csv", "summary.json", "force_depth.png"):
             assert (study.sessions / name / f).is_file(), (name, f)
         tr = tick_rows(trajectory.load(study.sessions / name / "recording.csv", extra_columns=EXTRA))
@@ -459,7 +463,10 @@ def test_trial_bad_input_is_one_line(world, tmp_path, capsys):
             (base + ["--participant", "P01", "--duration", "-1"], "--duration must be > 0"),
             (["study", "trial", str(study.folder), "--participant", "P01", "--device", "scripted"],
              "--device scripted needs --trajectory"),
-            (base[:-1] + ["/no/such.csv", "--participant", "P01"], "trajectory file not found")):
+            (base[:-1] + ["/no/such.csv", "--participant", "P01"], "trajectory file not found"),
+            (base + ["--participant", "P01", "--speed", "0"], "--speed must be a number > 0"),
+            (["study", "trial", str(study.folder), "--participant", "P01", "--device", "keyboard", "--speed", "2"],
+             "--speed is for --device scripted")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1 and "Traceback" not in err, (argv, err)
