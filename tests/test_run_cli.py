@@ -37,6 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
 LAYERS = ("skin", "fat", "muscle")
 TIMEOUT_S = 180
+pytestmark = pytest.mark.slow  # a session of a few seconds in each test (children or in process)
 
 
 def env():

@@ -197,7 +197,7 @@ def ran(world, tmp_path_factory):
     return {"study": Study(out), "runs": runs, "screen": "\n".join(screen), "path": world["path"]}
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_trials_run_and_record(ran):
     study = ran["study"]
     assert [r[0] for r in ran["runs"]] == [0, 0, 0], ran["runs"]
@@ -214,7 +214,7 @@ def test_trials_run_and_record(ran):
     assert "\r" in ran["runs"][0][2]  # the status line was drawn
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_redo_keeps_earlier_files_and_ratings_history(ran, tmp_path, capsys):
     study = ran["study"]
     text = study.ratings_path.read_text()
@@ -233,7 +233,7 @@ def test_redo_keeps_earlier_files_and_ratings_history(ran, tmp_path, capsys):
     assert "only one rater" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a live session's file: read as a stream
 def test_blinding_nothing_shown_names_a_model(ran):
     study = ran["study"]
@@ -261,7 +261,7 @@ def test_blinding_nothing_shown_names_a_model(ran):
     assert grep_names((study.folder / "key.json").read_text()) == list(NAMES)
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_status_does_not_reveal_the_key(ran, capsys):
     study = ran["study"]
     assert main(["study", "status", str(study.folder)]) == 0
@@ -274,7 +274,7 @@ def test_status_does_not_reveal_the_key(ran, capsys):
     assert "next: trial 1" in p02
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_done_trial_refused_without_redo(ran, capsys):
     study = ran["study"]
     n = len(list(study.sessions.iterdir()))
@@ -288,7 +288,7 @@ def test_done_trial_refused_without_redo(ran, capsys):
     assert "every trial has been run; to rate: trial(s) 2" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_rate_enters_and_corrects_with_history(ran, monkeypatch, capsys):
     study = ran["study"]
     before = study.ratings_path.read_text()
@@ -313,7 +313,7 @@ def test_rate_enters_and_corrects_with_history(ran, monkeypatch, capsys):
     assert "no completed session" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_replay_uses_the_trials_model(ran, tmp_path, capsys):
     """The recording replays headless with the model from the key: the forces of the live session
     come back; the other model's config gives other forces (so this can fail)."""
@@ -367,7 +367,7 @@ def _rows(path: Path) -> int:
     return sum(1 for line in path.read_bytes().splitlines() if line[:1].isdigit()) if path.exists() else 0
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
     study = plan(world, tmp_path / "s")
     before = study.ratings_path.read_bytes()
@@ -402,7 +402,8 @@ def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
                  "--out", str(tmp_path / "r")]) == 0
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
+@pytest.mark.serial  # its second Ctrl-C lands on a child reading a prompt: once, in the parallel phase, it never ended
 def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_path):
     """Ctrl-C mid-session is the usual end of an OMNI session: the trial is complete and the
     ratings are asked; Ctrl-C again at the third prompt records nothing."""
@@ -500,7 +501,7 @@ def test_a_changed_config_is_refused_without_naming_the_model(world, tmp_path, c
     assert list(study.sessions.iterdir()) == []
 
 
-@pytest.mark.slow  # the module's real-time trials, and two replays
+@pytest.mark.slow  # the module's trials, and two replays
 def test_analyze_objective_side(ran, tmp_path):
     """Each model on the common path (the key's configs), and the trials' session metrics by model."""
     study = ran["study"]
