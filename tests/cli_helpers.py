@@ -115,3 +115,28 @@ def file_size_limit(limit: int):
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
         signal.signal(signal.SIGXFSZ, old)
+
+
+def cohort_sessions_here(monkeypatch) -> list[str]:
+    """``cohort``'s local pool replaced, for one test, by its sessions replayed one after another in
+    this process: the same :func:`~haptic_acu.cohort.sessions.replay_session` on each job, the job
+    and its record each through pickle as the pool sends them, without a spawned worker's start-up
+    (its imports, kernels and tissue: seconds a worker). For the tests about what a cohort run
+    writes; the pool itself (its workers, interrupts, signals) keeps tests of its own. Returns the
+    sessions in the order they were replayed."""
+    import pickle
+
+    from haptic_acu.cohort import run
+    from haptic_acu.cohort.sessions import replay_session
+
+    replayed: list[str] = []
+
+    def run_local(jobs, workers, on_result):
+        assert workers >= 1
+        for job in jobs:
+            rec = replay_session(pickle.loads(pickle.dumps(job)))
+            replayed.append(job.session)
+            on_result(pickle.loads(pickle.dumps(rec)))
+
+    monkeypatch.setattr(run, "run_local", run_local)
+    return replayed

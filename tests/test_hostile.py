@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_helpers import cohort_sessions_here
 from haptic_acu.base.outputs import claim_folder
 from haptic_acu.cli import main
 
@@ -239,9 +240,10 @@ def test_cohort_levels_pairwise_tests_bounded(tmp_path):
     assert all(len(m.get("pairs", [])) <= MAX_LEVELS * (MAX_LEVELS - 1) // 2 for m in comp["metrics"].values())
 
 
-def test_cohort_formula_cells_are_neutralised(tmp_path):
+def test_cohort_formula_cells_are_neutralised(tmp_path, monkeypatch):
     # one session replays (a bundled trajectory), the other fails (its file is missing): the tables
     # are written (a run where every session fails leaves no folder)
+    cohort_sessions_here(monkeypatch)  # in this process: the cells are the point, not the pool
     m = manifest(tmp_path / "m.csv", ["@SUM(1),=cmd|' /C calc'!A0,default,+lvl,", "s2,-bob,nope2.csv,,"])
     code, err = cli("cohort", m, "--out", tmp_path / "o", "--quiet")
     assert code == 2 and "nope2.csv" in err  # a failed session is reported and makes the status 2
@@ -316,9 +318,10 @@ def test_needle_shorter_than_its_insertion_is_stated(tmp_path):
 
 
 @pytest.mark.slow
-def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
+def test_session_files_of_an_older_configuration_do_not_stay(tmp_path, monkeypatch):
     """A cohort run with --session-files, then again with --set (every session replayed anew) but
     without them: the old configuration's files are gone, not left beside the new tables."""
+    replayed = cohort_sessions_here(monkeypatch)  # in this process: the files are the point, not the pool
     m = manifest(tmp_path / "m.csv", [f"s1,ann,{REPO / 'trajectories' / 'default.csv'},,"])
     out = tmp_path / "o"
     assert cli("cohort", m, "--out", out, "--session-files", "--jobs", "1", "--quiet")[0] == 0
@@ -326,3 +329,4 @@ def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
     assert (sdir / "summary.json").is_file()
     assert cli("cohort", m, "--out", out, "--jobs", "1", "--quiet", "--set", "needle.length_mm=39")[0] == 0
     assert not sdir.exists()
+    assert replayed == ["s1", "s1"]  # the second run replayed it anew
