@@ -6,8 +6,6 @@ in-process (haptic_acu.cli.main) unless the test is about processes.
 """
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 import re
 import shutil
@@ -17,9 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import cohort_sessions_here
+from cli_helpers import cli as run_cli, cohort_sessions_here
 from haptic_acu.base.outputs import claim_folder
-from haptic_acu.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "trajectories" / "default.csv"
@@ -29,13 +26,8 @@ BIG = "x" * 200_000  # over csv's 128 kB field limit
 
 
 def cli(*argv) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            status = main([str(a) for a in argv])
-        except SystemExit as e:
-            status = e.code
-    return status, err.getvalue()
+    r = run_cli(*argv)
+    return r.returncode, r.stderr
 
 
 def one_line(res, status=2, *names) -> str:
