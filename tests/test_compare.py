@@ -1,15 +1,16 @@
-"""``haptic-acu compare`` through the real CLI: the slow and the fast bundled insertions (their speed
-ratio is their generator's 30/3), bad input as one-line errors, and the figure's determinism."""
+"""``haptic-acu compare`` through the real CLI (its ``main``, in-process: exit status, stdout and stderr
+as a shell sees them): the slow and the fast bundled insertions (their speed ratio is their
+generator's 30/3), bad input as one-line errors, and the figure's determinism."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from haptic_acu.cli import main
 from haptic_acu.session.compare import plot_compare
 from haptic_acu.base.config import load_config
 from haptic_acu.servo.samples import COL, NCOL
@@ -19,9 +20,20 @@ TRAJ = ROOT / "trajectories"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", "compare", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=600)
+@pytest.fixture
+def cli(capsys, monkeypatch, tmp_path):
+    """``haptic-acu compare ARGS`` in-process, from ``tmp_path``: (returncode, stdout, stderr)."""
+    monkeypatch.chdir(tmp_path)
+
+    def run(*args):
+        capsys.readouterr()
+        try:
+            rc = main(["compare", *map(str, args)])
+        except SystemExit as e:  # argparse's own errors
+            rc = e.code
+        out = capsys.readouterr()
+        return SimpleNamespace(returncode=rc, stdout=out.out, stderr=out.err)
+    return run
 
 
 def assert_one_line_error(r, *needles):
@@ -35,7 +47,7 @@ def assert_one_line_error(r, *needles):
 
 
 @pytest.mark.slow
-def test_slow_vs_fast_insertion(tmp_path):
+def test_slow_vs_fast_insertion(tmp_path, cli):
     out = tmp_path / "cmp"
     r = cli(TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", out, "--labels", "trainee", "expert")
     assert r.returncode == 0, r.stderr
@@ -71,7 +83,7 @@ def _bad(tmp_path):
     return p
 
 
-def test_malformed_file_names_file_and_line(tmp_path):
+def test_malformed_file_names_file_and_line(tmp_path, cli):
     bad = _bad(tmp_path)
     for args in ((bad, TRAJ / "default.csv"), (TRAJ / "default.csv", bad)):
         r = cli(*args, "--out", tmp_path / "out")
@@ -79,7 +91,7 @@ def test_malformed_file_names_file_and_line(tmp_path):
         assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
 
 
-def test_missing_file_and_bad_arguments(tmp_path):
+def test_missing_file_and_bad_arguments(tmp_path, cli):
     r = cli(tmp_path / "nope.csv", TRAJ / "default.csv", "--out", tmp_path / "out")
     assert_one_line_error(r, str(tmp_path / "nope.csv"), "not found")
     r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--config", tmp_path / "none.toml")
@@ -99,7 +111,7 @@ def test_missing_file_and_bad_arguments(tmp_path):
 
 
 @pytest.mark.slow
-def test_three_sessions_second_insertion(tmp_path):
+def test_three_sessions_second_insertion(tmp_path, cli):
     """Any number of sessions; --insertion picks one insertion of each (a session without it shows "-")."""
     out = tmp_path / "cmp3"
     sessions = [TRAJ / "new_site.csv", TRAJ / "second_insertion_same_site.csv", TRAJ / "fast_insertion.csv"]
