@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from haptic_acu.cli import main
+from cli_helpers import cli as run_cli
 from haptic_acu.session.compare import plot_compare
 from haptic_acu.base.config import load_config
 from haptic_acu.servo.samples import COL, NCOL
@@ -20,20 +19,8 @@ TRAJ = ROOT / "trajectories"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.fixture
-def cli(capsys, monkeypatch, tmp_path):
-    """``haptic-acu compare ARGS`` in-process, from ``tmp_path``: (returncode, stdout, stderr)."""
-    monkeypatch.chdir(tmp_path)
-
-    def run(*args):
-        capsys.readouterr()
-        try:
-            rc = main(["compare", *map(str, args)])
-        except SystemExit as e:  # argparse's own errors
-            rc = e.code
-        out = capsys.readouterr()
-        return SimpleNamespace(returncode=rc, stdout=out.out, stderr=out.err)
-    return run
+def cli(*args, cwd=None):
+    return run_cli("compare", *args, cwd=cwd, timeout=600)
 
 
 def assert_one_line_error(r, *needles):
@@ -47,7 +34,7 @@ def assert_one_line_error(r, *needles):
 
 
 @pytest.mark.slow
-def test_slow_vs_fast_insertion(tmp_path, cli):
+def test_slow_vs_fast_insertion(tmp_path):
     out = tmp_path / "cmp"
     r = cli(TRAJ / "slow_insertion.csv", TRAJ / "fast_insertion.csv", "--out", out, "--labels", "trainee", "expert")
     assert r.returncode == 0, r.stderr
@@ -83,7 +70,7 @@ def _bad(tmp_path):
     return p
 
 
-def test_malformed_file_names_file_and_line(tmp_path, cli):
+def test_malformed_file_names_file_and_line(tmp_path):
     bad = _bad(tmp_path)
     for args in ((bad, TRAJ / "default.csv"), (TRAJ / "default.csv", bad)):
         r = cli(*args, "--out", tmp_path / "out")
@@ -91,7 +78,7 @@ def test_malformed_file_names_file_and_line(tmp_path, cli):
         assert not (tmp_path / "out").exists() and not (tmp_path / "out.partial").exists()
 
 
-def test_missing_file_and_bad_arguments(tmp_path, cli):
+def test_missing_file_and_bad_arguments(tmp_path):
     r = cli(tmp_path / "nope.csv", TRAJ / "default.csv", "--out", tmp_path / "out")
     assert_one_line_error(r, str(tmp_path / "nope.csv"), "not found")
     r = cli(TRAJ / "default.csv", TRAJ / "fast_insertion.csv", "--config", tmp_path / "none.toml")
@@ -111,7 +98,7 @@ def test_missing_file_and_bad_arguments(tmp_path, cli):
 
 
 @pytest.mark.slow
-def test_three_sessions_second_insertion(tmp_path, cli):
+def test_three_sessions_second_insertion(tmp_path):
     """Any number of sessions; --insertion picks one insertion of each (a session without it shows "-")."""
     out = tmp_path / "cmp3"
     sessions = [TRAJ / "new_site.csv", TRAJ / "second_insertion_same_site.csv", TRAJ / "fast_insertion.csv"]

@@ -9,13 +9,13 @@ import csv
 import json
 import math
 
-from haptic_acu.cli import main
+from cli_helpers import cli
 
 
-def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)  # --out b: relative to the working folder, as typed in a shell
-    assert main(["replay", "oblique_entry", "default", "--no-rrd", "--jobs", "1", "--quiet", "--out", "b"]) == 0, \
-        capsys.readouterr().err
+def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path):
+    r = cli("replay", "oblique_entry", "default", "--no-rrd", "--jobs", "1", "--quiet", "--out", "b", cwd=tmp_path,
+            timeout=600)
+    assert r.returncode == 0, r.stderr
     s = json.loads((tmp_path / "b" / "oblique_entry" / "summary.json").read_text())
     (ins,) = s["metrics"]["per_insertion"]
     # the two quantities differ here, by the geometry of a 30 degree insertion 25 mm deep
@@ -34,18 +34,15 @@ def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path, monkeypatch, 
     assert float(irow["max_tip_depth_mm"]) == ins["max_tip_depth_mm"]
 
 
-def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path, monkeypatch, capsys):
+def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
     """The twirling and the reinforcing / reducing label are on screen (replay's result lines and
     compare's table), with the numbers of summary.json / compare.json."""
-    monkeypatch.chdir(tmp_path)
-    capsys.readouterr()
-    rc = main(["compare", "twirl_reinforcing", "twirl_reducing", "--out", "c"])
-    r = capsys.readouterr()
-    assert rc == 0, r.err
+    r = cli("compare", "twirl_reinforcing", "twirl_reducing", "--out", "c", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "c" / "compare.json").read_text())
     techs = [s["metrics"]["per_insertion"][0]["technique"] for s in doc["sessions"]]
     assert [t["classification"]["label"] for t in techs] == ["reinforcing", "reducing"]
-    rows = {line[:38].strip(): line[38:].split() for line in r.out.splitlines() if line.startswith("  ")}
+    rows = {line[:38].strip(): line[38:].split() for line in r.stdout.splitlines() if line.startswith("  ")}
     assert rows["technique"] == ["reinforcing", "reducing"]
     assert rows["twirl cycles"] == [str(t["twirl"]["cycles"]) for t in techs]
     assert rows["twirl swing, peak to peak (deg)"] == [f"{t['twirl']['swing_deg']:.0f}" for t in techs]
