@@ -748,6 +748,14 @@ def replay(sizes: Sizes, progress=False) -> dict:
             "notes": notes}
 
 
+# The third-party libraries a replay command loads (tests/test_bench.py checks that it does): a bare
+# interpreter importing them is the floor under the command's wall time that no work of ours removes.
+REPLAY_IMPORTS = {
+    "no_rrd": ("numpy", "scipy.linalg", "numba", "matplotlib.figure", "matplotlib.backends.backend_agg"),
+    "rrd": ("numpy", "scipy.linalg", "numba", "matplotlib.figure", "matplotlib.backends.backend_agg", "rerun"),
+}
+
+
 def end_to_end(sizes: Sizes, progress=False) -> dict:
     """The replay command as a user waits for it: the wall time of ``python -m haptic_acu replay TRAJ
     --quiet --out DIR`` (a child process, warm caches), with its .rrd (as ``make demo``) and with
@@ -765,6 +773,7 @@ def end_to_end(sizes: Sizes, progress=False) -> dict:
     env = dict(os.environ)
     runs = {"rrd": [], "no_rrd": []}
     cpu = {"rrd": [], "no_rrd": []}
+    floor = {"rrd": [], "no_rrd": []}
     ticks = None
     with tempfile.TemporaryDirectory(prefix="haptic-acu-e2e-") as tmp:
         tmp = Path(tmp)
@@ -775,6 +784,8 @@ def end_to_end(sizes: Sizes, progress=False) -> dict:
                 cmd = [sys.executable, "-m", "haptic_acu", "replay", str(traj), "--quiet", "--out", str(out)]
                 runs[mode].append(_timed_child(cmd + (["--no-rrd"] if mode == "no_rrd" else []), env, tmp, cpu[mode]))
                 ticks = json.loads((out / "summary.json").read_text())["ticks"]
+                floor[mode].append(_timed_child([sys.executable, "-c", "import " + ", ".join(REPLAY_IMPORTS[mode])],
+                                                env, tmp))
         batch = None
         if sizes.end_to_end_batch > 1:
             _log(progress, f"replay command, a batch of {sizes.end_to_end_batch}")
@@ -788,11 +799,14 @@ def end_to_end(sizes: Sizes, progress=False) -> dict:
     med = {k: float(np.median(v)) for k, v in runs.items()}
     return {"end_to_end": {"trajectory": traj.name, "ticks": ticks, "cli_s": med, "runs": runs,
                            "cli_cpu_s": {k: float(np.median(v)) for k, v in cpu.items()},
+                           "import_floor_s": {k: float(np.median(v)) for k, v in floor.items()},
+                           "import_floor_modules": REPLAY_IMPORTS,
                            "batch_files": sizes.end_to_end_batch, "batch_per_file_s": batch,
                            "method": "wall time of `python -m haptic_acu replay TRAJ --quiet --out DIR` in a child "
                                      "process (caches warm), with the .rrd and with --no-rrd, and its CPU time (user + "
                                      "system: what a loaded host's waiting leaves out); the batch: one command "
-                                     "on a folder of copies, --jobs 1, wall time over the files"}}
+                                     "on a folder of copies, --jobs 1, wall time over the files; the import "
+                                     "floor: a bare interpreter importing the libraries the command loads"}}
 
 
 def wheel_first_run(sizes: Sizes, progress=False) -> dict:
@@ -852,6 +866,11 @@ def ratios(res: dict) -> dict:
         e2e.update(tick_p50_us=p50, bound_s=bound, tick_bound_x=1e3 / p50)
         out["replay_cli_rrd_vs_bound"] = e2e["cli_s"]["rrd"] / bound
         out["replay_cli_no_rrd_vs_bound"] = e2e["cli_s"]["no_rrd"] / bound
+        if e2e.get("import_floor_s"):  # the part of the command that is ours: its time above the imports' floor
+            out["import_floor_no_rrd_vs_bound"] = e2e["import_floor_s"]["no_rrd"] / bound
+            out["replay_cli_rrd_above_floor_vs_bound"] = (e2e["cli_s"]["rrd"] - e2e["import_floor_s"]["rrd"]) / bound
+            out["replay_cli_no_rrd_above_floor_vs_bound"] = (e2e["cli_s"]["no_rrd"]
+                                                             - e2e["import_floor_s"]["no_rrd"]) / bound
         if e2e.get("cli_cpu_s"):  # CPU time: a loaded host's waiting left out, as the tick's p50 leaves it out
             out["replay_cli_rrd_cpu_vs_bound"] = e2e["cli_cpu_s"]["rrd"] / bound
             out["replay_cli_no_rrd_cpu_vs_bound"] = e2e["cli_cpu_s"]["no_rrd"] / bound
@@ -1307,6 +1326,13 @@ def _table_kernels(res: dict, lines: list) -> None:
                      f"{_fmt(r.get('replay_cli_no_rrd_vs_bound'))}x the ticks' compiled bound "
                      f"({_fmt(e2e.get('bound_s'))} s); a batch of {e2e['batch_files']}: "
                      f"{_fmt(e2e['batch_per_file_s'])} s per file")
+    if e2e and e2e.get("import_floor_s"):
+        fl = e2e["import_floor_s"]
+        lines.append(f"  the imports alone (a bare interpreter loading numpy, scipy, numba, matplotlib, and rerun "
+                     f"with the .rrd): {_fmt(fl['rrd'])} s and {_fmt(fl['no_rrd'])} s, "
+                     f"{_fmt(r.get('import_floor_no_rrd_vs_bound'))}x the bound without .rrd; the command above "
+                     f"them: {_fmt(r.get('replay_cli_rrd_above_floor_vs_bound'))}x and "
+                     f"{_fmt(r.get('replay_cli_no_rrd_above_floor_vs_bound'))}x")
     if r.get("replay_cli_no_rrd_cpu_vs_bound") is not None:
         lines.append(f"  in CPU time: {_fmt(e2e['cli_cpu_s']['rrd'])} s and {_fmt(e2e['cli_cpu_s']['no_rrd'])} s, "
                      f"{_fmt(r['replay_cli_rrd_cpu_vs_bound'])}x and {_fmt(r['replay_cli_no_rrd_cpu_vs_bound'])}x the bound")

@@ -13,24 +13,31 @@ alone at the end; a module not listed is short.
 
 Sessions against the HD API emulator run on its virtual clock (tests/hd_emulator: device time only,
 whatever the load), so their modules run in parallel; their few tests about wall time (a watchdog, a
-blocked step) carry the marker.
+blocked step) carry the marker. The ``emulator`` fixture gives such a test the emulator's library and
+where its sessions run: processes forked from one warm interpreter per test process
+(tests/hd_emulator/forkserver.py), or, for a serial test, a fresh interpreter each. Likewise the
+scripted device's sessions that check what a session computes and writes run paced (``--speed``,
+``Session(speed=...)``: the same ticks whatever the load, none skipped), and a real-paced one whose
+checks are in ticks and rows, not time (a signal's clean end), is indifferent to the load too:
+test_run_cli, test_study and test_study_kinds run in parallel (but for one test of test_study marked
+serial).
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
 
-SERIAL_MODULES = {
-    "test_engine", "test_keyboard", "test_rtloop", "test_run_cli", "test_study", "test_study_kinds",
-    "test_keyboard_debrief",
-}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+SERIAL_MODULES = {"test_engine", "test_keyboard", "test_rtloop", "test_keyboard_debrief"}
 
 
 # Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
 # Only the order of the parallel run depends on these numbers.
 PARALLEL_SECONDS = {  # module: (not slow, slow)
-    "test_physics_properties": (4, 40), "test_wheel": (0, 55), "test_bench": (12, 45), "test_baselines": (20, 27),
+    "test_physics_properties": (4, 40), "test_wheel": (0, 68), "test_bench": (20, 30), "test_baselines": (20, 27),
     "test_live_equals_replay": (2, 43), "test_cohort": (26, 0), "test_replay_cli": (12, 10), "test_outputs": (21, 0),
     "test_recording": (18, 0), "test_replay_memory": (0, 15), "test_scoring": (14, 0), "test_cohort_cluster": (6, 6),
     "test_hostile": (6, 6), "test_fit_cli": (11, 0), "test_compare": (4, 6), "test_cohort_memory": (0, 10),
@@ -39,6 +46,8 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     # the OMNI emulator's modules on its virtual clock (estimates from their serial times at real pace)
     "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
     "test_hd_physical": (0, 8),
+    # the scripted device's modules with paced sessions (estimates from their serial times)
+    "test_run_cli": (0, 15), "test_study": (1, 14), "test_study_kinds": (0, 13),
 }
 
 
@@ -68,3 +77,38 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if Path(str(item.fspath)).stem in SERIAL_MODULES:
             item.add_marker(pytest.mark.serial)
+
+
+@pytest.fixture(scope="session")
+def hd_emulator_lib(tmp_path_factory):
+    """The HD API emulator's libHD.so (tests/hd_emulator), built once per test process."""
+    from hd_emulator.build import build_emulator, find_compiler
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler to build the HD API emulator")
+    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
+
+
+@pytest.fixture(scope="session")
+def hd_fork_server(hd_emulator_lib, tmp_path_factory):
+    """Sessions against the emulator forked from one warm interpreter (started on first use)."""
+    from hd_emulator.build import emulator_env
+    from hd_emulator.forkserver import ForkServer
+
+    env = emulator_env(hd_emulator_lib)
+    env["OPENBLAS_NUM_THREADS"] = "1"  # (the sessions' BLAS single-threaded: tests/test_run_omni.py)
+    server = ForkServer(env, tmp_path_factory.mktemp("hd_fork_server") / "server.log")
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def emulator(request, hd_emulator_lib):
+    """The HD emulator for one test: ``.lib``, its libHD.so; ``.sessions.run(argv, env, ...)``, a
+    session (``python -m haptic_acu ARGV`` or a script) in a process of its own. A serial test (one
+    that times the wall, alone on the machine) gets a fresh interpreter per session, the others a
+    process forked from the warm fork server (the same run, without the imports)."""
+    from hd_emulator.forkserver import Emulator, Subprocesses
+
+    serial = request.node.get_closest_marker("serial") is not None
+    return Emulator(hd_emulator_lib, Subprocesses() if serial else request.getfixturevalue("hd_fork_server"))

@@ -70,6 +70,11 @@ def machine_lines(res: dict) -> list[str]:
             f"(the bench's wall time: {fmt(res.get('bench_wall_s'))} s)."]
 
 
+def sub(a, b):
+    """a - b, or None where either is missing."""
+    return None if a is None or b is None else a - b
+
+
 def end_to_end_lines(res: dict) -> list[str]:
     """What a user waits for, as ratios within this one run (the host's speed varies twofold)."""
     e = res.get("end_to_end") or {}
@@ -85,6 +90,15 @@ def end_to_end_lines(res: dict) -> list[str]:
         ["the same two commands in CPU time (user + system: a loaded host's waiting left out, as the p50 "
          "below leaves it out)", f"{fmt(get(e, 'cli_cpu_s', 'rrd'))} / {fmt(get(e, 'cli_cpu_s', 'no_rrd'))} s",
          f"{times(r.get('replay_cli_rrd_cpu_vs_bound'))} / {times(r.get('replay_cli_no_rrd_cpu_vs_bound'))} the bound"],
+        ["the floor under both: a bare interpreter importing the libraries the command loads (numpy, scipy, "
+         "numba, matplotlib; rerun with the .rrd)",
+         f"{fmt(get(e, 'import_floor_s', 'rrd'))} / {fmt(get(e, 'import_floor_s', 'no_rrd'))} s",
+         f"{times(r.get('import_floor_no_rrd_vs_bound'))} the bound without .rrd"],
+        ["the two commands above that floor (the part that is ours)",
+         f"{fmt(sub(get(e, 'cli_s', 'rrd'), get(e, 'import_floor_s', 'rrd')))} / "
+         f"{fmt(sub(get(e, 'cli_s', 'no_rrd'), get(e, 'import_floor_s', 'no_rrd')))} s",
+         f"{times(r.get('replay_cli_rrd_above_floor_vs_bound'))} / "
+         f"{times(r.get('replay_cli_no_rrd_above_floor_vs_bound'))} the bound"],
         ["the ticks' compute bound: ticks x the compiled tick's p50 (pressing the skin)",
          f"{fmt(get(e, 'bound_s'))} s", f"{fmt(get(e, 'ticks'))} ticks x {fmt(get(e, 'tick_p50_us'))} us"],
         ["a batch of the same trajectory in one command, per file (`--jobs 1`)",
