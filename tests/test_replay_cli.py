@@ -114,9 +114,9 @@ def test_million_rows_stream(tmp_path):
     n = 1_000_000
     t = np.arange(n) * 1e-3
     z = 5.0 + 0.5 * np.sin(2 * np.pi * 0.2 * t)
-    with open(f, "w") as fh:
+    with open(f, "w") as fh:  # np.savetxt's bytes (fmt "%.6f,%.1f,%.1f,%.4f") in a third of its time
         fh.write("t_s,x_mm,y_mm,z_mm\n")
-        np.savetxt(fh, np.column_stack([t, np.zeros(n), np.zeros(n), z]), fmt="%.6f,%.1f,%.1f,%.4f")
+        fh.write("".join([f"{a:.6f},0.0,0.0,{b:.4f}\n" for a, b in zip(t.tolist(), z.tolist())]))
     out = tmp_path / "out"
     r = replay_here(f, "--out", out, "--no-rrd", "--quiet")
     assert r.returncode == 0, r.stderr
