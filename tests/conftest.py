@@ -13,13 +13,18 @@ alone at the end; a module not listed is short.
 
 Sessions against the HD API emulator run on its virtual clock (tests/hd_emulator: device time only,
 whatever the load), so their modules run in parallel; their few tests about wall time (a watchdog, a
-blocked step) carry the marker.
+blocked step) carry the marker. The ``emulator`` fixture gives such a test the emulator's library and
+where its sessions run: processes forked from one warm interpreter per test process
+(tests/hd_emulator/forkserver.py), or, for a serial test, a fresh interpreter each.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 SERIAL_MODULES = {
     "test_engine", "test_keyboard", "test_rtloop", "test_run_cli", "test_study", "test_study_kinds",
@@ -68,3 +73,38 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if Path(str(item.fspath)).stem in SERIAL_MODULES:
             item.add_marker(pytest.mark.serial)
+
+
+@pytest.fixture(scope="session")
+def hd_emulator_lib(tmp_path_factory):
+    """The HD API emulator's libHD.so (tests/hd_emulator), built once per test process."""
+    from hd_emulator.build import build_emulator, find_compiler
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler to build the HD API emulator")
+    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
+
+
+@pytest.fixture(scope="session")
+def hd_fork_server(hd_emulator_lib, tmp_path_factory):
+    """Sessions against the emulator forked from one warm interpreter (started on first use)."""
+    from hd_emulator.build import emulator_env
+    from hd_emulator.forkserver import ForkServer
+
+    env = emulator_env(hd_emulator_lib)
+    env["OPENBLAS_NUM_THREADS"] = "1"  # (the sessions' BLAS single-threaded: tests/test_run_omni.py)
+    server = ForkServer(env, tmp_path_factory.mktemp("hd_fork_server") / "server.log")
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def emulator(request, hd_emulator_lib):
+    """The HD emulator for one test: ``.lib``, its libHD.so; ``.sessions.run(argv, env, ...)``, a
+    session (``python -m haptic_acu ARGV`` or a script) in a process of its own. A serial test (one
+    that times the wall, alone on the machine) gets a fresh interpreter per session, the others a
+    process forked from the warm fork server (the same run, without the imports)."""
+    from hd_emulator.forkserver import Emulator, Subprocesses
+
+    serial = request.node.get_closest_marker("serial") is not None
+    return Emulator(hd_emulator_lib, Subprocesses() if serial else request.getfixturevalue("hd_fork_server"))

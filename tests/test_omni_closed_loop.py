@@ -13,14 +13,14 @@ and physics bounds, never from the code under test:
 * the recording replays (`haptic-acu replay`), and its rows are stamped with the device's tick
   time, even when the emulated scheduler wakes 30 ms late and catches up.
 
-Sessions run as subprocesses (the emulator is configured per process) with OPENBLAS_NUM_THREADS=1
-(see test_run_omni); their replays run in-process.
+Sessions run in processes of their own (the emulator is configured per process), forked from a warm
+interpreter (tests/conftest.py's ``emulator``), with OPENBLAS_NUM_THREADS=1 (see test_run_omni);
+their replays run in-process.
 """
 from __future__ import annotations
 
 import contextlib
 import io
-import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -31,7 +31,7 @@ from scipy.signal import butter, sosfiltfilt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, emulator_env  # noqa: E402
 
 from haptic_acu.cli import main  # noqa: E402
 from haptic_acu.session import trajectory  # noqa: E402
@@ -45,13 +45,6 @@ pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 TIMEOUT_S = 300
 TREMOR = (0.05, 9.0)  # a hand's physiological tremor: 0.05 mm at 9 Hz
-
-
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-    if find_compiler() is None:
-        pytest.skip("no C compiler to build the HD API emulator")
-    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
 
 
 def device_z(z_scene_mm: float) -> float:
@@ -83,11 +76,10 @@ def hand_path():
 def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=(), extra=()):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, log=log, stylus=stylus, faults=faults, speed=FAST)
+    env = emulator_env(emulator.lib, path=path, log=log, stylus=stylus, faults=faults, speed=FAST)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--out", str(tmp_path / "out"), "--no-status", *extra],
-                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    proc = emulator.sessions.run(["run", "--verbose", "--device", "omni", "--duration", str(duration), "--record", rec,
+                                  "--out", tmp_path / "out", "--no-status", *extra], env, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))
     return proc, rows[rows[:, 1] == FRAME], rec
 

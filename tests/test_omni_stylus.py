@@ -9,15 +9,15 @@ a hand on a scripted path (physical stylus mode, closed loop). Expectations come
 direction, the workspace formula of config/tissue.toml and the emulator's own log, never from the
 code under test.
 
-Sessions run as subprocesses (the emulator is configured per process) with OPENBLAS_NUM_THREADS=1
-(see test_run_omni); their replays run in-process.
+Sessions run in processes of their own (the emulator is configured per process), forked from a warm
+interpreter (tests/conftest.py's ``emulator``), with OPENBLAS_NUM_THREADS=1 (see test_run_omni);
+their replays, and the command lines refused before any session, run in-process.
 """
 from __future__ import annotations
 
 import contextlib
 import csv
 import io
-import subprocess
 import sys
 from pathlib import Path
 
@@ -26,7 +26,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, emulator_env  # noqa: E402
 
 from haptic_acu.cli import main  # noqa: E402
 from haptic_acu.session import trajectory  # noqa: E402
@@ -40,13 +40,6 @@ pytestmark = pytest.mark.slow
 FRAME = 0  # emulator log record kind of a committed force frame
 TIMEOUT_S = 300
 TREMOR = (0.05, 9.0)  # a hand's physiological tremor: 0.05 mm at 9 Hz
-
-
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-    if find_compiler() is None:
-        pytest.skip("no C compiler to build the HD API emulator")
-    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
 
 
 def to_device_mm(p_scene_mm):
@@ -77,13 +70,13 @@ def run_cli(emulator, tmp_path, path, duration, *, extra_args=(), config=None, *
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
     out = tmp_path / "out"
-    env = emulator_env(emulator, path=path, log=log, **{"speed": FAST, **emu})
+    env = emulator_env(emulator.lib, path=path, log=log, **{"speed": FAST, **emu})
     env["OPENBLAS_NUM_THREADS"] = "1"
-    cmd = [sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-           "--record", str(rec), "--out", str(out), "--no-status", *extra_args]
+    cmd = ["run", "--verbose", "--device", "omni", "--duration", str(duration), "--record", rec, "--out", out,
+           "--no-status", *extra_args]
     if config is not None:
-        cmd += ["--config", str(config)]
-    proc = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+        cmd += ["--config", config]
+    proc = emulator.sessions.run(cmd, env, timeout=TIMEOUT_S)
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.zeros((0, 8))
     return proc, rows[rows[:, 1] == FRAME], rec, out
 
@@ -242,12 +235,13 @@ def test_a_still_hand_on_the_skin_for_5_s_is_no_fault(emulator, tmp_path):
 @pytest.mark.parametrize("args, names", [
     (["--device", "omni", "--set", "workspace.roll_sign=2"], "workspace.roll_sign"),
     (["--device", "keyboard", "--travel-axis"], "--travel-axis")])
-def test_bad_roll_sign_or_travel_axis_off_the_omni_is_one_line_and_status_2(tmp_path, args, names):
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", *args, "--duration", "1", "--out",
-                           str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert proc.returncode == 2, proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and names in lines[0] and "Traceback" not in proc.stderr
+def test_bad_roll_sign_or_travel_axis_off_the_omni_is_one_line_and_status_2(tmp_path, capsys, args, names):
+    # in-process: refused before any device or session, so the exit status and the output are the CLI's own
+    rc = main(["run", *args, "--duration", "1", "--out", str(tmp_path / "out")])
+    out, err = capsys.readouterr()
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and names in lines[0] and "Traceback" not in err and out == ""
     assert not (tmp_path / "out").exists()
 
 

@@ -1,5 +1,6 @@
 """`haptic-acu run --device omni` end to end: the CLI, the engine, devices.omni and the real
-pyOpenHaptics package, against the HD API emulator (tests/hd_emulator) in a subprocess.
+pyOpenHaptics package, against the HD API emulator (tests/hd_emulator), each session a process of
+its own (forked from a warm interpreter: tests/conftest.py's ``emulator``).
 
 The emulator moves the stylus along a scripted path in device time (1 ms ticks from the moment
 the CLI opens the device) and logs every force frame it is sent (device frame, N) with the
@@ -13,7 +14,7 @@ emulator's log, never from the code under test:
 * pressing the skin (the tip below the acupoint) pushes the stylus back out, along device +z;
 * the session ends with a zero-force frame.
 
-Subprocesses run with OPENBLAS_NUM_THREADS=1: the tissue's least-squares fit is several times
+Sessions run with OPENBLAS_NUM_THREADS=1: the tissue's least-squares fit is several times
 faster single-threaded on a loaded 2-core machine, and nothing checked here depends on it.
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FAST, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import FAST, emulator_env  # noqa: E402
 
 from haptic_acu.session import trajectory  # noqa: E402
 from haptic_acu.base.config import load_config  # noqa: E402
@@ -44,13 +45,6 @@ FRAME = 0  # emulator log record kind of a committed force frame
 # 1.3 mm into the fine-needle skin (of its ~1.5 mm to puncture), so it engages
 NOMINAL_MAX_N = 0.15
 TIMEOUT_S = 180
-
-
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-    if find_compiler() is None:
-        pytest.skip("no C compiler to build the HD API emulator")
-    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
 
 
 @pytest.fixture(scope="module")
@@ -75,13 +69,13 @@ def run_cli(emulator, tmp_path, path, faults=(), duration=2.0, velocity=True, se
             speed=FAST):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
+    env = emulator_env(emulator.lib, path=path, faults=faults, log=log, nominal_max_force=NOMINAL_MAX_N,
                        velocity=velocity, speed=speed)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", str(duration),
-                           "--record", str(rec), "--out", str(tmp_path / "out"), "--no-status"] + (["--python-servo"] if servo == "python" else [])
-                          + (["--config", str(config)] if config is not None else []),
-                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    proc = emulator.sessions.run(["run", "--verbose", "--device", "omni", "--duration", str(duration),
+                                  "--record", rec, "--out", tmp_path / "out", "--no-status"]
+                                 + (["--python-servo"] if servo == "python" else [])
+                                 + (["--config", config] if config is not None else []), env, timeout=TIMEOUT_S)
     frames = np.zeros((0, 8))
     if log.exists():
         rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
@@ -181,7 +175,6 @@ FAULT_AT = 1.0  # device time of the fault: the stylus is ~1.17 mm into the skin
 @pytest.mark.parametrize("kind, message", [("device_fault", "HD_DEVICE_FAULT"), ("comm_error", "HD_COMM_ERROR"),
                                            ("nan", "non-finite position")])
 @pytest.mark.parametrize("servo", ["compiled", "python"])
-@pytest.mark.serial  # the fault path (exit 3) of a live session, with the device's 100 ms watchdog on the wall
 def test_omni_fault_mid_session_through_the_cli(emulator, tmp_path, workspace, kind, message, servo):
     path = press_path(workspace)
     proc, frames, rec = run_cli(emulator, tmp_path, path, faults=[(kind, FAULT_AT)], duration=3.0, servo=servo)
@@ -277,11 +270,11 @@ def test_omni_stylus_roll_is_recorded_through_the_cli(emulator, tmp_path, worksp
               (1.4, 0.0, 0.4, -2.0)]
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal, speed=FAST)
+    env = emulator_env(emulator.lib, path=path, log=log, nominal_max_force=NOMINAL_MAX_N, gimbal=gimbal, speed=FAST)
     env["OPENBLAS_NUM_THREADS"] = "1"
-    proc = subprocess.run([sys.executable, "-m", "haptic_acu", "run", "--verbose", "--device", "omni", "--duration", "1.6",
-                           "--record", str(rec), "--no-status", "--out", str(tmp_path / "out")] + (["--python-servo"] if servo == "python" else []),
-                          env=env, cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    proc = emulator.sessions.run(["run", "--verbose", "--device", "omni", "--duration", "1.6", "--record", rec,
+                                  "--no-status", "--out", tmp_path / "out"] + (["--python-servo"] if servo == "python" else []),
+                                 env, timeout=TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr
     rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
     frames = rows[rows[:, 1] == FRAME]
