@@ -47,7 +47,7 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
     "test_hd_physical": (0, 8),
     # the scripted device's modules with paced sessions (estimates from their serial times)
-    "test_run_cli": (0, 15), "test_study": (1, 14), "test_study_kinds": (0, 13),
+    "test_run_cli": (0, 17), "test_study": (1, 14), "test_study_kinds": (0, 13),
 }
 
 
