@@ -35,12 +35,12 @@ SERIAL_MODULES = {
 # Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
 # Only the order of the parallel run depends on these numbers.
 PARALLEL_SECONDS = {  # module: (not slow, slow)
-    "test_physics_properties": (4, 40), "test_wheel": (0, 55), "test_bench": (12, 45), "test_baselines": (20, 27),
-    "test_live_equals_replay": (2, 43), "test_cohort": (26, 0), "test_replay_cli": (12, 10), "test_outputs": (21, 0),
+    "test_physics_properties": (4, 40), "test_wheel": (0, 55), "test_bench": (12, 45), "test_baselines": (20, 14),
+    "test_live_equals_replay": (2, 13), "test_cohort": (26, 0), "test_replay_cli": (12, 10), "test_outputs": (21, 0),
     "test_recording": (18, 0), "test_replay_memory": (0, 15), "test_scoring": (14, 0), "test_cohort_cluster": (6, 6),
-    "test_hostile": (6, 6), "test_fit_cli": (11, 0), "test_compare": (4, 6), "test_cohort_memory": (0, 10),
+    "test_hostile": (6, 6), "test_fit_cli": (11, 0), "test_compare": (2, 2), "test_cohort_memory": (0, 10),
     "test_trajectory": (4, 6), "test_bundled_names": (9, 0), "test_compare_memory": (0, 9), "test_study_example": (1, 8),
-    "test_closed_loop": (8, 0), "test_quantity_names": (3, 10), "test_servostate": (6, 0), "test_atlas": (7, 0),
+    "test_closed_loop": (8, 0), "test_quantity_names": (3, 6), "test_servostate": (6, 0), "test_atlas": (7, 0),
     # the OMNI emulator's modules on its virtual clock (estimates from their serial times at real pace)
     "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
     "test_hd_physical": (0, 8),
