@@ -15,7 +15,12 @@ Sessions against the HD API emulator run on its virtual clock (tests/hd_emulator
 whatever the load), so their modules run in parallel; their few tests about wall time (a watchdog, a
 blocked step) carry the marker. The ``emulator`` fixture gives such a test the emulator's library and
 where its sessions run: processes forked from one warm interpreter per test process
-(tests/hd_emulator/forkserver.py), or, for a serial test, a fresh interpreter each.
+(tests/hd_emulator/forkserver.py), or, for a serial test, a fresh interpreter each. Likewise the
+scripted device's sessions that check what a session computes and writes run paced (``--speed``,
+``Session(speed=...)``: the same ticks whatever the load, none skipped), and a real-paced one whose
+checks are in ticks and rows, not time (a signal's clean end), is indifferent to the load too:
+test_run_cli, test_study and test_study_kinds run in parallel (but for one test of test_study marked
+serial).
 """
 from __future__ import annotations
 
@@ -26,10 +31,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SERIAL_MODULES = {
-    "test_engine", "test_keyboard", "test_rtloop", "test_run_cli", "test_study", "test_study_kinds",
-    "test_keyboard_debrief",
-}
+SERIAL_MODULES = {"test_engine", "test_keyboard", "test_rtloop", "test_keyboard_debrief"}
 
 
 # Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
@@ -45,6 +47,8 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     # first OMNI module on a worker also waits ~3 s for that interpreter's warm-up)
     "test_omni_closed_loop": (0, 18), "test_run_omni": (0, 16), "test_omni_stylus": (0, 11), "test_omni": (0, 7),
     "test_hd_physical": (0, 3),
+    # the scripted device's modules with paced sessions (estimates from their serial times)
+    "test_run_cli": (0, 15), "test_study": (1, 14), "test_study_kinds": (0, 13),
 }
 
 

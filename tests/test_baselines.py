@@ -496,13 +496,25 @@ def test_the_baselines_differ_where_their_sources_do():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", BASELINES)
-def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path):
+def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path, monkeypatch):
     import json
 
     from haptic_acu.base.bundled import bundled_trajectories
+    from haptic_acu.servo.samples import NCOL
+    from haptic_acu.session import report
+
+    draw = report.plot_force_depth
+    drawn = []
+
+    def take(rows, path, tissue=None, title=None, dpi=110, summary=None, index=None):
+        # the figure of every other trajectory: its rows and summary taken, not drawn (the PNG is
+        # most of a replay's time; the default's is drawn, twice, and held byte-identical below)
+        assert np.shape(rows) == (summary["ticks"], NCOL)
+        drawn.append(summary["trajectory"])
 
     limit = load_config().safety.force_limit_n
     for name, traj in bundled_trajectories().items():
+        monkeypatch.setattr(report, "plot_force_depth", draw if name == "default" else take)
         outs = []
         for rep in (1, 2) if name == "default" else (1,):  # byte-identical again: shown on one trajectory
             out = tmp_path / f"{name}-{rep}"
@@ -512,12 +524,15 @@ def test_every_bundled_trajectory_replays_through_each_model(kind, tmp_path):
         if len(outs) == 2:
             assert filecmp.cmp(outs[0] / "samples.csv", outs[1] / "samples.csv", shallow=False), name
             assert filecmp.cmp(outs[0] / "summary.json", outs[1] / "summary.json", shallow=False), name
+            assert (outs[0] / "force_depth.png").stat().st_size > 10_000
+            assert filecmp.cmp(outs[0] / "force_depth.png", outs[1] / "force_depth.png", shallow=False), name
         summary = json.loads((outs[0] / "summary.json").read_text())
         assert summary["fault"] in (None, "", False), name
         assert math.isfinite(summary["max_force_n"]) and summary["max_force_n"] <= limit, name
         if name == "default":
             assert summary["clamped_ticks"] == 0
             assert [p["layer"] for p in summary["punctures"]] == ["skin", "fat", "muscle"]
+    assert sorted(drawn) == sorted(f"{n}.csv" for n in bundled_trajectories() if n != "default")
 
 
 def test_compare_models_replays_one_trajectory_through_each(tmp_path, capsys):

@@ -7,18 +7,12 @@ the same name in the working folder wins; a path with a folder part is never rep
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
+from cli_helpers import cli  # in-process, run from the given folder
 from haptic_acu.base.bundled import bundled_dir, bundled_trajectories, resolve_trajectory
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def cli(*args, cwd, timeout=300):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, cwd=cwd)
 
 
 def test_names_are_the_bundled_files_stems():
@@ -65,7 +59,7 @@ def test_replay_and_compare_by_name_from_an_empty_folder(tmp_path):
 def test_unknown_name_is_one_line_listing_the_bundled_names(tmp_path):
     for args in (("replay", "nosuch"), ("compare", "default", "nosuch"),
                  ("run", "--device", "scripted", "--trajectory", "nosuch")):
-        r = cli(*args, cwd=tmp_path, timeout=120)
+        r = cli(*args, cwd=tmp_path)
         assert r.returncode == 2, (args, r.stderr)
         (line,) = r.stderr.strip().splitlines()
         assert "nosuch: trajectory file not found" in line and "default, " in line and "lateral_sweep" in line

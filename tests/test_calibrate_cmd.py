@@ -2,12 +2,10 @@
 noise), Okamura 2004's liver curve replayed through the servo step with the fitted config, and bad
 curves refused in one line.
 """
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
+from cli_helpers import cli
 from haptic_acu.tissue import calibration as cal
 from haptic_acu.cli import main
 from haptic_acu.base.config import load_config
@@ -16,8 +14,7 @@ SPEED_MM_S = 3.0
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", "calibrate", *map(str, args)],
-                          capture_output=True, text=True, timeout=300)
+    return cli("calibrate", *args)  # in-process: main()'s exit status and streams
 
 
 def write_curve(path, x, f, header="depth_mm,force_n"):

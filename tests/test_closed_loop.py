@@ -102,10 +102,10 @@ def test_stiff_stick_slip_friction_in_closed_loop(grip):
     # from the hand over every lift-thrust cycle; rendered directly (sign of the HD velocity) it buzzes.
     H, phases = C.friction_path()
     tissue = C.FrictionTissue(mu=0.5, c=50.0)
-    m = C.metrics(C.closed_loop(grip, H, phases, tissue, "rendered"))
+    res = C.closed_loop(grip, H, phases, tissue, "rendered")
+    m = C.metrics(res)
     assert max(m["buzz_n"].values()) <= 0.02, m["buzz_n"]
     assert all(e <= 0.0 for e in m["energy_into_hand_j"]["lift_thrust_cycles"])
-    res = C.closed_loop(grip, H, phases, tissue, "rendered")
     hold = slice(phases[-1][1] + 200, phases[-1][2])
     v_proxy = np.abs(np.diff(res["proxy"][:, 2], prepend=res["proxy"][0, 2])) / C.DT
     assert np.all(np.linalg.norm(res["rendered"][hold], axis=1) <= 0.5 + 50.0 * v_proxy[hold] + 0.02)

@@ -11,6 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from cli_helpers import cohort_sessions_here
 from haptic_acu.bench.cohort_bench import synthetic_cohort
 from haptic_acu.cli import main
 from haptic_acu.cohort.sessions import CohortDir, config_hash, read_manifest
@@ -256,13 +257,16 @@ def test_resume_after_an_interrupted_run(cohort, tmp_path, monkeypatch, capsys):
         assert a[n].drop_columns(["error"]).equals(b[n].drop_columns(["error"])), n
         assert [bool(e) for e in a[n]["error"].to_pylist()] == [bool(e) for e in b[n]["error"].to_pylist()]
 
-    # nothing changed: nothing replayed; a changed file: that session only
+    # nothing changed: nothing replayed; a changed file: that session only (replayed in this process:
+    # which sessions run is the point here, the pool's part is above)
+    replayed = cohort_sessions_here(monkeypatch)
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 2
-    assert replayed_count(capsys.readouterr().err) == (0, 6)
+    assert replayed_count(capsys.readouterr().err) == (0, 6) and replayed == []
     with open(root / "sessions" / "t01-s00.csv", "a") as f:
         f.write("# edited\n")
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 2
     assert replayed_count(capsys.readouterr().err) == (1, 5)
+    assert replayed == ["t01-s00"]
 
 
 def test_config_hash_follows_values_not_file_names(tmp_path):
@@ -350,11 +354,13 @@ def test_progress_line_counts_and_eta():
     assert lines[1].startswith("cohort: 3/3 replayed (2 up to date, skipped), 1 failed") and "ETA 0m00s" in lines[1]
 
 
-def test_session_files_on_request(cohort, tmp_path):
+def test_session_files_on_request(cohort, tmp_path, monkeypatch):
+    replayed = cohort_sessions_here(monkeypatch)  # the pool has tests of its own above
     man = tmp_path / "one.csv"
     man.write_text(f"session,trainee,file\nknown one,ann,{cohort['root'] / 'class' / 'known.csv'}\n")
     out = tmp_path / "out"
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--quiet", "--session-files"]) == 0
+    assert replayed == ["known one"]
     (folder,) = (out / "sessions").iterdir()
     assert folder.name.startswith("known_one-")
     assert sorted(p.name for p in folder.iterdir()) == ["force_depth.png", "samples.csv", "summary.json"]
@@ -364,9 +370,10 @@ def test_session_files_on_request(cohort, tmp_path):
     assert n_rows == summary["ticks"]
 
 
-def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys):
+def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys, monkeypatch):
     """Sessions up to date but replayed without --session-files are replayed for their files when a
     later run asks for them; a further run with it skips them again."""
+    replayed = cohort_sessions_here(monkeypatch)  # the pool has tests of its own above
     man = tmp_path / "one.csv"
     man.write_text(f"session,trainee,file\nknown,ann,{cohort['root'] / 'class' / 'known.csv'}\n")
     out = tmp_path / "out"
@@ -379,6 +386,7 @@ def test_session_files_asked_on_a_later_run(cohort, tmp_path, capsys):
     assert (folder / "summary.json").is_file() and (folder / "samples.csv").is_file()
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1", "--session-files"]) == 0
     assert replayed_count(capsys.readouterr().err) == (0, 1)
+    assert replayed == ["known", "known"]  # what the runs said they replayed
 
 
 def test_learning_curve_keeps_each_session_in_its_place(tmp_path):
@@ -427,7 +435,8 @@ def test_figure_axes_read_plain_values():
     plt.close(fig)
 
 
-def test_failed_session_line_names_the_manifest_line(tmp_path, capsys):
+def test_failed_session_line_names_the_manifest_line(tmp_path, capsys, monkeypatch):
+    cohort_sessions_here(monkeypatch)  # the pool has tests of its own above
     (tmp_path / "garbled.csv").write_text("t_s,x_mm,y_mm,z_mm\n0,0,0,5\n0.1,0,zero,5\n")
     man = tmp_path / "m.csv"
     man.write_text("session,trainee,file\n"

@@ -1,15 +1,15 @@
-"""``haptic-acu compare`` through the real CLI: the slow and the fast bundled insertions (their speed
-ratio is their generator's 30/3), bad input as one-line errors, and the figure's determinism."""
+"""``haptic-acu compare`` through the real CLI (its ``main``, in-process: exit status, stdout and stderr
+as a shell sees them): the slow and the fast bundled insertions (their speed ratio is their
+generator's 30/3), bad input as one-line errors, and the figure's determinism."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_helpers import cli as run_cli
 from haptic_acu.session.compare import plot_compare
 from haptic_acu.base.config import load_config
 from haptic_acu.servo.samples import COL, NCOL
@@ -20,8 +20,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", "compare", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=600)
+    return run_cli("compare", *args, cwd=cwd, timeout=600)
 
 
 def assert_one_line_error(r, *needles):

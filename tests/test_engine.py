@@ -306,11 +306,14 @@ def test_exception_in_the_visual_loop(cfg, tissue, tmp_path, clock):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_stops_cleanly_with_zero_force(cfg, tissue, tmp_path, sig):
+    # Paced at 8 times real time: the signal handling and the compiled loop are those of a real-paced
+    # session, whose ticks and forces a paced one has bit for bit (tests/test_rtloop.py), so the
+    # 1.6 s of path to the signal take 0.2 s.
     dev = ScriptedDevice(DEFAULT_TRAJ, realtime=True)
     dev.open()
     rec = tmp_path / "rec.csv"
     counter = Counter()
-    s = session(cfg, tissue, dev, [RecorderSink(rec), counter], duration_s=10.0)
+    s = session(cfg, tissue, dev, [RecorderSink(rec), counter], duration_s=10.0, speed=8.0)
     late = []
 
     def ours(signum, frame):  # a signal that arrived after the session had ended lands here, not in pytest

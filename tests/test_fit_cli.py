@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_helpers import cli
 from haptic_acu.tissue import shf
 from haptic_acu.base.config import DEFAULT_CONFIG, load_config
 from haptic_acu.base.errors import UserError
@@ -22,8 +23,7 @@ MAKE_FOREARM = ROOT / "config" / "meshes" / "make_forearm.py"
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, args)],
-                          capture_output=True, text=True, timeout=120)
+    return cli(*args)  # in-process: main()'s exit status and streams
 
 
 def assert_one_line_error(proc, *needles):

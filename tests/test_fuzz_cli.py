@@ -8,8 +8,6 @@ file is a real replay.
 """
 from __future__ import annotations
 
-import contextlib
-import io
 import re
 import shutil
 import tempfile
@@ -19,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from haptic_acu import cli
+from cli_helpers import cli
 from haptic_acu.analysis.scoring import INDICES
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,13 +27,8 @@ NUMBER_KEYS = re.findall(r"^([a-z_]+)\s*=\s*(-?[0-9.e+-]+)\s*(?:#.*)?$", CONFIG,
 
 
 def run_cli(argv) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            status = cli.main([str(a) for a in argv])
-        except SystemExit as e:  # argparse
-            status = e.code
-    return status, err.getvalue()
+    r = cli(*argv)  # in-process (tests/cli_helpers.py); argparse's exits caught
+    return r.returncode, r.stderr
 
 
 def assert_clean(status, err):

@@ -6,8 +6,6 @@ in-process (haptic_acu.cli.main) unless the test is about processes.
 """
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 import re
 import shutil
@@ -17,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_helpers import cli as run_cli, cohort_sessions_here
 from haptic_acu.base.outputs import claim_folder
-from haptic_acu.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "trajectories" / "default.csv"
@@ -28,13 +26,8 @@ BIG = "x" * 200_000  # over csv's 128 kB field limit
 
 
 def cli(*argv) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            status = main([str(a) for a in argv])
-        except SystemExit as e:
-            status = e.code
-    return status, err.getvalue()
+    r = run_cli(*argv)
+    return r.returncode, r.stderr
 
 
 def one_line(res, status=2, *names) -> str:
@@ -239,9 +232,10 @@ def test_cohort_levels_pairwise_tests_bounded(tmp_path):
     assert all(len(m.get("pairs", [])) <= MAX_LEVELS * (MAX_LEVELS - 1) // 2 for m in comp["metrics"].values())
 
 
-def test_cohort_formula_cells_are_neutralised(tmp_path):
+def test_cohort_formula_cells_are_neutralised(tmp_path, monkeypatch):
     # one session replays (a bundled trajectory), the other fails (its file is missing): the tables
     # are written (a run where every session fails leaves no folder)
+    cohort_sessions_here(monkeypatch)  # in this process: the cells are the point, not the pool
     m = manifest(tmp_path / "m.csv", ["@SUM(1),=cmd|' /C calc'!A0,default,+lvl,", "s2,-bob,nope2.csv,,"])
     code, err = cli("cohort", m, "--out", tmp_path / "o", "--quiet")
     assert code == 2 and "nope2.csv" in err  # a failed session is reported and makes the status 2
@@ -316,9 +310,10 @@ def test_needle_shorter_than_its_insertion_is_stated(tmp_path):
 
 
 @pytest.mark.slow
-def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
+def test_session_files_of_an_older_configuration_do_not_stay(tmp_path, monkeypatch):
     """A cohort run with --session-files, then again with --set (every session replayed anew) but
     without them: the old configuration's files are gone, not left beside the new tables."""
+    replayed = cohort_sessions_here(monkeypatch)  # in this process: the files are the point, not the pool
     m = manifest(tmp_path / "m.csv", [f"s1,ann,{REPO / 'trajectories' / 'default.csv'},,"])
     out = tmp_path / "o"
     assert cli("cohort", m, "--out", out, "--session-files", "--jobs", "1", "--quiet")[0] == 0
@@ -326,3 +321,4 @@ def test_session_files_of_an_older_configuration_do_not_stay(tmp_path):
     assert (sdir / "summary.json").is_file()
     assert cli("cohort", m, "--out", out, "--jobs", "1", "--quiet", "--set", "needle.length_mm=39")[0] == 0
     assert not sdir.exists()
+    assert replayed == ["s1", "s1"]  # the second run replayed it anew

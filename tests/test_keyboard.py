@@ -99,17 +99,23 @@ def test_not_a_tty_is_one_line_user_error(tmp_path):
         KeyboardDevice(stdin=io.StringIO("i"))  # no file descriptor at all
 
 
-def test_not_a_tty_through_the_cli(tmp_path):
-    """`haptic-acu run --device keyboard < file`: one stderr line, exit 2, no traceback."""
+def test_not_a_tty_through_the_cli(tmp_path, monkeypatch, capsys):
+    """`haptic-acu run --device keyboard < file`: one stderr line, exit 2, no traceback. (The command
+    in process, its standard input the file: the device asks the file descriptor, as in a child.)"""
+    from haptic_acu.cli import main
+
     f = tmp_path / "keys.txt"
     f.write_text("q\n")
+    monkeypatch.chdir(tmp_path)
     with open(f, "rb") as stdin:
-        p = subprocess.run([PY, "-m", "haptic_acu", "run", "--device", "keyboard"], stdin=stdin,
-                           capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert p.returncode == 2
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in p.stderr
+        monkeypatch.setattr(sys, "stdin", stdin)
+        rc = main(["run", "--device", "keyboard"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err
     assert "needs a terminal" in lines[0] and "--device scripted" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keys.txt"]  # no session folder left
 
 
 def test_info(pty_pair):

@@ -1,24 +1,52 @@
 """A live session's report equals a replay of its own recording: for every bundled trajectory,
-``run --device scripted --speed 8`` (the live path: the compiled loop on its own thread, the feeder,
-the visual thread's sinks and recorder, with deadlines 8 times as often as real time) then ``replay``
+``run --device scripted --speed 32`` (the live path: the compiled loop on its own thread, the feeder,
+the visual thread's sinks and recorder, with deadlines 32 times as often as real time) then ``replay``
 of the recording it wrote give the same ticks, punctures, peaks and per-insertion metrics, to the
 resolution the outputs print. A session's numbers are its ticks' own at any pace (session time is
 k x 1 ms); the real-pace loop against the replay, tick by tick, is tests/test_rtloop.py's. A paced
 session never skips a late tick, so a busy neighbour delays these sessions without changing them:
-they run in the parallel phase."""
+they run in the parallel phase.
+
+The force-depth figure both write is not drawn here (tests/test_report.py, test_replay_cli.py and
+test_run_cli.py draw and check it): a stand-in takes its rows and insertion index, and the live
+session's and the replay's are held to the same ticks and the same insertions."""
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from haptic_acu.base.bundled import bundled_trajectories
 from haptic_acu.cli import main
+from haptic_acu.servo.samples import NCOL
 
-SPEED = "8"  # times real time
+SPEED = "32"  # times real time: the ring holds 4 s of wall time, more than any bundled session at this pace
 
 TIMING = {"loop", "trajectory", "_wall_s", "_stats"}  # the clock's own statistics differ by nature
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """Each force-depth figure's (rows, insertion index), in the order drawn, instead of the PNG."""
+    from haptic_acu.session import report
+
+    drawn = []
+
+    def take(rows, path, tissue=None, title=None, dpi=110, summary=None, index=None):
+        rows = np.asarray(rows)
+        assert rows.ndim == 2 and rows.shape[1] == NCOL and summary is not None
+        drawn.append((rows.shape[0], None if index is None else np.array(index, copy=True)))
+
+    monkeypatch.setattr(report, "plot_force_depth", take)
+    return drawn
+
+
+def _same_figure_rows(figures, ticks):
+    (n_live, i_live), (n_again, i_again) = figures
+    assert n_live == n_again == ticks
+    assert i_live is not None and np.array_equal(i_live, i_again)
 
 
 def _close(a, b, path=""):
@@ -41,7 +69,7 @@ def _close(a, b, path=""):
 
 @pytest.mark.slow  # each bundled trajectory played live (a minute or two in all)
 @pytest.mark.parametrize("name", sorted(bundled_trajectories()))
-def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
+def test_run_then_replay_of_its_recording(tmp_path, name, capsys, figures):
     live, again = tmp_path / "live", tmp_path / "replay"
     assert main(["run", "--device", "scripted", "--trajectory", name, "--speed", SPEED, "--out", str(live),
                  "--no-status"]) == 0
@@ -56,6 +84,7 @@ def test_run_then_replay_of_its_recording(tmp_path, name, capsys):
     for k in set(a) - TIMING - {"debrief"}:
         _close(a[k], b[k], k)
     assert a["debrief"]["insertions"] == b["debrief"]["insertions"]
+    _same_figure_rows(figures, a["ticks"])
 
 
 @pytest.mark.parametrize("args, says", [
@@ -72,7 +101,7 @@ def test_a_bad_speed_is_one_line_and_status_2(tmp_path, capsys, args, says):
     assert not out.exists()  # nothing left behind
 
 
-def test_a_session_at_the_handle_replays_the_same(tmp_path):
+def test_a_session_at_the_handle_replays_the_same(tmp_path, figures):
     """A hand pushing 10 mm past a 20 mm needle: the recording keeps the device's path (which goes
     past the needle's length) and the needle's depth (which does not); its replay meets the same
     stop: the same ticks, depths, time at the force limit and debrief."""
@@ -98,3 +127,4 @@ def test_a_session_at_the_handle_replays_the_same(tmp_path):
     for k in set(a) - TIMING - {"debrief"}:
         _close(a[k], b[k], k)
     assert a["debrief"]["insertions"] == b["debrief"]["insertions"]
+    _same_figure_rows(figures, a["ticks"])

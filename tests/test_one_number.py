@@ -8,15 +8,13 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
+
+from cli_helpers import cli
 
 
 def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "haptic_acu", "replay", "oblique_entry", "default", "--no-rrd",
-                        "--jobs", "1", "--quiet", "--out", "b"], cwd=tmp_path, capture_output=True, text=True,
-                       timeout=600)
+    r = cli("replay", "oblique_entry", "default", "--no-rrd", "--jobs", "1", "--quiet", "--out", "b", cwd=tmp_path,
+            timeout=600)
     assert r.returncode == 0, r.stderr
     s = json.loads((tmp_path / "b" / "oblique_entry" / "summary.json").read_text())
     (ins,) = s["metrics"]["per_insertion"]
@@ -39,8 +37,7 @@ def test_tip_depth_and_needle_depth_have_their_own_names(tmp_path):
 def test_compare_and_replay_show_the_technique_from_the_summary(tmp_path):
     """The twirling and the reinforcing / reducing label are on screen (replay's result lines and
     compare's table), with the numbers of summary.json / compare.json."""
-    r = subprocess.run([sys.executable, "-m", "haptic_acu", "compare", "twirl_reinforcing", "twirl_reducing",
-                        "--out", "c"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    r = cli("compare", "twirl_reinforcing", "twirl_reducing", "--out", "c", cwd=tmp_path, timeout=600)
     assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "c" / "compare.json").read_text())
     techs = [s["metrics"]["per_insertion"][0]["technique"] for s in doc["sessions"]]

@@ -3,7 +3,8 @@
 A second replay to the same ``--out`` is refused while the first runs; a ``DIR.partial`` holding a
 user's files is never deleted; a stale one left by a killed replay is replaced; an interrupted
 replay exits 130/143 and leaves its files in ``DIR.partial`` (never published as complete); bad
-``--out`` places and ``--jobs`` values are one line, exit 2.
+``--out`` places and ``--jobs`` values are one line, exit 2. A replay that is signalled or holds a
+folder while another tries it runs as a child; every other command runs in this process.
 """
 from __future__ import annotations
 
@@ -18,12 +19,14 @@ from pathlib import Path
 
 import pytest
 
+import cli_helpers
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def cli(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    """The command in this process (tests/cli_helpers.py); a replay to be signalled is a child (start)."""
+    return cli_helpers.cli(*args, timeout=timeout, cwd=ROOT)
 
 
 # progress lines ("haptic-acu: step...", "haptic-acu: step: done in 1.2 s") may precede the one error line
@@ -210,15 +213,6 @@ def test_compare_refuses_an_absurd_duration(tmp_path):
     one_line(r, 2, "span.csv", "split")
 
 
-def _small_files(limit):
-    import resource
-
-    def pre():  # writes past `limit` bytes fail (EFBIG), as on a full disk
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-    return pre
-
-
 @pytest.mark.parametrize("argv", [
     ["replay", "--no-rrd", "--quiet", ROOT / "trajectories" / "default.csv", "--out"],
     ["score", RATINGS, "--out"],
@@ -226,8 +220,8 @@ def _small_files(limit):
 ])
 def test_full_disk_one_line(tmp_path, argv):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, argv), str(out)], cwd=ROOT,
-                       capture_output=True, text=True, timeout=600, preexec_fn=_small_files(20_000))
+    with cli_helpers.file_size_limit(20_000):  # writes past 20 kB fail (EFBIG), as on a full disk
+        r = cli(*argv, out)
     one_line(r, 2, "out")
     assert not out.exists() or not any(out.iterdir()) or argv[0] == "score"
 

@@ -109,7 +109,8 @@ def written(tmp_path_factory):
     import csv
 
     tmp = tmp_path_factory.mktemp("written")
-    assert main(["replay", str(TWIRL), "default", "--out", str(tmp / "batch"), "--no-rrd", "--quiet"]) == 0
+    assert main(["replay", str(TWIRL), "default", "--out", str(tmp / "batch"), "--no-rrd", "--quiet", "--jobs",
+                 "1"]) == 0  # the batch in this process (the worker processes' path: tests/test_replay_cli.py)
     man = tmp / "m.csv"
     man.write_text("session,trainee,file,level\ns1,ann,twirl_even,novice\n")
     assert main(["cohort", str(man), "--out", str(tmp / "cohort"), "--jobs", "1", "--quiet"]) == 0

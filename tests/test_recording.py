@@ -8,45 +8,32 @@ event gives fresh tissue on replay.
 """
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import json
 import os
 import re
-import resource
 import signal
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from cli_helpers import cli, file_size_limit
 from haptic_acu.session import trajectory as T
 from haptic_acu.base.errors import UserError
-from haptic_acu.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "trajectories" / "default.csv"
 SAME_SITE = ROOT / "trajectories" / "second_insertion_same_site.csv"
 
 
-def cli(*args, timeout=300, **kw):
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "haptic_acu", *map(str, args)], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=timeout, **kw)
-
-
-def cli_here(*args):
-    """The command in this process (``haptic_acu.cli.main``: the same parser, checks, exit status and
-    streams as the console entry, without a child's start-up); an exception that escapes it fails
-    the test, as a traceback would."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
+def cli_here(*args, timeout=300):
+    """The command in this process (tests/cli_helpers.py: ``haptic_acu.cli.main``, the same parser,
+    checks, exit status and streams as the console entry, without a child's start-up); an exception
+    that escapes it fails the test, as a traceback would. The keyboard session is a child (a pty)."""
+    return cli(*args, cwd=ROOT, timeout=timeout)
 
 
 # progress lines ("haptic-acu: step...", "haptic-acu: step: done in 1.2 s") may precede the one error line
@@ -99,8 +86,8 @@ def test_record_creates_nothing_when_the_session_cannot_start(tmp_path):
 def test_overwrite_replaces_and_the_recording_is_plain_csv(tmp_path):
     rec = tmp_path / "rec.csv"
     rec.write_text("old\n")
-    r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
-            "--duration", 2.0, "--overwrite", "--out", tmp_path / "out")
+    r = cli_here("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
+                 "--duration", 2.0, "--speed", 8, "--overwrite", "--out", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     with open(rec, newline="") as f:
         rows = list(csv.DictReader(f))  # header on line 1: a plain CSV reader needs no options
@@ -120,12 +107,9 @@ def test_overwrite_replaces_and_the_recording_is_plain_csv(tmp_path):
 def test_full_disk_mid_session_is_a_fault_and_the_recording_replays(tmp_path):
     rec = tmp_path / "rec.csv"
 
-    def small_files():  # writes past 100 kB fail (EFBIG), like a disk filling up
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
-
-    r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
-            "--out", tmp_path / "out", preexec_fn=small_files)
+    with file_size_limit(100_000):  # writes past 100 kB fail (EFBIG), like a disk filling up
+        r = cli_here("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", rec, "--no-status",
+                     "--out", tmp_path / "out")
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr
     stopped = [ln for ln in r.stderr.splitlines() if "stopped:" in ln]
@@ -135,13 +119,13 @@ def test_full_disk_mid_session_is_a_fault_and_the_recording_replays(tmp_path):
     n_fields = data.split(b"\n", 1)[0].count(b",")
     assert all(line.count(b",") == n_fields for line in data.splitlines())  # whole rows only
     out = tmp_path / "replay"
-    rep = cli("replay", rec, "--no-rrd", "--quiet", "--out", out)
+    rep = cli_here("replay", rec, "--no-rrd", "--quiet", "--out", out)
     assert rep.returncode == 0, rep.stderr
 
 
 def test_record_to_dev_full_is_a_fault(tmp_path):
-    r = cli("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", "/dev/full",
-            "--overwrite", "--no-status", "--duration", 0.5, "--out", tmp_path / "out")
+    r = cli_here("run", "--device", "scripted", "--trajectory", DEFAULT, "--record", "/dev/full",
+                 "--overwrite", "--no-status", "--duration", 0.5, "--out", tmp_path / "out")
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr
     assert len([ln for ln in r.stderr.splitlines() if "stopped:" in ln and "/dev/full" in ln]) == 1
@@ -150,7 +134,7 @@ def test_record_to_dev_full_is_a_fault(tmp_path):
 def test_fifo_trajectory_is_refused_not_waited_on(tmp_path):
     fifo = tmp_path / "pipe.csv"
     os.mkfifo(fifo)
-    r = cli("run", "--device", "scripted", "--trajectory", fifo, "--no-status", timeout=60)
+    r = cli_here("run", "--device", "scripted", "--trajectory", fifo, "--no-status", timeout=60)
     one_line(r, 2, "pipe.csv", "pipe")
 
 
@@ -305,7 +289,7 @@ def test_keyboard_session_with_reset_records_the_event_and_replays(tmp_path):
     assert float(rows[i - 1]["z_mm"]) < -1.0  # in the tissue before the reset ...
     assert float(rows[i]["z_mm"]) == pytest.approx(5.0, abs=0.05)  # ... at the start on the reset row
     out = tmp_path / "replay"
-    r = cli("replay", rec, "--no-rrd", "--quiet", "--out", out)
+    r = cli_here("replay", rec, "--no-rrd", "--quiet", "--out", out)
     assert r.returncode == 0, r.stderr
     skin = [q for q in json.loads((out / "summary.json").read_text())["punctures"]
             if q["layer"] == "skin"]
@@ -313,7 +297,7 @@ def test_keyboard_session_with_reset_records_the_event_and_replays(tmp_path):
     # without the event the same file is refused (the jump back is no hand's movement)
     stripped = tmp_path / "no_event.csv"
     stripped.write_text(rec.read_text().replace(",reset\n", ",\n"))
-    r = cli("replay", stripped, "--no-rrd", "--out", tmp_path / "x")
+    r = cli_here("replay", stripped, "--no-rrd", "--out", tmp_path / "x")
     one_line(r, 2, "no_event.csv", f"line {i + 2}")
 
 

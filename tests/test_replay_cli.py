@@ -5,20 +5,17 @@ no output folder left behind (a partial one, or one that looks complete).
 """
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import json
 import re
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from haptic_acu.cli import main
+from cli_helpers import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAJ = ROOT / "trajectories"
@@ -31,13 +28,10 @@ def replay(*args, timeout=600):
 
 
 def replay_here(*args):
-    """``haptic-acu replay`` in this process (``haptic_acu.cli.main``: the same parser, checks, exit
-    status and streams as the console entry, without a child's start-up); an exception that escapes
-    it fails the test, as a traceback would."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(["replay", *map(str, args)])
-    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
+    """``haptic-acu replay`` in this process (tests/cli_helpers.py: ``haptic_acu.cli.main``, the same
+    parser, checks, exit status and streams as the console entry, without a child's start-up); an
+    exception that escapes it fails the test, as a traceback would."""
+    return cli("replay", *args, cwd=ROOT)
 
 
 def write(path: Path, text: str) -> Path:
@@ -132,7 +126,7 @@ def test_million_rows_stream(tmp_path):
 
 def test_default_replay_outputs_and_rrd(tmp_path):
     out = tmp_path / "run"
-    r = replay("--out", out)
+    r = replay_here("--out", out)
     assert r.returncode == 0, r.stderr
     for name in ("samples.csv", "summary.json", "force_depth.png", "recording.rrd"):
         assert (out / name).is_file(), name
@@ -192,7 +186,7 @@ def test_batch_folder_in_parallel(tmp_path):
     for name in ("fast_insertion.csv", "lateral_sweep.csv"):
         (src / name).write_bytes((TRAJ / name).read_bytes())
     out = tmp_path / "batch"
-    r = replay(src, "--out", out, "--no-rrd", "--jobs", "2")
+    r = replay_here(src, "--out", out, "--no-rrd", "--jobs", "2")
     assert r.returncode == 0, r.stderr
     with open(out / "summaries.csv", newline="") as f:
         rows = {row["trajectory"]: row for row in csv.DictReader(f)}

@@ -240,9 +240,12 @@ class FailsAt(ScriptedDevice):
 
 
 def test_nan_from_the_device_faults_on_that_tick_with_zero_force(cfg, tissue):
+    # paced at 8 times real time (the compiled loop's ticks and session times as at real pace, see
+    # test_realtime_forces_equal_the_headless_replay): the fault is a tick's, not a moment's
     dev = NanAt(DEFAULT_TRAJ, t_nan=1.3, realtime=True)  # while pressing / inside the skin
     dev.open()
-    s, result, rows = run(cfg, tissue, dev, "realtime", 5.0)
+    s, result, rows = run(cfg, tissue, dev, "realtime", 5.0, speed=8.0)
+    assert s.compiled_loop and s.speed == 8.0
     assert result.fault is not None and "non-finite" in result.fault and "tick 1300" in result.fault
     assert result.ticks == len(rows) and rows[-1, COL["tick"]] == 1300 and rows[-1, COL["fault"]] == 1
     assert np.all(rows[-1, [COL["fx_n"], COL["fy_n"], COL["fz_n"]]] == 0)
@@ -314,9 +317,11 @@ def test_a_reset_model_answers_as_a_fresh_one(cfg, tissue):
 
 
 def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tissue, tmp_path):
-    """second_insertion_same_site.csv with a reset between its two passes, in real time through the
-    compiled loop (no Python fallback): every row equals the headless replay's, and the second pass
-    breaks the fresh skin again."""
+    """second_insertion_same_site.csv with a reset between its two passes, live through the compiled
+    loop (no Python fallback): every row equals the headless replay's, and the second pass breaks the
+    fresh skin again. Paced at 8 times real time: the same compiled loop, ticks and session times as
+    at real pace (test_realtime_forces_equal_the_headless_replay shows a paced session's rows equal
+    the real-paced ones bit for bit), so 8 s of path take 1 s."""
     src = REPO / "trajectories" / "second_insertion_same_site.csv"
     lines = src.read_text().splitlines()
     out, done = [lines[0] + ",event"], False
@@ -328,9 +333,9 @@ def test_a_reset_event_in_the_compiled_loop_equals_the_headless_replay(cfg, tiss
     traj.write_text("\n".join(out) + "\n")
     dev = ScriptedDevice(traj, realtime=True)
     dev.open()
-    s, result, rt = run(cfg, tissue, dev, "realtime", 8.0)
+    s, result, rt = run(cfg, tissue, dev, "realtime", 8.0, speed=8.0)
     dev.close()
-    assert dev.has_events and s._servo_kind() == "compiled" and result.fault is None
+    assert s.speed == 8.0 and dev.has_events and s._servo_kind() == "compiled" and result.fault is None
     dev2 = ScriptedDevice(traj)
     dev2.open()
     _, _, sim = run(cfg, tissue, dev2, "sim", 8.0)

@@ -1,9 +1,15 @@
-"""`haptic-acu run --device scripted` as a user runs it (a subprocess): stopping it with SIGINT and
-SIGTERM, and replaying its recording headless to the same forces.
+"""`haptic-acu run --device scripted` as a user runs it: stopping it with SIGINT and SIGTERM (a
+subprocess, at real pace), and replaying its recording headless to the same forces.
 
 That the engine commands zero force on a signal is checked in process (tests/test_engine.py:
 the scripted device has no motor to observe from outside); here: the exit status, no traceback, a
 recording that is complete (one row per tick the session counted) and parses as a trajectory.
+
+The sessions checked for what they compute and write run in process (``haptic_acu.cli.main``: the
+same command, without a child's seconds of imports) and paced with ``--speed``: the compiled loop's
+ticks, session times and forces are those of the real-paced session bit for bit
+(tests/test_rtloop.py::test_realtime_forces_equal_the_headless_replay), and a paced session never
+skips a tick.
 
 Subprocesses run with OPENBLAS_NUM_THREADS=1: the tissue's least-squares fit is several times
 faster single-threaded on a loaded 2-core machine, and nothing checked here depends on it.
@@ -23,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from haptic_acu.cli import main
 from haptic_acu.session import trajectory
 from haptic_acu.session.recorder import EXTRA, tick_rows
 
@@ -30,6 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TRAJ = REPO / "trajectories" / "default.csv"
 LAYERS = ("skin", "fat", "muscle")
 TIMEOUT_S = 180
+pytestmark = pytest.mark.slow  # a session of a few seconds in each test (children or in process)
 
 
 def env():
@@ -44,6 +52,15 @@ def haptic_acu(*args):
     if args[:1] == ["run"]:
         args.insert(1, "--verbose")
     return [sys.executable, "-m", "haptic_acu", *args]
+
+
+def cli(capsys, *args) -> tuple[int, str, str]:
+    """The command in process (``run`` with --verbose, as :func:`haptic_acu`): (exit status, stdout,
+    stderr)."""
+    capsys.readouterr()
+    rc = main(haptic_acu(*args)[3:])
+    out, err = capsys.readouterr()
+    return rc, out, err
 
 
 def session_ticks(stderr: str) -> int:
@@ -105,9 +122,9 @@ def punctures(t, states):
     return [(name, tp) for _, name, tp in sorted(seq)]
 
 
-def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
-    """Record 3 s of default.csv live (skin, fat and muscle punctures), replay the recording
-    headless, compare.
+def test_a_recorded_session_replays_to_the_same_forces(tmp_path, capsys):
+    """Record 3 s of default.csv live (skin, fat and muscle punctures; paced at 3 times real time),
+    replay the recording headless, compare.
 
     The live servo sampled the trajectory at jittered times t_i (the recording's times); the
     replay samples the recording's positions, linearly interpolated, at exact 1 ms ticks. The
@@ -131,17 +148,15 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
     identical, each puncture within the live session's sampling gap there plus 2 ms.
     """
     rec = tmp_path / "rec.csv"
-    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
-                                     "--record", rec, "--no-status", "--out", tmp_path / "session"),
-                          cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert live.returncode == 0, live.stderr
+    rc, _, err = cli(capsys, "run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
+                     "--record", rec, "--no-status", "--out", tmp_path / "session", "--speed", 3)
+    assert rc == 0, err
     tr = tick_rows(trajectory.load(rec, extra_columns=EXTRA))
-    assert len(tr.t_s) == session_ticks(live.stderr)
+    assert len(tr.t_s) == session_ticks(err)
 
     out = tmp_path / "replay"
-    rep = subprocess.run(haptic_acu("replay", rec, "--no-rrd", "--out", out, "--quiet"),
-                         cwd=REPO, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert rep.returncode == 0, rep.stderr
+    rc, _, err = cli(capsys, "replay", rec, "--no-rrd", "--out", out, "--quiet")
+    assert rc == 0, err
     s = read_samples(out / "samples.csv")
     np.testing.assert_allclose(np.diff(s["t_s"]), 1e-3, atol=1.5e-6)  # exact 1 ms ticks (file: 1 us)
     assert tr.t_s[-1] - 1e-3 - 1e-9 <= s["t_s"][-1] <= tr.t_s[-1]  # up to the recording's last sample
@@ -184,15 +199,16 @@ def test_a_recorded_session_replays_to_the_same_forces(tmp_path):
     assert first > 0 and np.abs(fr[:max(first - 50, 1)]).max() < 1e-6
 
 
-def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
+def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path, capsys, monkeypatch):
     """`run` ends like `replay`: the punctures and the depth against the target on stdout, and
     recording.csv, samples.csv, summary.json and force_depth.png in --out; every number printed is
-    the summary's, and the summary's punctures are the metrics' (one computation)."""
+    the summary's, and the summary's punctures are the metrics' (one computation). (3 s of path
+    paced at 3 times real time.)"""
     out = tmp_path / "session"
-    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
-                                     "--no-status", "--out", out, "--set", "scene.target_depth_mm=[5,20]"),
-                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert live.returncode == 0, live.stderr
+    monkeypatch.chdir(tmp_path)
+    rc, stdout, err = cli(capsys, "run", "--device", "scripted", "--trajectory", DEFAULT_TRAJ, "--duration", 3.0,
+                          "--no-status", "--out", out, "--set", "scene.target_depth_mm=[5,20]", "--speed", 3)
+    assert rc == 0, err
     assert sorted(p.name for p in out.iterdir()) == ["debrief.md", "force_depth.png", "recording.csv", "samples.csv", "summary.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["session"]  # nothing under runs/ with --out
     s = json.loads((out / "summary.json").read_text())
@@ -203,7 +219,7 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
     assert ins["punctures"] == s["punctures"]
     assert ins["max_tip_depth_mm"] == s["max_tip_depth_mm"]
     assert ins["depth_verdict"] == ("too deep" if ins["max_depth_mm"] > 20 else "in range")
-    text = live.stdout
+    text = stdout
     for p in s["punctures"]:
         assert f"{p['layer']:<6} punctured at t={p['t_s']:.3f} s, tip {p['tip_depth_mm']:.2f} mm below the rest skin, " \
                f"peak |F| {p['peak_force_n']:.3f} N" in text
@@ -212,30 +228,30 @@ def test_a_live_session_ends_with_results_and_a_report_folder(tmp_path):
     assert f"files: {out}/" in text
     # samples.csv: one row per tick the session counted; the recording replays (header on line 1)
     with open(out / "samples.csv", newline="") as f:
-        assert sum(1 for _ in csv.DictReader(f)) == session_ticks(live.stderr) == s["ticks"]
+        assert sum(1 for _ in csv.DictReader(f)) == session_ticks(err) == s["ticks"]
     assert (out / "force_depth.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_a_scripted_session_with_a_reset_runs_compiled_and_records_the_reset(tmp_path):
-    """A trajectory with an ``event`` column no longer falls back to the Python loop:
-    the compiled loop gives fresh tissue at the reset (the skin breaks twice though the second pass
-    goes down the same hole) and the recording carries the reset, so it replays the same way."""
+def test_a_scripted_session_with_a_reset_runs_compiled_and_records_the_reset(tmp_path, capsys):
+    """A trajectory with an ``event`` column runs in the compiled loop (no Python fallback): fresh
+    tissue at the reset (the skin breaks twice though the second pass goes down the same hole) and
+    the recording carries the reset, so it replays the same way. (2.5 s of path paced at 3 times
+    real time.)"""
     traj = tmp_path / "twice.csv"
     traj.write_text("t_s,x_mm,y_mm,z_mm,event\n0,0,0,3,\n0.6,0,0,-3,\n1.2,0,0,3,\n1.3,0,0,3,reset\n"
                     "1.9,0,0,-3,\n2.5,0,0,3,\n")
     out = tmp_path / "live"
-    live = subprocess.run(haptic_acu("run", "--device", "scripted", "--trajectory", traj, "--no-status", "--out", out),
-                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert live.returncode == 0, live.stderr
-    assert "compiled servo loop" in live.stderr
+    rc, _, err = cli(capsys, "run", "--device", "scripted", "--trajectory", traj, "--no-status", "--out", out,
+                     "--speed", 3)
+    assert rc == 0, err
+    assert "compiled servo loop" in err
     s = json.loads((out / "summary.json").read_text())
     skin = [p for p in s["punctures"] if p["layer"] == "skin"]
     assert len(skin) == 2 and skin[0]["t_s"] < 1.3 < skin[1]["t_s"]
     with open(out / "recording.csv", newline="") as f:
         events = [row for row in csv.DictReader(f) if row.get("event")]
     assert [e["event"] for e in events] == ["reset"] and float(events[0]["t_s"]) == pytest.approx(1.3, abs=1.5e-3)
-    again = subprocess.run(haptic_acu("replay", out / "recording.csv", "--no-rrd", "--quiet", "--out", tmp_path / "re"),
-                           cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert again.returncode == 0, again.stderr
+    rc, _, err = cli(capsys, "replay", out / "recording.csv", "--no-rrd", "--quiet", "--out", tmp_path / "re")
+    assert rc == 0, err
     re_skin = [p for p in json.loads((tmp_path / "re" / "summary.json").read_text())["punctures"] if p["layer"] == "skin"]
     assert len(re_skin) == 2

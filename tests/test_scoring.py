@@ -10,13 +10,12 @@ import json
 import math
 import re
 import statistics
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_helpers import cli
 from haptic_acu.analysis import scoring
 from haptic_acu.analysis.scoring import INDICES
 
@@ -200,8 +199,7 @@ def test_check_weights():
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "haptic_acu", "score", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=120)
+    return cli("score", *args, cwd=cwd)  # in-process: main()'s exit status and streams
 
 
 def read_csv_rows(path):

@@ -40,10 +40,19 @@ def run_with(sink, tmp_path):
     return s.run()
 
 
-def test_child_process_sink_writes_the_same_series(tmp_path):
-    a, b = tmp_path / "child.rrd", tmp_path / "here.rrd"
-    ra = run_with(rerun_file_sink(a), tmp_path)
-    rb = run_with(RerunSink.to_file(b), tmp_path)
+@pytest.fixture(scope="module")
+def both(tmp_path_factory):
+    """One session through the child process's file sink (a live session's) and one through the
+    in-process file sink (a replay's): their files and results, read by the tests below."""
+    d = tmp_path_factory.mktemp("sinks")
+    a, b = d / "child.rrd", d / "here.rrd"
+    ra = run_with(rerun_file_sink(a), d)
+    rb = run_with(RerunSink.to_file(b), d)
+    return a, ra, b, rb
+
+
+def test_child_process_sink_writes_the_same_series(both):
+    a, ra, b, rb = both
     assert ra.fault is None and rb.fault is None and ra.ticks == rb.ticks
     ta, va = force_series(a)
     tb, vb = force_series(b)
@@ -52,13 +61,11 @@ def test_child_process_sink_writes_the_same_series(tmp_path):
     assert va[:, 0].max() > 0.3  # the skin pressed back
 
 
-def test_live_rrd_has_no_footer(tmp_path):
+def test_live_rrd_has_no_footer(both):
     """A live session's .rrd goes without rerun's footer manifest, which rerun keeps in memory for
     every chunk until the file closes (the logging child grew ~25 MB/min): the file from
     rerun_file_sink has none, a headless replay's file keeps it."""
-    a, b = tmp_path / "live.rrd", tmp_path / "replay.rrd"
-    run_with(rerun_file_sink(a), tmp_path)
-    run_with(RerunSink.to_file(b), tmp_path)
+    a, _, b, _ = both  # the live session's file (rerun_file_sink), the replay's (RerunSink.to_file)
     with pytest.raises(RuntimeError, match="without footer"):
         RrdReader(a).store()
     RrdReader(b).store()

@@ -1,5 +1,6 @@
-"""`haptic-acu study` as an experimenter runs it: plan, trials on the scripted device (real time,
-a short path), ratings at the prompts, rate, status, replay, analyze.
+"""`haptic-acu study` as an experimenter runs it: plan, trials on the scripted device (a short path;
+paced with --speed where a test checks what a trial writes, at real pace where it checks how a
+signal ends one), ratings at the prompts, rate, status, replay, analyze.
 
 The models here are two configs that differ in the fat's cutting force (what the needle meets
 after the skin breaks), named so that a leak of either name is unmistakable; the model kinds of
@@ -32,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 NAMES = ("Zetamodel", "Kappamodel")
 TIMEOUT_S = 300  # a loaded 2-core machine
 GOOD = ["7", "8.5", "6", "9", "10", "7.5", "8"]
+SPEED = 4.0  # the trials that check what a trial writes, paced (study trial --speed)
 
 
 def write_path(path: Path, t_end: float = 1.2) -> Path:
@@ -166,7 +168,9 @@ def test_prompts_reask_and_record_only_all_seven(world, tmp_path, monkeypatch, c
 @pytest.fixture(scope="module")
 def ran(world, tmp_path_factory):
     """A study whose P01 ran trial 1 (with --rrd, the status line drawn, ratings at the prompts),
-    trial 2 with --ratings-later, then trial 1 again with --redo; every line shown kept."""
+    trial 2 with --ratings-later, then trial 1 again with --redo; every line shown kept. The trials
+    are paced at 4 times real time (``--speed``: the compiled loop's ticks and forces as at real
+    pace, tests/test_rtloop.py), which trial.json records."""
     from haptic_acu.session import status as status_mod
 
     mp = pytest.MonkeyPatch()
@@ -184,7 +188,7 @@ def ran(world, tmp_path_factory):
         mp.setattr(sys, "stdout", o)
         mp.setattr(sys, "stderr", e)
         rc = main(["study", "trial", str(out), "--participant", "P01", "--device", "scripted", "--trajectory",
-                   str(world["path"]), *argv])
+                   str(world["path"]), "--speed", str(SPEED), *argv])
         mp.setattr(sys, "stdout", sys.__stdout__)
         mp.setattr(sys, "stderr", sys.__stderr__)
         runs.append((rc, o.getvalue(), e.getvalue()))
@@ -193,7 +197,7 @@ def ran(world, tmp_path_factory):
     return {"study": Study(out), "runs": runs, "screen": "\n".join(screen), "path": world["path"]}
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_trials_run_and_record(ran):
     study = ran["study"]
     assert [r[0] for r in ran["runs"]] == [0, 0, 0], ran["runs"]
@@ -201,7 +205,7 @@ def test_trials_run_and_record(ran):
     assert folders == ["P01-T1", "P01-T1.2", "P01-T2"]
     for name in folders:
         doc = json.loads((study.sessions / name / "trial.json").read_text())
-        assert doc["status"] == "complete"
+        assert doc["status"] == "complete" and doc["speed"] == SPEED
         for f in ("recording.csv", "samples.csv", "summary.json", "force_depth.png"):
             assert (study.sessions / name / f).is_file(), (name, f)
         tr = tick_rows(trajectory.load(study.sessions / name / "recording.csv", extra_columns=EXTRA))
@@ -210,7 +214,7 @@ def test_trials_run_and_record(ran):
     assert "\r" in ran["runs"][0][2]  # the status line was drawn
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_redo_keeps_earlier_files_and_ratings_history(ran, tmp_path, capsys):
     study = ran["study"]
     text = study.ratings_path.read_text()
@@ -229,7 +233,7 @@ def test_redo_keeps_earlier_files_and_ratings_history(ran, tmp_path, capsys):
     assert "only one rater" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a live session's file: read as a stream
 def test_blinding_nothing_shown_names_a_model(ran):
     study = ran["study"]
@@ -257,7 +261,7 @@ def test_blinding_nothing_shown_names_a_model(ran):
     assert grep_names((study.folder / "key.json").read_text()) == list(NAMES)
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_status_does_not_reveal_the_key(ran, capsys):
     study = ran["study"]
     assert main(["study", "status", str(study.folder)]) == 0
@@ -270,7 +274,7 @@ def test_status_does_not_reveal_the_key(ran, capsys):
     assert "next: trial 1" in p02
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_done_trial_refused_without_redo(ran, capsys):
     study = ran["study"]
     n = len(list(study.sessions.iterdir()))
@@ -284,7 +288,7 @@ def test_done_trial_refused_without_redo(ran, capsys):
     assert "every trial has been run; to rate: trial(s) 2" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_rate_enters_and_corrects_with_history(ran, monkeypatch, capsys):
     study = ran["study"]
     before = study.ratings_path.read_text()
@@ -309,7 +313,7 @@ def test_rate_enters_and_corrects_with_history(ran, monkeypatch, capsys):
     assert "no completed session" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_replay_uses_the_trials_model(ran, tmp_path, capsys):
     """The recording replays headless with the model from the key: the forces of the live session
     come back; the other model's config gives other forces (so this can fail)."""
@@ -363,7 +367,7 @@ def _rows(path: Path) -> int:
     return sum(1 for line in path.read_bytes().splitlines() if line[:1].isdigit()) if path.exists() else 0
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
 def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
     study = plan(world, tmp_path / "s")
     before = study.ratings_path.read_bytes()
@@ -398,7 +402,8 @@ def test_sigterm_mid_session_leaves_the_trial_not_done(world, tmp_path):
                  "--out", str(tmp_path / "r")]) == 0
 
 
-@pytest.mark.slow  # three real-time trials (the module's fixture), or a subprocess session
+@pytest.mark.slow  # three trials (the module's fixture), or a subprocess session
+@pytest.mark.serial  # its second Ctrl-C lands on a child reading a prompt: once, in the parallel phase, it never ended
 def test_sigint_ends_the_session_and_at_the_prompts_records_nothing(world, tmp_path):
     """Ctrl-C mid-session is the usual end of an OMNI session: the trial is complete and the
     ratings are asked; Ctrl-C again at the third prompt records nothing."""
@@ -459,7 +464,10 @@ def test_trial_bad_input_is_one_line(world, tmp_path, capsys):
             (base + ["--participant", "P01", "--duration", "-1"], "--duration must be > 0"),
             (["study", "trial", str(study.folder), "--participant", "P01", "--device", "scripted"],
              "--device scripted needs --trajectory"),
-            (base[:-1] + ["/no/such.csv", "--participant", "P01"], "trajectory file not found")):
+            (base[:-1] + ["/no/such.csv", "--participant", "P01"], "trajectory file not found"),
+            (base + ["--participant", "P01", "--speed", "0"], "--speed must be a number > 0"),
+            (["study", "trial", str(study.folder), "--participant", "P01", "--device", "keyboard", "--speed", "2"],
+             "--speed is for --device scripted")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1 and "Traceback" not in err, (argv, err)
@@ -493,7 +501,7 @@ def test_a_changed_config_is_refused_without_naming_the_model(world, tmp_path, c
     assert list(study.sessions.iterdir()) == []
 
 
-@pytest.mark.slow  # the module's real-time trials, and two replays
+@pytest.mark.slow  # the module's trials, and two replays
 def test_analyze_objective_side(ran, tmp_path):
     """Each model on the common path (the key's configs), and the trials' session metrics by model."""
     study = ran["study"]

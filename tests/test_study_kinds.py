@@ -1,6 +1,7 @@
-"""A study of the model kinds (``model.kind``): one trial of each kind on the scripted device (real
-time), everything shown grepped for every kind's name, and each recording replayed headless with
-the kind the key names, to the live session's forces."""
+"""A study of the model kinds (``model.kind``): one trial of each kind on the scripted device (paced
+at 4 times real time, ``study trial --speed``: the compiled loop's ticks and forces as at real pace,
+tests/test_rtloop.py), everything shown grepped for every kind's name, and each recording replayed
+headless with the kind the key names, to the live session's forces."""
 from __future__ import annotations
 
 import csv
@@ -57,7 +58,7 @@ def kinds_study(tmp_path_factory):
         mp.setattr(sys, "stderr", e)
         try:
             rc = main(["study", "trial", str(out), "--participant", "P01", "--device", "scripted", "--trajectory",
-                       str(path), "--rrd"])
+                       str(path), "--rrd", "--speed", "4"])
         finally:
             mp.setattr(sys, "stdout", sys.__stdout__)
             mp.setattr(sys, "stderr", sys.__stderr__)

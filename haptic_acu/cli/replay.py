@@ -67,6 +67,18 @@ def _one(args_tuple):
         return str(traj), None, f"{e.filename or out_dir}: {e.strerror or e}"
 
 
+def _replays(work, jobs: int):
+    """Each batch item's (trajectory, summary, error) as it is done: one worker is this process (no
+    child to start: its imports and kernels are loaded already), more are spawned processes."""
+    if jobs == 1:
+        for w in work:
+            yield _one(w)
+        return
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+        for f in as_completed([ex.submit(_one, w) for w in work]):
+            yield f.result()
+
+
 def run(args) -> int:
     from .options import config_from_args
     from ..base.bundled import not_found_hint
@@ -131,11 +143,9 @@ def _run_batch(args, paths, base: Path, ps=None) -> int:
             for p in paths]
     results = {}
     from ..base import progress
-    with progress.step(f"replaying {len(paths)} trajectories in {jobs} processes"), \
-            ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
-        futs = [ex.submit(_one, w) for w in work]
-        for f in as_completed(futs):
-            traj, summary, err = f.result()
+    with progress.step(f"replaying {len(paths)} trajectories " + ("in this process" if jobs == 1 else
+                                                                    f"in {jobs} processes")):
+        for traj, summary, err in _replays(work, jobs):
             results[traj] = (summary, err)
             progress.note(f"{len(results)}/{len(paths)} done: {Path(traj).name}" + (" (failed)" if err else ""))
     failed = 0

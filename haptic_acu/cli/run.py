@@ -91,7 +91,7 @@ def make_device(args, cfg):
         return ScriptedDevice(args.trajectory, cfg.scene.max_hand_speed_m_per_s, realtime=True, force_limit_n=limit)
     if args.trajectory:
         raise UserError(f"--trajectory is for --device scripted, not {args.device}")
-    if getattr(args, "speed", 1.0) != 1.0:  # (study trial has no --speed)
+    if args.speed != 1.0:
         raise UserError(f"--speed is for --device scripted, not {args.device}")
     if args.travel_axis and args.device != "omni":
         raise UserError(f"--travel-axis is for --device omni, not {args.device}")

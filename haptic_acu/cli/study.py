@@ -67,6 +67,9 @@ def register(sub) -> None:
     q.add_argument("--pin-cores", action="store_true", help="as `run --pin-cores`")
     q.add_argument("--travel-axis", action="store_true", help="as `run --travel-axis` (OMNI)")
     q.add_argument("--python-servo", action="store_true", help="as `run --python-servo`")
+    q.add_argument("--speed", type=float, default=1.0, metavar="X",
+                   help="as `run --speed`: --device scripted played X times as fast as real time (a dry run "
+                        "of the study; trial.json records the speed)")
     q.set_defaults(func=cmd_trial)
 
     q = ss.add_parser("rate", help="enter or correct a trial's ratings",
@@ -176,6 +179,9 @@ def cmd_trial(args) -> int:
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UserError(f"--duration must be > 0, got {args.duration}")
+    from ..session.engine import MAX_SPEED
+    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
+        raise UserError(f"--speed must be a number > 0 and at most {MAX_SPEED:g}, got {args.speed}")
     study = _study(args.study)
     trial, state = overview.pick_trial(study, args.participant, args.trial, args.redo)
     key = study.key()
@@ -188,7 +194,8 @@ def cmd_trial(args) -> int:
         args.trajectory = str(traj)
     device = make_device(args, cfg)
     res = run_session(study, trial, cfg, device, device_name=args.device, duration_s=args.duration, rrd=args.rrd,
-                      status=not args.no_status, compiled=not args.python_servo, pin_cores=args.pin_cores)
+                      status=not args.no_status, compiled=not args.python_servo, pin_cores=args.pin_cores,
+                      speed=args.speed)
     name = res.folder.name
     if res.status == "fault":
         print(f"haptic-acu study: stopped: {res.fault}; trial not done (its files: {res.folder})", file=sys.stderr)

@@ -205,10 +205,11 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
             st = _style(j)
             sel = idx >= k if last else idx == k
             ax.plot(np.where(sel, d, np.nan), np.where(sel, f, np.nan), **st)
-            for e, ki in zip(ev, ev_idx):
-                if ki == k or (last and ki >= k):
-                    ax.plot([e["tip_depth_mm"]], [e["peak_force_n"]], marker="v", ms=7, color=st["color"],
-                            mec="k", mew=0.5, ls="none")
+            marks = [(e["tip_depth_mm"], e["peak_force_n"]) for e, ki in zip(ev, ev_idx)
+                     if ki == k or (last and ki >= k)]
+            if marks:  # the session's punctures in this panel: one marker line, drawn in their order
+                ax.plot([m[0] for m in marks], [m[1] for m in marks], marker="v", ms=7, color=st["color"],
+                        mec="k", mew=0.5, ls="none")
         ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9)
         ax.set_xlabel("tip depth below the rest skin (mm)")
         if p:

@@ -42,9 +42,11 @@ def session_name(trial: Trial) -> str:
 
 
 def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, duration_s=None, rrd=False,
-                status=True, compiled=True, pin_cores=False, err=None, out=None) -> TrialResult:
+                status=True, compiled=True, pin_cores=False, speed=1.0, err=None, out=None) -> TrialResult:
     """Run the trial's session on ``device`` (made by the caller, not opened) with the model's
-    ``cfg`` into a new session folder; returns how it ended. Never reveals the model."""
+    ``cfg`` into a new session folder; returns how it ended. Never reveals the model. ``speed``: a
+    paced session of the scripted device (:class:`~haptic_acu.session.engine.Session`), recorded in
+    trial.json when it is not 1."""
     from ..session.engine import Session
     from ..session.recorder import RecorderSink
     from ..session.report import SamplesCsvSink, SummarySink, plot_force_depth, print_results
@@ -54,6 +56,8 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
     folder, attempt = study.new_session_folder(trial)
     doc = {"participant": trial.participant, "trial": trial.trial, "system": trial.system, "attempt": attempt,
            "status": "running", "device": device_name, "started": now(), "tool_version": __version__}
+    if speed != 1.0:
+        doc["speed"] = speed
     write_trial_json(folder, doc)
     summary_sink = SummarySink(cfg, keep_rows=False)
     recorder = RecorderSink(folder / "recording.csv", device=device)
@@ -66,7 +70,7 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
         sinks.append(StatusLine(stream=err, target_mm=cfg.scene.target_depth_mm,
                                 force_limit_n=cfg.safety.force_limit_n, device=device))
     session = Session(cfg, device, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled,
-                      pin_cores=pin_cores)
+                      pin_cores=pin_cores, speed=speed)
     with step("preparing the simulator"):
         session.warm_up()
     print(f"{trial.participant}, trial {trial.trial} of {study.n_trials}: {trial.system}. "
