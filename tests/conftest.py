@@ -45,7 +45,7 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     "test_closed_loop": (8, 0), "test_quantity_names": (3, 10), "test_servostate": (6, 0), "test_atlas": (7, 0),
     # the OMNI emulator's modules on its virtual clock, sessions forked from a warm interpreter (the
     # first OMNI module on a worker also waits ~3 s for that interpreter's warm-up)
-    "test_omni_closed_loop": (0, 18), "test_run_omni": (0, 16), "test_omni_stylus": (0, 11), "test_omni": (0, 7),
+    "test_omni_closed_loop": (0, 24), "test_run_omni": (0, 16), "test_omni_stylus": (0, 11), "test_omni": (0, 7),
     "test_hd_physical": (0, 3),
     # the scripted device's modules with paced sessions (estimates from their serial times)
     "test_run_cli": (0, 15), "test_study": (1, 14), "test_study_kinds": (0, 13),
