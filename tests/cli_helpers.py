@@ -140,3 +140,49 @@ def cohort_sessions_here(monkeypatch) -> list[str]:
 
     monkeypatch.setattr(run, "run_local", run_local)
     return replayed
+
+
+class PoolHere:
+    """The part of :class:`concurrent.futures.ProcessPoolExecutor` a batch uses (``submit`` in a
+    ``with`` block), each call run at once in this process, its function, arguments and result each
+    through pickle as a pool sends them. ``pool_here(monkeypatch, module)`` puts it in place of
+    ``module.ProcessPoolExecutor`` for one test."""
+
+    def __init__(self, max_workers=None, mp_context=None, **kw):
+        assert max_workers is None or max_workers >= 1
+        self.calls = 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        pass
+
+    def submit(self, fn, *args, **kwargs):
+        import pickle
+        from concurrent.futures import Future
+
+        fn, args, kwargs = pickle.loads(pickle.dumps((fn, args, kwargs)))
+        f = Future()
+        self.calls += 1
+        try:
+            f.set_result(pickle.loads(pickle.dumps(fn(*args, **kwargs))))
+        except Exception as e:  # as the pool's future holds it
+            f.set_exception(e)
+        return f
+
+
+def pool_here(monkeypatch, module) -> list[PoolHere]:
+    """``module.ProcessPoolExecutor`` replaced by :class:`PoolHere` for one test; returns the pools
+    made (their ``calls`` count what was submitted)."""
+    made: list[PoolHere] = []
+
+    def make(*a, **kw):
+        made.append(PoolHere(*a, **kw))
+        return made[-1]
+
+    monkeypatch.setattr(module, "ProcessPoolExecutor", make)
+    return made

@@ -67,8 +67,8 @@ def test_unknown_name_is_one_line_listing_the_bundled_names(tmp_path):
 
 
 def test_run_scripted_plays_a_bundled_trajectory_by_name(tmp_path):
-    r = cli("run", "--device", "scripted", "--trajectory", "default", "--duration", "1.5", "--no-status",
-            "--quiet", "--out", "live", cwd=tmp_path)
+    r = cli("run", "--device", "scripted", "--trajectory", "default", "--duration", "1.5", "--speed", "8",
+            "--no-status", "--quiet", "--out", "live", cwd=tmp_path)  # paced 8x: the same 1.5 s of ticks
     assert r.returncode == 0, r.stderr
     rec = (tmp_path / "live" / "recording.csv").read_text().splitlines()
     assert rec[0].startswith("t_s,x_mm,y_mm,z_mm")

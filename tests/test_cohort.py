@@ -250,16 +250,19 @@ def test_resume_after_an_interrupted_run(cohort, tmp_path, monkeypatch, capsys):
     capsys.readouterr()
 
     # the re-run replays only what the interrupted run did not finish; the tables match a clean run
+    # (its sessions replayed in this process: which ones run is the point here; a pool's run of the
+    # same sessions made the tables compared with)
+    replayed = cohort_sessions_here(monkeypatch)
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "2"]) == 2
     assert replayed_count(capsys.readouterr().err) == (4, 2)  # the malformed file's record is kept too
+    assert len(replayed) == 4 and not set(replayed) & set(saved)
     a, b = tables(cohort["out"]), tables(out)
     for n in a:  # the ghost's error names its absolute path: the copy's differs
         assert a[n].drop_columns(["error"]).equals(b[n].drop_columns(["error"])), n
         assert [bool(e) for e in a[n]["error"].to_pylist()] == [bool(e) for e in b[n]["error"].to_pylist()]
 
-    # nothing changed: nothing replayed; a changed file: that session only (replayed in this process:
-    # which sessions run is the point here, the pool's part is above)
-    replayed = cohort_sessions_here(monkeypatch)
+    # nothing changed: nothing replayed; a changed file: that session only
+    replayed.clear()
     assert main(["cohort", str(man), "--out", str(out), "--jobs", "1"]) == 2
     assert replayed_count(capsys.readouterr().err) == (0, 6) and replayed == []
     with open(root / "sessions" / "t01-s00.csv", "a") as f:
