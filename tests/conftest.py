@@ -43,9 +43,10 @@ PARALLEL_SECONDS = {  # module: (not slow, slow)
     "test_hostile": (5, 3), "test_fit_cli": (3, 0), "test_compare": (2, 2), "test_cohort_memory": (0, 10),
     "test_trajectory": (4, 6), "test_bundled_names": (4, 0), "test_compare_memory": (0, 9), "test_study_example": (1, 8),
     "test_closed_loop": (8, 0), "test_quantity_names": (3, 6), "test_servostate": (6, 0), "test_atlas": (7, 0),
-    # the OMNI emulator's modules on its virtual clock (estimates from their serial times at real pace)
-    "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
-    "test_hd_physical": (0, 8),
+    # the OMNI emulator's modules on its virtual clock, sessions forked from a warm interpreter (the
+    # first OMNI module on a worker also waits ~3 s for that interpreter's warm-up)
+    "test_omni_closed_loop": (0, 24), "test_run_omni": (0, 16), "test_omni_stylus": (0, 11), "test_omni": (0, 7),
+    "test_hd_physical": (0, 3),
     # the scripted device's modules with paced sessions (estimates from their serial times)
     "test_run_cli": (0, 17), "test_study": (1, 14), "test_study_kinds": (0, 13),
 }

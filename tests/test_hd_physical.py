@@ -22,7 +22,7 @@ from scipy.linalg import expm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import TRACE_COLUMNS, build_emulator, emulator_env, find_compiler  # noqa: E402
+from hd_emulator.build import TRACE_COLUMNS, emulator_env  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 # Device time only (the emulator's virtual clock, build.FAST): the parallel phase runs these; a test
@@ -33,20 +33,13 @@ T = 1e-3
 COL = {name: i for i, name in enumerate(TRACE_COLUMNS)}
 
 
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-    if find_compiler() is None:
-        pytest.skip("no C compiler to build the HD API emulator")
-    return build_emulator(tmp_path_factory.mktemp("hd_emulator"))
-
-
-def run_wall(lib, tmp_path, scenario, **emu):
+def run_wall(emulator, tmp_path, scenario, **emu):
     tmp_path.mkdir(parents=True, exist_ok=True)
     (tmp_path / "scenario.json").write_text(json.dumps(scenario))
     out = tmp_path / "result.json"
     emu.setdefault("speed", "max")  # device time only: the ticks back to back
     proc = subprocess.run([sys.executable, str(RUN_WALL), str(tmp_path / "scenario.json"), str(out)],
-                          env=emulator_env(lib, **emu), cwd=REPO, capture_output=True, text=True, timeout=120)
+                          env=emulator_env(emulator.lib, **emu), cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     res = json.loads(out.read_text())
     res["seen"] = np.array(res["seen"])
@@ -186,12 +179,12 @@ def test_a_hand_pushing_into_a_naive_stiff_wall(emulator, tmp_path, k_wall, stab
 
 
 def test_physical_options_need_the_mass_and_bad_values_are_one_line(emulator, tmp_path):
-    env = emulator_env(emulator, path=[(0, 0, 0, 0)])
+    env = emulator_env(emulator.lib, path=[(0, 0, 0, 0)])
     env["HD_EMU_HAND_STIFFNESS"] = "0.3"
     proc = subprocess.run([sys.executable, "-c", "import ctypes; ctypes.CDLL('libHD.so')"], env=env,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "HD_EMU_STYLUS_MASS_G" in proc.stderr and proc.stderr.count("\n") == 1
-    env = emulator_env(emulator, path=[(0, 0, 0, 0)], stylus={"mass_g": 45})
+    env = emulator_env(emulator.lib, path=[(0, 0, 0, 0)], stylus={"mass_g": 45})
     env["HD_EMU_ENCODER_STEP_MM"] = "-1"
     proc = subprocess.run([sys.executable, "-c", "import ctypes; ctypes.CDLL('libHD.so')"], env=env,
                           capture_output=True, text=True, timeout=60)

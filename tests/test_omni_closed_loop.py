@@ -31,7 +31,7 @@ from scipy.signal import butter, sosfiltfilt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hd_emulator.build import FAST, FIRM_GRIP, LOOSE_GRIP, emulator_env  # noqa: E402
+from hd_emulator.build import FIRM_GRIP, LOOSE_GRIP, emulator_env, pace  # noqa: E402
 
 from haptic_acu.cli import main  # noqa: E402
 from haptic_acu.session import trajectory  # noqa: E402
@@ -76,7 +76,7 @@ def hand_path():
 def run_cli(emulator, tmp_path, path, duration, stylus=None, faults=(), extra=()):
     log = tmp_path / "forces.csv"
     rec = tmp_path / "rec.csv"
-    env = emulator_env(emulator.lib, path=path, log=log, stylus=stylus, faults=faults, speed=FAST)
+    env = emulator_env(emulator.lib, path=path, log=log, stylus=stylus, faults=faults, speed=pace(duration))
     env["OPENBLAS_NUM_THREADS"] = "1"
     proc = emulator.sessions.run(["run", "--verbose", "--device", "omni", "--duration", str(duration), "--record", rec,
                                   "--out", tmp_path / "out", "--no-status", *extra], env, timeout=TIMEOUT_S)

@@ -64,9 +64,20 @@ LOOSE_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 0.3, "hand_damping_n_s_
 FIRM_GRIP = {"mass_g": 45.0, "hand_stiffness_n_per_mm": 2.0, "hand_damping_n_s_per_m": 5.0}
 # The pace of a session that needs device time only (a simulated hand on the simulated device): a
 # session through the CLI drains its sample ring (8192 rows) at the visual rate on the wall, so it gets
-# a bounded multiple with seconds of slack for a starved visual thread, not "max" (a raw HD API driver,
-# with no ring, can take "max").
-FAST = 4.0
+# a bounded multiple, not "max" (a raw HD API driver, with no ring, can take "max"). A session of up to
+# 8 s of device time (RING_ROWS ticks) cannot lose a row at any pace: FAST. A longer one loses rows if
+# its visual thread is starved for RING_ROWS / pace ms of wall: at 8, a cold kernel cache on a host at
+# load 9 lost 2226 rows of a 12.5 s session (a second of slack was not enough), so such sessions take
+# FAST_LONG (two seconds of slack). The forces are the same at any pace (the closed-loop sessions' buzz
+# and punctures agree to the printed digits at 4 and 8).
+FAST = 8.0
+FAST_LONG = 4.0
+RING_ROWS = 8192  # haptic_acu.session.engine's sample ring for a session at the device's own pace
+
+
+def pace(duration_s: float) -> float:
+    """The pace of a CLI session of ``duration_s`` seconds of device time (see FAST)."""
+    return FAST if duration_s * 1e3 <= RING_ROWS else FAST_LONG
 TRACE_COLUMNS = ("t_s", "hand_x_mm", "hand_y_mm", "hand_z_mm", "hand_vx_mm_s", "hand_vy_mm_s", "hand_vz_mm_s",
                  "x_mm", "y_mm", "z_mm", "vx_mm_s", "vy_mm_s", "vz_mm_s", "motor_fx_n", "motor_fy_n", "motor_fz_n",
                  "hand_fx_n", "hand_fy_n", "hand_fz_n")

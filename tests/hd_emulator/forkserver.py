@@ -15,8 +15,9 @@ hooks, the emulator's destructor): its exit status, stdout and stderr are what a
 The server's environment is the sessions' without the ``HD_EMU_*`` variables (the loader's path to
 the emulator, and everything a library reads at import). A session's process gets what its imports
 would have added to its environment (``import haptic_acu`` sets the BLAS thread counts unless they
-are set), and the server refuses a session whose environment, so completed, differs from its own in
-anything but ``HD_EMU_*`` and pytest's name of the current test.
+are set). A session whose environment, so completed, differs from the server's in anything but
+``HD_EMU_*`` and pytest's name of the current test (another test changed the test process's
+environment, say its PATH) gets a new server started with its environment.
 
 Run as ``python forkserver.py``: the server. It reads one JSON request a line on stdin and answers
 ``{"pid": N}`` when the session's process starts and ``{"status": S}`` (its exit code, or minus the
@@ -60,16 +61,20 @@ class Emulator(NamedTuple):
 
 class ForkServer:
     """A server for sessions whose environment is ``env`` plus ``HD_EMU_*`` variables (see the module
-    docstring); ``log``: the server's own stderr (its warm-up's messages)."""
+    docstring); ``log``: the server's own stderr (its warm-up's messages), beside which the sessions'
+    stdout and stderr are kept."""
 
     def __init__(self, env: dict, log):
         self.log = Path(log)
-        self._log_file = open(self.log, "w")
+        self._n = 0
+        self._start(env)
+
+    def _start(self, env: dict) -> None:
+        self._log_file = open(self.log, "a")
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve())], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=self._log_file, env=_session_env(env), cwd=REPO)
         self._buf = b""
         self._ready = False
-        self._n = 0
 
     def _line(self, timeout: float) -> dict | None:
         """The server's next answer, or None if none came within ``timeout`` seconds."""
@@ -91,21 +96,28 @@ class ForkServer:
         in ``cwd``: the exit status and the text of stdout and stderr, as ``subprocess.run(...,
         capture_output=True, text=True, timeout=timeout)`` gives them (TimeoutExpired after killing
         the process)."""
-        if not self._ready:  # the warm-up: imports and a scripted session, once
-            ready = self._line(600.0)
-            if ready != {"ready": True}:
-                raise RuntimeError(f"the fork server did not start: {ready} {self.log.read_text()[-2000:]}")
-            self._ready = True
         self._n += 1
         out = self.log.with_name(f"{self.log.stem}-{self._n}.out")
         err = self.log.with_name(f"{self.log.stem}-{self._n}.err")
         req = {"argv": [str(a) for a in argv], "env": dict(env), "cwd": str(cwd), "out": str(out), "err": str(err),
                "script": None if script is None else str(script)}
-        self.proc.stdin.write((json.dumps(req) + "\n").encode())
-        self.proc.stdin.flush()
-        started = self._line(60.0)
-        if "error" in started:
-            raise ValueError(started["error"])
+        for attempt in (1, 2):
+            if not self._ready:  # the warm-up: imports and a scripted session, once per server
+                ready = self._line(600.0)
+                if ready != {"ready": True}:
+                    raise RuntimeError(f"the fork server did not start: {ready} {self.log.read_text()[-2000:]}")
+                self._ready = True
+            self.proc.stdin.write((json.dumps(req) + "\n").encode())
+            self.proc.stdin.flush()
+            started = self._line(120.0)
+            if started is None:
+                raise RuntimeError(f"the fork server did not answer: {self.log.read_text()[-2000:]}")
+            if "error" not in started:
+                break
+            if attempt == 2:  # refused by a server started with its own environment
+                raise ValueError(started["error"])
+            self.close()  # another environment: a server of its own
+            self._start(env)
         pid = started["pid"]
         done = self._line(timeout)
         if done is None:
