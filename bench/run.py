@@ -84,6 +84,8 @@ class Sizes:
     end_to_end_runs: int = 3  # `haptic-acu replay` commands timed per mode (with / without .rrd; 0: not measured)
     end_to_end_batch: int = 4  # copies of the trajectory in the one batch command timed
     wheel_first_run: bool = True  # build the wheel, install it into a fresh venv, time its first command
+    floor_s: float = 0.0  # the machine-floor loops' length (0: loop_plain_s, or 3 s without it)
+    fem_mesh_ratio: float | None = None  # the FEM models' mesh grading in `models` (None: the model's own, fem.RATIO)
 
 
 FULL = Sizes(servo_ticks=5000, numpy_ticks=1000,
@@ -288,6 +290,7 @@ def models(sizes: Sizes, progress=False) -> dict:
     out = {"model_tick_us": {}, "model_tick_cpu_us": {}, "model_build_s": {}, "model_build_cpu_s": {},
            "model_table_bytes": {}}
     base = load_config()
+    fem_mesh = {"ratio": sizes.fem_mesh_ratio} if sizes.fem_mesh_ratio else None
     runs = {kind: (kind, {}) for kind in MODEL_KINDS} | MODEL_VARIANTS
     for label, (kind, extra) in runs.items():
         cfg = scenarios.with_kind(base, kind, **extra)
@@ -299,7 +302,7 @@ def models(sizes: Sizes, progress=False) -> dict:
             tabs = [netresponse.build(NetParams.from_layer(layer), tol) for layer in cfg.layers]
             nbytes = sum(t.F.nbytes + t.R.nbytes + t.D.nbytes for t in tabs)
         else:
-            nbytes = baselines.build_contact(cfg).table_bytes
+            nbytes = baselines.build_contact(cfg, fem_mesh=fem_mesh).table_bytes
         out["model_build_s"][label] = round(time.perf_counter() - t0, 3)
         out["model_build_cpu_s"][label] = round(time.process_time() - c0, 3)  # on a loaded host, what an idle one pays
         out["model_table_bytes"][label] = int(nbytes)
@@ -455,8 +458,9 @@ def loop(sizes: Sizes, progress=False) -> dict:
         out["loop_python_servo"] = {"duration_s": sizes.loop_plain_s, "period_error_us": py["period_error_us"],
                                     "ticks": int(py["ticks"]), "missed_ticks": int(py["missed_ticks"]),
                                     "fault": py["fault"], "steal": py["steal"]}
-    out["machine_floor"] = machine_floor(sizes.loop_plain_s or 3.0, progress)
-    out["compiled_floor"] = compiled_floor(sizes.loop_plain_s or 3.0, progress)
+    floor_s = sizes.floor_s or sizes.loop_plain_s or 3.0
+    out["machine_floor"] = machine_floor(floor_s, progress)
+    out["compiled_floor"] = compiled_floor(floor_s, progress)
     return out
 
 

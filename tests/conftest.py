@@ -37,17 +37,17 @@ SERIAL_MODULES = {"test_engine", "test_keyboard", "test_rtloop", "test_keyboard_
 # Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
 # Only the order of the parallel run depends on these numbers.
 PARALLEL_SECONDS = {  # module: (not slow, slow)
-    "test_physics_properties": (4, 40), "test_wheel": (0, 55), "test_bench": (12, 45), "test_baselines": (20, 27),
-    "test_live_equals_replay": (2, 43), "test_cohort": (17, 0), "test_replay_cli": (7, 10), "test_outputs": (8, 0),
+    "test_physics_properties": (4, 40), "test_wheel": (0, 68), "test_bench": (20, 30), "test_baselines": (20, 14),
+    "test_live_equals_replay": (2, 13), "test_cohort": (17, 0), "test_replay_cli": (7, 10), "test_outputs": (8, 0),
     "test_recording": (8, 0), "test_replay_memory": (0, 15), "test_scoring": (4, 0), "test_cohort_cluster": (4, 6),
-    "test_hostile": (5, 3), "test_fit_cli": (3, 0), "test_compare": (4, 6), "test_cohort_memory": (0, 10),
+    "test_hostile": (5, 3), "test_fit_cli": (3, 0), "test_compare": (2, 2), "test_cohort_memory": (0, 10),
     "test_trajectory": (4, 6), "test_bundled_names": (4, 0), "test_compare_memory": (0, 9), "test_study_example": (1, 8),
-    "test_closed_loop": (8, 0), "test_quantity_names": (3, 10), "test_servostate": (6, 0), "test_atlas": (7, 0),
+    "test_closed_loop": (8, 0), "test_quantity_names": (3, 6), "test_servostate": (6, 0), "test_atlas": (7, 0),
     # the OMNI emulator's modules on its virtual clock (estimates from their serial times at real pace)
     "test_omni_closed_loop": (0, 40), "test_run_omni": (0, 30), "test_omni_stylus": (0, 25), "test_omni": (0, 15),
     "test_hd_physical": (0, 8),
     # the scripted device's modules with paced sessions (estimates from their serial times)
-    "test_run_cli": (0, 15), "test_study": (1, 14), "test_study_kinds": (0, 13),
+    "test_run_cli": (0, 17), "test_study": (1, 14), "test_study_kinds": (0, 13),
 }
 
 

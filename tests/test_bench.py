@@ -246,11 +246,12 @@ def test_loop_runs_without_the_rerun_sink_and_says_so(monkeypatch, tmp_path):
     with TrajectoryWriter(traj) as w:
         w.append_rows([[0.0, 0.0, 0.0, 1e-3], [0.2, 0.0, 0.0, -1e-3]])
     policy = os.sched_getscheduler(0)
-    res = run.loop(dataclasses.replace(run.QUICK, loop_s=0.3, trajectory=str(traj)))
+    res = run.loop(dataclasses.replace(run.QUICK, loop_s=0.3, floor_s=0.2, trajectory=str(traj)))
     assert os.sched_getscheduler(0) == policy  # the engine's SCHED_FIFO does not outlive the loop
     assert res["loop"]["rerun_rrd"] is False and any("rerun logging not available" in n for n in res["notes"])
     assert 200 < res["ticks"] < 400 and res["loop"]["frames"] > 5  # 0.3 s at 1 kHz, visual frames ran
     _percentile_object(res["loop_period_error_us"])
+    assert res["machine_floor"]["duration_s"] == 0.2 and res["compiled_floor"]["ticks"] == 200  # the floors ran, 0.2 s
 
 
 @pytest.mark.slow
@@ -262,7 +263,8 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
         run.QUICK, servo_ticks=30, numpy_ticks=5, numpy_scenarios=("press_skin_w10",), loop_s=0.3, loop_plain_s=0.2,
         sh_repeats=1,
         fit_samples=600, sh_grid=(8, 16), springback_calls=20, replay_runs=1, cold_runs=1, scaling_ticks=25,
-        scaling_w=(3, 4), scaling_lmax=(2, 4), trajectory=str(traj), cohort_sessions=0, first_run=False)
+        scaling_w=(3, 4), scaling_lmax=(2, 4), trajectory=str(traj), cohort_sessions=0, first_run=False,
+        fem_mesh_ratio=4.0)  # the FEM rows' build on a coarser mesh: the same assembly, solve and condensation
     res = run.collect(tiny)
     for key in run.REQUIRED_KEYS:
         assert key in res, key
@@ -286,6 +288,7 @@ def test_collect_tiny_has_every_key_and_a_table(tmp_path):
     md = res["models"]  # every tissue model's tick, wall and CPU, and the FEM's and BEM's hemispherical tips
     from haptic_acu.base.config import MODEL_KINDS
     assert set(md["model_tick_us"]) == set(md["model_tick_cpu_us"]) == set(MODEL_KINDS) | set(run.MODEL_VARIANTS)
+    assert set(md["model_build_s"]) == set(md["model_tick_us"]) and md["model_table_bytes"]["fem"] > 0
     for label, cpu in md["model_tick_cpu_us"].items():
         _percentile_object(cpu["press_skin"])
         assert cpu["press_skin"]["p50"] > 0

@@ -82,3 +82,47 @@ def test_unknown_sink_class_fails_cleanly():
     sink = ProcessSink("haptic_acu.session.rerun_log", "NoSuchSink", None)
     with pytest.raises(RuntimeError, match="NoSuchSink"):
         sink.warm_up()
+
+
+def test_a_close_during_a_frame_being_written_waits_for_it(tmp_path):
+    """The visual thread writes frames of 1.6 MB (the pipe holds 64 kB) to a child that takes 30 ms
+    for each, and the session closes the sink while a frame is half written: the close waits for the
+    frame, the child gets every frame whole and in order, then the close; frames after it are dropped."""
+    import json
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    model = SimpleNamespace(tissue=None, lattices=[], n=[], x=[0] * 6, owner=lambda i: 0, axis=np.zeros(3),
+                            inserted=False, net_positions=lambda i: None)
+    out = tmp_path / "seen.json"
+    sink = ProcessSink("sink_helpers", "SlowIndexSink", None, str(out), 0.03)
+    sink.warm_up()
+    sink.start({"model": model})
+    rows = np.zeros((10_000, 20))
+    sent, errors, stop = [], [], threading.Event()
+
+    def visual():
+        k = 0
+        while not stop.is_set():
+            try:
+                sink.on_frame(SimpleNamespace(t_s=k / 60, index=k, samples=rows, rates={}, dents={}, model=model))
+            except Exception as e:  # noqa: BLE001 - the test reports it
+                errors.append(e)
+                return
+            sent.append(k)
+            k += 1
+            time.sleep(0.001)  # the visual loop's wait for its next frame
+
+    th = threading.Thread(target=visual)
+    th.start()
+    while len(sent) < 3:
+        time.sleep(0.01)
+    sink.close(None)  # the thread is most likely inside a frame's write now
+    stop.set()
+    th.join(timeout=30)
+    assert not th.is_alive() and not errors, errors
+    seen = json.loads(out.read_text())
+    assert [i for i, _ in seen] == list(range(len(seen))) and len(seen) >= 3
+    assert all(size == rows.size for _, size in seen)
+    assert len(sent) - len(seen) <= 1  # at most the frame that came after the close, dropped

@@ -9,12 +9,18 @@ pipe, and the child calls the real sink. In headless replay the child also runs 
 The child gets a :class:`ModelState` instead of the live NeedleModel: the static parts (tissue,
 lattices, particle counts) once at start, and per frame the parts sinks read (needle axis, whether it
 is inserted, slot owners and the positions of live nets).
+
+One lock orders everything sent on the pipe: a frame still being written by the visual thread when
+the session closes its sinks (a child slow to read, on a loaded host) is written whole before the
+close message, never interleaved with it; a frame that comes after the close is dropped.
 """
 from __future__ import annotations
 
 import importlib
 import multiprocessing as mp
 import os
+import threading
+import time
 import traceback
 from dataclasses import dataclass, field
 
@@ -127,6 +133,7 @@ class ProcessSink(Sink):
         self._proc = None
         self._conn = None
         self._closed = False
+        self._lock = threading.Lock()  # one message at a time on the pipe (the visual thread and the session's)
         self.close_timeout_s = close_timeout_s
 
     def _ensure(self) -> None:
@@ -146,15 +153,24 @@ class ProcessSink(Sink):
             raise RuntimeError(f"{self._spec[1]} (child process): {msg[1]}")
 
     def warm_up(self) -> None:
-        """Start the child and let the sink warm up there, before any loop starts."""
-        self._ensure()
-        self._conn.send(("warm_up",))
-        self._check_error(self._recv(60.0))
+        """Start the child and let the sink warm up there, before any loop starts (on the first run
+        after an install the child compiles its kernels: minutes on a loaded host)."""
+        with self._lock:
+            self._ensure()
+            self._conn.send(("warm_up",))
+            self._check_error(self._recv(self.close_timeout_s))
 
     def _recv(self, timeout: float):
-        if self._conn.poll(timeout):
-            return self._conn.recv()
-        raise RuntimeError(f"{self._spec[1]} (child process) did not answer within {timeout:.0f} s")
+        """The child's next message; an error at once if the child has ended without one, or after
+        ``timeout`` seconds of a live child's silence."""
+        end = time.monotonic() + timeout
+        while not self._conn.poll(min(1.0, max(0.0, end - time.monotonic()))):
+            if not self._proc.is_alive() and not self._conn.poll():
+                raise RuntimeError(f"{self._spec[1]} (child process) ended (exit {self._proc.exitcode}) "
+                                   "without an answer")
+            if time.monotonic() >= end:
+                raise RuntimeError(f"{self._spec[1]} (child process) did not answer within {timeout:.0f} s")
+        return self._conn.recv()
 
     def _poll_error(self) -> None:
         if self._conn.poll():
@@ -168,31 +184,37 @@ class ProcessSink(Sink):
         return pin_process(self._proc.pid, cores)
 
     def start(self, info: dict) -> None:
-        self._ensure()
         light = {k: v for k, v in info.items() if k != "model"}
         light["model"] = ModelState.static_of(info["model"])
-        self._conn.send(("start", light))
+        with self._lock:
+            self._ensure()
+            self._conn.send(("start", light))
 
     def on_frame(self, frame) -> None:
-        self._poll_error()
         dents = {k: np.asarray(v) for k, v in frame.dents.items()} if frame.dents else {}
         snap = FrameSnapshot(frame.t_s, frame.index, frame.samples, dict(frame.rates), dents)
-        self._conn.send(("frame", snap, ModelState.update_from(frame.model)))
+        msg = ("frame", snap, ModelState.update_from(frame.model))
+        with self._lock:
+            if self._closed:  # a visual thread still running after the session closed its sinks
+                return
+            self._poll_error()
+            self._conn.send(msg)
 
     def close(self, result=None) -> None:
-        if self._closed or self._conn is None:
-            return
-        self._closed = True
         res = None if result is None else ResultSnapshot(result.ticks, result.duration_s, result.fault, result.stats)
-        try:
-            self._conn.send(("close", res))
-            msg = self._recv(self.close_timeout_s)
-            self._check_error(msg)
-        finally:
-            self._proc.join(timeout=10.0)
-            if self._proc.is_alive():
-                self._proc.terminate()
-            self._conn.close()
+        with self._lock:
+            if self._closed or self._conn is None:
+                return
+            self._closed = True
+            try:
+                self._conn.send(("close", res))
+                msg = self._recv(self.close_timeout_s)
+                self._check_error(msg)
+            finally:
+                self._proc.join(timeout=10.0)
+                if self._proc.is_alive():
+                    self._proc.terminate()
+                self._conn.close()
 
 
 def rerun_file_sink(path, layout: str | None = None) -> ProcessSink:

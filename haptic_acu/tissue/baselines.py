@@ -232,8 +232,10 @@ def contact_key(cfg) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def build_contact(cfg) -> Contact:
-    """Precompute ``cfg.model.kind``'s per-layer contact (no cache)."""
+def build_contact(cfg, fem_mesh: dict | None = None) -> Contact:
+    """Precompute ``cfg.model.kind``'s per-layer contact (no cache). ``fem_mesh``: keywords of
+    :func:`fem.press` for the FEM's mesh (e.g. ``{"ratio": 2.5}``, coarser than the default; never
+    cached, see :func:`contact_key`), for a bench that times the build on a smaller mesh."""
     m = cfg.model
     n = len(cfg.layers)
     a = 0.5 * cfg.needle.diameter_mm * 1e-3
@@ -250,7 +252,7 @@ def build_contact(cfg) -> Contact:
             k[j] = m.shf_stiffness_n_per_mm[j] * 1e3
             crit[j] = m.shf_puncture_force_n[j] / k[j]
         elif m.kind == "fem":
-            res = fem.tissue_press(tissue, j, E, nu, a)
+            res = fem.tissue_press(tissue, j, E, nu, a, **(fem_mesh or {}))
             discs.append(fem.disc_compliance(res, a))
             k[j] = res.stiffness
             crit[j] = _tip_rupture_depth(k[j], discs[-1], m.fracture_toughness_j_per_m2[j], a, m.tip_shape)

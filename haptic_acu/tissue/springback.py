@@ -27,9 +27,14 @@ def polar_rotation(A):
     """The rotation R of the polar decomposition A = R S (det R = +1)."""
     U, s, Vt = np.linalg.svd(A)
     R = U @ Vt
-    if np.linalg.det(R) < 0.0:
+    # R is orthogonal (det +-1): the cofactor expansion's sign is its determinant's; element by element
+    # (numba compiles a slice assignment's shape check, with its message, for seconds)
+    det = (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+           + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]))
+    if det < 0.0:
         U2 = U.copy()
-        U2[:, 2] = -U2[:, 2]
+        for i in range(3):
+            U2[i, 2] = -U2[i, 2]
         R = U2 @ Vt
     return R
 
