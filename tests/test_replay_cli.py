@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import haptic_acu.cli.replay
-from cli_helpers import cli, pool_here
+from cli_helpers import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAJ = ROOT / "trajectories"
@@ -198,9 +197,7 @@ def test_batch_folder_in_parallel(tmp_path):
         assert (out / stem / "summary.json").is_file()
 
 
-def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path, monkeypatch):
-    # each replay in this process (the pool has its own test above: what is written is the point here)
-    pools = pool_here(monkeypatch, haptic_acu.cli.replay)
+def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path):
     src = tmp_path / "trajs"
     src.mkdir()
     (src / "good.csv").write_text(insertion_csv())
@@ -211,14 +208,12 @@ def test_batch_with_one_bad_file_reports_it_and_fails(tmp_path, monkeypatch):
     assert "bad.csv" in r.stderr and "line 3" in r.stderr and "Traceback" not in r.stderr
     assert (out / "good" / "summary.json").is_file()
     assert not (out / "bad").exists()
-    assert [p.calls for p in pools] == [2]
 
 
-def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path, monkeypatch):
+def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path):
     """A batch's insertions.csv has one row per insertion with the trainee metrics of each
     replay's summary.json, punctures.csv every puncture (not only the first per layer), and
     summaries.csv the session-level metrics; all with the header on line 1."""
-    pools = pool_here(monkeypatch, haptic_acu.cli.replay)  # each replay in this process (as above)
     src = tmp_path / "trajs"
     src.mkdir()
     for name in ("fast_insertion.csv", "second_insertion_same_site.csv"):
@@ -252,4 +247,3 @@ def test_batch_tables_carry_every_insertions_metrics_and_every_puncture(tmp_path
                 for p in s["punctures"]]
         assert got == want
     assert json.loads((out / "second_insertion_same_site" / "summary.json").read_text())["metrics"]["insertions"] == 2
-    assert [p.calls for p in pools] == [2]
