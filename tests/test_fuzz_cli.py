@@ -223,3 +223,14 @@ def test_set_values(changes):
         assert status == 2, err
         assert_clean(status, err)
     in_tmp(go)
+
+
+@pytest.mark.parametrize("brk", ["\n", "\r", "\x0b", "\x0c", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029"])
+def test_a_line_break_in_a_quoted_value_is_escaped(brk, tmp_path):
+    """An error that quotes the user's value stays one line whatever line break the value holds
+    (each character str.splitlines breaks at, written as its escape)."""
+    status, err = run_cli(["replay", "--out", tmp_path / "o", tmp_path / "missing.csv",
+                           "--set", f"body.skin_coefficients=0{brk}0"])
+    assert status == 2
+    assert_clean(status, err)
+    assert brk not in err.rstrip("\n"), err  # escaped where the value is quoted

@@ -81,15 +81,25 @@ def main(argv: list[str] | None = None) -> int:
         progress.quiet = was_quiet
 
 
+# What str.splitlines breaks a line at: in an error's text (a user's value quoted in it) each is
+# written as its escape, so the error stays one line.
+_LINE_BREAKS = {c: c.encode("unicode_escape").decode("ascii") for c in "\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029"}
+
+
+def one_line(text) -> str:
+    """``text`` with every character that would break its line escaped."""
+    return "".join(_LINE_BREAKS.get(c, c) for c in str(text))
+
+
 def _dispatch(args) -> int:
     """The command's exit status; its errors as one line on stderr."""
     try:
         return int(args.func(args) or 0)
     except UserError as e:
-        print(f"haptic-acu {args.command}: error: {e}", file=sys.stderr)
+        print(f"haptic-acu {args.command}: error: {one_line(e)}", file=sys.stderr)
         return e.exit_status
     except DeviceFault as e:
-        print(f"haptic-acu {args.command}: device fault: {e}", file=sys.stderr)
+        print(f"haptic-acu {args.command}: device fault: {one_line(e)}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
         print(f"haptic-acu {args.command}: interrupted", file=sys.stderr)
@@ -98,7 +108,7 @@ def _dispatch(args) -> int:
         return 0
     except OSError as e:  # a full disk, a read-only or vanished folder while writing outputs
         where = f"{e.filename}: " if e.filename else ""
-        print(f"haptic-acu {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        print(f"haptic-acu {args.command}: error: {one_line(f'{where}{e.strerror or e}')}", file=sys.stderr)
         return 2
 
 
