@@ -37,7 +37,7 @@ SERIAL_MODULES = {"test_engine", "test_keyboard", "test_rtloop", "test_keyboard_
 # Seconds a module's selected tests take (pytest --durations, a quiet 2-core host), slow ones apart.
 # Only the order of the parallel run depends on these numbers.
 PARALLEL_SECONDS = {  # module: (not slow, slow)
-    "test_physics_properties": (4, 40), "test_wheel": (0, 68), "test_bench": (20, 30), "test_baselines": (20, 14),
+    "test_physics_properties": (4, 40), "test_wheel": (0, 68), "test_bench": (8, 42), "test_baselines": (20, 14),
     "test_live_equals_replay": (2, 13), "test_cohort": (17, 0), "test_replay_cli": (7, 10), "test_outputs": (8, 0),
     "test_recording": (8, 0), "test_replay_memory": (0, 15), "test_scoring": (4, 0), "test_cohort_cluster": (4, 6),
     "test_hostile": (5, 3), "test_fit_cli": (3, 0), "test_compare": (2, 2), "test_cohort_memory": (0, 10),

@@ -198,6 +198,7 @@ def _percentile_object(p):
     assert 0 <= p["p50"] <= p["p99"] <= p["p999"] <= p["max"]
 
 
+@pytest.mark.slow  # calling step_kernel straight from Python compiles it for that call's signature (~13 s)
 def test_servo_scenario_times_one_step_three_ways():
     sc = scenarios.press(50, layer=0, w=4)
     r = run.servo_scenario(sc, 50, numpy_ticks=10)
