@@ -748,12 +748,10 @@ def replay(sizes: Sizes, progress=False) -> dict:
             "notes": notes}
 
 
-# The third-party libraries a replay command loads (tests/test_bench.py checks that it does): a bare
+# The third-party libraries a replay command loads (tests/test_startup.py checks that it does): a bare
 # interpreter importing them is the floor under the command's wall time that no work of ours removes.
-REPLAY_IMPORTS = {
-    "no_rrd": ("numpy", "scipy.linalg", "numba", "matplotlib.figure", "matplotlib.backends.backend_agg"),
-    "rrd": ("numpy", "scipy.linalg", "numba", "matplotlib.figure", "matplotlib.backends.backend_agg", "rerun"),
-}
+_REPLAY_LIBS = ("numpy", "scipy.linalg", "numba", "matplotlib.figure", "matplotlib.backends.backend_agg")
+REPLAY_IMPORTS = {"no_rrd": _REPLAY_LIBS, "rrd": _REPLAY_LIBS + ("rerun",)}
 
 
 def end_to_end(sizes: Sizes, progress=False) -> dict:

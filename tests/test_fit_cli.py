@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import cli
+from cli_helpers import cli as run_cli  # in-process: main()'s exit status and streams
 from haptic_acu.tissue import shf
 from haptic_acu.base.config import DEFAULT_CONFIG, load_config
 from haptic_acu.base.errors import UserError
@@ -20,10 +20,6 @@ from haptic_acu.tissue.body import BOUNDARIES, Tissue
 ROOT = Path(__file__).resolve().parent.parent
 FOREARM = ROOT / "config" / "meshes" / "forearm.obj"
 MAKE_FOREARM = ROOT / "config" / "meshes" / "make_forearm.py"
-
-
-def run_cli(*args):
-    return cli(*args)  # in-process: main()'s exit status and streams
 
 
 def assert_one_line_error(proc, *needles):

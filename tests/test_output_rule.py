@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 import pytest
+from cli_helpers import cli
 
 from haptic_acu.base.errors import UserError
 from haptic_acu.base.outputs import COMMAND_OUTPUTS, FolderLock, Outputs, claim_folder, safe_cell, write_new
@@ -139,17 +140,8 @@ def test_every_command_with_outputs_is_listed():
 
 # ---- every output of every command, against the rule ------------------------------------------------
 def _cli(*argv):
-    import contextlib
-    import io
-
-    from haptic_acu.cli import main
-
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            return main([str(a) for a in argv]), err.getvalue()
-        except SystemExit as e:
-            return e.code, err.getvalue()
+    r = cli(*argv)  # in-process (tests/cli_helpers.py)
+    return r.returncode, r.stderr
 
 
 REPO = Path(__file__).resolve().parents[1]

@@ -83,12 +83,12 @@ def main(argv: list[str] | None = None) -> int:
 
 # What str.splitlines breaks a line at: in an error's text (a user's value quoted in it) each is
 # written as its escape, so the error stays one line.
-_LINE_BREAKS = {c: c.encode("unicode_escape").decode("ascii") for c in "\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029"}
+_LINE_BREAKS = {ord(c): c.encode("unicode_escape").decode("ascii") for c in "\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029"}
 
 
 def one_line(text) -> str:
     """``text`` with every character that would break its line escaped."""
-    return "".join(_LINE_BREAKS.get(c, c) for c in str(text))
+    return str(text).translate(_LINE_BREAKS)
 
 
 def _dispatch(args) -> int:

@@ -39,3 +39,14 @@ def check_layout_arg(args) -> None:
         raise UserError(f"--layout {value!r}: give {' or '.join(LAYOUT_NAMES)}, or a blueprint file NAME.rbl")
     if not Path(value).is_file():
         raise UserError(f"--layout {value}: no such file")
+
+
+def check_speed_arg(args) -> None:
+    """``--speed`` (run, study trial): a paced session's factor, refused in one line outside
+    (0, MAX_SPEED]."""
+    import math
+
+    from ..session.engine import MAX_SPEED
+
+    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
+        raise UserError(f"--speed must be a number > 0 and at most {MAX_SPEED:g}, got {args.speed}")

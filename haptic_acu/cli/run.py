@@ -25,7 +25,7 @@ from pathlib import Path
 from ..base.bundled import bundled_names, not_found_hint, resolve_trajectory
 from ..base.errors import UserError
 from ..base.outputs import Outputs, claim_folder, fresh_folder
-from .options import add_config_args, check_layout_arg, config_from_args
+from .options import add_config_args, check_layout_arg, check_speed_arg, config_from_args
 from ..base.progress import step
 
 
@@ -144,9 +144,7 @@ def run(args) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION_S):
         raise UserError(f"--duration must be a number of seconds > 0 and at most {MAX_DURATION_S:g}, got "
                         f"{args.duration}")
-    from ..session.engine import MAX_SPEED
-    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
-        raise UserError(f"--speed must be a number > 0 and at most {MAX_SPEED:g}, got {args.speed}")
+    check_speed_arg(args)
     cfg = config_from_args(args)
     check_layout_arg(args)
     from ..session.point import setup_from_args

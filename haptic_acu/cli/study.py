@@ -179,9 +179,8 @@ def cmd_trial(args) -> int:
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UserError(f"--duration must be > 0, got {args.duration}")
-    from ..session.engine import MAX_SPEED
-    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
-        raise UserError(f"--speed must be a number > 0 and at most {MAX_SPEED:g}, got {args.speed}")
+    from .options import check_speed_arg
+    check_speed_arg(args)
     study = _study(args.study)
     trial, state = overview.pick_trial(study, args.participant, args.trial, args.redo)
     key = study.key()
