@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.figlayout import first_layout, fit_rows
 from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
@@ -481,14 +482,14 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
                                     or _lateral_travel_mm(idx, offset_mm, rows) > LATERAL_TRAVEL_MM)
 
     n_pan = min(max(n_ins, 1), MAX_PANELS)
-    fig = Figure(figsize=(max(9.5, 3.2 * n_pan + 2.5), 9.0 if show_lat else 7.5), layout="constrained")
+    fig = Figure(figsize=(max(9.5, 3.2 * n_pan + 2.5), 9.0 if show_lat else 7.5), dpi=dpi)
     FigureCanvasAgg(fig)
     ratios = [3, 1.5, 1.5] if show_lat else [3, 2]
-    gs = fig.add_gridspec(len(ratios), n_pan, height_ratios=ratios)
-    panels = [fig.add_subplot(gs[0, 0])]
-    panels += [fig.add_subplot(gs[0, j], sharey=panels[0], sharex=panels[0]) for j in range(1, n_pan)]
-    ax_t = fig.add_subplot(gs[-1, :])
-    ax_lat = fig.add_subplot(gs[1, :], sharex=ax_t) if show_lat else None
+    grid = first_layout(n_pan, ratios)  # where fit_rows starts; it places every axes before the save
+    panels = [fig.add_axes(grid[0][0])]
+    panels += [fig.add_axes(grid[0][j], sharey=panels[0], sharex=panels[0]) for j in range(1, n_pan)]
+    ax_t = fig.add_axes(grid[-1][0])
+    ax_lat = fig.add_axes(grid[1][0], sharex=ax_t) if show_lat else None
 
     bounds = tissue.depths_at_acupoint() * 1e3  # [0, skin/fat, fat/muscle, muscle/bone]
     lo = min(float(depth_mm.min()), 0.0) if rows.size else -1.0
@@ -537,17 +538,18 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
         if j:
             ax.tick_params(labelleft=False)
     panels[0].set_ylabel("force along the outward normal F . u (N)\n+ = the tissue pushes the needle out")
-    fig.suptitle(title or "Needle insertion: force against depth")
+    suptitle = fig.suptitle(title or "Needle insertion: force against depth")
     panels[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
 
     tspan = (float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1e-3) if rows.size else (0.0, 1.0)
-    if ax_lat is not None:
-        _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan)
+    twin = _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) if ax_lat is not None else None
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
     ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9)
     ax_t.set_xlim(*tspan)
+    fit_rows(fig, [[[ax] for ax in panels]] + ([[[ax_lat, twin]]] if ax_lat is not None else []) + [[[ax_t]]],
+             ratios, suptitle)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
 
 
@@ -571,9 +573,9 @@ def _draw_punctures(panels, ax_t, events, idx, t) -> list:
     return [Line2D([], [], marker="v", ls="none", color="0.3", mec="k", mew=0.5,
                    label="puncture (peak |F| while pressed)")]
 
-def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) -> None:
+def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan):
     """force_depth.png's lateral panel: the force across the needle and, on its own scale, the tip's
-    offset from the acupoint's axis."""
+    offset from the acupoint's axis (on a twin axes, returned)."""
     ax_lat.set_ylabel("lateral |F| (N)")
     ax_lat.set_xlim(*tspan)
     ax_lat.set_title("force across the needle (lateral)", fontsize=9)
@@ -586,6 +588,7 @@ def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan) -> None:
     tw.tick_params(axis="y", colors=OFFSET_COLOUR)
     tw.set_ylim(0.0, 1.5 * max(float(offset_mm.max()), 1e-3))
     ax_lat.set_ylim(0.0, 1.05 * max(float(f_lat.max()), 1e-6))
+    return tw
 
 
 STRUCTURE_COLOUR = "#b2182b"
