@@ -29,30 +29,36 @@ def _pt(renderer, points: float) -> float:
     return renderer.points_to_pixels(points)
 
 
-def axis_margins(ax, renderer) -> tuple[float, float, float, float]:
-    """(left, right, bottom, top): pixels of ``ax``'s own text outside its box: tick labels (with
-    the ticks' length and pad), axis labels (with their pad), the offset text and the title."""
+def axis_margins(ax, renderer) -> tuple[dict, dict]:
+    """(margins, reach): ``margins`` the pixels of ``ax``'s own text outside its box by side
+    (left, right, bottom, top): tick labels, the ticks, axis labels with their pad, the offset text
+    and the title; ``reach`` per axis (x, y) the pixels its tick labels reach out from the box
+    (where :func:`fit_rows` puts the axis label, as matplotlib's own placement would)."""
     import matplotlib as mpl
 
     rc = mpl.rcParams
+    box = ax.bbox
     out = {"left": 0.0, "right": 0.0, "bottom": 0.0, "top": 0.0}
+    reach = {}
+    beyond = {"left": lambda b: box.x0 - b.x0, "right": lambda b: b.x1 - box.x1,
+              "bottom": lambda b: box.y0 - b.y0, "top": lambda b: b.y1 - box.y1}
     for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y")):
-        side = axis.get_label_position()  # where the labels sit: our axes keep ticks and labels together
+        side = axis.get_label_position()  # our axes keep an axis's ticks and its label on one side
         # the visible tick labels, placed for the axes' current box and limits
         lo, hi = sorted(axis.get_view_interval())
         tol = 1e-10 * (hi - lo)  # matplotlib draws a tick this close outside the view
         boxes = [b for t in axis.get_majorticklabels() if lo - tol <= t.get_position()[name == "y"] <= hi + tol
                  for b in [_extent(t, renderer)] if b is not None]
-        tick = _pt(renderer, rc[f"{name}tick.major.size"] + rc[f"{name}tick.major.pad"])
-        across = max((b.width if name == "y" else b.height for b in boxes), default=0.0)
-        depth = tick + across if across else _pt(renderer, rc[f"{name}tick.major.size"])
+        # the spine's ticks point out (matplotlib's default): they count as a reach when no label does
+        reach[name] = max([_pt(renderer, rc[f"{name}tick.major.size"])] + [beyond[side](b) for b in boxes])
+        depth = reach[name]
         lw, lh = _size(axis.label, renderer)
         if lw or lh:
-            depth += _pt(renderer, axis.labelpad) + (lw if name == "y" else lh)
+            depth = max(depth, reach[name] + _pt(renderer, axis.labelpad) + (lw if name == "y" else lh))
         out[side] = max(out[side], depth)
         if name == "x" and boxes:  # the end labels can reach past the box sideways
-            out["left"] = max(out["left"], ax.bbox.x0 - min(b.x0 for b in boxes))
-            out["right"] = max(out["right"], max(b.x1 for b in boxes) - ax.bbox.x1)
+            out["left"] = max(out["left"], max(beyond["left"](b) for b in boxes))
+            out["right"] = max(out["right"], max(beyond["right"](b) for b in boxes))
         ow, oh = _size(axis.offsetText, renderer)
         if oh:  # a y axis's offset sits above its box; an x axis's below, past its tick labels
             if name == "y":
@@ -62,15 +68,17 @@ def axis_margins(ax, renderer) -> tuple[float, float, float, float]:
     tw, th = _size(ax.title, renderer)
     if th:
         out["top"] = max(out["top"], th + _pt(renderer, rc["axes.titlepad"]))
-    return out["left"], out["right"], out["bottom"], out["top"]
+    return out, reach
 
 
-def _margins(cell, renderer) -> list[float]:
-    """Margins of one box: its axes and their twins (same box) together, and a legend outside."""
+def _margins(cell, renderer, reach: dict) -> list[float]:
+    """Margins (left, right, bottom, top) of one box: its axes and their twins (same box) together,
+    and a legend outside; each axes' tick label reach into ``reach``."""
     box = cell[0].bbox
     m = [0.0, 0.0, 0.0, 0.0]
     for ax in cell:
-        m = [max(a, b) for a, b in zip(m, axis_margins(ax, renderer))]
+        own, reach[ax] = axis_margins(ax, renderer)
+        m = [max(a, own[side]) for a, side in zip(m, ("left", "right", "bottom", "top"))]
         leg = ax.get_legend()
         if leg is not None:
             lb = leg.get_window_extent(renderer)
@@ -102,7 +110,9 @@ def fit_rows(fig, rows, height_ratios, suptitle=None, pad_pt: float = PAD_PT) ->
     of axes sharing one box: an axes and its twins) so that every text around them is inside the
     figure and clear of its neighbours' text. Rows share the left and the right edge; a row's cells
     share its width equally; the rows share the height by ``height_ratios``. ``suptitle`` (the
-    figure's title, a Text) is put at the top. Set every limit, label, title and legend first."""
+    figure's title, a Text) is put at the top. Set every limit, label, title and legend first;
+    each axis label is then fixed where it goes (matplotlib would find it again at every draw), and
+    a title set with ``y=1.0`` is not moved at draw either (no axes here has tick labels on top)."""
     renderer = fig.canvas.get_renderer()
     W, H = fig.bbox.width, fig.bbox.height
     p = _pt(renderer, pad_pt)
@@ -114,7 +124,8 @@ def fit_rows(fig, rows, height_ratios, suptitle=None, pad_pt: float = PAD_PT) ->
     total = float(sum(height_ratios))
     placed = None
     for _ in range(MAX_PASSES):
-        margins = [[_margins(cell, renderer) for cell in row] for row in rows]
+        reach: dict = {}
+        margins = [[_margins(cell, renderer, reach) for cell in row] for row in rows]
         left = p + max(m[0][0] for m in margins)
         right = W - p - max(m[-1][1] for m in margins)
         tops = [max(c[3] for c in m) for m in margins]
@@ -138,3 +149,22 @@ def fit_rows(fig, rows, height_ratios, suptitle=None, pad_pt: float = PAD_PT) ->
         if placed is not None and max(abs(a - b) for r0, r1 in zip(placed, now) for a, b in zip(r0, r1)) * max(W, H) < 0.5:
             break
         placed = now
+    for ax, r in reach.items():  # each axis label beyond its tick labels, where matplotlib would put it
+        _place_label(ax.xaxis, r["x"], renderer)
+        _place_label(ax.yaxis, r["y"], renderer)
+
+
+def _place_label(axis, reach: float, renderer) -> None:
+    """Fix ``axis``'s label ``reach`` + its pad pixels out from the axes box, centred along it: the
+    position matplotlib finds at every draw from the tick labels' extents, found once."""
+    if not axis.label.get_text():
+        return
+    box = axis.axes.bbox
+    off = reach + _pt(renderer, axis.labelpad)
+    side = axis.get_label_position()
+    if side in ("left", "right"):
+        x = -off / box.width if side == "left" else 1.0 + off / box.width
+        axis.set_label_coords(x, 0.5)
+    else:
+        y = -off / box.height if side == "bottom" else 1.0 + off / box.height
+        axis.set_label_coords(0.5, y)

@@ -166,6 +166,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
+    from ..base.figlayout import first_layout, fit_rows
     from .report import MAX_PANELS, layer_bands, tissue_of
 
     tissue = tissue_of(tissue)
@@ -173,13 +174,13 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
     twirl = any(c[6].size and float(np.abs(c[6]).max()) > 0.0 for c in curves)
     ratios = [3.0, 1.6] + ([1.3] if twirl else [])
-    fig = Figure(figsize=(max(9.5, 3.4 * len(shown) + 3.6), 5.2 + 2.2 * (len(ratios) - 1)), layout="constrained")
+    fig = Figure(figsize=(max(9.5, 3.4 * len(shown) + 3.6), 5.2 + 2.2 * (len(ratios) - 1)), dpi=dpi)
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(len(ratios), len(shown), height_ratios=ratios)
-    axes = [fig.add_subplot(gs[0, 0])]
-    axes += [fig.add_subplot(gs[0, j], sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
-    ax_t = fig.add_subplot(gs[1, :])
-    ax_r = fig.add_subplot(gs[2, :], sharex=ax_t) if twirl else None
+    grid = first_layout(len(shown), ratios)  # where fit_rows starts; it places every axes before the save
+    axes = [fig.add_axes(grid[0][0])]
+    axes += [fig.add_axes(grid[0][j], sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]
+    ax_t = fig.add_axes(grid[1][0])
+    ax_r = fig.add_axes(grid[2][0], sharex=ax_t) if twirl else None
     bounds = tissue.depths_at_acupoint() * 1e3
     all_d = [d for d, *_ in curves if d.size]
     lo = min([float(d.min()) for d in all_d] + [0.0])
@@ -210,7 +211,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
             if marks:  # the session's punctures in this panel: one marker line, drawn in their order
                 ax.plot([m[0] for m in marks], [m[1] for m in marks], marker="v", ms=7, color=st["color"],
                         mec="k", mew=0.5, ls="none")
-        ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9)
+        ax.set_title(f"insertion {k + 1}{'+' if last else ''}", fontsize=9, y=1.0)
         ax.set_xlabel("tip depth below the rest skin (mm)")
         if p:
             ax.tick_params(labelleft=False)
@@ -233,13 +234,13 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
                 ax_r.plot(t, c[6], **_style(j))
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_ylabel(f"F . u (N)\n{FORCE_SIGN}", fontsize=8)
-    ax_t.set_title("force against time", fontsize=9)
+    ax_t.set_title("force against time", fontsize=9, y=1.0)
     ax_t.set_xlim(0.0, t_end if t_end > 0 else 1.0)
     if ax_r is not None:
         ax_t.tick_params(labelbottom=False)
         ax_r.axhline(0.0, color="0.6", lw=0.6)
         ax_r.set_ylabel("roll (deg)\n+ = clockwise from the handle", fontsize=8)
-        ax_r.set_title("twirling: the needle's roll against time", fontsize=9)
+        ax_r.set_title("twirling: the needle's roll against time", fontsize=9, y=1.0)
         ax_r.set_xlabel("time (s)")
     else:
         ax_t.set_xlabel("time (s)")
@@ -249,9 +250,10 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
         handles.append(Line2D([], [], label=label + same, **_style(j)))
     handles.append(Line2D([], [], marker="v", ls="none", color="0.4", mec="k", mew=0.5,
                           label="puncture (peak |F| while pressed)"))
-    fig.suptitle("Force against depth: " + " vs ".join(labels))
+    suptitle = fig.suptitle("Force against depth: " + " vs ".join(labels))
     axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
                     handlelength=3.5)
+    fit_rows(fig, [[[ax] for ax in axes], [[ax_t]]] + ([[[ax_r]]] if ax_r is not None else []), ratios, suptitle)
     fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
 
 

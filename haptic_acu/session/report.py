@@ -534,7 +534,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
         ax.set_xlabel("tip depth below the rest skin (mm)")
         if n_pan > 1:
             last = j == n_pan - 1 and n_ins > n_pan
-            ax.set_title(f"insertion {j + 1}{'+' if last else ''}", fontsize=9, color=_colour(j))
+            ax.set_title(f"insertion {j + 1}{'+' if last else ''}", fontsize=9, y=1.0, color=_colour(j))
         if j:
             ax.tick_params(labelleft=False)
     panels[0].set_ylabel("force along the outward normal F . u (N)\n+ = the tissue pushes the needle out")
@@ -546,7 +546,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     ax_t.axhline(0.0, color="0.6", lw=0.6)
     ax_t.set_xlabel("time (s)")
     ax_t.set_ylabel("F . u (N)")
-    ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9)
+    ax_t.set_title("force along the outward normal against time (dashed: punctures)", fontsize=9, y=1.0)
     ax_t.set_xlim(*tspan)
     fit_rows(fig, [[[ax] for ax in panels]] + ([[[ax_lat, twin]]] if ax_lat is not None else []) + [[[ax_t]]],
              ratios, suptitle)
@@ -578,7 +578,7 @@ def _draw_lateral(ax_lat, t, f_lat, offset_mm, tspan):
     offset from the acupoint's axis (on a twin axes, returned)."""
     ax_lat.set_ylabel("lateral |F| (N)")
     ax_lat.set_xlim(*tspan)
-    ax_lat.set_title("force across the needle (lateral)", fontsize=9)
+    ax_lat.set_title("force across the needle (lateral)", fontsize=9, y=1.0)
     ax_lat.tick_params(labelbottom=False)
     # the offset in its own colour and scaled to 2/3 of the panel's height: where the lateral
     # force follows the offset (a sweep), the two curves would otherwise be drawn on one line
