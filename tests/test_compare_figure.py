@@ -12,6 +12,8 @@ from haptic_acu.base.config import load_config
 from haptic_acu.session.compare import COLOURS, FORCE_SIGN, plot_compare
 from haptic_acu.servo.samples import COL, NCOL
 
+from figure_helpers import assert_texts_fit
+
 
 def _rows(depth_mm, force_n, roll=None):
     r = np.zeros((len(depth_mm), NCOL))
@@ -83,3 +85,16 @@ def test_a_twirl_panel_when_a_session_twirls(drawn):
     (ax,) = [ax for ax in fig.axes if ax.get_title().startswith("twirling")]
     assert ax.get_ylabel().startswith("roll (deg)")
     assert _pixels_of(fig, ax, COLOURS[1]) > 100
+
+
+def test_every_text_is_inside_the_figure_and_clear_of_the_others(drawn, monkeypatch):
+    """compare.png's fixed layout: with a twirl panel and two insertion panels, no text is cut at the
+    edge, overlaps another, or lies over a plot (the legend's long labels included)."""
+    roll = np.concatenate([np.zeros(550), 90 * np.sin(np.linspace(0, 6 * np.pi, 500))])
+    two = np.concatenate([D, D])
+    rows = _rows(two, 0.04 * two, np.concatenate([roll, roll]))
+    rows[len(D):, COL["t_s"]] += 1.0  # the second insertion after a pause
+    fig = drawn([rows, _rows(D, 0.05 * D)], ["a trainee with a long name", "the expert"])
+    assert len([ax for ax in fig.axes if ax.get_xlabel().startswith("tip depth")]) == 2
+    assert any(ax.get_title().startswith("twirling") for ax in fig.axes)
+    assert assert_texts_fit(fig, monkeypatch) > 30

@@ -16,6 +16,8 @@ from haptic_acu.base.config import load_config
 from haptic_acu.servo.step import NeedleModel
 from haptic_acu.session.report import plot_force_depth
 
+from figure_helpers import assert_texts_fit
+
 
 def drive(model, path_mm, dt=1e-3) -> np.ndarray:
     """Sample rows along ``path_mm`` (k, 3), one point per 1 ms tick."""
@@ -104,3 +106,32 @@ def test_a_lateral_sweep_shows_the_lateral_force_apart_from_the_offset(model, dr
     top = lat.get_window_extent().y1
     assert fy <= top + 0.5 and oy <= top + 0.5
     _legends_clear_of_axes(fig)
+
+
+def _insertions(n, apart_mm=5.0, depth_mm=8.0):
+    """``n`` perpendicular insertions ``apart_mm`` apart along x, each to ``depth_mm`` and out."""
+    legs = []
+    for k in range(n):
+        x = k * apart_mm
+        legs += [line((x, 0, 5), (x, 0, -depth_mm)), line((x, 0, -depth_mm), (x, 0, 5))]
+        if k < n - 1:
+            legs.append(line((x, 0, 5), (x + apart_mm, 0, 5)))
+    return np.concatenate(legs)
+
+
+@pytest.mark.parametrize("case", ["one deep insertion", "two insertions", "five insertions", "lateral sweep"])
+def test_every_text_is_inside_the_figure_and_clear_of_the_others(model, drawn, monkeypatch, case):
+    """The fixed layout leaves room for every tick label, axis label, title and legend entry: none
+    is cut at the figure's edge, none overlaps another text, none outside a plot lies over one."""
+    if case == "lateral sweep":
+        path = np.concatenate([line((0, 0, 5), (0, 0, -0.5), 5.0), line((0, 0, -0.5), (10, 0, -0.5), 5.0),
+                               line((10, 0, -0.5), (0, 0, 5), 5.0)])
+    else:
+        n = {"one deep insertion": 1, "two insertions": 2, "five insertions": 5}[case]
+        path = _insertions(n, depth_mm=25.0 if n == 1 else 8.0)
+    fig = drawn(drive(model, path))
+    depth_panels = [ax for ax in fig.axes if ax.get_xlabel().startswith("tip depth")]
+    assert len(depth_panels) == {"five insertions": 4, "two insertions": 2}.get(case, 1)
+    if case == "lateral sweep":
+        assert any(ax.get_ylabel().startswith("tip offset") for ax in fig.axes)
+    assert assert_texts_fit(fig, monkeypatch) > 30  # the tick labels are among the texts checked
