@@ -240,16 +240,17 @@ def write_json(path: Path, ratings, delphi_file, source, alpha, mu, dres, result
 
 
 def plot_scores(path: Path, results) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     raters = all_raters(results)
-    cmap = plt.get_cmap("tab20" if len(raters) <= 20 else "viridis")
+    cmap = colormaps["tab20" if len(raters) <= 20 else "viridis"]
     colour = {name: cmap(k / max(1, len(raters) - 1) if len(raters) > 20 else k % 20)
               for k, name in enumerate(raters)}
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(results) + 2.5), 4.5))
+    fig = Figure(figsize=(max(6.0, 1.6 * len(results) + 2.5), 4.5))  # its own canvas: nothing global from pyplot
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
     group = 0.8
     for g, r in enumerate(results):
         bw = group / len(r.raters)
@@ -273,4 +274,3 @@ def plot_scores(path: Path, results) -> None:
                   title="rater", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

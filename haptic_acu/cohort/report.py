@@ -174,16 +174,18 @@ def level_comparison(rows: list[dict]) -> dict | None:
 
 
 def _axes_grid(n: int):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """A figure (its own Agg canvas, nothing global from pyplot) with ``n`` axes in a grid."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     ncol = 4 if n > 6 else 3
     nrow = -(-n // ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.2 * nrow), squeeze=False)
+    fig = Figure(figsize=(4.2 * ncol, 3.2 * nrow))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrow, ncol, squeeze=False)
     for ax in axes.flat[n:]:
         ax.set_visible(False)
-    return plt, fig, list(axes.flat)
+    return fig, list(axes.flat)
 
 
 def readable_y(ax, values) -> None:
@@ -209,10 +211,12 @@ def _session_axis_label(curves: dict) -> str:
 
 
 def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
-    plt, fig, axes = _axes_grid(len(REPORT_METRICS))
+    from matplotlib import colormaps
+
+    fig, axes = _axes_grid(len(REPORT_METRICS))
     xlabel = _session_axis_label(curves)
     many = len(curves) > 10
-    cmap = plt.get_cmap("tab10")
+    cmap = colormaps["tab10"]
     for ax, (col, label) in zip(axes, REPORT_METRICS):
         longest = max((len(c["sessions"]) for c in curves.values()), default=0)
         table = np.full((len(curves), longest), np.nan)
@@ -238,11 +242,10 @@ def plot_learning_curves(curves: dict, path: Path, dpi: int = 100) -> None:
     fig.suptitle("Learning curves: per-session mean over insertions, by trainee")
     fig.tight_layout(rect=(0, 0.06 if handles else 0, 1, 0.96))
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)
 
 
 def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> None:
-    plt, fig, axes = _axes_grid(len(REPORT_METRICS))
+    fig, axes = _axes_grid(len(REPORT_METRICS))
     levels = comp["levels"][:MAX_LEVELS]
     usable = [r for r in _usable(rows) if r.get("level")]
     rng = np.random.default_rng(0)  # fixed jitter: identical figures for identical tables
@@ -265,7 +268,6 @@ def plot_levels(comp: dict, rows: list[dict], path: Path, dpi: int = 100) -> Non
                  f"> 0 when {levels[0]} is higher; p: Mann-Whitney)")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)
 
 
 def write_report(out: Path, session_rows: list[dict], extra: dict) -> dict:

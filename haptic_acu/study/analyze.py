@@ -216,20 +216,21 @@ def _write_csv(path: Path, header, rows) -> None:
         w.writerows([["" if c is None else c for c in r] for r in rows])
 
 
-def _plt():
-    import matplotlib
+def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
+    """(figure, axes) on its own Agg canvas (nothing global from pyplot); ``kw`` to Figure.subplots."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, **kw)
 
 
 def plot_indices(path: Path, x, comp, models, report=None) -> None:
     """One panel per index (and the comprehensive score): each model's ratings as a box plot
     (median, quartiles) with the participants' ratings as points."""
-    plt = _plt()
     names = list(INDICES) + [COMPREHENSIVE]
-    fig, axes = plt.subplots(2, 4, figsize=(13, 6.5), sharey=True)
+    fig, axes = _figure((13, 6.5), 2, 4, sharey=True)
     rng = np.random.default_rng(0)  # horizontal jitter of the points only
     for ax, (k, name) in zip(axes.ravel(), enumerate(names)):
         mat = comp if name == COMPREHENSIVE else x[:, :, k]
@@ -248,13 +249,11 @@ def plot_indices(path: Path, x, comp, models, report=None) -> None:
     fig.suptitle("Ratings per model and index (box: quartiles, line: median; points: participants)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def plot_order(path: Path, report, n_trials) -> None:
     """Mean rating of each index by trial position: a drift here is an order effect."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    fig, ax = _figure((7.5, 4.2))
     pos = np.arange(1, n_trials + 1)
     for name in INDICES:
         o = report["indices"][name]["order"]
@@ -272,7 +271,6 @@ def plot_order(path: Path, report, n_trials) -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -369,8 +367,7 @@ def _curve(samples: Path):
 def plot_curves(path: Path, curves: dict, name: str, per_model: dict | None = None) -> None:
     """Left: force against depth over the first advance (to the deepest point), zoomed to the
     punctures, where the models differ; right: force against time over the whole path."""
-    plt = _plt()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a1, a2) = _figure((11, 4.2), 1, 2)
     styles = ["-", "--", "-.", ":", (0, (5, 1)), (0, (3, 1, 1, 1)), (0, (1, 2)), (0, (8, 3))]
     reach = 0.0
     for k, (m, (t, d, f)) in enumerate(curves.items()):
@@ -393,7 +390,6 @@ def plot_curves(path: Path, curves: dict, name: str, per_model: dict | None = No
     fig.suptitle(f"Every model on the same scripted path ({name})")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _write_dicts(path: Path, rows: list[dict]) -> None:
