@@ -166,7 +166,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from ..base.figlayout import first_layout, fit_rows
+    from ..base.figlayout import first_layout, fit_rows, save_png
     from .report import MAX_PANELS, layer_bands, tissue_of
 
     tissue = tissue_of(tissue)
@@ -254,7 +254,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
                     handlelength=3.5)
     fit_rows(fig, [[[ax] for ax in axes], [[ax_t]]] + ([[[ax_r]]] if ax_r is not None else []), ratios, suptitle)
-    fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+    save_png(fig, path, dpi)
 
 
 def tick_cost(cfg, tissue, ticks: int = 2000) -> dict:

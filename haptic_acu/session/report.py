@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..base.figlayout import first_layout, fit_rows
+from ..base.figlayout import first_layout, fit_rows, save_png
 from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
@@ -413,11 +413,11 @@ def withdrawal_start(depth_mm) -> int | None:
     d = np.asarray(depth_mm, dtype=np.float64)
     if d.size < 2:
         return None
-    i = d.size - 1
-    top = d[i]  # the deepest point of the run so far, walking back from the end
-    while i > 0 and d[i - 1] >= top - WITHDRAWAL_TOL_MM:
-        i -= 1
-        top = max(top, d[i])
+    # walking back from the end, the run goes on while each row is no shallower than the deepest
+    # point after it (within the tolerance); it stops after the last row that is
+    deepest_after = np.maximum.accumulate(d[::-1])[::-1][1:]
+    stops = np.flatnonzero(~(d[:-1] >= deepest_after - WITHDRAWAL_TOL_MM))
+    i = int(stops[-1]) + 1 if stops.size else 0
     i += int(np.argmax(d[i:]))  # the run starts at its deepest point
     return i if d[i] - d[-1] > WITHDRAWAL_MIN_MM else None
 
@@ -550,7 +550,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     ax_t.set_xlim(*tspan)
     fit_rows(fig, [[[ax] for ax in panels]] + ([[[ax_lat, twin]]] if ax_lat is not None else []) + [[[ax_t]]],
              ratios, suptitle)
-    fig.savefig(path, format="png", dpi=dpi, metadata={"Software": None})
+    save_png(fig, path, dpi)
 
 
 
