@@ -25,6 +25,7 @@ import numpy as np
 from ..analysis.comparison import differences, first_insertion_diff
 from ..base.bundled import not_found_hint
 from ..base.errors import UserError
+from ..base.figlayout import gc_paused
 from ..base.outputs import plain_text
 from ..base.progress import step
 from ..servo.samples import COL, NCOL
@@ -151,6 +152,7 @@ def same_as(curves) -> list[int | None]:
     return out
 
 
+@gc_paused()
 @plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi: int = 110, target_mm=None,
                 force_limit_n=None) -> None:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..base.figlayout import first_layout, fit_rows, save_png
+from ..base.figlayout import first_layout, fit_rows, gc_paused, save_png
 from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
@@ -441,6 +441,7 @@ def preload_figure_modules():
     return t
 
 
+@gc_paused()
 @plain_text  # names (files, labels) are drawn as text, never as mathtext
 def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int = 110, summary=None,
                      index=None) -> None:
