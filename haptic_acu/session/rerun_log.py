@@ -469,6 +469,8 @@ class RerunSink(Sink):
             "world/twist": Columns(rr.LineStrips3D, partitioned=True),
             "world/force": Columns(rr.Arrows3D, partitioned=True),
             **{f"world/tissue/{BOUNDARY_NAMES[k]}/patch": Columns(rr.Mesh3D, partitioned=True) for k in range(3)},
+            "rates/servo_hz": Columns(rr.Scalars),
+            "rates/visual_hz": Columns(rr.Scalars),
         }
         self._started_series: set[str] = set()
         structures = info.get("structures") or self.structures
@@ -587,14 +589,13 @@ class RerunSink(Sink):
             self._fr_dents.append(dents or None)
         rates = getattr(frame, "rates", None) or {}
         if rates and frame.t_s >= self._rates_next:
-            rec.set_time("sim_time", duration=_ns(t))
-            rec.set_time("tick", sequence=tick)
             self._rates_next = frame.t_s + _RATES_EVERY_S
             for key in ("servo_hz", "visual_hz"):
                 if key in rates:
-                    rec.log(f"rates/{key}", rr.Scalars(float(rates[key])))
-        self._patches(model, dents, t, tick)
-        self._nets(model, t, tick)
+                    self._cols[f"rates/{key}"].add(t, tick, scalars=float(rates[key]))
+        owners = [model.owner(i) for i in range(N_SLOTS * len(LAYERS))]
+        self._patches(owners, dents, t, tick)
+        self._nets(model, owners, t, tick)
         self._frames_since_send += 1
         if self._frames_since_send >= self.batch_frames:
             self._frames_since_send = 0
@@ -677,11 +678,11 @@ class RerunSink(Sink):
             vertex_normals=np.vstack([normals, [0.0, 0.0, 1.0]]).astype(np.float32))
         self._patch_dent[k] = dent
 
-    def _patches(self, model, dents: dict, t: float, tick: int) -> None:
+    def _patches(self, owners: list, dents: dict, t: float, tick: int) -> None:
         for k in range(3):
             if k in dents:
                 dent = np.asarray(dents[k])
-            elif any(model.owner(net_index(k, s)) != FREE for s in range(N_SLOTS)):
+            elif any(owners[net_index(k, s)] != FREE for s in range(N_SLOTS)):
                 continue  # a settled net: its dent has stopped changing, keep what was logged
             else:
                 dent = None
@@ -693,12 +694,14 @@ class RerunSink(Sink):
             if last is None or last.shape != dent.shape or np.max(np.abs(dent - last)) > _DENT_EPS_M:
                 self._log_patch(k, dent, t, tick)
 
-    def _nets(self, model, t: float, tick: int) -> None:
+    def _nets(self, model, owners: list, t: float, tick: int) -> None:
         rec = self.rec
-        for idx in range(N_SLOTS * len(LAYERS)):
+        for idx, owner in enumerate(owners):
+            if owner == FREE and idx not in self._net_last:
+                continue
             k, s = net_layer(idx), net_slot(idx)
             path = f"world/nets/{LAYERS[k]}/slot{s}"
-            if model.owner(idx) == FREE:
+            if owner == FREE:
                 if idx in self._net_last:
                     rec.set_time("sim_time", duration=_ns(t))
                     rec.set_time("tick", sequence=tick)
