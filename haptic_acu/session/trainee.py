@@ -295,11 +295,22 @@ class TraineeScene:
         inside = (rows[:, COL["layer"]] >= 0).tolist()
         pressing = (rows[:, _C_STATE:_C_STATE + 3] == V.PRESSING).any(axis=1).tolist()
         origin, e_u, u0 = np.empty((k, 3)), np.empty((k, 3)), np.empty(k)
-        for i in range(k):  # the section (moves only outside the tissue) and the surfaces, frame by frame
-            self._maybe_new_section(t[i], tick[i], tips[i], axes[i], inside[i])
+        # each frame's plane (it moves only outside the tissue), then the dented boundaries of them all
+        planes, new = [], []
+        plane = (self.section, self.axis, self.entry, self.u0, getattr(self, "rest", None),
+                 getattr(self, "bone_bottom", None), self.depths)
+        for i in range(k):
+            nxt = self._next_section(tips[i], axes[i], inside[i], plane[0], plane[1])
+            new.append(nxt is not None)
+            plane = nxt if nxt is not None else plane
+            planes.append(plane)
+        dented = self._dented(planes, dents) if any(dents) else None
+        for i in range(k):  # the section and the surfaces, frame by frame
+            if new[i]:
+                self._enter_section(planes[i], t[i], tick[i])
             origin[i], e_u[i], u0[i] = self.section.origin, self.section.e_u, self.u0
             if dents[i] or pressing[i]:
-                self._frame_curves(t[i], tick[i], rows[i], dents[i] or {})
+                self._frame_curves(t[i], tick[i], rows[i], dented[i] if dents[i] else {})
             elif self._rest_seen != (self._rest_id, self._curves_logged):
                 self._log_curves(t[i], tick[i], self._rest_curves())
                 self._rest_seen = (self._rest_id, self._curves_logged)
@@ -366,20 +377,15 @@ class TraineeScene:
                                     force=(axs[i], acrosses[i])) for i in range(k)]
         c["verdict"].add_rows(t, tick, texts, text=texts)
 
-    def _frame_curves(self, t, tick, row, dents) -> None:
-        """The section's boundaries at one frame: dented where a net presses, a pressed surface
-        carried down to the tip; logged when they moved."""
+    def _frame_curves(self, t, tick, row, dented) -> None:
+        """The section's boundaries at one frame: dented where a net presses (``dented``: layer -> w
+        from :meth:`_dented`), a pressed surface carried down to the tip; logged when they moved."""
         s = self.section
         u = _U + self.u0
         curves = list(self.curves)
         curves[3] = self.rest[3]
         for k in range(3):
-            if k in dents:
-                dk = np.asarray(dents[k])
-                curves[k] = s.boundary(k, u, start=self.rest[k], dent=lambda th, ph, dk=dk: patch_dent(dk, self.theta_axis, self.phi_axis,
-                                                                                   th, ph))
-            else:
-                curves[k] = self.rest[k]
+            curves[k] = dented[k] if k in dented else self.rest[k]
         tip = row[_C_X:_C_X + 3]
         uw_tip = s.to_uw(tip)
         for k in range(3):  # a pressed surface passes through the tip (its net's contact particle)
@@ -438,26 +444,28 @@ class TraineeScene:
                                                             colors=[PUNCTURE_COLOUR],
                                                             labels=[lb for _, lb in self.punctures], show_labels=True))
 
-    def _maybe_new_section(self, t, tick, tip, axis, inside: bool) -> None:
-        if inside and self.section is not None:
-            return  # the plane stays while the needle is in the tissue
+    def _next_section(self, tip, axis, inside: bool, section, section_axis):
+        """The plane a frame with its tip at ``tip`` and axis ``axis`` is drawn in, if not ``section``
+        (drawn with ``section_axis``): (section, axis, entry, u0, rest curves, bone bottom, depths), or None."""
+        if inside and section is not None:
+            return None  # the plane stays while the needle is in the tissue
         new = Section.through(self.tissue, axis, tip)
-        if self.section is not None and self.section.same_plane(new) and float(np.dot(axis, self.axis)) > 0.9998:
-            return
-        self.section = new
-        self.axis = axis
-        self.entry = skin_entry(self.tissue, tip, axis)
-        self.u0 = float(new.to_uw(self.entry)[0])
-        u = _U + self.u0
+        if section is not None and section.same_plane(new) and float(np.dot(axis, section_axis)) > 0.9998:
+            return None
+        entry = skin_entry(self.tissue, tip, axis)
+        u0 = float(new.to_uw(entry)[0])
+        u = _U + u0
         rest = [new.boundary(k, u) for k in range(4)]
         # the bone drawn BONE_SHOWN_MM deep below its top; beside it (where a vertical line misses
         # the bone) the muscle goes down to the same flat bottom
-        self.bone_bottom = float(np.nanmin(rest[3])) - BONE_SHOWN_MM
-        rest = [np.where(np.isnan(r), self.bone_bottom, r) for r in rest]
-        self.rest = rest
+        bone_bottom = float(np.nanmin(rest[3])) - BONE_SHOWN_MM
+        rest = [np.where(np.isnan(r), bone_bottom, r) for r in rest]
+        return new, axis, entry, u0, rest, bone_bottom, new.depths_along(entry, axis)
+
+    def _enter_section(self, plane, t, tick) -> None:
+        self.section, self.axis, self.entry, self.u0, self.rest, self.bone_bottom, self.depths = plane
         self._rest_id += 1
         self.curves = [None] * 4
-        self.depths = new.depths_along(self.entry, axis)
         rec = self.rec
         rec.set_time("sim_time", duration=_ns(t))
         rec.set_time("tick", sequence=int(tick))
@@ -465,6 +473,23 @@ class TraineeScene:
         self._log_gauge_bands()
         self._log_structures(static_time=None)
         self._log_punctures()
+
+    def _dented(self, planes: list, dents: list) -> list:
+        """Each frame's dented boundaries (layer -> w (mm) along _U + u0 of its plane), computed for
+        all the frames of a plane at once, layer by layer."""
+        out = [{} for _ in dents]
+        groups: dict = {}
+        for i, d in enumerate(dents):
+            for k in (d or ()):
+                groups.setdefault((id(planes[i][0]), k), []).append(i)
+        for (_, k), idx in groups.items():
+            section, _, _, u0, rest = planes[idx[0]][:5]
+            stack = np.stack([np.asarray(dents[i][k]) for i in idx])
+            w = section.boundary(k, _U + u0, start=np.tile(rest[k], (len(idx), 1)),
+                                 dent=lambda th, ph: patch_dent(stack, self.theta_axis, self.phi_axis, th, ph))
+            for j, i in enumerate(idx):
+                out[i][k] = w[j]
+        return out
 
     def _log_curves(self, t, tick, curves) -> None:
         changed = [self.curves[k] is None or np.max(np.abs(curves[k] - self.curves[k])) > _DENT_EPS_MM
