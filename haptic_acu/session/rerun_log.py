@@ -39,7 +39,10 @@ The 3D body, per visual frame, in metres in the scene frame (+z up, the acupoint
     /events                       punctures ("skin punctured at t=..., depth ..., peak ..."), faults
 
 Everything that changes frame by frame is collected and sent as columns every ``batch_frames``
-frames (1 for a viewer, 30 for a replay to a file). The layout (``layout``: a name from
+frames (1 for a viewer, 30 for a replay to a file). A frame's model is read as the frame comes (the
+patches' dents, the nets, whether the needle is inserted); what its rows show (the needle, its twist
+bar, the force arrow, the trainee's view) is drawn for all the frames of a batch at once, with numpy
+over the frames, when the batch is sent. The layout (``layout``: a name from
 haptic_acu.session.blueprints or an .rbl file) goes with the recording as its default blueprint.
 ``set_time`` is thread-local in rerun: every logging call sets its time in the calling thread.
 """
