@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 from haptic_acu.base.bundled import bundled_dir
 
@@ -87,3 +88,46 @@ def test_compiles_are_reported_when_numba_comes_after_the_watch(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "haptic-acu: compiling " in r.stderr and ": done in " in r.stderr, r.stderr
+
+
+def test_only_the_console_entry_freezes_the_heap(tmp_path):
+    """main() without arguments is the process's one command: the heap is frozen when it returns
+    (haptic_acu/base/gcpolicy.py); main([...]) called in-process leaves the collector as it was."""
+    ratings = bundled_dir("config") / "scoring" / "example_ratings.csv"
+    code = textwrap.dedent(f"""
+        import contextlib, gc, io, json, sys
+        from haptic_acu.cli import main
+        with contextlib.redirect_stdout(io.StringIO()):
+            s1 = main(["score", {str(ratings)!r}, "--out", "a"])
+        n1 = gc.get_freeze_count()
+        sys.argv = ["haptic-acu", "score", {str(ratings)!r}, "--out", "b"]
+        with contextlib.redirect_stdout(io.StringIO()):
+            s2 = main()
+        print(json.dumps([s1, n1, s2, gc.get_freeze_count()]))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    s1, n1, s2, n2 = json.loads(r.stdout.splitlines()[-1])
+    assert (s1, s2) == (0, 0)
+    assert n1 == 0 and n2 > 1000, (n1, n2)
+    assert (tmp_path / "a" / "score.json").read_bytes() == (tmp_path / "b" / "score.json").read_bytes()
+
+
+def test_replay_command_process_leaves_complete_outputs(tmp_path):
+    """The command as a user runs it (its heap frozen after set-up and at exit): the same samples and
+    summary as the replay run in-process, a whole PNG, and an .rrd that rerun's own check accepts."""
+    from cli_helpers import cli
+
+    r = subprocess.run([sys.executable, "-m", "haptic_acu", "replay", "default", "--quiet", "--out", "p"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    here = cli("replay", "default", "--quiet", "--no-rrd", "--out", str(tmp_path / "h"), cwd=tmp_path)
+    assert here.returncode == 0, here.stderr
+    for name in ("samples.csv", "summary.json"):
+        assert (tmp_path / "p" / name).read_bytes() == (tmp_path / "h" / name).read_bytes(), name
+    assert (tmp_path / "p" / "force_depth.png").read_bytes()[-12:] == b"\0\0\0\0IEND\xaeB`\x82"
+    exe = Path(sys.executable).with_name("rerun")
+    if exe.exists():
+        v = subprocess.run([str(exe), "rrd", "verify", str(tmp_path / "p" / "recording.rrd")], capture_output=True,
+                           text=True, timeout=120)
+        assert v.returncode == 0, v.stderr[-2000:]

@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..servo import affinity, devicemodel
+from ..base import gcpolicy
 from ..base.errors import DeviceFault
 from ..tissue.forcenet import dent_on_grid
 from ..servo.step import NeedleModel
@@ -274,6 +275,7 @@ class Session:
         for s in self.sinks:
             s.warm_up()
         self._warm = True
+        gcpolicy.settle()  # a command's process: its set-up lives until it exits, no collection walks it
 
     def _warm_loops(self) -> None:
         """The kernels of a live session's loops (and of a replay on a device not read ahead)."""

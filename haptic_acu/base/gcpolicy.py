@@ -1,0 +1,51 @@
+"""The garbage collector's policy for a process that runs one command.
+
+A command's start-up leaves some 170,000 objects that live until it exits: the modules of numpy,
+numba (its typing and target registries), matplotlib and this package, the compiled kernels, the
+tissue tables. CPython's full collections walk all of them again, and its shutdown collects the
+whole heap once more while it clears the modules: for a short command such as a replay, a good
+part of its CPU time, spent proving that nothing of it is garbage.
+
+When the console entry (or ``python -m haptic_acu``) runs a command, :func:`command_process` marks
+this process as the command's; then
+
+- :func:`settle`, called once the session's set-up is done (tissue built, kernels loaded, before
+  the first tick), moves every object alive at that moment into the collector's permanent
+  generation (``gc.freeze``): later collections walk only what the session and its outputs make;
+- :func:`at_exit`, called with the command's exit status, freezes the heap before the interpreter
+  shuts down, so the shutdown frees objects by their reference counts without a last walk over all
+  of them. Every output is closed and renamed into place before a command returns; a cycle left
+  at exit is unreachable memory the operating system takes back.
+
+A command called in-process (``haptic_acu.cli.main([...])``: the tests, a notebook) leaves the
+collector as it is: there nothing is frozen, so nothing is kept past its use.
+"""
+from __future__ import annotations
+
+import gc
+
+_process_command = False
+_settled = False
+
+
+def command_process() -> None:
+    """This process runs one command and exits after it."""
+    global _process_command
+    _process_command = True
+
+
+def settle() -> None:
+    """The set-up is done: what is alive now lives until the command exits (frozen once; a batch
+    replay's later files are collected as usual)."""
+    global _settled
+    if _process_command and not _settled:
+        _settled = True
+        gc.freeze()
+
+
+def at_exit(status):
+    """``status`` (the command's exit status), after freezing the heap if this process runs one
+    command (the interpreter's shutdown then skips its collection of the whole heap)."""
+    if _process_command:
+        gc.freeze()
+    return status
