@@ -13,6 +13,10 @@ from pathlib import Path
 from haptic_acu.base.bundled import bundled_dir
 
 HEAVY = ("numba", "rerun", "matplotlib", "scipy")
+# What a replay never calls: the modelled OMNI's stylus and rendering kernels (live sessions), the
+# process pool of a batch with --jobs > 1.
+NOT_FOR_A_REPLAY = ("haptic_acu.servo.devicemodel", "haptic_acu.servo.rendering", "haptic_acu.servo.stylus",
+                    "multiprocessing", "concurrent.futures.process")
 
 
 def _imported_by(argv: list[str], tmp_path, names=HEAVY) -> dict:
@@ -60,15 +64,17 @@ def test_score_imports_no_numba_and_no_rerun(tmp_path):
 
 
 def test_replay_without_rrd_imports_no_rerun(tmp_path):
-    """... and loads every library the bench's import floor for the command imports (the floor is a
-    part of the command's wall time, not more than it)."""
+    """... nor the modules a replay never calls (NOT_FOR_A_REPLAY), and loads every library the bench's
+    import floor for the command imports (the floor is a part of the command's wall time, not more
+    than it)."""
     from haptic_acu.bench.run import REPLAY_IMPORTS
 
     got = _imported_by(["replay", "default", "--no-rrd", "--quiet", "--out", str(tmp_path / "r")], tmp_path,
-                       names=HEAVY + REPLAY_IMPORTS["no_rrd"])
+                       names=HEAVY + REPLAY_IMPORTS["no_rrd"] + NOT_FOR_A_REPLAY)
     assert got["status"] == 0
     assert (tmp_path / "r" / "samples.csv").is_file()
     assert got["numba"] and not got["rerun"], got
+    assert not any(got[m] for m in NOT_FOR_A_REPLAY), got
     assert all(got[m] for m in REPLAY_IMPORTS["no_rrd"]), got
     assert REPLAY_IMPORTS["rrd"] == REPLAY_IMPORTS["no_rrd"] + ("rerun",)  # the .rrd's sink adds rerun alone
 
