@@ -98,7 +98,8 @@ def test_compiles_are_reported_when_numba_comes_after_the_watch(tmp_path):
 
 def test_only_the_console_entry_freezes_the_heap(tmp_path):
     """main() without arguments is the process's one command: the heap is frozen when it returns
-    (haptic_acu/base/gcpolicy.py); main([...]) called in-process leaves the collector as it was."""
+    (haptic_acu/base/gcpolicy.py); main([...]) called in-process leaves the collector as it was
+    (nothing frozen, CPython's thresholds)."""
     ratings = bundled_dir("config") / "scoring" / "example_ratings.csv"
     code = textwrap.dedent(f"""
         import contextlib, gc, io, json, sys
@@ -106,6 +107,7 @@ def test_only_the_console_entry_freezes_the_heap(tmp_path):
         with contextlib.redirect_stdout(io.StringIO()):
             s1 = main(["score", {str(ratings)!r}, "--out", "a"])
         n1 = gc.get_freeze_count()
+        assert gc.get_threshold() == (700, 10, 10), gc.get_threshold()  # CPython's, untouched
         sys.argv = ["haptic-acu", "score", {str(ratings)!r}, "--out", "b"]
         with contextlib.redirect_stdout(io.StringIO()):
             s2 = main()
@@ -137,3 +139,29 @@ def test_replay_command_process_leaves_complete_outputs(tmp_path):
         v = subprocess.run([str(exe), "rrd", "verify", str(tmp_path / "p" / "recording.rrd")], capture_output=True,
                            text=True, timeout=120)
         assert v.returncode == 0, v.stderr[-2000:]
+
+
+def test_gc_policy_of_a_command_process(tmp_path):
+    """Full collections rarer while the command sets up; at settle() the thresholds come back and
+    what is alive is frozen, once (a batch's later files are collected as usual)."""
+    code = textwrap.dedent("""
+        import gc, json
+        from haptic_acu.base import gcpolicy
+        before = gc.get_threshold()
+        gcpolicy.settle()  # not a command's process: nothing happens
+        out = [before, gc.get_freeze_count()]
+        gcpolicy.command_process()
+        out.append(gc.get_threshold())
+        gcpolicy.settle()
+        out += [gc.get_threshold(), gc.get_freeze_count()]
+        keep = [[i] for i in range(1000)]  # new objects after the freeze
+        gcpolicy.settle()
+        out.append(gc.get_freeze_count())
+        print(json.dumps(out))
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    before, frozen0, setup, after, frozen1, frozen2 = json.loads(r.stdout.splitlines()[-1])
+    assert frozen0 == 0
+    assert setup == [before[0], before[1], 100] and after == before
+    assert frozen1 > 1000 and frozen2 == frozen1
