@@ -15,16 +15,20 @@ peaks some tens of MB higher and spends seconds less collecting. Then
 - :func:`settle`, called once the session's set-up is done (tissue built, kernels loaded, before
   the first tick), moves every object alive at that moment into the collector's permanent
   generation (``gc.freeze``): later collections walk only what the session and its outputs make;
-- :func:`at_exit`, called with the command's exit status, freezes the heap before the interpreter
+- at exit (the last of the process's ``atexit`` calls) the heap is frozen before the interpreter
   shuts down, so the shutdown frees objects by their reference counts without a last walk over all
   of them. Every output is closed and renamed into place before a command returns; a cycle left
   at exit is unreachable memory the operating system takes back.
+
+The worker processes of a batch replay (``replay --jobs N``) follow the same policy: each is set
+up once and replays files until the batch ends.
 
 A command called in-process (``haptic_acu.cli.main([...])``: the tests, a notebook) leaves the
 collector as it is: there nothing is frozen, so nothing is kept past its use.
 """
 from __future__ import annotations
 
+import atexit
 import gc
 
 SETUP_FULL_EVERY = 100  # younger collections between two full ones while a command sets up
@@ -41,6 +45,7 @@ def command_process() -> None:
     if _thresholds is None:
         _thresholds = gc.get_threshold()
         gc.set_threshold(_thresholds[0], _thresholds[1], max(_thresholds[2], SETUP_FULL_EVERY))
+        atexit.register(gc.freeze)  # at the command's start: called after the handlers its libraries add
 
 
 def settle() -> None:
@@ -53,10 +58,3 @@ def settle() -> None:
             gc.set_threshold(*_thresholds)
         gc.freeze()
 
-
-def at_exit(status):
-    """``status`` (the command's exit status), after freezing the heap if this process runs one
-    command (the interpreter's shutdown then skips its collection of the whole heap)."""
-    if _process_command:
-        gc.freeze()
-    return status

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         from ..base import gcpolicy
 
         gcpolicy.command_process()
-        return gcpolicy.at_exit(_main(sys.argv[1:]))
+        argv = sys.argv[1:]
     return _main(list(argv))
 
 

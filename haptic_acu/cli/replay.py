@@ -75,7 +75,10 @@ def _replays(work, jobs: int):
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from multiprocessing import get_context
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+    from ..base import gcpolicy
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
+                             initializer=gcpolicy.command_process) as ex:  # each worker: one batch, then exit
         for f in as_completed([ex.submit(_one, w) for w in work]):
             yield f.result()
 
