@@ -5,6 +5,7 @@ Each ends within its stated time with one line; finished sessions are kept; no p
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -237,3 +238,33 @@ def test_a_terminated_local_pool_takes_its_workers(tmp_path, sig):
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
+
+
+def test_the_cohort_plugin_lets_large_arrays_reuse_the_heap_under_a_nannys_settings(tmp_path):
+    """Under ``MALLOC_TRIM_THRESHOLD_`` (what a Dask nanny sets) every 2 MiB array is mapped and
+    faulted in anew; while the cohort's plugin is set up the heap is reused (few page faults, counted
+    by the kernel), and its teardown puts the nanny's behaviour back."""
+    code = (
+        "import json, resource, types\n"
+        "import numpy as np\n"
+        "from haptic_acu.cohort.daskworker import CohortWorkerPlugin\n"
+        "def faults():\n"
+        "    r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "    for _ in range(40):\n"
+        "        a = np.ones(1 << 18)\n"
+        "        del a\n"
+        "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0\n"
+        "w = types.SimpleNamespace(periodic_callbacks={})\n"
+        "p = CohortWorkerPlugin('x')\n"
+        "before = faults()\n"
+        "p.setup(w)\n"
+        "during = faults()\n"
+        "p.teardown(w)\n"
+        "print(json.dumps([before, during, faults()]))\n")
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    before, during, after = json.loads(r.stdout.splitlines()[-1])
+    pages = 40 * (8 << 18) // 4096  # every page of every array
+    assert before > 0.9 * pages and after > 0.9 * pages, (before, after)
+    assert during < 0.1 * pages, during

@@ -1,6 +1,7 @@
 """Foundations every layer uses: the configuration (strict TOML into frozen dataclasses, ``--set``
 overrides), user-facing errors, bundled data lookup, the kernel-cache guard, CSV number formatting,
-progress lines and the session figures' layout and PNG (:mod:`.figlayout`).
+progress lines, the session figures' layout and PNG (:mod:`.figlayout`) and the garbage collector's
+policy for a command's process (:mod:`.gcpolicy`).
 
 Imports nothing else of haptic_acu.
 """

@@ -65,7 +65,18 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """The command line's exit status. Without ``argv`` (the console entry, ``python -m haptic_acu``)
+    this process runs the one command and exits: the collector's policy for such a process
+    (:mod:`haptic_acu.base.gcpolicy`) applies."""
+    if argv is None:
+        from ..base import gcpolicy
+
+        gcpolicy.command_process()
+        argv = sys.argv[1:]
+    return _main(list(argv))
+
+
+def _main(argv: list[str]) -> int:
     only = next((a for a in argv if a in COMMANDS), None)
     parser = build_parser(only)
     args = parser.parse_args(argv)

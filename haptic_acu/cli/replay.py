@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 from ..base.bundled import bundled_names
@@ -74,7 +72,13 @@ def _replays(work, jobs: int):
         for w in work:
             yield _one(w)
         return
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as ex:
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from multiprocessing import get_context
+
+    from ..base import gcpolicy
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
+                             initializer=gcpolicy.command_process) as ex:  # each worker: one batch, then exit
         for f in as_completed([ex.submit(_one, w) for w in work]):
             yield f.result()
 

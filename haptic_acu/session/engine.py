@@ -65,7 +65,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..servo import affinity, devicemodel
+from ..servo import affinity
+from ..base import gcpolicy
 from ..base.errors import DeviceFault
 from ..tissue.forcenet import dent_on_grid
 from ..servo.step import NeedleModel
@@ -123,6 +124,14 @@ class SessionResult:
     duration_s: float
     fault: str | None
     stats: dict
+
+
+def _devicemodel():
+    """:mod:`haptic_acu.servo.devicemodel` (the modelled OMNI's stylus and rendering kernels), imported
+    by the live sessions that use it: a replay models no device and does not load it."""
+    from ..servo import devicemodel
+
+    return devicemodel
 
 
 def patch_grid(half_angle: float = 0.5, n_theta: int = 24, n_phi: int = 48):
@@ -245,7 +254,7 @@ class Session:
         # A live session of the scripted device records what an OMNI would have rendered on its path
         # (haptic_acu.servo.devicemodel: the stylus model with an OMNI's limits); the replay and the
         # keyboard (no force output) record none.
-        self.device_model = (devicemodel.new(self.servo_dt)
+        self.device_model = (_devicemodel().new(self.servo_dt)
                              if clock == "realtime" and device.info.name == "scripted" else None)
 
     @property
@@ -274,12 +283,13 @@ class Session:
         for s in self.sinks:
             s.warm_up()
         self._warm = True
+        gcpolicy.settle()  # a command's process: its set-up lives until it exits, no collection walks it
 
     def _warm_loops(self) -> None:
         """The kernels of a live session's loops (and of a replay on a device not read ahead)."""
         self.model.warm_up()
         if self.device_model is not None:
-            devicemodel.warm_up()
+            _devicemodel().warm_up()
         m = self.model
         if self.clock == "realtime" and self.compiled_loop:
             self._warm_compiled_loop()
@@ -324,7 +334,7 @@ class Session:
         rtloop.warm_up()
         m = self.model
         loop = rtloop.Loop(np.zeros(1, rtloop.CTL), np.zeros(1, rtloop.FL), np.zeros(2, np.int64),
-                           devicemodel.new(self.servo_dt, on=False))
+                           _devicemodel().new(self.servo_dt, on=False))
         loop.ctl["stop"] = 1
         rows = Ring(np.zeros((1, NCOL)), np.zeros(1, np.int64))
         feed = rtloop.FeedRows(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 3), np.nan), np.zeros(1))
@@ -365,7 +375,7 @@ class Session:
         m.inp.axis[:] = np.nan if state.axis is None else -state.axis  # DeviceState: tip -> handle
         m.inp.roll[0] = state.roll_rad
         if self.device_model is not None:  # the modelled device's rendered force, for the row
-            devicemodel.model_tick(self.device_model, m.inp, m.out.diag)
+            _devicemodel().model_tick(self.device_model, m.inp, m.out.diag)
         ok = self._tick(t, self.tick, period_err, period)
         self.tick += 1
         if not ok:
@@ -765,7 +775,7 @@ class Session:
         ctl["wall_ns"] = max(1, int(round(period_ns / self.speed)))
         rows = Ring(self.ring.buf, self.ring.ctr)
         table = tick_table(m.servo, rows, self._timing)  # rows and the model's arrays outlive it
-        dm = self.device_model if self.device_model is not None else devicemodel.new(dt, on=False)
+        dm = self.device_model if self.device_model is not None else _devicemodel().new(dt, on=False)
         outcome = {}
         old = self._rt_setup()
         self._ctl = ctl
