@@ -55,6 +55,7 @@ def _rule(v: float, d: int) -> str | None:
     """The formatter's rule in Python's exact integers: floor(|v| * 10.0**d + 0.5) (the float sum,
     floored exactly) with a point before its last d digits, '-' unless that integer is 0, "nan" for a
     value that is not finite. None where the integer does not fit an int64 (not compared)."""
+    v = float(v)  # Python's float: the same IEEE arithmetic, and an overflow to inf without a warning
     if not math.isfinite(v):
         return "nan"
     x = abs(v) * 10.0 ** d + 0.5
@@ -108,3 +109,22 @@ def test_fixed_cells_follow_the_rounding_rule_bit_for_bit():
                     assert cell == want, (repr(v), d, cell, want)
         single = fmt.format(np.array([[1e300, 1.0, 1e300]])).decode()
         assert single.split(",")[0] == single.strip().split(",")[2]
+
+
+def test_write_gather_writes_format_gathers_bytes_through_its_kept_buffer():
+    """write_gather: the bytes format_gather returns, block after block of changing sizes (its
+    buffer kept and grown, never a stale byte from a longer block before)."""
+    import io
+
+    rng = np.random.default_rng(11)
+    fmt = RowFormatter([("fixed", 4), ("category", ("a", "bb")), ("fixed", 0)])
+    f = io.BytesIO()
+    want = b""
+    for k in (5, 300, 2, 1000, 0, 7):
+        rows = np.column_stack([rng.normal(0, 1e3, k), rng.integers(0, 2, k), rng.normal(0, 1e6, k)])
+        extra = np.zeros((k, 0))
+        n = fmt.write_gather(f, rows, extra, [0, 1, 2], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0])
+        block = fmt.format_gather(rows, extra, [0, 1, 2], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0])
+        assert n == len(block) and block.count(b"\n") == k
+        want += block
+    assert f.getvalue() == want

@@ -204,6 +204,7 @@ class RowFormatter:
         self.table_base = np.array(base, dtype=np.int64)
         self.max_cell = max(24, width + 1)
         self.cells = Cells(self.kinds, self.decimals, self.table, self.table_len, self.table_base)
+        self._buf: np.ndarray | None = None  # write_gather's output buffer
 
     def format(self, values: np.ndarray) -> bytes:
         values = np.ascontiguousarray(values, dtype=np.float64)
@@ -215,12 +216,30 @@ class RowFormatter:
         them first: column ``c`` is ``rows[:, src[c]]`` (``extra[:, src[c] - w]`` past ``rows``'
         columns) times ``scale[c]``, plus ``offset[c]`` where that is not zero; then as
         :meth:`format` (the same bytes as :meth:`format` on those columns)."""
+        return self._gather(rows, extra, src, scale, offset, None).tobytes()
+
+    def write_gather(self, file, rows: np.ndarray, extra: np.ndarray, src, scale, offset) -> int:
+        """:meth:`format_gather`'s bytes written to the binary ``file``, formatted into a buffer the
+        formatter keeps (grown as needed; no allocation per block once it is large enough); returns
+        the number of bytes."""
+        n = self._buf.shape[0] if self._buf is not None else 0
+        need = len(rows) * (len(src) * self.max_cell + 1)
+        if need > n:
+            self._buf = np.empty(max(need, 2 * n), dtype=np.uint8)
+        view = self._gather(rows, extra, src, scale, offset, self._buf)
+        file.write(memoryview(view))
+        return view.shape[0]
+
+    def _gather(self, rows, extra, src, scale, offset, out) -> np.ndarray:
         rows = np.ascontiguousarray(rows, dtype=np.float64)
-        extra = np.ascontiguousarray(extra, dtype=np.float64).reshape(rows.shape[0], -1)
+        extra = np.ascontiguousarray(extra, dtype=np.float64)
+        if extra.ndim != 2:
+            extra = extra.reshape(rows.shape[0], -1)
         src = np.asarray(src, dtype=np.int64)
         if src.shape[0] != self.kinds.shape[0]:
             raise ValueError(f"{src.shape[0]} source columns for {self.kinds.shape[0]} formatted ones")
-        out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
+        if out is None:
+            out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
         gather = (src, np.asarray(scale, dtype=np.float64), np.asarray(offset, dtype=np.float64))
         n = _format_gather(rows, extra, gather, self.cells, out)
-        return out[:n].tobytes()
+        return out[:n]
