@@ -46,7 +46,7 @@ bench: $(STAMP)
 	$(PY) tools/perf_page.py runs/bench.json --out docs/performance.md  # the page's figures, from that JSON
 
 # the cohort benchmark: 200 synthetic one-minute sessions, local pool and a Dask LocalCluster
-# (both runs, about 5 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
+# (local, Dask, local again: about 6 minutes on two quiet cores; `make bench` measures only 8 ten-second sessions)
 bench-cohort: $(STAMP)
 	@mkdir -p runs
 	f=runs/bench-cohort-$$(date -u +%Y%m%dT%H%M%SZ).json; \

@@ -8,8 +8,8 @@ improves session by session (entry offset, angle, depth, stop-and-go approach, w
 the tests' fixture. :func:`cohort` (the ``haptic-acu bench`` hook, ``cohort(sizes, progress)``
 like the other benchmarks in ``run.py``) replays it with the local pool and with a Dask
 ``LocalCluster`` of as many single-threaded worker processes, and reports wall time, sessions per
-second per core and the Dask run's overhead (its wall time over the local one's), and checks the
-two runs give identical tables.
+second per core and the Dask run's overhead (its wall time over the mean of two local runs, one
+before it and one after), and checks the runs give identical tables.
 """
 from __future__ import annotations
 
@@ -189,12 +189,19 @@ def measure(n_sessions: int = 8, duration_s: float = 10.0, workers: int = 0, das
                 start_s = time.perf_counter() - t
                 st = {}
                 run_cohort(manifest, tmp / "dask", cfg, scheduler=client, quiet=not progress, stats=st)
-            wall_d = st["replay_s"]
-            res["dask"] = {"cluster_start_s": start_s, "replay_s": wall_d, "total_s": st["total_s"],
+            wall_d, total_d = st["replay_s"], st["total_s"]
+            # the local pool once more after Dask: the ratio is against the mean of the runs on either
+            # side, so a host that speeds up or slows down over the minutes favours neither
+            st = {}
+            run_cohort(manifest, tmp / "local-after", cfg, jobs=workers, quiet=not progress, stats=st)
+            res["local"]["replay_s_after"] = st["replay_s"]
+            around = (wall + st["replay_s"]) / 2
+            res["dask"] = {"cluster_start_s": start_s, "replay_s": wall_d, "total_s": total_d,
                            "sessions_per_s_per_core": n_sessions / wall_d / workers,
-                           "overhead_x": wall_d / wall, "overhead_with_cluster_start_x": (wall_d + start_s) / wall}
-            a, b = _tables(tmp / "local"), _tables(tmp / "dask")
-            res["dask"]["identical_tables"] = all(a[n].equals(b[n]) for n in a)
+                           "local_replay_s_around": around,
+                           "overhead_x": wall_d / around, "overhead_with_cluster_start_x": (wall_d + start_s) / around}
+            a, b, c = _tables(tmp / "local"), _tables(tmp / "dask"), _tables(tmp / "local-after")
+            res["dask"]["identical_tables"] = all(a[n].equals(b[n]) and a[n].equals(c[n]) for n in a)
     return res
 
 

@@ -1,7 +1,8 @@
 """A replay's recording.rrd, read back with rerun's own reader and held against the replay's
 samples.csv read as plain text: the servo series hold one value per tick, the 3D needle and the
-section's surfaces are where the samples put them at the frame times they were logged, and the
-rows sent several batches to a call are the rows sent a batch at a time."""
+section's surfaces are where the samples put them at the frame times they were logged, the rows
+sent several batches to a call are the rows sent a batch at a time, and the frames drawn a batch at
+once are the frames drawn one by one (as a live session logs them)."""
 from __future__ import annotations
 
 import csv
@@ -112,3 +113,36 @@ def test_rows_held_for_several_batches_are_the_rows_sent_batch_by_batch(replays,
     assert keys == {k for k in each if k[0] not in measured}
     for k in sorted(keys, key=str):
         assert c[k] == each[k], k
+
+
+def test_frames_drawn_a_batch_at_once_are_the_frames_drawn_one_by_one(replays, tmp_path, monkeypatch):
+    """Every entity at every time as a live session's sink logs it, a frame per batch and a send per
+    frame: the 3D needle, patches and nets, the trainee's section, gauge, dial and labels. Two
+    entities depend on the batch by design: the target marks (drawn at each batch's ends) and the
+    verdict's last puncture (found when its batch's rows are scanned)."""
+    held, rows, c = replays
+    from haptic_acu.session import replay
+    assert replay.RRD_BATCH_FRAMES > 1
+    monkeypatch.setattr(replay, "RRD_BATCH_FRAMES", 1)
+    monkeypatch.setattr(replay, "RRD_SEND_BATCHES", 1)
+    _replay(tmp_path / "one")
+    one = content(tmp_path / "one" / "recording.rrd")
+    by_batch = {"/rates/servo_hz", "/rates/visual_hz", "/__properties", "/depth/marks", "/verdict"}
+    keys = {k for k in c if k[0] not in by_batch}
+    assert keys == {k for k in one if k[0] not in by_batch}
+    frame_ticks = set()
+    for k in sorted(keys, key=str):
+        assert c[k] == one[k], k
+        if k[0].startswith(("/world/needle", "/section/scene/tip", "/gauge/tip", "/twirl/dial/roll")) and not k[1]:
+            frame_ticks |= {r[0] for r in c[k]}
+    assert len(frame_ticks) > 50  # many frames drawn, each at a frame's last tick
+    # the verdict: the same texts in the same order, but a puncture's "Last:" line waits for its batch
+    def texts(rows_):
+        out = []
+        for _, _, v in rows_:
+            head = v[0].split("\n\nLast:")[0]
+            if not out or out[-1] != head:
+                out.append(head)
+        return out
+
+    assert texts(c[("/verdict", False, "TextDocument:text")]) == texts(one[("/verdict", False, "TextDocument:text")])

@@ -253,3 +253,73 @@ def test_structures_from_a_points_anatomy(tissue):
     np.testing.assert_allclose(structure_outline(got[0], s)[:, 1], -20.0, atol=1e-9)
     ring = structure_outline(got[1], s)
     np.testing.assert_allclose(np.hypot(ring[:, 0] - 2.0, ring[:, 1] + 12.0), 1.42, atol=1e-9)
+
+
+# -- frames a batch at once ---------------------------------------------------------------------
+
+def test_a_stack_of_dents_gives_each_dents_curve(tissue):
+    """patch_dent and Section.boundary on a stack of dents: each row exactly what that dent alone gives."""
+    from haptic_acu.session.engine import PATCH_GRID
+
+    th, ph = PATCH_GRID
+    axes = (th[:, 0], ph[0])
+    rng = np.random.default_rng(3)
+    dents = rng.uniform(0.0, 1e-3, (3,) + th.shape)
+    s = Section.through(tissue, [0.1, 0.0, -1.0], [0.0, 0.0, 0.0])
+    u = np.linspace(-30.0, 30.0, 25)
+    rest = s.boundary(1, u)
+    stacked = s.boundary(1, u, start=np.tile(rest, (3, 1)), dent=lambda t, p: patch_dent(dents, *axes, t, p))
+    for j in range(3):
+        alone = s.boundary(1, u, start=rest, dent=lambda t, p: patch_dent(dents[j], *axes, t, p))
+        np.testing.assert_array_equal(stacked[j], alone)
+        assert np.nanmax(rest - alone) > 0.1  # pressed in, by a tenth of a millimetre or more
+    t = rng.uniform(0.0, 0.6, (3, 7))  # inside the pole row, across the patch and past it
+    p = rng.uniform(-7.0, 7.0, (3, 7))
+    for j in range(3):
+        np.testing.assert_array_equal(patch_dent(dents, *axes, t, p)[j], patch_dent(dents[j], *axes, t[j], p[j]))
+
+
+def test_rows_added_at_once_are_the_rows_added_one_by_one():
+    """Columns.add_rows keeps and sends what Columns.add row by row keeps and sends: a row whose key
+    is the last kept one's is dropped, across calls too."""
+    import rerun as rr
+
+    from haptic_acu.session.trainee import Columns, _keys
+
+    class Rec:
+        def __init__(self):
+            self.sent = []
+
+        def send_columns(self, path, indexes, columns):
+            self.sent.append((path, [(i.timeline_name(), i.as_arrow_array().to_pylist()) for i in indexes],
+                              [c.as_arrow_array().to_pylist() for c in columns]))
+
+    rng = np.random.default_rng(1)
+    t = [0.01 * i for i in range(9)]
+    tick = list(range(0, 90, 10))
+    pos = np.round(rng.normal(size=(9, 3)), 1)
+    pos[3] = pos[2]  # repeats, dropped
+    pos[4] = pos[2]
+    labels = [f"p{i}" for i in range(9)]
+    strips = rng.normal(size=(9, 2, 3))
+    one, many = Rec(), Rec()
+    a = {"p": Columns(rr.Points3D, partitioned=True), "s": Columns(rr.LineStrips3D, partitioned=True),
+         "v": Columns(rr.TextDocument)}
+    b = {"p": Columns(rr.Points3D, partitioned=True), "s": Columns(rr.LineStrips3D, partitioned=True),
+         "v": Columns(rr.TextDocument)}
+    keys = _keys(np.round(pos, 3))
+    texts = ["same" if i in (5, 6) else f"text {i // 2}" for i in range(9)]
+    for i in range(9):
+        a["p"].add(t[i], tick[i], key=keys[i], positions=pos[i:i + 1], labels=[labels[i]])
+        a["s"].add(t[i], tick[i], key=keys[i], strips=[strips[i]])
+        a["v"].add(t[i], tick[i], key=texts[i], text=texts[i])
+    for lo, hi in ((0, 3), (3, 9)):  # two calls: the first row of the second is held against the first's last
+        sl = slice(lo, hi)
+        b["p"].add_rows(t[sl], tick[sl], keys[sl], positions=pos[sl], labels=labels[sl])
+        b["s"].add_rows(t[sl], tick[sl], keys[sl], strips=strips[sl])
+        b["v"].add_rows(t[sl], tick[sl], texts[sl], text=texts[sl])
+    for name in a:
+        a[name].send(one, name)
+        b[name].send(many, name)
+    assert one.sent == many.sent
+    assert [len(x[1][0][1]) for x in one.sent] == [7, 7, 6]  # rows kept: 9 less the two repeats; texts 6

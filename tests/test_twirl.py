@@ -292,3 +292,15 @@ def test_reset_forgets_the_winding_and_the_roll_origin():
 
 def test_compile_kernels_runs():
     T.compile_kernels()
+
+
+def test_twist_directions_at_once_are_each_one():
+    rng = np.random.default_rng(8)
+    d = rng.normal(size=(12, 3))
+    d[0] = [1.0, 0.0, 0.0]  # along x: the reference turns to +y
+    roll = rng.uniform(-7, 7, 12)
+    many = T.twist_direction(d, roll)
+    assert many.shape == (12, 3)
+    for i in range(12):
+        np.testing.assert_allclose(many[i], T.twist_direction(d[i], roll[i]), rtol=0, atol=1e-15)
+    assert T.twist_direction(d[0], 0.0) == pytest.approx([0.0, 1.0, 0.0])

@@ -91,7 +91,8 @@ def end_to_end_lines(res: dict) -> list[str]:
          "below leaves it out)", f"{fmt(get(e, 'cli_cpu_s', 'rrd'))} / {fmt(get(e, 'cli_cpu_s', 'no_rrd'))} s",
          f"{times(r.get('replay_cli_rrd_cpu_vs_bound'))} / {times(r.get('replay_cli_no_rrd_cpu_vs_bound'))} the bound"],
         ["the floor under both: a bare interpreter importing the libraries the command loads (numpy, scipy, "
-         "numba, matplotlib; rerun with the .rrd)",
+         "numba, matplotlib; rerun with the .rrd) and running one cached trivial numba kernel (numba's "
+         "set-up on a process's first kernel)",
          f"{fmt(get(e, 'import_floor_s', 'rrd'))} / {fmt(get(e, 'import_floor_s', 'no_rrd'))} s",
          f"{times(r.get('import_floor_no_rrd_vs_bound'))} the bound without .rrd"],
         ["the two commands above that floor (the part that is ours)",

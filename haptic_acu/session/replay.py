@@ -287,6 +287,7 @@ def session_summary(summary_sink, name: str, cfg, point=None, grade=None) -> dic
     return summary
 
 
+RRD_BATCH_FRAMES = 30  # a replay's .rrd: servo series and frames drawn in half-second batches of simulated time
 RRD_SEND_BATCHES = 8  # a replay's .rrd gets 8 batches (4 s of simulated time) per send_columns
 
 
@@ -331,7 +332,7 @@ def replay_one(trajectory, out_dir, config_path=None, realtime: bool = False, rr
                 sinks.append(RerunSink.connect(connect, layout))
             else:
                 sink = RerunSink.to_file(partial / "recording.rrd", layout)
-                sink.batch_frames = 30  # servo series in half-second batches of simulated time
+                sink.batch_frames = RRD_BATCH_FRAMES
                 sink.send_batches = RRD_SEND_BATCHES
                 sink.flush_frames, sink.flush_before_send = 0, True
                 sinks.append(io.guard(sink))

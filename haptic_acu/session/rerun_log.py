@@ -39,7 +39,10 @@ The 3D body, per visual frame, in metres in the scene frame (+z up, the acupoint
     /events                       punctures ("skin punctured at t=..., depth ..., peak ..."), faults
 
 Everything that changes frame by frame is collected and sent as columns every ``batch_frames``
-frames (1 for a viewer, 30 for a replay to a file). The layout (``layout``: a name from
+frames (1 for a viewer, 30 for a replay to a file). A frame's model is read as the frame comes (the
+patches' dents, the nets, whether the needle is inserted); what its rows show (the needle, its twist
+bar, the force arrow, the trainee's view) is drawn for all the frames of a batch at once, with numpy
+over the frames, when the batch is sent. The layout (``layout``: a name from
 haptic_acu.session.blueprints or an .rbl file) goes with the recording as its default blueprint.
 ``set_time`` is thread-local in rerun: every logging call sets its time in the calling thread.
 """
@@ -66,7 +69,7 @@ from .blueprints import DEFAULT_FILE, DEFAULT_LIVE
 from .blueprints import load as load_layout
 from .sink import Sink
 from .section import structures_from_anatomy, structures_from_danger
-from .trainee import Columns, TraineeScene, seen_key
+from .trainee import Columns, TraineeScene, _keys
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -153,12 +156,13 @@ MARKS = (["target (shallow end)", "target (deep end)", "skin | fat", "fat | musc
 TWIST_BAR_M = 0.006
 
 
-def twist_bar(tip, back, roll_deg: float) -> np.ndarray:
+def twist_bar(tip, back, roll_deg) -> np.ndarray:
     """The twist bar's two ends (2, 3): across the needle's handle end (``tip`` + 40 mm along
-    ``back``, the unit vector toward the handle), along :func:`haptic_acu.tissue.twirl.twist_direction`."""
+    ``back``, the unit vector toward the handle), along :func:`haptic_acu.tissue.twirl.twist_direction`.
+    For many at once: ``tip`` and ``back`` (k, 3), ``roll_deg`` (k,) give (k, 2, 3)."""
     handle = np.asarray(tip) + NEEDLE_LENGTH_M * np.asarray(back)
     d = twist_direction(-np.asarray(back), np.radians(roll_deg)) * (0.5 * TWIST_BAR_M)
-    return np.stack([handle - d, handle + d])
+    return np.stack([handle - d, handle + d], axis=-2)
 
 
 STRUCTURE_COLOURS = {"membrane": (178, 24, 43, 110), "bone": (235, 225, 200, 200), "nerve": (240, 200, 30, 255),
@@ -307,6 +311,14 @@ class RerunSink(Sink):
         # per-call cost, not the data, dominated a replay).
         self.batch_frames = 1
         self._pending: list[np.ndarray] = []
+        self._pending_rows = 0
+        # the pending frames (drawn with their batch): time, tick, last row's index in the batch,
+        # the needle's axis if inserted, the dents
+        self._fr_t: list[float] = []
+        self._fr_tick: list[int] = []
+        self._fr_end: list[int] = []
+        self._fr_axis: list = []
+        self._fr_dents: list = []
         self._frames_since_send = 0
         # What batches compute is held and sent every ``send_batches`` batches (1 for a viewer):
         # rerun's cost is per send_columns call (about 0.3 ms), not per row, so a replay to a file
@@ -460,6 +472,8 @@ class RerunSink(Sink):
             "world/twist": Columns(rr.LineStrips3D, partitioned=True),
             "world/force": Columns(rr.Arrows3D, partitioned=True),
             **{f"world/tissue/{BOUNDARY_NAMES[k]}/patch": Columns(rr.Mesh3D, partitioned=True) for k in range(3)},
+            "rates/servo_hz": Columns(rr.Scalars),
+            "rates/visual_hz": Columns(rr.Scalars),
         }
         self._started_series: set[str] = set()
         structures = info.get("structures") or self.structures
@@ -507,8 +521,10 @@ class RerunSink(Sink):
     def _batch(self) -> None:
         rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
         self._pending = []
+        self._pending_rows = 0
         rec = self.rec
         tip_depth = tip_depth_m(rows[:, _C_X:_C_X + 3], self.tissue)
+        self._draw_frames(rows, tip_depth)
         inside = rows[:, COL["layer"]] >= 0
         depth_mm = np.where(inside, rows[:, COL["depth_skin_m"]], tip_depth) * 1e3
         t_s, ticks = rows[:, COL["t_s"]].copy(), rows[:, COL["tick"]].copy()
@@ -542,40 +558,47 @@ class RerunSink(Sink):
         self.scene.flush()
 
     def on_frame(self, frame) -> None:
+        self.on_frames((frame,))
+
+    def on_frames(self, frames) -> None:
+        """Visual frames, oldest first: what each frame's model shows (the patches' dents, the nets,
+        whether the needle is inserted) is read at once; what its rows show (the needle, the force,
+        the trainee's view) is drawn for every frame of a batch at once when the batch is sent."""
         t_wall = time.perf_counter()
         t_cpu = time.thread_time()
+        for frame in frames:
+            self._take(frame)
+        self.frame_cost_s.append(time.perf_counter() - t_wall)
+        self.frame_cpu_s.append(time.thread_time() - t_cpu)
+
+    def _take(self, frame) -> None:
         rec = self.rec
         rows = frame.samples
         k = len(rows)
         if k:
             self._pending.append(rows)
+            self._pending_rows += k
             self._last_tick = int(rows[-1, COL["tick"]])
         self._last_t = t = frame.t_s
         tick = self._last_tick
         model = frame.model
         dents = getattr(frame, "dents", None) or {}
-        if k:
-            row = rows[-1]
-            tip = row[_C_X:_C_X + 3]
-            back = -model.axis if model.inserted else np.array([0.0, 0.0, 1.0])
-            c = self._cols
-            pose = seen_key(tip, back, decimals=7)  # to 0.1 um
-            c["world/needle"].add(t, tick, key=pose, strips=[np.array([tip, tip + NEEDLE_LENGTH_M * back])])
-            c["world/twist"].add(t, tick, key=(pose, round(float(row[COL["roll_deg"]]), 1)),
-                                 strips=[twist_bar(tip, back, row[COL["roll_deg"]])])
-            vec = row[_C_F:_C_F + 3] * FORCE_ARROW_M_PER_N
-            c["world/force"].add(t, tick, key=(pose, seen_key(vec, decimals=6)), origins=tip[None], vectors=vec[None])
-            self.scene.frame(t, tick, rows, float(tip_depth_m(tip[None], self.tissue)[0]) * 1e3, dents)
+        dents = {j: np.asarray(dents[j]) for j in dents} if dents else {}  # each layer's evaluated once
+        if k:  # drawn with its batch (_draw_frames)
+            self._fr_t.append(t)
+            self._fr_tick.append(tick)
+            self._fr_end.append(self._pending_rows - 1)
+            self._fr_axis.append(model.axis if model.inserted else None)
+            self._fr_dents.append(dents or None)
         rates = getattr(frame, "rates", None) or {}
         if rates and frame.t_s >= self._rates_next:
-            rec.set_time("sim_time", duration=_ns(t))
-            rec.set_time("tick", sequence=tick)
             self._rates_next = frame.t_s + _RATES_EVERY_S
             for key in ("servo_hz", "visual_hz"):
                 if key in rates:
-                    rec.log(f"rates/{key}", rr.Scalars(float(rates[key])))
-        self._patches(frame, dents, t, tick)
-        self._nets(model, t, tick)
+                    self._cols[f"rates/{key}"].add(t, tick, scalars=float(rates[key]))
+        owners = [model.owner(i) for i in range(N_SLOTS * len(LAYERS))]
+        self._patches(owners, dents, t, tick)
+        self._nets(model, owners, t, tick)
         self._frames_since_send += 1
         if self._frames_since_send >= self.batch_frames:
             self._frames_since_send = 0
@@ -587,8 +610,30 @@ class RerunSink(Sink):
                 rec.flush(timeout_sec=self.flush_timeout_s)
             except RuntimeError:  # a viewer too slow to take it: the backlog waits for the next flush
                 pass
-        self.frame_cost_s.append(time.perf_counter() - t_wall)
-        self.frame_cpu_s.append(time.thread_time() - t_cpu)
+
+    def _draw_frames(self, rows: np.ndarray, tip_depth: np.ndarray) -> None:
+        """The frames of a batch (``rows`` its servo rows, ``tip_depth`` (m) theirs), each drawn at its
+        newest row: the 3D needle, its twist bar and the force arrow, and the trainee's view."""
+        ends = np.asarray(self._fr_end, dtype=np.int64)
+        t, tick = self._fr_t, self._fr_tick
+        last = rows[ends]
+        k = len(ends)
+        tip = last[:, _C_X:_C_X + 3]
+        back = np.tile([0.0, 0.0, 1.0], (k, 1))
+        for i, a in enumerate(self._fr_axis):
+            if a is not None:
+                back[i] = -a
+        roll = last[:, COL["roll_deg"]]
+        c = self._cols
+        pose = np.round(np.concatenate([tip, back], axis=1), 7)  # to 0.1 um
+        poses = _keys(pose)
+        c["world/needle"].add_rows(t, tick, poses, strips=np.stack([tip, tip + NEEDLE_LENGTH_M * back], axis=1))
+        c["world/twist"].add_rows(t, tick, list(zip(poses, [round(x, 1) for x in roll.tolist()])),
+                                  strips=twist_bar(tip, back, roll))
+        vec = last[:, _C_F:_C_F + 3] * FORCE_ARROW_M_PER_N
+        c["world/force"].add_rows(t, tick, _keys(pose, np.round(vec, 6)), origins=tip, vectors=vec)
+        self.scene.frames(t, tick, last, tip_depth[ends] * 1e3, self._fr_dents)
+        self._fr_t, self._fr_tick, self._fr_end, self._fr_axis, self._fr_dents = [], [], [], [], []
 
     def close(self, result=None) -> None:
         if self._started:
@@ -636,12 +681,11 @@ class RerunSink(Sink):
             vertex_normals=np.vstack([normals, [0.0, 0.0, 1.0]]).astype(np.float32))
         self._patch_dent[k] = dent
 
-    def _patches(self, frame, dents, t: float, tick: int) -> None:
-        model = frame.model
+    def _patches(self, owners: list, dents: dict, t: float, tick: int) -> None:
         for k in range(3):
             if k in dents:
                 dent = np.asarray(dents[k])
-            elif any(model.owner(net_index(k, s)) != FREE for s in range(N_SLOTS)):
+            elif any(owners[net_index(k, s)] != FREE for s in range(N_SLOTS)):
                 continue  # a settled net: its dent has stopped changing, keep what was logged
             else:
                 dent = None
@@ -653,12 +697,14 @@ class RerunSink(Sink):
             if last is None or last.shape != dent.shape or np.max(np.abs(dent - last)) > _DENT_EPS_M:
                 self._log_patch(k, dent, t, tick)
 
-    def _nets(self, model, t: float, tick: int) -> None:
+    def _nets(self, model, owners: list, t: float, tick: int) -> None:
         rec = self.rec
-        for idx in range(N_SLOTS * len(LAYERS)):
+        for idx, owner in enumerate(owners):
+            if owner == FREE and idx not in self._net_last:
+                continue
             k, s = net_layer(idx), net_slot(idx)
             path = f"world/nets/{LAYERS[k]}/slot{s}"
-            if model.owner(idx) == FREE:
+            if owner == FREE:
                 if idx in self._net_last:
                     rec.set_time("sim_time", duration=_ns(t))
                     rec.set_time("tick", sequence=tick)

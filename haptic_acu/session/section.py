@@ -43,6 +43,8 @@ def patch_dent(dent: np.ndarray, theta_axis: np.ndarray, phi_axis: np.ndarray, t
     patch's last row; inside its first row, that row's mean (the pole, as the 3D patch draws it)."""
     theta = np.asarray(theta, dtype=np.float64)
     phi = np.asarray(phi, dtype=np.float64)
+    if dent.ndim == 3:  # a stack of dents (m, n_theta, n_phi), each at its own row of (theta, phi) (m, ...)
+        return _patch_dents(dent, theta_axis, phi_axis, theta, phi)
     n_th, n_ph = dent.shape
     dphi = 2.0 * np.pi / n_ph
     fj = np.mod(phi - phi_axis[0], 2.0 * np.pi) / dphi
@@ -60,6 +62,29 @@ def patch_dent(dent: np.ndarray, theta_axis: np.ndarray, phi_axis: np.ndarray, t
         m = float(dent[0].mean())
         t = theta / theta_axis[0]
         out = np.where(pole, m * (1.0 - t) + out * t, out)
+    return np.where(theta > theta_axis[-1], 0.0, out)
+
+
+def _patch_dents(dent, theta_axis, phi_axis, theta, phi) -> np.ndarray:
+    """:func:`patch_dent` of a stack of dents (m, n_theta, n_phi) at directions (m, n) at once."""
+    m, n_th, n_ph = dent.shape
+    sel = np.arange(m).reshape((m,) + (1,) * (theta.ndim - 1))
+    dphi = 2.0 * np.pi / n_ph
+    fj = np.mod(phi - phi_axis[0], 2.0 * np.pi) / dphi
+    j0 = np.floor(fj).astype(np.int64) % n_ph
+    j1 = (j0 + 1) % n_ph
+    b = fj - np.floor(fj)
+    fi = np.interp(theta, theta_axis, np.arange(n_th, dtype=np.float64))
+    i0 = np.clip(np.floor(fi).astype(np.int64), 0, n_th - 1)
+    i1 = np.minimum(i0 + 1, n_th - 1)
+    a = fi - i0
+    row = lambda i: dent[sel, i, j0] * (1.0 - b) + dent[sel, i, j1] * b  # noqa: E731
+    out = row(i0) * (1.0 - a) + row(i1) * a
+    pole = theta < theta_axis[0]
+    if np.any(pole):
+        mean = dent[:, 0, :].mean(axis=-1).reshape(sel.shape)
+        t = theta / theta_axis[0]
+        out = np.where(pole, mean * (1.0 - t) + out * t, out)
     return np.where(theta > theta_axis[-1], 0.0, out)
 
 
@@ -113,7 +138,8 @@ class Section:
         line at u; NaN where the line misses it). At rest: bisection (50 steps, to 1e-10 m).
         ``dent``, a callable (theta, phi) -> radial dent (m) subtracted from the rest radius, moves
         the rest curve (``start``, w mm, or computed) by ``iters`` fixed-point steps along the
-        vertical; the dent is small against the radius, so a few steps converge."""
+        vertical; the dent is small against the radius, so a few steps converge. ``start`` (m, n)
+        moves m curves at once (``dent`` then takes and gives (m, n))."""
         t = self.tissue
         q = self.to_scene(u_mm, np.zeros_like(np.asarray(u_mm, dtype=np.float64))) - t.centre
         if dent is None or start is None:
@@ -121,9 +147,10 @@ class Section:
         if dent is None:
             return start
         h2 = q[..., 0] ** 2 + q[..., 1] ** 2
-        w = np.asarray(start, dtype=np.float64) * 1e-3  # metres above z = 0
+        w = np.asarray(start, dtype=np.float64) * 1e-3  # metres above z = 0 (or (m, n): m curves at once)
         for _ in range(iters):
-            d = q.copy()
+            d = np.empty(w.shape + (3,))
+            d[:] = q
             d[..., 2] += w
             th, ph = _angles(d)
             r = t.radius(k, th, ph) - dent(th, ph)

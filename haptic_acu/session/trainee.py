@@ -84,21 +84,34 @@ def _strip_tris(n: int) -> np.ndarray:
 
 
 def strips_array(strips, arch):
-    """Line strips (a list of (n_i, 2 or 3) arrays) as the arrow array rerun would make of them
-    (float32 points, one list per strip), built in one piece rather than strip by strip."""
+    """Line strips (a list of (n_i, 2 or 3) arrays, or of (s, n, 2 or 3) arrays each holding s strips
+    of n points) as the arrow array rerun would make of them (float32 points, one list per strip),
+    built in one piece rather than strip by strip."""
     import pyarrow as pa
 
     batch = rr.components.LineStrip3DBatch if arch is rr.LineStrips3D else rr.components.LineStrip2DBatch
     dim = 3 if arch is rr.LineStrips3D else 2
-    if not strips:
+    if not len(strips):
         return []
-    lengths = [len(x) for x in strips]
-    offsets = np.zeros(len(strips) + 1, dtype=np.int32)
+    lengths = []
+    for x in strips:
+        if np.ndim(x) == 3:
+            lengths += [x.shape[1]] * x.shape[0]
+        else:
+            lengths.append(len(x))
+    offsets = np.zeros(len(lengths) + 1, dtype=np.int32)
     np.cumsum(lengths, out=offsets[1:])
     flat = np.ascontiguousarray(np.concatenate([np.asarray(x, dtype=np.float32).reshape(-1, dim) for x in strips]))
     dtype = batch._ARROW_DATATYPE
     points = pa.FixedSizeListArray.from_arrays(flat.reshape(-1), type=dtype.value_type)
     return pa.ListArray.from_arrays(pa.array(offsets), points, type=dtype)
+
+
+def _keys(*parts) -> list:
+    """Per-row keys from parts, each a (k, m) array (rounded already), a (k,) list, or None (left
+    out): row i's key is the tuple of its parts, an array's row as a tuple (:func:`seen_key`'s form)."""
+    cols = [map(tuple, p.tolist()) if isinstance(p, np.ndarray) else p for p in parts if p is not None]
+    return list(zip(*cols)) if len(cols) > 1 else list(cols[0])
 
 
 class Columns:
@@ -128,6 +141,36 @@ class Columns:
         for k, v in fields.items():
             self.fields.setdefault(k, []).append(v)
 
+    def add_rows(self, t: list, tick: list, keys: list | None = None, **fields) -> None:
+        """Rows at once, as :meth:`add` one by one would keep them: ``t``, ``tick``, ``keys`` one per
+        row; each field one value per row (a (k, ...) array or a list: a partitioned entity's row
+        holds one instance, a strips field one strip per row)."""
+        if keys is None:
+            keep = list(range(len(t)))
+        else:
+            keep, last = [], self._last_key
+            for i, key in enumerate(keys):
+                if key != last:
+                    keep.append(i)
+                    last = key
+            self._last_key = last
+            if not keep:
+                return
+        all_rows = len(keep) == len(t)
+        self.t += t if all_rows else [t[i] for i in keep]
+        self.tick += tick if all_rows else [tick[i] for i in keep]
+        self.lengths += [1] * len(keep)
+        for k, v in fields.items():
+            if isinstance(v, np.ndarray):
+                v = v if all_rows else v[keep]
+                part = v if self.partitioned else list(v)
+            else:
+                part = v if all_rows else [v[i] for i in keep]
+            if self.partitioned:
+                self.fields.setdefault(k, []).append(part)
+            else:
+                self.fields.setdefault(k, []).extend(part)
+
     def send(self, rec, path: str) -> None:
         if not self.t:
             return
@@ -135,10 +178,11 @@ class Columns:
         for k, vals in self.fields.items():
             if not self.partitioned:
                 cols[k] = vals if isinstance(vals[0], str) else np.asarray(vals)
+            elif k == "strips":
+                cols[k] = strips_array([x for row in vals for x in (row if isinstance(row, list) else [row])],
+                                       self.arch)
             elif isinstance(vals[0], np.ndarray):
                 cols[k] = np.concatenate(vals)
-            elif k == "strips":
-                cols[k] = strips_array([x for row in vals for x in row], self.arch)
             else:
                 cols[k] = [x for row in vals for x in row]
         if self.partitioned:
@@ -170,6 +214,9 @@ class TraineeScene:
         self.axis = np.array([0.0, 0.0, -1.0])
         self.u0 = 0.0
         self.curves = [None] * 4  # w (mm) of each boundary along _U + u0, as last logged
+        self._curves_logged = 0  # how many times the curves were logged
+        self._rest_id = 0  # which section the rest curves are of
+        self._rest_seen = None  # (section, curves logged) when a frame at rest was last held against them
         self.bands_logged = [None] * 4
         self.punctures: list[tuple[np.ndarray, str]] = []
         self.depths = np.full(4, np.nan)
@@ -235,76 +282,124 @@ class TraineeScene:
     def frame(self, t: float, tick: int, rows: np.ndarray, tip_depth_mm: float, dents) -> None:
         """One visual frame: ``rows`` the servo rows since the last (the newest drawn), the tip's
         depth below the rest skin (mm) of the newest row, ``dents`` layer -> dent on the patch grid."""
-        row = rows[-1]
-        tip = row[_C_X:_C_X + 3]
-        axis = V.needle_axis(row)
-        self._maybe_new_section(t, tick, tip, axis, int(row[COL["layer"]]) >= 0)
-        s = self.section
+        self.frames([t], [int(tick)], np.asarray(rows)[-1:], np.array([tip_depth_mm], dtype=np.float64),
+                    [{k: dents[k] for k in dents} if dents else None])
+
+    def frames(self, t: list, tick: list, rows: np.ndarray, tip_depth_mm: np.ndarray, dents: list) -> None:
+        """Consecutive visual frames at once, as :meth:`frame` on each: ``t`` and ``tick`` one per frame,
+        ``rows`` (k, NCOL) each frame's newest row, ``tip_depth_mm`` (k,) its tip's depth below the
+        rest skin, ``dents`` one dict (layer -> dent on the patch grid) or None per frame."""
+        k = len(t)
+        axes = V.needle_axes(rows)
+        tips = rows[:, _C_X:_C_X + 3]
+        inside = (rows[:, COL["layer"]] >= 0).tolist()
+        pressing = (rows[:, _C_STATE:_C_STATE + 3] == V.PRESSING).any(axis=1).tolist()
+        origin, e_u, u0 = np.empty((k, 3)), np.empty((k, 3)), np.empty(k)
+        # each frame's plane (it moves only outside the tissue), then the dented boundaries of them all
+        planes, new = [], []
+        plane = (self.section, self.axis, self.entry, self.u0, getattr(self, "rest", None),
+                 getattr(self, "bone_bottom", None), self.depths)
+        for i in range(k):
+            nxt = self._next_section(tips[i], axes[i], inside[i], plane[0], plane[1])
+            new.append(nxt is not None)
+            plane = nxt if nxt is not None else plane
+            planes.append(plane)
+        dented = self._dented(planes, dents) if any(dents) else None
+        for i in range(k):  # the section and the surfaces, frame by frame
+            if new[i]:
+                self._enter_section(planes[i], t[i], tick[i])
+            origin[i], e_u[i], u0[i] = self.section.origin, self.section.e_u, self.u0
+            if dents[i] or pressing[i]:
+                self._frame_curves(t[i], tick[i], rows[i], dented[i] if dents[i] else {})
+            elif self._rest_seen != (self._rest_id, self._curves_logged):
+                self._log_curves(t[i], tick[i], self._rest_curves())
+                self._rest_seen = (self._rest_id, self._curves_logged)
         c = self._cols
-        # bands and surfaces (only when the dented surfaces moved)
+        # the needle, its tip and the force (section coordinates, mm)
+        uw_tip = _to_uw(tips, origin, e_u)
+        uw_back = _to_uw(tips - NEEDLE_MM * 1e-3 * axes, origin, e_u)
+        depth = np.where(inside, rows[:, COL["depth_skin_m"]] * 1e3, tip_depth_mm)
+        depths = depth.tolist()
+        seen = np.round(np.concatenate([uw_tip, uw_back], axis=1), 3)
+        needle = np.stack([_p3(uw_tip, _Y_NEEDLE), _p3(uw_back, _Y_NEEDLE)], axis=1)
+        c["section/scene/needle"].add_rows(t, tick, _keys(seen), strips=needle)
+        tip_labels = [f"tip {d:.1f} mm" if d >= 0.0 else "tip" for d in depths]
+        c["section/scene/tip"].add_rows(t, tick, _keys(seen, tip_labels), positions=_p3(uw_tip, _Y_LABEL),
+                                        labels=tip_labels)
+        ax, across = V.axial_forces(rows)
+        back = _direction_uw(-axes, e_u)
+        n = np.hypot(back[:, 0], back[:, 1])
+        big = n > 1e-9
+        back = np.where(big[:, None], back / np.where(big, n, 1.0)[:, None], [0.0, 1.0])
+        side = np.stack([back[:, 1], -back[:, 0]], axis=1) * 3.0  # beside the shaft
+        vec = back * ax[:, None] * FORCE_MM_PER_N
+        f_labels = ["" if abs(a) < V.FORCE_EPS_N else (f"{a:.2f} N back" if a > 0 else f"{-a:.2f} N in")
+                    for a in ax.tolist()]
+        c["section/scene/force"].add_rows(t, tick, _keys(seen, np.round(vec, 3), f_labels),
+                                          origins=_p3(uw_tip + side, _Y_LABEL),
+                                          vectors=np.stack([vec[:, 0], np.zeros(k), vec[:, 1]], axis=1), labels=f_labels)
+        # follow the needle: the camera looks at the entry's column, a little below the tip
+        w_c = np.minimum(uw_tip[:, 1] + 12.0, -10.0)
+        c["section/scene"].add_rows(t, tick, _keys(np.round(np.stack([u0, w_c], axis=1), 3)),
+                                    translation=np.stack([-u0, np.zeros(k), -w_c], axis=1))
+        # the gauge
+        g = np.minimum(np.maximum(depth, -2.5), GAUGE_MAX_MM)
+        words = [f"tip {d:.1f} mm" if d >= 0.0 else f"tip {-d:.1f} mm above" for d in depths]
+        g_key = np.round(g[:, None], 3)
+        x0, x1 = _G_POINTER
+        c["gauge/tip"].add_rows(t, tick, _keys(g_key, words), origins=np.stack([np.full(k, x0), np.full(k, _Y_LABEL), -g], 1),
+                                vectors=np.tile([x1 - x0, 0.0, 0.0], (k, 1)), labels=words)
+        lo, hi = self.target  # the target's name at the end of its bar away from the tip's pointer
+        z = np.where(g > 0.5 * (lo + hi), -lo + 2.5, -hi - 2.5)
+        c["gauge/target_label"].add_rows(t, tick, z.tolist(),
+                                         positions=np.stack([np.full(k, _G_TARGET[0] + 1.0), np.full(k, _Y_LABEL), z], 1))
+        line = np.zeros((k, 2, 3))
+        line[:, 0, 0], line[:, 1, 0] = -0.5, x1
+        line[:, :, 1] = _Y_LABEL
+        line[:, :, 2] = -g[:, None]
+        c["gauge/tip_line"].add_rows(t, tick, _keys(g_key), strips=line)
+        # the dial
+        roll = rows[:, _C_ROLL]
+        rolls = roll.tolist()
+        r = np.radians(roll)
+        d = np.stack([np.sin(r), -np.cos(r)], axis=1)
+        perp = np.stack([-d[:, 1], d[:, 0]], axis=1)  # 90 deg clockwise of the pointer, on screen (y down)
+        roll_keys = [round(x, 1) for x in rolls]
+        c["twirl/dial/pointer"].add_rows(t, tick, roll_keys, origins=np.zeros((k, 2)), vectors=0.95 * d)
+        c["twirl/dial/roll"].add_rows(t, tick, roll_keys, labels=[
+            f"roll {x:+.0f} deg" + (f" ({x / 360.0:+.1f} turns)" if abs(x) >= 360.0 else "") for x in rolls])
+        flag = np.stack([0.55 * d, 0.55 * d + 0.35 * perp + 0.1 * d, 0.85 * d], axis=1)
+        c["twirl/dial/flag"].add_rows(t, tick, roll_keys, strips=flag)
+        # the verdict, when its text changes
+        lists = rows.tolist()
+        axs, acrosses = ax.tolist(), across.tolist()
+        texts = [V.verdict_markdown(lists[i], float(tip_depth_mm[i]), self.target, self.last_event,
+                                    force=(axs[i], acrosses[i])) for i in range(k)]
+        c["verdict"].add_rows(t, tick, texts, text=texts)
+
+    def _frame_curves(self, t, tick, row, dented) -> None:
+        """The section's boundaries at one frame: dented where a net presses (``dented``: layer -> w
+        from :meth:`_dented`), a pressed surface carried down to the tip; logged when they moved."""
+        s = self.section
         u = _U + self.u0
         curves = list(self.curves)
         curves[3] = self.rest[3]
         for k in range(3):
-            if k in dents:
-                dk = np.asarray(dents[k])
-                curves[k] = s.boundary(k, u, start=self.rest[k], dent=lambda th, ph, dk=dk: patch_dent(dk, self.theta_axis, self.phi_axis,
-                                                                                   th, ph))
-            else:
-                curves[k] = self.rest[k]
+            curves[k] = dented[k] if k in dented else self.rest[k]
+        tip = row[_C_X:_C_X + 3]
         uw_tip = s.to_uw(tip)
         for k in range(3):  # a pressed surface passes through the tip (its net's contact particle)
             if int(row[_C_STATE + k]) == V.PRESSING:
                 curves[k] = press_through(u, curves[k], uw_tip)
-        for k in range(3):  # a layer pressed in pushes the surface below once it is squeezed to 1 mm (the skin
-            # keeps its 0.8 mm): no band drawn inverted
-            keep = np.minimum(self.rest[k] - self.rest[k + 1], MIN_BAND_MM)
-            curves[k + 1] = np.minimum(curves[k + 1], curves[k] - keep)
-        self._log_curves(t, tick, curves)
-        # the needle, its tip and the force
-        uw_back = s.to_uw(tip - NEEDLE_MM * 1e-3 * axis)
-        depth = V.needle_depth_mm(row, tip_depth_mm)
-        seen = seen_key(uw_tip, uw_back)
-        c["section/scene/needle"].add(t, tick, key=seen, strips=[self._p3(np.array([uw_tip, uw_back]), _Y_NEEDLE)])
-        tip_label = f"tip {depth:.1f} mm" if depth >= 0.0 else "tip"
-        c["section/scene/tip"].add(t, tick, key=(seen, tip_label), positions=self._p3(uw_tip[None], _Y_LABEL),
-                                   labels=[tip_label])
-        ax, across = V.axial_force(row)
-        back = s.direction_uw(-axis)
-        n = np.hypot(*back)
-        back = back / n if n > 1e-9 else np.array([0.0, 1.0])
-        side = np.array([back[1], -back[0]]) * 3.0  # beside the shaft
-        vec = back * ax * FORCE_MM_PER_N
-        f_label = "" if abs(ax) < V.FORCE_EPS_N else (f"{ax:.2f} N back" if ax > 0 else f"{-ax:.2f} N in")
-        c["section/scene/force"].add(t, tick, key=(seen, seen_key(vec), f_label), origins=self._p3((uw_tip + side)[None], _Y_LABEL),
-                                     vectors=np.array([[vec[0], 0.0, vec[1]]]), labels=[f_label])
-        # follow the needle: the camera looks at the entry's column, a little below the tip
-        w_c = min(float(uw_tip[1]) + 12.0, -10.0)
-        c["section/scene"].add(t, tick, key=seen_key(self.u0, w_c), translation=[-self.u0, 0.0, -w_c])
-        # the gauge
-        g = min(max(depth, -2.5), GAUGE_MAX_MM)
-        word = f"tip {depth:.1f} mm" if depth >= 0.0 else f"tip {-depth:.1f} mm above"
-        x0, x1 = _G_POINTER
-        c["gauge/tip"].add(t, tick, key=(seen_key(g), word), origins=np.array([[x0, _Y_LABEL, -g]]),
-                           vectors=np.array([[x1 - x0, 0.0, 0.0]]), labels=[word])
-        lo, hi = self.target  # the target's name at the end of its bar away from the tip's pointer
-        z = -lo + 2.5 if g > 0.5 * (lo + hi) else -hi - 2.5
-        c["gauge/target_label"].add(t, tick, key=z, positions=np.array([[_G_TARGET[0] + 1.0, _Y_LABEL, z]]))
-        c["gauge/tip_line"].add(t, tick, key=seen_key(g),
-                                strips=[np.array([[-0.5, _Y_LABEL, -g], [x1, _Y_LABEL, -g]])])
-        # the dial
-        r = np.radians(float(row[_C_ROLL]))
-        d = np.array([np.sin(r), -np.cos(r)])
-        perp = np.array([-d[1], d[0]])  # 90 deg clockwise of the pointer, on screen (y down)
-        roll_key = round(float(row[_C_ROLL]), 1)
-        c["twirl/dial/pointer"].add(t, tick, key=roll_key, origins=np.zeros((1, 2)), vectors=(0.95 * d)[None])
-        turns = f" ({float(row[_C_ROLL]) / 360.0:+.1f} turns)" if abs(float(row[_C_ROLL])) >= 360.0 else ""
-        c["twirl/dial/roll"].add(t, tick, key=roll_key, labels=[f"roll {float(row[_C_ROLL]):+.0f} deg{turns}"])
-        flag = np.array([0.55 * d, 0.55 * d + 0.35 * perp + 0.1 * d, 0.85 * d])
-        c["twirl/dial/flag"].add(t, tick, key=roll_key, strips=[flag])
-        # the verdict, when its text changes
-        text = V.verdict_markdown(row, tip_depth_mm, self.target, self.last_event)
-        c["verdict"].add(t, tick, key=text, text=text)
+        self._log_curves(t, tick, _squeeze(curves, self.rest))
+
+    def _rest_curves(self) -> list:
+        """The curves of a frame with no dent and no pressed surface (the rest boundaries, as
+        :meth:`_frame_curves` makes them), once per section."""
+        if self._rest_id != getattr(self, "_rest_curves_of", None):
+            self._rest_curves_cache = _squeeze(list(self.rest), self.rest)
+            self._rest_curves_of = self._rest_id
+        return self._rest_curves_cache
 
     def puncture(self, ev: dict, tip) -> None:
         """A layer gave way (an event of haptic_acu.analysis.scan.SessionScan) with the tip at ``tip``."""
@@ -349,25 +444,28 @@ class TraineeScene:
                                                             colors=[PUNCTURE_COLOUR],
                                                             labels=[lb for _, lb in self.punctures], show_labels=True))
 
-    def _maybe_new_section(self, t, tick, tip, axis, inside: bool) -> None:
-        if inside and self.section is not None:
-            return  # the plane stays while the needle is in the tissue
+    def _next_section(self, tip, axis, inside: bool, section, section_axis):
+        """The plane a frame with its tip at ``tip`` and axis ``axis`` is drawn in, if not ``section``
+        (drawn with ``section_axis``): (section, axis, entry, u0, rest curves, bone bottom, depths), or None."""
+        if inside and section is not None:
+            return None  # the plane stays while the needle is in the tissue
         new = Section.through(self.tissue, axis, tip)
-        if self.section is not None and self.section.same_plane(new) and float(np.dot(axis, self.axis)) > 0.9998:
-            return
-        self.section = new
-        self.axis = axis
-        self.entry = skin_entry(self.tissue, tip, axis)
-        self.u0 = float(new.to_uw(self.entry)[0])
-        u = _U + self.u0
+        if section is not None and section.same_plane(new) and float(np.dot(axis, section_axis)) > 0.9998:
+            return None
+        entry = skin_entry(self.tissue, tip, axis)
+        u0 = float(new.to_uw(entry)[0])
+        u = _U + u0
         rest = [new.boundary(k, u) for k in range(4)]
         # the bone drawn BONE_SHOWN_MM deep below its top; beside it (where a vertical line misses
         # the bone) the muscle goes down to the same flat bottom
-        self.bone_bottom = float(np.nanmin(rest[3])) - BONE_SHOWN_MM
-        rest = [np.where(np.isnan(r), self.bone_bottom, r) for r in rest]
-        self.rest = rest
+        bone_bottom = float(np.nanmin(rest[3])) - BONE_SHOWN_MM
+        rest = [np.where(np.isnan(r), bone_bottom, r) for r in rest]
+        return new, axis, entry, u0, rest, bone_bottom, new.depths_along(entry, axis)
+
+    def _enter_section(self, plane, t, tick) -> None:
+        self.section, self.axis, self.entry, self.u0, self.rest, self.bone_bottom, self.depths = plane
+        self._rest_id += 1
         self.curves = [None] * 4
-        self.depths = new.depths_along(self.entry, axis)
         rec = self.rec
         rec.set_time("sim_time", duration=_ns(t))
         rec.set_time("tick", sequence=int(tick))
@@ -375,6 +473,23 @@ class TraineeScene:
         self._log_gauge_bands()
         self._log_structures(static_time=None)
         self._log_punctures()
+
+    def _dented(self, planes: list, dents: list) -> list:
+        """Each frame's dented boundaries (layer -> w (mm) along _U + u0 of its plane), computed for
+        all the frames of a plane at once, layer by layer."""
+        out = [{} for _ in dents]
+        groups: dict = {}
+        for i, d in enumerate(dents):
+            for k in (d or ()):
+                groups.setdefault((id(planes[i][0]), k), []).append(i)
+        for (_, k), idx in groups.items():
+            section, _, _, u0, rest = planes[idx[0]][:5]
+            stack = np.stack([np.asarray(dents[i][k]) for i in idx])
+            w = section.boundary(k, _U + u0, start=np.tile(rest[k], (len(idx), 1)),
+                                 dent=lambda th, ph: patch_dent(stack, self.theta_axis, self.phi_axis, th, ph))
+            for j, i in enumerate(idx):
+                out[i][k] = w[j]
+        return out
 
     def _log_curves(self, t, tick, curves) -> None:
         changed = [self.curves[k] is None or np.max(np.abs(curves[k] - self.curves[k])) > _DENT_EPS_MM
@@ -393,6 +508,7 @@ class TraineeScene:
         self._cols["section/scene/surfaces"].add(
             t, tick, n=4, strips=[self._p3(np.stack([u, curves[k]], 1), _Y_LINE).astype(np.float32) for k in range(4)])
         self.curves = [np.asarray(cv, dtype=np.float64).copy() for cv in curves]
+        self._curves_logged += 1
 
     def _log_plane_labels(self) -> None:
         """The layers' names at the left of their bands, and the target range along the needle."""
@@ -470,6 +586,33 @@ class TraineeScene:
                                                 colors=[TARGET_COLOUR], fill_mode="solid"))
         self.rec.log("gauge/target_label", rr.Points3D.from_fields(radii=[0.0], colors=[TARGET_COLOUR],
                                                                    labels=[f"target {lo:g}-{hi:g}"], show_labels=True))
+
+
+def _squeeze(curves: list, rest: list) -> list:
+    """A layer pressed in pushes the surface below once it is squeezed to 1 mm (the skin keeps its
+    0.8 mm): no band drawn inverted."""
+    for k in range(3):
+        keep = np.minimum(rest[k] - rest[k + 1], MIN_BAND_MM)
+        curves[k + 1] = np.minimum(curves[k + 1], curves[k] - keep)
+    return curves
+
+
+def _p3(uw: np.ndarray, y: float) -> np.ndarray:
+    """Section points (k, 2) as the view's 3D points (u, y, w)."""
+    out = np.empty((len(uw), 3))
+    out[:, 0], out[:, 1], out[:, 2] = uw[:, 0], y, uw[:, 1]
+    return out
+
+
+def _to_uw(p: np.ndarray, origin: np.ndarray, e_u: np.ndarray) -> np.ndarray:
+    """:meth:`Section.to_uw` of points (k, 3), each in its own section (origin, e_u: (k, 3))."""
+    d = p - origin
+    return np.stack([np.einsum("ij,ij->i", d, e_u), d[:, 2]], axis=-1) * 1e3
+
+
+def _direction_uw(v: np.ndarray, e_u: np.ndarray) -> np.ndarray:
+    """:meth:`Section.direction_uw` of vectors (k, 3), each in its own section."""
+    return np.stack([np.einsum("ij,ij->i", v, e_u), v[:, 2]], axis=-1)
 
 
 def seen_key(*arrays, decimals: int = 3) -> tuple:

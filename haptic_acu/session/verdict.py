@@ -59,18 +59,34 @@ def depth_words(row, depth_mm: float, target_mm) -> str:
 
 def needle_axis(row) -> np.ndarray:
     """The needle's unit axis, handle to tip (straight down where the row gives none)."""
-    a = np.asarray(row[_C_AXIS:_C_AXIS + 3], dtype=np.float64)
-    n = float(np.linalg.norm(a)) if np.all(np.isfinite(a)) else 0.0
-    return a / n if n > 0.5 else np.array([0.0, 0.0, -1.0])
+    return needle_axes(np.asarray(row, dtype=np.float64)[None])[0]
+
+
+def needle_axes(rows: np.ndarray) -> np.ndarray:
+    """:func:`needle_axis` of each of ``rows`` (k, NCOL) at once: (k, 3)."""
+    a = np.asarray(rows, dtype=np.float64)[:, _C_AXIS:_C_AXIS + 3]
+    n = np.sqrt(np.einsum("ij,ij->i", a, a))
+    n = np.where(np.isfinite(a).all(axis=1), n, 0.0)
+    ok = n > 0.5
+    out = np.tile([0.0, 0.0, -1.0], (len(a), 1))
+    out[ok] = a[ok] / n[ok, None]
+    return out
 
 
 def axial_force(row) -> tuple[float, float]:
     """(axial, across) force (N): the component along the needle, positive pushing the needle back
     toward its handle, and the magnitude of the rest."""
-    f = np.asarray(row[_C_F:_C_F + 3], dtype=np.float64)
-    back = -needle_axis(row)
-    ax = float(np.dot(f, back))
-    return ax, float(np.linalg.norm(f - ax * back))
+    ax, across = axial_forces(np.asarray(row, dtype=np.float64)[None])
+    return float(ax[0]), float(across[0])
+
+
+def axial_forces(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`axial_force` of each of ``rows`` (k, NCOL) at once: two (k,) arrays."""
+    f = np.asarray(rows, dtype=np.float64)[:, _C_F:_C_F + 3]
+    back = -needle_axes(rows)
+    ax = np.einsum("ij,ij->i", f, back)
+    rest = f - ax[:, None] * back
+    return ax, np.sqrt(np.einsum("ij,ij->i", rest, rest))
 
 
 def force_words(axial_n: float, across_n: float = 0.0) -> str:
@@ -85,9 +101,10 @@ def force_words(axial_n: float, across_n: float = 0.0) -> str:
     return text
 
 
-def verdict_markdown(row, tip_depth_mm: float, target_mm, last_event: str | None = None) -> str:
+def verdict_markdown(row, tip_depth_mm: float, target_mm, last_event: str | None = None, force=None) -> str:
     """The verdict panel: a headline (place and depth against the target), the force, the roll
-    once the needle has been turned, and the last puncture."""
+    once the needle has been turned, and the last puncture. ``row``: a sample row (an array or a
+    list); ``force``: its :func:`axial_force`, if already known."""
     d = needle_depth_mm(row, tip_depth_mm)
     where = place(row)
     head = f"## Tip {where}: {depth_words(row, d, target_mm)}"
@@ -98,7 +115,7 @@ def verdict_markdown(row, tip_depth_mm: float, target_mm, last_event: str | None
     else:
         lines.append(f"Target {lo:g}-{hi:g} mm below the skin")
     lines.append("")
-    ax, across = axial_force(row)
+    ax, across = axial_force(row) if force is None else force
     lines.append(f"**Force: {force_words(ax, across)}**")
     roll, torque = float(row[_C_ROLL]), float(row[_C_TORQUE])
     if roll != 0.0 or torque != 0.0:

@@ -356,19 +356,22 @@ def compile_kernels() -> None:
 
 
 # ------------------------------------------------------------------------------ display (Python)
-def twist_direction(axis_to_tip, roll_rad: float) -> np.ndarray:
+def twist_direction(axis_to_tip, roll_rad) -> np.ndarray:
     """A unit vector across the needle that turns with its roll, for drawing the twist: the scene's
     +x (or +y if the needle lies along x) made perpendicular to the needle, turned by ``roll_rad``
     clockwise as seen from the handle (a right-handed turn about ``axis_to_tip``, the unit vector
-    from the handle to the tip)."""
+    from the handle to the tip). Also for many at once: ``axis_to_tip`` (..., 3), ``roll_rad`` (...)."""
     d = np.asarray(axis_to_tip, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e0 = ref - (ref @ d) * d
-    e0 /= np.linalg.norm(e0)
-    # d x e0, as np.cross computes it (the same products and differences) without its overhead
-    across = np.array([d[1] * e0[2] - d[2] * e0[1], d[2] * e0[0] - d[0] * e0[2], d[0] * e0[1] - d[1] * e0[0]])
-    return math.cos(roll_rad) * e0 + math.sin(roll_rad) * across
+    d = d / np.sqrt(np.sum(d * d, axis=-1, keepdims=True))
+    ref = np.zeros(d.shape)
+    along_x = np.abs(d[..., 0]) >= 0.9
+    ref[..., 0] = np.where(along_x, 0.0, 1.0)
+    ref[..., 1] = np.where(along_x, 1.0, 0.0)
+    e0 = ref - np.sum(ref * d, axis=-1, keepdims=True) * d
+    e0 = e0 / np.sqrt(np.sum(e0 * e0, axis=-1, keepdims=True))
+    across = np.cross(d, e0)
+    r = np.asarray(roll_rad, dtype=np.float64)[..., None]
+    return np.cos(r) * e0 + np.sin(r) * across
 
 
 # ----------------------------------------------------------------------------- protocols (Python)
