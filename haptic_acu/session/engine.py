@@ -599,14 +599,14 @@ class Session:
                     n, frames = self._run_frames_resetting(*args)
                 else:
                     job = pool.submit(self._run_frames_resetting, *args)
-                    if pending is not None:  # the block before's rows to the sinks, beside these ticks
-                        block, pending = pending, None
-                        try:
+                    try:
+                        if pending is not None:  # the block before's rows to the sinks, beside these ticks
+                            block, pending = pending, None
                             self._hand_over(*block)
-                        except BaseException:
-                            self._count_ticks(job, T)  # the ticks running finish and count (their rows stay in the ring)
-                            raise
-                    n, frames = job.result()
+                        n, frames = job.result()
+                    except BaseException:  # a sink failed, or a signal: the ticks running finish and count
+                        self._count_ticks(job, T)  # (their rows stay in the ring for the final frame)
+                        raise
                 self.tick += n
                 if n:
                     self._t_session = float(T[n - 1])
@@ -629,9 +629,9 @@ class Session:
                 self._hand_over(*pending)
 
     def _count_ticks(self, job, T) -> None:
-        """After a failure beside a block's ticks (``job``, on the session's tick thread): wait for
-        them and count them, so the rows they wrote are the session's (the final frame hands them
-        over)."""
+        """After a failure or a signal beside a block's ticks (``job``, on the session's tick
+        thread): wait for them and count them, so the rows they wrote are the session's (the final
+        frame hands them over)."""
         try:
             n, _ = job.result()
         except Exception:  # noqa: BLE001 - the failure being raised is the one to report
