@@ -49,3 +49,82 @@ def test_gather_equals_format_of_the_built_columns():
     built = np.column_stack([rows[:, 1] * 1e3, rows[:, 2] + 1, punct, extra[:, 0] * 1e3, rows[:, 0]])
     assert fmt.format_gather(rows, extra, src, scale, offset) == fmt.format(built)
     assert b",," in fmt.format_gather(rows, extra, src, scale, offset)  # some -1 codes: empty cells
+
+
+def _rule(v: float, d: int) -> str | None:
+    """The formatter's rule in Python's exact integers: floor(|v| * 10.0**d + 0.5) (the float sum,
+    floored exactly) with a point before its last d digits, '-' unless that integer is 0, "nan" for a
+    value that is not finite. None where the integer does not fit an int64 (not compared)."""
+    v = float(v)  # Python's float: the same IEEE arithmetic, and an overflow to inf without a warning
+    if not math.isfinite(v):
+        return "nan"
+    x = abs(v) * 10.0 ** d + 0.5
+    if not x < 2.0 ** 63:
+        return None
+    iv = math.floor(x)
+    if iv >= 2 ** 63:
+        return None
+    s = str(iv).rjust(d + 1, "0")
+    if d:
+        s = s[:-d] + "." + s[-d:]
+    return ("-" if iv != 0 and v < 0 else "") + s
+
+
+def _edge_values(rng) -> np.ndarray:
+    parts = [rng.normal(0, 1, 4000),
+             np.sign(rng.normal(size=6000)) * 10 ** rng.uniform(-12, 19, 6000)]  # every magnitude
+    for d in (0, 1, 4, 5, 6, 9):
+        k = rng.integers(-10 ** 7, 10 ** 7, 1500)
+        ties = (k + 0.5) / 10.0 ** d  # halves at d decimals (exact or nearest), and their neighbours
+        parts += [ties, np.nextafter(ties, np.inf), np.nextafter(ties, -np.inf),
+                  rng.integers(-2 ** 53, 2 ** 53, 500) / 10.0 ** d]  # up to the digits a float holds
+    edge = []
+    for d in range(17):  # where |v| * 10**d + 0.5 crosses 2**53 (the two-digit path's bound)
+        t = 2.0 ** 53 / 10.0 ** d
+        edge += [t, -t, np.nextafter(t, 0.0), np.nextafter(t, np.inf), (2.0 ** 53 - 0.5) / 10.0 ** d,
+                 (2.0 ** 53 - 1.5) / 10.0 ** d]
+    edge += [9.9999995, 0.99999995, 99.9999995, -9.9999995, 0.0, -0.0, 5e-324, -5e-324, 1e-300, 0.00005,
+             -0.00005, 0.5, -0.5, 1.5, 2.5, 9.2e18, 9.3e18, 1e300, -1e300, np.inf, -np.inf, np.nan,
+             1.7976931348623157e308]
+    return np.concatenate(parts + [np.array(edge)])
+
+
+def test_fixed_cells_follow_the_rounding_rule_bit_for_bit():
+    """Every fixed cell is the rule's string (:func:`_rule`), for random values of every magnitude,
+    halves and their neighbouring floats, values near the two-digit path's 2**53 bound, tiny, huge,
+    signed zero and non-finite values, at 0 to 16 decimals; a value past the int64 range writes what
+    the one-digit-a-time path writes (the same cell in every column, whatever the others hold)."""
+    vals = _edge_values(np.random.default_rng(7))
+    for d in (0, 1, 2, 4, 5, 6, 9, 12, 16):
+        fmt = RowFormatter([("fixed", d), ("category", ("a", "bb")), ("fixed", d)])
+        rows = np.column_stack([vals, np.zeros(len(vals)), vals[::-1]])
+        got = fmt.format(rows).decode().splitlines()
+        assert len(got) == len(vals)
+        for x, y, line in zip(vals, vals[::-1], got):
+            a, cat, b = line.split(",")
+            assert cat == "a"
+            for v, cell in ((x, a), (y, b)):
+                want = _rule(v, d)
+                if want is not None:
+                    assert cell == want, (repr(v), d, cell, want)
+        single = fmt.format(np.array([[1e300, 1.0, 1e300]])).decode()
+        assert single.split(",")[0] == single.strip().split(",")[2]
+
+
+def test_write_gather_writes_format_gathers_bytes_through_its_kept_buffer():
+    """write_gather: the bytes format_gather returns, block after block of changing sizes (its
+    buffer kept and grown, never a stale byte from a longer block before)."""
+    import io
+
+    rng = np.random.default_rng(11)
+    fmt = RowFormatter([("fixed", 4), ("category", ("a", "bb")), ("fixed", 0)])
+    f = io.BytesIO()
+    want = b""
+    for k in (5, 300, 2, 1000, 0, 7):
+        rows = np.column_stack([rng.normal(0, 1e3, k), rng.integers(0, 2, k), rng.normal(0, 1e6, k)])
+        extra = np.zeros((k, 0))
+        n = fmt.write_gather(f, rows, extra, [0, 1, 2], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0])
+        block = fmt.format_gather(rows, extra, [0, 1, 2], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0])
+        assert n == len(block) and block.count(b"\n") == k
+        want += block
+    assert f.getvalue() == want

@@ -173,3 +173,89 @@ def test_a_failing_sink_is_the_sessions_fault_and_the_others_get_every_row(cfg, 
     assert result.fault is not None and "probe failed" in result.fault
     assert result.ticks > 5000  # past the failing frame (the blocks already run are not undone)
     assert sum(len(r) for *_, r in good.seen) == result.ticks
+
+
+class Blocks(Sink):
+    """Each block of frames as handed over: the frames' rows and the block's own rows and ends."""
+
+    rows_only = True
+
+    def __init__(self):
+        self.blocks = []
+
+    def on_frames(self, frames):
+        self.blocks.append(([f.samples.copy() for f in frames], getattr(frames, "rows", None),
+                            getattr(frames, "ends", None)))
+
+
+def test_ticks_beside_the_hand_over_give_the_same_frames_rows_and_model(cfg, tissue, monkeypatch):
+    """With the next block's ticks on a thread of their own while the sinks take the block before
+    (engine.TICK_THREAD), every frame, row, block and the model's final state are those of the
+    blocks run one after the other on the session's thread; each block's rows are its frames' rows
+    in order (a FrameBlock's ``rows`` and ``ends``)."""
+    runs = {}
+    for threaded in (True, False):
+        monkeypatch.setattr(engine, "TICK_THREAD", threaded)
+        sink, blocks = Frames(rows_only=True), Blocks()
+        dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        model = NeedleModel(cfg, tissue)
+        result = Session(cfg, dev, [sink, blocks], clock="sim", model=model, duration_s=12.0).run()
+        dev.close()
+        assert result.fault is None and result.ticks == 12001
+        runs[threaded] = (sink.seen, blocks.blocks, model.state.pos.copy(), result.stats["frames"])
+    (seen1, blocks1, pos1, n1), (seen2, blocks2, pos2, n2) = runs[True], runs[False]
+    assert n1 == n2 == len(seen1) == len(seen2) == 720
+    for (t1, i1, r1), (t2, i2, r2) in zip(seen1, seen2):
+        assert (t1, i1) == (t2, i2) and r1.tobytes() == r2.tobytes()
+    assert pos1.tobytes() == pos2.tobytes()
+    assert len(blocks1) == len(blocks2) >= 3  # several blocks: the overlap happened between them
+    for frames, rows, ends in blocks1[:-1]:  # the last, the final frame's: a plain list
+        assert rows.tobytes() == np.concatenate(frames).tobytes() and ends.tolist() == np.cumsum([len(f) for f in frames]).tolist()
+
+
+def test_row_batches_are_the_same_for_frames_one_by_one_or_in_blocks():
+    """RowBatches: a batch ends at the first frame that brings it to the batch size, whatever the
+    blocks the frames came in (a FrameBlock, a plain list, one frame at a time); every row once,
+    in order."""
+    from types import SimpleNamespace
+
+    from haptic_acu.session.sink import FrameBlock, RowBatches
+
+    rng = np.random.default_rng(5)
+    sizes = rng.integers(0, 40, 700)  # frames of 0-39 rows
+    sizes[100:110] = 0
+    rows = np.arange(int(sizes.sum()) * 2, dtype=np.float64).reshape(-1, 2)
+    ends = np.cumsum(sizes)
+    frames = [SimpleNamespace(samples=rows[e - k:e]) for k, e in zip(sizes, ends)]
+
+    def reference(size):  # the rule frame by frame
+        out, pending = [], []
+        for f in frames:
+            if len(f.samples):
+                pending.append(f.samples)
+                if sum(len(p) for p in pending) >= size:
+                    out.append(np.concatenate(pending))
+                    pending = []
+        return out, (np.concatenate(pending) if pending else None)
+
+    for size in (1, 50, 333, 2048, 100_000):
+        want, rest = reference(size)
+        for split in ("one", "list", "block"):
+            b, got = RowBatches(size), []
+            cuts = [0, *sorted(rng.choice(np.arange(1, len(frames)), 12, replace=False).tolist()), len(frames)]
+            for a, e in zip(cuts[:-1], cuts[1:]):
+                if split == "one":
+                    for f in frames[a:e]:
+                        got += b.add([f])
+                elif split == "list":
+                    got += b.add(frames[a:e])
+                else:
+                    r0 = int(ends[a - 1]) if a else 0
+                    block_rows = rows[r0:int(ends[e - 1])]
+                    got += b.add(FrameBlock(frames[a:e], block_rows, ends[a:e] - r0))
+            last = b.flush()
+            assert len(got) == len(want), (size, split)
+            for g, w in zip(got, want):
+                assert g.tobytes() == w.tobytes()
+            assert (last is None and rest is None) or last.tobytes() == rest.tobytes()

@@ -19,13 +19,19 @@ FIXED, CATEGORY = 0, 1
 
 _U10 = np.uint64(10)
 _POW10 = np.array([10 ** k for k in range(20)], dtype=np.uint64)
+# "00" "01" ... "99": the digits go two per division by 100
+_PAIRS = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode("ascii"), dtype=np.uint8).copy()
+_E1, _E2, _E3, _E4, _E5, _E6, _E7, _E8 = (np.uint64(10 ** k) for k in range(1, 9))
+_E9, _E10, _E11, _E12, _E13, _E14, _E15 = (np.uint64(10 ** k) for k in range(9, 16))
+_ONE, _TWO = np.uint64(1), np.uint64(2)
+_EXACT = 2.0 ** 53  # below it floor(x) is x's truncation to an integer of at most 16 digits
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _put_fixed(out, pos, v, d, p10f):
+@nb.njit(cache=True, nogil=True)
+def _put_fixed_wide(out, pos, v, d, p10f):
     """``v`` (finite) rounded half away from zero to ``d`` decimals (``p10f`` = 10.0**d), without a
-    negative zero; returns the new position. Its digits are written from the last one back, by
-    unsigned division by the constant 10 (a multiply, not a division, once compiled)."""
+    negative zero, for any magnitude (at most 19 digits), a digit per division by 10; returns the
+    new position. :func:`_format_gather` writes the usual magnitudes itself, the same bytes."""
     iv = np.int64(math.floor(abs(v) * p10f + 0.5))
     if iv != 0 and v < 0:
         out[pos] = 45  # '-'
@@ -52,6 +58,26 @@ def _put_fixed(out, pos, v, d, p10f):
     return pos + ln
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _n_digits(u):
+    """The number of decimal digits of ``u`` (uint64 below 10**16; 1 for 0), by comparisons."""
+    if u < _E8:
+        if u < _E4:
+            if u < _E2:
+                return 1 if u < _E1 else 2
+            return 3 if u < _E3 else 4
+        if u < _E6:
+            return 5 if u < _E5 else 6
+        return 7 if u < _E7 else 8
+    if u < _E12:
+        if u < _E10:
+            return 9 if u < _E9 else 10
+        return 11 if u < _E11 else 12
+    if u < _E14:
+        return 13 if u < _E13 else 14
+    return 15 if u < _E15 else 16
+
+
 class Cells(NamedTuple):
     """How each column is written (the compiled passes' view of a :class:`RowFormatter`): ``kinds``
     (FIXED or CATEGORY), ``decimals``, and the category names' bytes (``table`` rows of
@@ -63,56 +89,30 @@ class Cells(NamedTuple):
     table_base: np.ndarray
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _put_cell(out, pos, v, c, cells, p10f):
-    """Column ``c``'s cell for the value ``v``; returns the new position."""
-    if cells.kinds[c] == 1:
-        if math.isfinite(v) and v >= 0.0:  # else an empty cell
-            t = cells.table_base[c] + int(v)
-            for b in range(cells.table_len[t]):
-                out[pos] = cells.table[t, b]
-                pos += 1
-    elif not math.isfinite(v):
-        out[pos] = 110  # "nan"
-        out[pos + 1] = 97
-        out[pos + 2] = 110
-        pos += 3
-    else:
-        pos = _put_fixed(out, pos, v, cells.decimals[c], p10f[c])
-    return pos
-
-
-@nb.njit(cache=True, nogil=True)
-def _format_rows(values, cells, out):
-    n, m = values.shape
-    pos = 0
-    p10f = np.empty(m)
-    for c in range(m):
-        p10f[c] = 10.0 ** cells.decimals[c]
-    for i in range(n):
-        for c in range(m):
-            if c > 0:
-                out[pos] = 44  # ','
-                pos += 1
-            pos = _put_cell(out, pos, values[i, c], c, cells, p10f)
-        out[pos] = 10  # '\n'
-        pos += 1
-    return pos
-
-
 @nb.njit(cache=True, nogil=True)
 def _format_gather(rows, extra, gather, cells, out):
-    """:func:`_format_rows` of the columns ``v * scale[c] + offset[c]`` (``gather``: src, scale,
-    offset; ``offset`` added only where it is not zero), ``v`` from ``rows[:, src[c]]``, or from
-    ``extra[:, src[c] - rows.shape[1]]`` where ``src[c]`` is past ``rows``' columns."""
+    """CSV lines of the columns ``v * scale[c] + offset[c]`` (``gather``: src, scale, offset;
+    ``offset`` added only where it is not zero), ``v`` from ``rows[:, src[c]]``, or from
+    ``extra[:, src[c] - rows.shape[1]]`` where ``src[c]`` is past ``rows``' columns, into ``out``;
+    returns the number of bytes.
+
+    A fixed cell is the integer floor(|v| * 10.0**d + 0.5) with a point before its last d digits
+    (a "0" before the point at least, a '-' for v < 0 unless that integer is 0); "nan" for a value
+    that is not finite. Below 2**53 that floor is the (positive) sum's truncation and its digits are
+    written two at a time from a table; above, by :func:`_put_fixed_wide`. A category cell is the
+    name of the code ``int(v)``, empty for a negative or non-finite code. The cells are written in
+    this one loop, no helper taking an array: an array handed to a function inside the loop costs
+    two reference-count updates per cell, more than the cell's digits."""
     src, scale, offset = gather
+    kinds, decimals, table, table_len, table_base = cells
+    pairs = _PAIRS
     n = rows.shape[0]
     w = rows.shape[1]
     m = src.shape[0]
     pos = 0
     p10f = np.empty(m)
     for c in range(m):
-        p10f[c] = 10.0 ** cells.decimals[c]
+        p10f[c] = 10.0 ** decimals[c]
     for i in range(n):
         for c in range(m):
             if c > 0:
@@ -122,7 +122,60 @@ def _format_gather(rows, extra, gather, cells, out):
             v = (rows[i, k] if k < w else extra[i, k - w]) * scale[c]
             if offset[c] != 0.0:
                 v = v + offset[c]
-            pos = _put_cell(out, pos, v, c, cells, p10f)
+            if kinds[c] == 1:  # a category
+                if math.isfinite(v) and v >= 0.0:  # else an empty cell
+                    t = table_base[c] + int(v)
+                    for b in range(table_len[t]):
+                        out[pos] = table[t, b]
+                        pos += 1
+                continue
+            if not math.isfinite(v):
+                out[pos] = 110  # "nan"
+                out[pos + 1] = 97
+                out[pos + 2] = 110
+                pos += 3
+                continue
+            d = decimals[c]
+            x = abs(v) * p10f[c] + 0.5
+            if not x < _EXACT or d > 15:
+                pos = _put_fixed_wide(out, pos, v, d, p10f[c])
+                continue
+            u = np.uint64(x)
+            if u != 0 and v < 0:
+                out[pos] = 45  # '-'
+                pos += 1
+            nd = _n_digits(u)
+            ni = nd - d if nd > d else 1  # the digits before the point
+            j = pos + ni + d if d > 0 else pos + ni - 1  # the last digit's index
+            pos = j + 1
+            left = d
+            while left >= 2:  # the decimals
+                q = u // _E2
+                r = (u - q * _E2) * _TWO
+                out[j - 1] = pairs[r]
+                out[j] = pairs[r + _ONE]
+                u = q
+                j -= 2
+                left -= 2
+            if left == 1:
+                q = u // _E1
+                out[j] = pairs[(u - q * _E1) * _TWO + _ONE]
+                u = q
+                j -= 1
+            if d > 0:
+                out[j] = 46  # '.'
+                j -= 1
+            left = ni
+            while left >= 2:  # the integer part
+                q = u // _E2
+                r = (u - q * _E2) * _TWO
+                out[j - 1] = pairs[r]
+                out[j] = pairs[r + _ONE]
+                u = q
+                j -= 2
+                left -= 2
+            if left == 1:
+                out[j] = pairs[u * _TWO + _ONE]
         out[pos] = 10  # '\n'
         pos += 1
     return pos
@@ -151,24 +204,42 @@ class RowFormatter:
         self.table_base = np.array(base, dtype=np.int64)
         self.max_cell = max(24, width + 1)
         self.cells = Cells(self.kinds, self.decimals, self.table, self.table_len, self.table_base)
+        self._buf: np.ndarray | None = None  # write_gather's output buffer
 
     def format(self, values: np.ndarray) -> bytes:
         values = np.ascontiguousarray(values, dtype=np.float64)
-        out = np.empty(values.shape[0] * (values.shape[1] * self.max_cell + 1), dtype=np.uint8)
-        n = _format_rows(values, self.cells, out)
-        return out[:n].tobytes()
+        m = values.shape[1]
+        return self.format_gather(values, np.zeros((values.shape[0], 0)), np.arange(m), np.ones(m), np.zeros(m))
 
     def format_gather(self, rows: np.ndarray, extra: np.ndarray, src, scale, offset) -> bytes:
         """Lines of the columns taken from ``rows`` (k, w) and ``extra`` (k, e) without building
         them first: column ``c`` is ``rows[:, src[c]]`` (``extra[:, src[c] - w]`` past ``rows``'
         columns) times ``scale[c]``, plus ``offset[c]`` where that is not zero; then as
         :meth:`format` (the same bytes as :meth:`format` on those columns)."""
+        return self._gather(rows, extra, src, scale, offset, None).tobytes()
+
+    def write_gather(self, file, rows: np.ndarray, extra: np.ndarray, src, scale, offset) -> int:
+        """:meth:`format_gather`'s bytes written to the binary ``file``, formatted into a buffer the
+        formatter keeps (grown as needed; no allocation per block once it is large enough); returns
+        the number of bytes."""
+        n = self._buf.shape[0] if self._buf is not None else 0
+        need = len(rows) * (len(src) * self.max_cell + 1)
+        if need > n:
+            self._buf = np.empty(max(need, 2 * n), dtype=np.uint8)
+        view = self._gather(rows, extra, src, scale, offset, self._buf)
+        file.write(memoryview(view))
+        return view.shape[0]
+
+    def _gather(self, rows, extra, src, scale, offset, out) -> np.ndarray:
         rows = np.ascontiguousarray(rows, dtype=np.float64)
-        extra = np.ascontiguousarray(extra, dtype=np.float64).reshape(rows.shape[0], -1)
+        extra = np.ascontiguousarray(extra, dtype=np.float64)
+        if extra.ndim != 2:
+            extra = extra.reshape(rows.shape[0], -1)
         src = np.asarray(src, dtype=np.int64)
         if src.shape[0] != self.kinds.shape[0]:
             raise ValueError(f"{src.shape[0]} source columns for {self.kinds.shape[0]} formatted ones")
-        out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
+        if out is None:
+            out = np.empty(rows.shape[0] * (src.shape[0] * self.max_cell + 1), dtype=np.uint8)
         gather = (src, np.asarray(scale, dtype=np.float64), np.asarray(offset, dtype=np.float64))
         n = _format_gather(rows, extra, gather, self.cells, out)
-        return out[:n].tobytes()
+        return out[:n]

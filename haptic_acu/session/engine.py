@@ -76,7 +76,7 @@ from ..servo.tick import (SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_
 from ..servo.samples import COL, NCOL, SampleRing
 
 _C_F = COL["fx_n"]
-from .sink import Sink
+from .sink import FrameBlock, Sink
 from ..tissue.springback import Springback
 
 
@@ -174,6 +174,9 @@ def percentiles_us(values_s: np.ndarray) -> dict:
             "p999": float(np.percentile(v, 99.9)), "max": float(v.max())}
 
 
+TICK_THREAD = True  # a headless replay's next block of ticks beside the sinks' work (_run_sim_ahead)
+
+
 class Session:
     """One simulation session: a model, a device, sinks, and the two loops.
 
@@ -239,6 +242,7 @@ class Session:
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
+        self._frames_made = 0  # frames handed over so far
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -557,44 +561,94 @@ class Session:
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
         sb = self.springback.args()
+        self._frames_made = self.frame_index
+        # rows only: a block's ticks run on a thread of their own (compiled, without the GIL) while
+        # this thread hands the block before to the sinks; the ticks allocate nothing there (a
+        # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
+        # with the session)
+        pool = None
+        if TICK_THREAD and rows_only and max_frames > 1:
+            from concurrent.futures import ThreadPoolExecutor
+            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="haptic-acu-ticks")
+        try:
+            self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb, pool)
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
+
+    def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb, pool) -> None:
+        """:meth:`_run_sim_ahead`'s blocks: each block read from the device and run, and its frames
+        handed over; with a ``pool``, handed over while the next block's ticks run."""
         t0 = time.perf_counter()
         next_frame = self.frame_dt
-        while not self._stop.is_set():
-            k0 = self.tick
-            lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, max_frames)
-            if not lasts:
-                break
-            T = np.arange(k0, lasts[-1] + 1) * dt
-            P, V, done = dev.read_block(T)
-            n_read = int(np.argmax(done)) if done.any() else T.size
-            T_size = T.size
-            ends = np.array(lasts[:-1] if cut else lasts, dtype=np.int64) - (k0 - 1)
-            T, P, V = T[:n_read], P[:n_read], V[:n_read]
-            cuts = []
-            if events:  # per frame, as each frame's ticks were read
-                a = 0
-                for e in ends.tolist() + [T_size]:
-                    e = min(e, n_read)
-                    if e > a:
-                        cuts += [a + c for c in dev.reset_ticks(T[a:e])]
-                    a = e
-            A = axis_block(dev, T)
-            R = roll_block(dev, T)
-            n, frames = self._run_frames_resetting(P, V, A, R, T, k0, ends[ends <= n_read], cuts, sb)
-            self.tick += n
-            if n:
-                self._t_session = float(T[n - 1])
-            faulted = self.model.diag["fault"] != 0.0
-            wall = time.perf_counter() - t0
-            if wall > 0:
-                self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
-            self._hand_over(ends[:frames], T)
-            if faulted:
-                self._state_fault(float(T[n - 1]), self.tick - 1)
-                return
-            if cut or n < n_read or n_read < T_size:  # the session's end, a fault or the device's end
-                return
-            next_frame = next_after
+        pending = None  # (ends, T, rates) of the block run but not yet handed over
+        try:
+            while not self._stop.is_set():
+                k0 = self.tick
+                lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, max_frames)
+                if not lasts:
+                    break
+                T = np.arange(k0, lasts[-1] + 1) * dt
+                P, V, done = dev.read_block(T)
+                n_read = int(np.argmax(done)) if done.any() else T.size
+                T_size = T.size
+                ends = np.array(lasts[:-1] if cut else lasts, dtype=np.int64) - (k0 - 1)
+                T, P, V = T[:n_read], P[:n_read], V[:n_read]
+                cuts = []
+                if events:  # per frame, as each frame's ticks were read
+                    a = 0
+                    for e in ends.tolist() + [T_size]:
+                        e = min(e, n_read)
+                        if e > a:
+                            cuts += [a + c for c in dev.reset_ticks(T[a:e])]
+                        a = e
+                A = axis_block(dev, T)
+                R = roll_block(dev, T)
+                args = (P, V, A, R, T, k0, ends[ends <= n_read], cuts, sb)
+                if pool is None:
+                    n, frames = self._run_frames_resetting(*args)
+                else:
+                    job = pool.submit(self._run_frames_resetting, *args)
+                    try:
+                        if pending is not None:  # the block before's rows to the sinks, beside these ticks
+                            block, pending = pending, None
+                            self._hand_over(*block)
+                        n, frames = job.result()
+                    except BaseException:  # a sink failed, or a signal: the ticks running finish and count
+                        self._count_ticks(job, T)  # (their rows stay in the ring for the final frame)
+                        raise
+                self.tick += n
+                if n:
+                    self._t_session = float(T[n - 1])
+                faulted = self.model.diag["fault"] != 0.0
+                wall = time.perf_counter() - t0
+                if wall > 0:
+                    self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self._frames_made + frames) / wall}
+                pending = (ends[:frames], T, dict(self.rates))
+                if faulted or cut or n < n_read or n_read < T_size or pool is None:
+                    block, pending = pending, None
+                    self._hand_over(*block)
+                if faulted:
+                    self._state_fault(float(T[n - 1]), self.tick - 1)
+                    return
+                if cut or n < n_read or n_read < T_size:  # the session's end, a fault or the device's end
+                    return
+                next_frame = next_after
+        finally:
+            if pending is not None:  # stopped (or failed) after a block was run: its rows still go out
+                self._hand_over(*pending)
+
+    def _count_ticks(self, job, T) -> None:
+        """After a failure or a signal beside a block's ticks (``job``, on the session's tick
+        thread): wait for them and count them, so the rows they wrote are the session's (the final
+        frame hands them over)."""
+        try:
+            n, _ = job.result()
+        except Exception:  # noqa: BLE001 - the failure being raised is the one to report
+            return
+        self.tick += n
+        if n:
+            self._t_session = float(T[n - 1])
 
     def _run_frames_resetting(self, P, V, A, R, T, k0, ends, cuts, sb):
         """:func:`run_frames` on a block, resetting the model (fresh tissue, as the keyboard's
@@ -616,7 +670,7 @@ class Session:
                     break
         return n, frames
 
-    def _hand_over(self, ends, T) -> None:
+    def _hand_over(self, ends, T, rates=None) -> None:
         """The rows of the frames just run (``ends``: the index past each one's last tick in
         ``T``), each frame's to every sink (a live session's visual frame, its springback already
         run); the forces of the frames' last ticks reported to the device
@@ -629,19 +683,21 @@ class Session:
         F = rows[ends - 1, _C_F:_C_F + 3]
         self.device.record_forces(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
         dents = self.want_dents and not all(s.rows_only for s in self.sinks)
-        rates = dict(self.rates)
+        rates = dict(self.rates) if rates is None else rates
         if dents:  # a sink reads the model at its frame: only the last frame's is current
             a = 0
             for e in ends.tolist():
                 self._deliver([Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
                                      Dents(self.model, self.springback.settled))])
                 a = e
+            self._frames_made = self.frame_index
             return
         starts = [0, *ends[:-1].tolist()]
-        k = self.frame_index
+        k = self._frames_made
         model = self.model
-        block = [Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
-                 enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))]
+        block = FrameBlock([Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
+                            enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))], rows[:int(ends[-1])], ends)
+        self._frames_made += frames
         self._deliver(block)
 
     # real time: our timer drives the servo thread

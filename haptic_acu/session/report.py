@@ -28,7 +28,7 @@ from ..base.figlayout import first_layout, fit_rows, gc_paused, save_png
 from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
-from .sink import Sink
+from .sink import RowBatches, Sink, block_rows
 from ..analysis.common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 from ..analysis.scan import (  # noqa: F401 (re-exported: the report's vocabulary)
     LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, tip_depth_m)
@@ -67,8 +67,7 @@ class SummarySink(Sink):
         self.tissue = None
         self.config = cfg
         self._blocks: list[np.ndarray] = []
-        self._pending: list[np.ndarray] = []
-        self._n_pending = 0
+        self._batches = RowBatches(self.BATCH_ROWS)
         self.fault: str | None = None
         self.stats: dict | None = None
 
@@ -86,8 +85,7 @@ class SummarySink(Sink):
                                  if self.config is not None else None)
             self.figure = FigureRows(self.tissue)
         self._blocks = []
-        self._pending = []
-        self._n_pending = 0
+        self._batches = RowBatches(self.BATCH_ROWS)
 
     def on_frame(self, frame) -> None:
         self.on_frames((frame,))
@@ -95,30 +93,25 @@ class SummarySink(Sink):
     def on_frames(self, frames) -> None:
         # Rows are scanned in batches of BATCH_ROWS (a frame holds ~17): the scan's per-call cost,
         # not its per-row cost, dominated a headless replay.
-        pending, keep, batch = self._pending, self.keep_rows, self.BATCH_ROWS
-        for f in frames:
-            rows = f.samples
-            k = len(rows)
-            if k:
-                pending.append(rows)
-                if keep:
-                    self._blocks.append(rows)
-                self._n_pending += k
-                if self._n_pending >= batch:
-                    self._scan_pending()
-                    pending = self._pending
+        if self.keep_rows:
+            rows, _ = block_rows(frames)
+            if len(rows):
+                self._blocks.append(rows)
+        for rows in self._batches.add(frames):
+            self._scan(rows)
 
     def _scan_pending(self) -> None:
-        if self._pending:
-            rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
-            depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
-            self.scan.feed(rows, depth)
-            if self.metrics_scan is not None:
-                self.metrics_scan.feed(rows)
-            if self.figure is not None:
-                self.figure.feed(rows, depth)
-            self._pending = []
-            self._n_pending = 0
+        rows = self._batches.flush()
+        if rows is not None:
+            self._scan(rows)
+
+    def _scan(self, rows) -> None:
+        depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        self.scan.feed(rows, depth)
+        if self.metrics_scan is not None:
+            self.metrics_scan.feed(rows)
+        if self.figure is not None:
+            self.figure.feed(rows, depth)
 
     def close(self, result) -> None:
         self._scan_pending()
@@ -797,8 +790,7 @@ class SamplesCsvSink(Sink):
         self._f = None
         self.tissue = None
         self.rows_written = 0
-        self._pending: list[np.ndarray] = []
-        self._n_pending = 0
+        self._batches = RowBatches(self.BATCH_ROWS)
         self._fmt = None
 
     def warm_up(self) -> None:
@@ -820,26 +812,20 @@ class SamplesCsvSink(Sink):
         # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
         # live session loses at most BATCH_ROWS rows of this file on a crash (the recording sink
         # is the one that flushes every frame).
-        pending, batch = self._pending, self.BATCH_ROWS
-        for f in frames:
-            k = len(f.samples)
-            if k:
-                pending.append(f.samples)
-                self._n_pending += k
-                if self._n_pending >= batch:
-                    self._write_pending()
-                    pending = self._pending
+        for rows in self._batches.add(frames):
+            self._write_batch(rows)
 
     def _write_pending(self) -> None:
-        if self._pending:
-            rows = np.concatenate(self._pending)
-            self._pending = []
-            self._n_pending = 0
-            try:
-                self.write_rows(rows)
-                self._f.flush()
-            except OSError as e:
-                raise OSError(e.errno, f"{self.path}: cannot write: {e.strerror or e}") from None
+        rows = self._batches.flush()
+        if rows is not None:
+            self._write_batch(rows)
+
+    def _write_batch(self, rows) -> None:
+        try:
+            self.write_rows(rows)
+            self._f.flush()
+        except OSError as e:
+            raise OSError(e.errno, f"{self.path}: cannot write: {e.strerror or e}") from None
 
     def close(self, result=None) -> None:
         if self._f is not None:
@@ -859,7 +845,7 @@ class SamplesCsvSink(Sink):
         extra = np.empty((k, 2))  # the computed columns, after the row's own: tip_depth_m, |F|
         extra[:, 0] = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
         extra[:, 1] = np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)
-        self._f.write(fmt.format_gather(rows, extra, src, scale, offset))
+        fmt.write_gather(self._f, rows, extra, src, scale, offset)
         self.rows_written += k
 
 

@@ -13,6 +13,78 @@ of :class:`Sink` and calls these methods on each, in this order; a sink override
 """
 from __future__ import annotations
 
+import numpy as np
+
+
+class FrameBlock(list):
+    """Consecutive frames handed over at once (a list of frames) with their rows as one array:
+    ``rows`` (every frame's samples, in order; each frame's ``samples`` is a view of it) and
+    ``ends`` (the index in ``rows`` past each frame's last row)."""
+
+    def __init__(self, frames, rows, ends):
+        super().__init__(frames)
+        self.rows = rows
+        self.ends = ends
+
+
+def block_rows(frames):
+    """(rows, ends) of consecutive ``frames``: a :class:`FrameBlock`'s own, else joined."""
+    rows = getattr(frames, "rows", None)
+    if rows is not None:
+        return rows, frames.ends
+    if len(frames) == 1:
+        rows = frames[0].samples
+        return rows, np.array([len(rows)], dtype=np.int64)
+    ends = np.cumsum([len(f.samples) for f in frames], dtype=np.int64)
+    return (np.concatenate([f.samples for f in frames]) if len(frames) else np.zeros((0, 0))), ends
+
+
+class RowBatches:
+    """Rows gathered into batches of at least ``size`` rows, each ending at a frame's end: a batch is
+    complete at the first frame whose last row brings it to ``size`` (the same batches whether the
+    frames come one at a time or in blocks). Views of the frames' rows are kept until then."""
+
+    def __init__(self, size: int):
+        self.size = int(size)
+        self._pending: list[np.ndarray] = []
+        self._n = 0
+
+    def add(self, frames) -> list[np.ndarray]:
+        """The batches ``frames`` complete (usually none or one), oldest first."""
+        rows, ends = block_rows(frames)
+        out = []
+        start = 0
+        total = len(rows)
+        while start < total:
+            j = int(np.searchsorted(ends, start + self.size - self._n))
+            if j >= len(ends):
+                break
+            e = int(ends[j])
+            part = rows[start:e]
+            if self._pending:
+                part = np.concatenate([*self._pending, part])
+                self._pending = []
+            out.append(part)
+            self._n = 0
+            start = e
+        if start < total:
+            self._pending.append(rows[start:])
+            self._n += total - start
+        return out
+
+    def flush(self) -> np.ndarray | None:
+        """The rows not yet in a batch (None if there are none)."""
+        if not self._pending:
+            return None
+        rows = self._pending[0] if len(self._pending) == 1 else np.concatenate(self._pending)
+        self._pending = []
+        self._n = 0
+        return rows
+
+    @property
+    def pending(self) -> int:
+        return self._n
+
 
 class Sink:
     #: True for a sink that reads only a frame's ``samples``, ``t_s`` and ``index`` (never the model,
