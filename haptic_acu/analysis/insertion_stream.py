@@ -40,6 +40,7 @@ from .common import dot3
 from .common import C_CLAMPED, C_DEPTH, C_F, C_LAT, C_LAYER, C_LAYER_F, C_PUNCT, C_ROLL, C_T, C_TICK, C_TORQUE, C_X
 from .technique import DEPTH_MIN_STROKE_MM, MIN_SPEED_MM_S, ROLL_MIN_SWING_DEG, classify
 
+_BLOCK_COLS = np.array([C_T, C_DEPTH, C_X, C_X + 1, C_X + 2, C_F, C_F + 1, C_F + 2, C_PUNCT])
 BUFFER_ROWS = 20_000  # rows kept before the continuous depth's steps are fixed (module docstring)
 PLATEAU_T_CAP = 4096  # times kept for the middle of a flat trough (beyond: interpolated, <1 tick off)
 
@@ -555,11 +556,12 @@ class InsertionStream:
             if hit.size:
                 self.k_lo = (i0 + int(hit[0]), float(t[hit[0]]))
         self.twirl.feed(t, rows[:, C_ROLL], rows[:, C_TORQUE])
-        cols = [t, depth, rows[:, C_X], rows[:, C_X + 1], rows[:, C_X + 2], rows[:, C_F], rows[:, C_F + 1],
-                rows[:, C_F + 2], rows[:, C_PUNCT]]
         if self.ref is not None:
-            cols += list(self._ref_forces(rows[:, C_TICK]).T)
-        block = np.stack(cols, axis=1)
+            block = np.empty((k, len(_BLOCK_COLS) + 3))
+            block[:, :len(_BLOCK_COLS)] = rows[:, _BLOCK_COLS]
+            block[:, len(_BLOCK_COLS):] = self._ref_forces(rows[:, C_TICK])
+        else:
+            block = rows[:, _BLOCK_COLS]  # one gather: t, depth, p (3), F (3), puncture
         if self.u_steps is None:
             self.buf.append(block)
             self.nbuf += k
@@ -594,12 +596,16 @@ class InsertionStream:
 
     def _fix_steps(self) -> None:
         self.u_steps = self.direction()[0]
-        for b in self.buf:
-            self._dc_block(b)
+        if len(self.buf) > 1:  # the buffered blocks in one pass, each block's step motion summed alone
+            self._dc_block(np.concatenate(self.buf), [len(b) for b in self.buf])
+        elif self.buf:
+            self._dc_block(self.buf[0])
         self.buf, self.nbuf = [], 0
 
-    def _dc_block(self, b: np.ndarray) -> None:
-        """Continuous depth (module docstring) of buffered rows ``b``, then strokes and troughs."""
+    def _dc_block(self, b: np.ndarray, parts=None) -> None:
+        """Continuous depth (module docstring) of buffered rows ``b``, then strokes and troughs.
+        ``parts``: the lengths of the blocks ``b`` joins, if several: the summed one-tick motion at
+        the step ticks adds up block by block, as if each were fed alone (the same bits)."""
         u = self.u_steps
         depth, p = b[:, 1], b[:, 2:5]
         axial = dot3(p - self.entry, u)
@@ -614,7 +620,15 @@ class InsertionStream:
             at = b[:, 8] >= 1
             step = np.where(at, np.maximum(jump, 0.0), 0.0)
             dp = np.diff(np.vstack([self.tail[2], p]), axis=0)[at]
-        self.step_dp += float(np.linalg.norm(dp, axis=1).sum())
+        dpn = np.linalg.norm(dp, axis=1)
+        if parts is None:
+            self.step_dp += float(dpn.sum())
+        else:
+            at_all = at if not first else np.concatenate(([False], at))  # per row of b
+            a = 0
+            for n_at in np.add.reduceat(at_all.astype(np.int64), np.cumsum([0, *parts[:-1]])).tolist():
+                self.step_dp += float(dpn[a:a + n_at].sum())
+                a += n_at
         s = np.cumsum(np.concatenate(([self.s_carry], step)))[1:]
         self.s_carry = float(s[-1])
         self.tail = (float(axial[-1]), float(depth[-1]), p[-1].copy())
@@ -622,7 +636,13 @@ class InsertionStream:
         uc = self.direction()[0]
         res = -(-dot3(b[:, 5:8], uc))  # a lift's resistance: minus the axial force -F . u
         rres = -(-dot3(b[:, 9:12], uc)) if self.ref is not None else np.zeros(len(b))
-        new = np.column_stack([b[:, 0], dc, dc * 1e3, b[:, 5:8], res, rres])
+        new = np.empty((len(b), 8))
+        new[:, 0] = b[:, 0]
+        new[:, 1] = dc
+        np.multiply(dc, 1e3, out=new[:, 2])
+        new[:, 3:6] = b[:, 5:8]
+        new[:, 6] = res
+        new[:, 7] = rres
         self._process(new)
 
     def _process(self, new: np.ndarray, final: bool = False) -> None:

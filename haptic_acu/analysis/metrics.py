@@ -437,7 +437,9 @@ class SessionMetricsScan:
         self._last_t: float | None = None
         self._done: dict | None = None
 
-    def feed(self, rows: np.ndarray) -> None:
+    def feed(self, rows: np.ndarray, tip: np.ndarray | None = None) -> None:
+        """Rows (k, NCOL) in order; ``tip``: their tip depth (:func:`~haptic_acu.analysis.scan.tip_depth_m`),
+        if the caller has it already."""
         rows = np.asarray(rows, dtype=np.float64)
         k = len(rows)
         if k == 0:
@@ -451,8 +453,9 @@ class SessionMetricsScan:
         self._last_t = float(t[-1])
         st = rows[:, C_STATE]
         self.punctured_rows += int(np.count_nonzero(st == PUNCTURED))
-        tip = None
-        if self.tissue is not None:
+        if self.tissue is None:
+            tip = None
+        elif tip is None:
             from .scan import tip_depth_m
             tip = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
         bounds = [0, *(np.flatnonzero(np.diff(st) != 0) + 1).tolist(), k]

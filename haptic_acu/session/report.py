@@ -109,7 +109,7 @@ class SummarySink(Sink):
         depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
         self.scan.feed(rows, depth)
         if self.metrics_scan is not None:
-            self.metrics_scan.feed(rows)
+            self.metrics_scan.feed(rows, depth)
         if self.figure is not None:
             self.figure.feed(rows, depth)
 
