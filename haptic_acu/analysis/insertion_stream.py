@@ -409,19 +409,19 @@ class _Strokes:
         self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    def feed(self, i0, dcm, v_uni, v_non, f, res, rres) -> None:
-        k = len(dcm)
+    def feed(self, i0, block) -> None:
+        """Samples from index ``i0``: ``block`` (k, 8) float64, C-contiguous, columns dcm, v_uni,
+        v_non, f (3), res, rres."""
+        k = len(block)
         if not k:
             return
         sgn = np.empty(k)
         sums = np.empty((k, NS))
-        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)
-        block = np.column_stack((f64(dcm), f64(v_uni), f64(v_non), f64(f).reshape(k, 3), f64(res), f64(rres)))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
         n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0), block, carried,
                           sgn, sums)
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
-        self.last_dcm = float(dcm[-1])
+        self.last_dcm = float(block[-1, 0])
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
         from .technique import summarise_strokes
@@ -666,7 +666,12 @@ class InsertionStream:
             v_non = ca * l_f + cb * m_f + cc * r_f
             v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
         g0 = self.next_i
-        self.strokes.feed(g0, dcm[:m], v_uni, v_non, a[:m, 3:6], a[:m, 6], a[:m, 7])
+        block = np.empty((m, 8))  # the strokes' columns: dcm, v_uni, v_non, f (3), res, rres
+        block[:, 0] = dcm[:m]
+        block[:, 1] = v_uni
+        block[:, 2] = v_non
+        block[:, 3:8] = a[:m, 3:8]
+        self.strokes.feed(g0, block)
         self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))

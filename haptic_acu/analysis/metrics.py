@@ -367,34 +367,30 @@ def _session_dict(insertions, punctured_rows, dt, target, lateral_comfort_n) -> 
 
 
 class MedianCounter:
-    """The exact median of a stream of values (``numpy.median``'s result) kept as value -> count: a
-    session's tick intervals take a handful of distinct values, so this stays small."""
+    """The exact median of a stream of values (``numpy.median``'s result) kept as its distinct values
+    (sorted) and their counts: a session's tick intervals take a few hundred distinct values at most
+    (the last bits of t_{i+1} - t_i), so this stays small."""
 
     def __init__(self):
-        self.counts: dict[float, int] = {}
+        self.values = np.zeros(0)
+        self.counts = np.zeros(0, dtype=np.int64)
         self.n = 0
 
     def add(self, values: np.ndarray) -> None:
         if values.size:
             v, c = np.unique(values, return_counts=True)
-            for a, b in zip(v.tolist(), c.tolist()):
-                self.counts[a] = self.counts.get(a, 0) + b
+            if self.values.size:
+                v, inv = np.unique(np.concatenate((self.values, v)), return_inverse=True)
+                c = np.bincount(inv, weights=np.concatenate((self.counts, c)), minlength=v.size).astype(np.int64)
+            self.values, self.counts = v, c
             self.n += int(values.size)
 
     def median(self) -> float:
         if not self.n:
             return float("nan")
-        want = (self.n - 1) // 2, self.n // 2  # the middle one or two (sorted) positions
-        got, seen = [], 0
-        for v in sorted(self.counts):
-            c = self.counts[v]
-            for w in want[len(got):]:
-                if w < seen + c:
-                    got.append(v)
-            seen += c
-            if len(got) == 2:
-                break
-        return float(np.mean(np.array(got)))
+        want = np.array([(self.n - 1) // 2, self.n // 2])  # the middle one or two (sorted) positions
+        at = np.searchsorted(np.cumsum(self.counts), want, side="right")
+        return float(np.mean(self.values[at]))
 
 
 class SessionMetricsScan:
@@ -447,9 +443,7 @@ class SessionMetricsScan:
         if rows.ndim != 2 or rows.shape[1] != NCOL:
             raise ValueError(f"sample rows must have shape (k, {NCOL}), got {rows.shape}")
         t = rows[:, C_T]
-        if self._last_t is not None:
-            self.dt.add(np.array([t[0] - self._last_t]))
-        self.dt.add(np.diff(t))
+        self.dt.add(np.diff(t) if self._last_t is None else np.diff(t, prepend=self._last_t))
         self._last_t = float(t[-1])
         st = rows[:, C_STATE]
         self.punctured_rows += int(np.count_nonzero(st == PUNCTURED))
