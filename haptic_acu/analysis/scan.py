@@ -125,17 +125,13 @@ class SessionScan:
         f = np.sqrt(np.einsum("ij,ij->i", rows[:, C_F:C_F + 3], rows[:, C_F:C_F + 3]))
         if depth is None:
             depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
-        t = rows[:, C_T]
-        place = rows[:, C_LAYER].astype(np.int64) + 1
+        t = np.ascontiguousarray(rows[:, C_T])
         # time: interval to the next row counts for the place of the earlier row
         if self.t_last is not None:
             self.time_in[self._prev_place] += t[0] - self.t_last
         else:
             self.t_first = float(t[0])
-        np.add.at(self.time_in, place[:-1], np.diff(t))
-        np.add.at(self.ticks_in, place, 1)
-        np.maximum.at(self.peak_in, place, f)
-        self._prev_place = int(place[-1])
+        self._prev_place = int(rows[-1, C_LAYER]) + 1
         self.t_last = float(t[-1])
         self.ticks += k
         self.max_force = max(self.max_force, float(f.max()))
@@ -149,7 +145,8 @@ class SessionScan:
         ev_peak_depth = np.empty(ev.size)
         _press_runs(np.ascontiguousarray(rows[:, C_STATE:C_STATE + N_LAYERS]).astype(np.int64), f,
                     np.ascontiguousarray(depth, dtype=np.float64), punct,
-                    (self._prev_state, self._press_peak, self._press_peak_depth), (ev, ev_peak, ev_peak_depth))
+                    (self._prev_state, self._press_peak, self._press_peak_depth), (ev, ev_peak, ev_peak_depth),
+                    (t, np.ascontiguousarray(rows[:, C_LAYER]), self.time_in, self.ticks_in, self.peak_in))
         found = [{"layer": LAYERS[int(punct[i])], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
                   "tip_depth_m": float(depth[i]), "peak_force_n": float(pk), "peak_depth_m": float(pd)}
                  for i, pk, pd in zip(ev.tolist(), ev_peak.tolist(), ev_peak_depth.tolist())]
@@ -158,14 +155,25 @@ class SessionScan:
 
 
 @nb.njit(cache=True, nogil=True)
-def _press_runs(states, f, depth, punct, runs, out):
+def _press_runs(states, f, depth, punct, runs, out, places):
     """:meth:`SessionScan.feed`'s pressing runs over a block: per layer, the largest ``f`` (and the
     ``depth`` there) over the uninterrupted run of PRESSING ``states`` (k, N_LAYERS), carried in
     ``runs`` (prev_state, peak, peak_depth) across blocks; for each row with a puncture
     (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``out``
-    (ev, ev_peak, ev_peak_depth: sized to the punctures)."""
+    (ev, ev_peak, ev_peak_depth: sized to the punctures). ``places``: (t, layer code, time_in,
+    ticks_in, peak_in): per place (code + 1), the rows' intervals to their next row in the block,
+    their count and their largest ``f`` (numpy.maximum's: a NaN stays), added in row order."""
     prev_state, peak, peak_depth = runs
     ev, ev_peak, ev_peak_depth = out
+    t, layer, time_in, ticks_in, peak_in = places
+    k = states.shape[0]
+    for i in range(k):
+        pl = int(layer[i]) + 1
+        if i + 1 < k:
+            time_in[pl] += t[i + 1] - t[i]
+        ticks_in[pl] += 1
+        if f[i] > peak_in[pl] or f[i] != f[i]:
+            peak_in[pl] = f[i]
     n = 0
     for i in range(states.shape[0]):
         for j in range(states.shape[1]):
