@@ -138,33 +138,34 @@ def _window_add(w, r, q, v):
 
 
 @nb.njit(cache=True, nogil=True)
-def _strokes_pass(rules, has_ref, i0, block, carried, out_sgn, out_sums):
+def _strokes_pass(rules, has_ref, i0, samples, v_uni, v_non, carried, out_sgn, out_sums):
     """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
     the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
     speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
     (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
     withdrawal windows (with ``has_ref``). Returns the strokes' count."""
-    # block's columns from sample i0: dcm, v_uni, v_non, f (3), res, rres; rules: the minimum swing
-    # and speed; carried (to the next block): zz, carry, cand, last, win_cand, win_conf
+    # from sample i0, the first len(v_uni) rows of samples: columns t, dc, dcm, f (3), res, rres,
+    # and the two formulas' speeds v_uni, v_non; rules: the minimum swing and speed; carried (to the
+    # next block): zz, carry, cand, last, win_cand, win_conf
     ms, min_speed = rules
     zz, carry, cand, last, win_cand, win_conf = carried
     n = 0
     q_row = np.empty(NS)
-    for k in range(block.shape[0]):
+    for k in range(v_uni.shape[0]):
         for c in range(NS):
             q_row[c] = carry[c]
         col = 0
         for form in range(2):
-            vel = block[k, 1] if form == 0 else block[k, 2]
+            vel = v_uni[k] if form == 0 else v_non[k]
             for sg in range(2):
                 sv = (1.0 if sg == 0 else -1.0) * vel
                 moving = sv > min_speed
                 carry[col] = carry[col] + (1.0 if moving else 0.0)
                 carry[col + 1] = carry[col + 1] + (sv if moving else 0.0)
                 for j in range(3):
-                    carry[col + 2 + j] = carry[col + 2 + j] + (block[k, 3 + j] if moving else 0.0)
+                    carry[col + 2 + j] = carry[col + 2 + j] + (samples[k, 3 + j] if moving else 0.0)
                 col += 5
-        v = block[k, 0]
+        v = samples[k, 2]
         ev = _zz_step(zz, ms, v)
         if ev == REV:
             if last[C_SET] != 0.0:
@@ -194,8 +195,8 @@ def _strokes_pass(rules, has_ref, i0, block, carried, out_sgn, out_sums):
                 win_cand[6] = 0.0
                 win_cand[7] = 0.0
         if has_ref:
-            _window_add(win_cand, block[k, 6], block[k, 7], v)
-            _window_add(win_conf, block[k, 6], block[k, 7], v)
+            _window_add(win_cand, samples[k, 6], samples[k, 7], v)
+            _window_add(win_conf, samples[k, 6], samples[k, 7], v)
     return n
 
 
@@ -409,19 +410,20 @@ class _Strokes:
         self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    def feed(self, i0, block) -> None:
-        """Samples from index ``i0``: ``block`` (k, 8) float64, C-contiguous, columns dcm, v_uni,
-        v_non, f (3), res, rres."""
-        k = len(block)
+    def feed(self, i0, samples, v_uni, v_non) -> None:
+        """Samples from index ``i0``: the first ``len(v_uni)`` rows of ``samples`` (float64, columns t,
+        dc, dcm, f (3), res, rres) and their speeds by numpy.gradient's two formulas."""
+        k = len(v_uni)
         if not k:
             return
         sgn = np.empty(k)
         sums = np.empty((k, NS))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
-        n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0), block, carried,
-                          sgn, sums)
+        n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0),
+                          np.ascontiguousarray(samples, dtype=np.float64), np.ascontiguousarray(v_uni, dtype=np.float64),
+                          np.ascontiguousarray(v_non, dtype=np.float64), carried, sgn, sums)
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
-        self.last_dcm = float(block[-1, 0])
+        self.last_dcm = float(samples[k - 1, 2])
 
     def stroke_result(self, uniform: bool, u: np.ndarray) -> dict:
         from .technique import summarise_strokes
@@ -666,12 +668,7 @@ class InsertionStream:
             v_non = ca * l_f + cb * m_f + cc * r_f
             v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
         g0 = self.next_i
-        block = np.empty((m, 8))  # the strokes' columns: dcm, v_uni, v_non, f (3), res, rres
-        block[:, 0] = dcm[:m]
-        block[:, 1] = v_uni
-        block[:, 2] = v_non
-        block[:, 3:8] = a[:m, 3:8]
-        self.strokes.feed(g0, block)
+        self.strokes.feed(g0, a, v_uni, v_non)
         self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))
