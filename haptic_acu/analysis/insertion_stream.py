@@ -138,7 +138,7 @@ def _window_add(w, r, q, v):
 
 
 @nb.njit(cache=True, nogil=True)
-def _strokes_pass(rules, has_ref, i0, samples, v_uni, v_non, carried, out_sgn, out_sums):
+def _strokes_pass(rules, has_ref, i0, samples, speeds, carried, out_sgn, out_sums):
     """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
     the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
     speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
@@ -148,6 +148,7 @@ def _strokes_pass(rules, has_ref, i0, samples, v_uni, v_non, carried, out_sgn, o
     # and the two formulas' speeds v_uni, v_non; rules: the minimum swing and speed; carried (to the
     # next block): zz, carry, cand, last, win_cand, win_conf
     ms, min_speed = rules
+    v_uni, v_non = speeds
     zz, carry, cand, last, win_cand, win_conf = carried
     n = 0
     q_row = np.empty(NS)
@@ -420,8 +421,8 @@ class _Strokes:
         sums = np.empty((k, NS))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
         n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0),
-                          np.ascontiguousarray(samples, dtype=np.float64), np.ascontiguousarray(v_uni, dtype=np.float64),
-                          np.ascontiguousarray(v_non, dtype=np.float64), carried, sgn, sums)
+                          np.ascontiguousarray(samples, dtype=np.float64), (np.ascontiguousarray(v_uni, dtype=np.float64),
+                           np.ascontiguousarray(v_non, dtype=np.float64)), carried, sgn, sums)
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
         self.last_dcm = float(samples[k - 1, 2])
 
