@@ -72,6 +72,32 @@ def test_press_runs_whatever_the_blocks():
         assert [g[2] for g in got] == pytest.approx([w[2] for w in want], rel=1e-14)  # |F| summed another way
 
 
+
+def test_place_time_ticks_and_peaks_whatever_the_blocks():
+    """Each place's time (every row's interval to the next row, for the row's place), its rows and
+    its largest |F|, coded plainly over all the rows: the same sums in the same order, whatever the
+    blocks."""
+    rows, depth = _rows()
+    rows[:, COL["t_s"]] += np.random.default_rng(7).uniform(0, 4e-4, len(rows))  # uneven intervals
+    f = np.sqrt(np.einsum("ij,ij->i", rows[:, COL["fx_n"]:COL["fx_n"] + 3], rows[:, COL["fx_n"]:COL["fx_n"] + 3]))
+    place = rows[:, COL["layer"]].astype(int) + 1
+    time_in, ticks_in, peak_in = np.zeros(5), np.zeros(5, int), np.zeros(5)
+    for i in range(len(rows)):
+        if i + 1 < len(rows):
+            time_in[place[i]] += rows[i + 1, COL["t_s"]] - rows[i, COL["t_s"]]
+        ticks_in[place[i]] += 1
+        peak_in[place[i]] = max(peak_in[place[i]], f[i])
+    rng = np.random.default_rng(8)
+    for _ in range(3):
+        cuts = np.sort(rng.choice(np.arange(1, len(rows)), 12, replace=False))
+        s = SessionScan(None)
+        for a, b in zip([0, *cuts], [*cuts, len(rows)]):
+            s.feed(rows[a:b], depth[a:b])
+        assert s.ticks_in.tolist() == ticks_in.tolist()
+        assert s.time_in.tolist() == time_in.tolist()  # exactly: each interval added in row order
+        assert s.peak_in.tolist() == peak_in.tolist()
+        assert s.t_first == rows[0, COL["t_s"]] and s.t_last == rows[-1, COL["t_s"]]
+
 class _Tissue:
     centre = np.zeros(3)
 
