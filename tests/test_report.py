@@ -297,3 +297,37 @@ def test_sinks_write_the_depths_handed_with_a_block(session, tmp_path):
             assert summ.summary() == session.summary.summary()
     got = [float(r["tip_depth_mm"]) for r in read_samples_csv(tmp_path / "shifted.csv")]
     np.testing.assert_allclose(got, (depth + 1.0) * 1e3, atol=5e-4)
+
+
+def test_streamed_summary_evaluates_no_surface_for_rows_handed_with_depths(session, monkeypatch):
+    """A streamed SummarySink (its metrics scan too) fed FrameBlocks with their depths evaluates
+    the skin surface for none of their rows (one computation per row: the engine's), and
+    summarises as when it computes them itself."""
+    from haptic_acu.analysis import scan
+    from haptic_acu.session.sink import FrameBlock
+    from haptic_acu.tissue.body import Tissue
+
+    rows, model, cfg = session.rows, session.model, session.cfg
+    scan._RECENT_DEPTHS.clear()
+    depth = scan.tip_depth_m(rows[:, C["x_m"]:C["x_m"] + 3], model.tissue)
+    info = {"config": cfg, "model": model, "device": None, "clock": "sim"}
+    result = SimpleNamespace(fault=None, stats={"clock": "sim", "missed_ticks": 0, "dropped_rows": 0})
+    evaluated = []
+    radius = Tissue.radius
+    monkeypatch.setattr(Tissue, "radius", lambda self, k, th, ph: (evaluated.append(np.size(th)), radius(self, k, th, ph))[1])
+    out = {}
+    for handed in (True, False):
+        scan._RECENT_DEPTHS.clear()
+        summ = SummarySink(cfg, keep_rows=False)
+        summ.start(info)
+        for a in range(0, len(rows), 1700):  # blocks of 100 frames
+            blk = rows[a:a + 1700]
+            e = np.arange(17, len(blk) + 17, 17).clip(max=len(blk))
+            frames = [SimpleNamespace(t_s=0.0, index=0, samples=blk[x:y]) for x, y in zip([0, *e[:-1].tolist()], e.tolist())]
+            summ.on_frames(FrameBlock(frames, blk, e, depth[a:a + 1700] if handed else None))
+        if handed:
+            assert sum(evaluated) == 0
+        summ.close(result)
+        out[handed] = (summ.summary(), summ.metrics(summ.summary()["punctures"]))
+    assert sum(evaluated) >= len(rows)  # computing them itself, it did evaluate them
+    assert json.dumps(out[True], sort_keys=True) == json.dumps(out[False], sort_keys=True)

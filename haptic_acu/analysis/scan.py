@@ -57,12 +57,25 @@ def _tip_depth(xyz, tissue):
     theta = np.arccos(np.clip(d[:, 2] / safe, -1.0, 1.0))
     phi = np.arctan2(d[:, 1], d[:, 0])
     depth = tissue.radius(0, theta, phi) - rho
+    _remember(xyz, tissue, depth)
+    return depth
+
+
+def _remember(xyz, tissue, depth) -> None:
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
         if xyz.shape[0] > RECENT_DEPTHS_ROWS:  # a whole session's rows: kept alone (memory as one batch)
             _RECENT_DEPTHS.clear()
         _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy(), (xyz[0].tolist(), xyz[-1].tolist())))
         del _RECENT_DEPTHS[:-RECENT_DEPTHS]
-    return depth
+
+
+def remember_tip_depth(xyz: np.ndarray, tissue, depth: np.ndarray) -> None:
+    """Keep ``depth``, :func:`tip_depth_m` of the points ``xyz`` computed elsewhere (beside the
+    ticks: :func:`tip_depth_into`), as if :func:`tip_depth_m` had computed it: its next call on
+    these points answers with a copy."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    with _DEPTH_LOCK:
+        _remember(xyz, tissue, np.asarray(depth, dtype=np.float64))
 
 
 class TipDepthBuffers:
