@@ -91,6 +91,8 @@ class TipDepthBuffers:
         self.theta = np.empty(self.rows)
         self.phi = np.empty(self.rows)
         self.ok = np.empty(self.rows, dtype=bool)
+        from ..tissue import shf
+        self.sh = np.empty((shf.EVAL_WORK_ROWS, shf._CHUNK))
 
 
 def tip_depth_into(xyz: np.ndarray, tissue, out: np.ndarray, buf: TipDepthBuffers) -> bool:
@@ -128,7 +130,7 @@ def tip_depth_into(xyz: np.ndarray, tissue, out: np.ndarray, buf: TipDepthBuffer
     if lmax > shf.REC_LMAX:
         return False
     r = out[:k]
-    shf._eval_many(c, lmax, theta, phi, r)
+    shf.eval_many_work(c, lmax, theta, phi, r, buf.sh)
     np.subtract(r, rho, out=r)
     return True
 
