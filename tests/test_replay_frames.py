@@ -259,3 +259,76 @@ def test_row_batches_are_the_same_for_frames_one_by_one_or_in_blocks():
             for g, w in zip(got, want):
                 assert g.tobytes() == w.tobytes()
             assert (last is None and rest is None) or last.tobytes() == rest.tobytes()
+
+
+class Depths(Sink):
+    """A rows-only sink that reads the tip depth: each block's rows and the depths handed with them."""
+
+    rows_only = True
+    wants_tip_depth = True
+
+    def __init__(self):
+        self.blocks = []
+
+    def on_frames(self, frames):
+        rows, depth = getattr(frames, "rows", None), getattr(frames, "depth", None)
+        if rows is not None:
+            self.blocks.append((rows.copy(), None if depth is None else depth.copy()))
+
+
+def test_tip_depth_beside_the_ticks_is_tip_depth_m_of_each_blocks_rows(cfg, tissue, monkeypatch):
+    """A sink that reads the tip depth gets each block's depths with its rows (FrameBlock.depth),
+    computed after the block's ticks (on the tick thread with engine.TICK_THREAD, on the session's
+    thread without): bit for bit tip_depth_m of those rows, the same either way."""
+    from haptic_acu.analysis import scan
+
+    runs = {}
+    for threaded in (True, False):
+        monkeypatch.setattr(engine, "TICK_THREAD", threaded)
+        sink = Depths()
+        dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        result = Session(cfg, dev, [sink], clock="sim", model=NeedleModel(cfg, tissue), duration_s=12.0).run()
+        dev.close()
+        assert result.fault is None
+        runs[threaded] = sink.blocks
+    assert len(runs[True]) == len(runs[False]) >= 3
+    for (r1, d1), (r2, d2) in zip(runs[True], runs[False]):
+        assert d1 is not None and d2 is not None and len(d1) == len(r1)
+        scan._RECENT_DEPTHS.clear()  # computed afresh, not remembered
+        want = scan.tip_depth_m(r1[:, scan.C_X:scan.C_X + 3], tissue)
+        assert r1.tobytes() == r2.tobytes() and d1.tobytes() == want.tobytes() == d2.tobytes()
+    assert any(np.ptp(d) > 1e-3 for _, d in runs[True])  # the needle went in: depths that vary
+
+
+def test_row_batches_carry_the_blocks_depths():
+    """RowBatches.add_with_depth: each batch's depths are its rows' (whatever the blocks), and None
+    when a part of the batch came without them (a plain list of frames)."""
+    from types import SimpleNamespace
+
+    from haptic_acu.session.sink import FrameBlock, RowBatches
+
+    rng = np.random.default_rng(7)
+    sizes = rng.integers(0, 40, 400)
+    rows = np.arange(int(sizes.sum()) * 2, dtype=np.float64).reshape(-1, 2)
+    ends = np.cumsum(sizes)
+    frames = [SimpleNamespace(samples=rows[e - k:e]) for k, e in zip(sizes, ends)]
+    cuts = [0, *sorted(rng.choice(np.arange(1, len(frames)), 15, replace=False).tolist()), len(frames)]
+    for plain in (None, 5):  # every block with depths, or block 5 a plain list
+        b, got = RowBatches(300), []
+        for j, (a, e) in enumerate(zip(cuts[:-1], cuts[1:])):
+            r0 = int(ends[a - 1]) if a else 0
+            if j == plain:
+                got += b.add_with_depth(frames[a:e])
+            else:
+                blk = rows[r0:int(ends[e - 1])]
+                got += b.add_with_depth(FrameBlock(frames[a:e], blk, ends[a:e] - r0, depth=-blk[:, 0]))
+        got.append(b.flush_with_depth())
+        assert np.concatenate([r for r, _ in got]).tobytes() == rows.tobytes()
+        nones = 0
+        for r, d in got:
+            if d is None:
+                nones += 1
+            else:
+                assert d.tobytes() == (-r[:, 0]).tobytes()
+        assert nones == 0 if plain is None else nones >= 1

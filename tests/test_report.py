@@ -21,7 +21,7 @@ import pytest
 from haptic_acu.servo import samples as S
 from haptic_acu.base.config import load_config
 from haptic_acu.servo.step import NeedleModel
-from haptic_acu.session.report import CSV_FIELDS, SamplesCsvSink, SummarySink, plot_force_depth
+from haptic_acu.session.report import CSV_FIELDS, SamplesCsvSink, SummarySink, plot_force_depth, read_samples_csv
 
 PRESSING, PUNCTURED = 1, 2
 LAYER_NAMES = ("skin", "fat", "muscle")
@@ -234,3 +234,100 @@ def test_figure_rows_are_bounded_and_keep_every_extreme(session):
     where = [int(np.flatnonzero((rows[:, C["tick"]] == t))[0]) for t in kept[:, C["tick"]]]
     assert np.array_equal(index, insertion_index(rows)[where])
     assert index.max() == 7
+
+
+def test_tip_depth_into_is_tip_depth_m_bit_for_bit(session):
+    """tip_depth_into (the engine's, into arrays made once) equals tip_depth_m bit for bit on many
+    random points cut into blocks of any size, including the body centre, the poles and the
+    phi = +-pi seam; it declines (False) a point it cannot place and a block larger than its arrays."""
+    from haptic_acu.analysis import scan
+
+    tissue = session.model.tissue
+    rng = np.random.default_rng(11)
+    n = 300_000
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    xyz = tissue.centre + u * rng.uniform(0.0, 0.08, n)[:, None]
+    special = [[0, 0, 0], [0, 0, 0.05], [0, 0, -0.05], [0.05, 0, 0], [-0.05, 0, 0], [-0.05, 0.0, 1e-19],
+               [-0.05, -0.0, 1e-19], [-0.05, 1e-300, 0], [1e-300, 0, 0.05], [0, -1e-300, -0.05]]
+    xyz[:len(special)] = tissue.centre + np.array(special)
+    scan._RECENT_DEPTHS.clear()
+    want = scan.tip_depth_m(xyz, tissue)
+    buf, out = scan.TipDepthBuffers(5000), np.empty(5000)
+    a = 0
+    while a < n:
+        b = min(n, a + int(rng.integers(1, 5001)))
+        assert scan.tip_depth_into(xyz[a:b], tissue, out, buf)
+        assert out[:b - a].tobytes() == want[a:b].tobytes()
+        a = b
+    bad = xyz[:10].copy()
+    bad[3, 0] = np.nan
+    assert not scan.tip_depth_into(bad, tissue, out, buf)
+    assert not scan.tip_depth_into(xyz[:5001], tissue, np.empty(5001), buf)
+
+
+def test_sinks_write_the_depths_handed_with_a_block(session, tmp_path):
+    """Fed FrameBlocks whose depths are tip_depth_m's, samples.csv and the summary are byte for byte
+    those of frames fed one by one; handed other depths, the CSV's tip_depth_mm column is those."""
+    from haptic_acu.analysis.scan import tip_depth_m
+    from haptic_acu.session.sink import FrameBlock
+
+    rows, model, cfg = session.rows, session.model, session.cfg
+    depth = tip_depth_m(rows[:, C["x_m"]:C["x_m"] + 3], model.tissue)
+    info = {"config": cfg, "model": model, "device": None, "clock": "sim"}
+    result = SimpleNamespace(fault=None, stats={"clock": "sim", "missed_ticks": 0, "dropped_rows": 0})
+    for shift, name in ((0.0, "same"), (1.0, "shifted")):
+        summ, csv_sink = SummarySink(cfg), SamplesCsvSink(tmp_path / f"{name}.csv")
+        for s in (summ, csv_sink):
+            s.start(info)
+        ends = np.arange(17, len(rows) + 17, 17).clip(max=len(rows))
+        for a in range(0, len(ends), 97):  # blocks of 97 frames
+            e = ends[a:a + 97]
+            r0 = int(ends[a - 1]) if a else 0
+            blk = rows[r0:int(e[-1])]
+            frames = [SimpleNamespace(t_s=0.0, index=0, samples=blk[x - r0:y - r0]) for x, y in
+                      zip([r0, *e[:-1].tolist()], e.tolist())]
+            fb = FrameBlock(frames, blk, e - r0, depth[r0:int(e[-1])] + shift)
+            for s in (summ, csv_sink):
+                s.on_frames(fb)
+        for s in (summ, csv_sink):
+            s.close(result)
+        if shift == 0.0:
+            assert (tmp_path / "same.csv").read_bytes() == session.csv.read_bytes()
+            assert summ.summary() == session.summary.summary()
+    got = [float(r["tip_depth_mm"]) for r in read_samples_csv(tmp_path / "shifted.csv")]
+    np.testing.assert_allclose(got, (depth + 1.0) * 1e3, atol=5e-4)
+
+
+def test_streamed_summary_evaluates_no_surface_for_rows_handed_with_depths(session, monkeypatch):
+    """A streamed SummarySink (its metrics scan too) fed FrameBlocks with their depths evaluates
+    the skin surface for none of their rows (one computation per row: the engine's), and
+    summarises as when it computes them itself."""
+    from haptic_acu.analysis import scan
+    from haptic_acu.session.sink import FrameBlock
+    from haptic_acu.tissue.body import Tissue
+
+    rows, model, cfg = session.rows, session.model, session.cfg
+    scan._RECENT_DEPTHS.clear()
+    depth = scan.tip_depth_m(rows[:, C["x_m"]:C["x_m"] + 3], model.tissue)
+    info = {"config": cfg, "model": model, "device": None, "clock": "sim"}
+    result = SimpleNamespace(fault=None, stats={"clock": "sim", "missed_ticks": 0, "dropped_rows": 0})
+    evaluated = []
+    radius = Tissue.radius
+    monkeypatch.setattr(Tissue, "radius", lambda self, k, th, ph: (evaluated.append(np.size(th)), radius(self, k, th, ph))[1])
+    out = {}
+    for handed in (True, False):
+        scan._RECENT_DEPTHS.clear()
+        summ = SummarySink(cfg, keep_rows=False)
+        summ.start(info)
+        for a in range(0, len(rows), 1700):  # blocks of 100 frames
+            blk = rows[a:a + 1700]
+            e = np.arange(17, len(blk) + 17, 17).clip(max=len(blk))
+            frames = [SimpleNamespace(t_s=0.0, index=0, samples=blk[x:y]) for x, y in zip([0, *e[:-1].tolist()], e.tolist())]
+            summ.on_frames(FrameBlock(frames, blk, e, depth[a:a + 1700] if handed else None))
+        if handed:
+            assert sum(evaluated) == 0
+        summ.close(result)
+        out[handed] = (summ.summary(), summ.metrics(summ.summary()["punctures"]))
+    assert sum(evaluated) >= len(rows)  # computing them itself, it did evaluate them
+    assert json.dumps(out[True], sort_keys=True) == json.dumps(out[False], sort_keys=True)

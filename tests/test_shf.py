@@ -334,3 +334,28 @@ def test_eval_point4_grad_at_the_poles_is_the_limit_of_its_neighbours(lmax):
             scale = np.abs(coeffs[2]).sum() * lmax ** 2
             assert abs(grad[0] - ref[0]) < 1e-5 * scale
             assert abs(grad[1] - ref[1]) < 1e-5 * scale
+
+
+def test_evaluate_many_points_is_eval_point_bit_for_bit():
+    """evaluate (points side by side in chunks) gives eval_point's bits for every point, whatever
+    the number of points or where a point falls in a chunk: random directions, the poles, the
+    phi = +-pi seam, for the four boundaries of the default body and a random expansion."""
+    from haptic_acu.base.config import load_config
+    from haptic_acu.tissue.body import Tissue
+
+    rng = np.random.default_rng(21)
+    n = 60_000
+    theta = np.arccos(rng.uniform(-1.0, 1.0, n))
+    phi = rng.uniform(-np.pi, np.pi, n)
+    edges = [(0.0, 0.0), (np.pi, np.pi), (1e-300, -np.pi), (np.pi - 1e-16, 0.0), (np.pi / 2, np.pi),
+             (0.0, -np.pi), (np.pi, 0.0), (1e-8, 3.0), (np.pi / 2, -np.pi), (np.pi / 2, 0.0)]
+    theta[:len(edges)], phi[:len(edges)] = zip(*edges)
+    body = Tissue.from_config(load_config()).coeffs
+    sets = [*body, rng.normal(size=shf.n_coeffs(shf.REC_LMAX)), rng.normal(size=shf.n_coeffs(3))]
+    for c in sets:
+        c = np.ascontiguousarray(c)
+        lmax = shf.lmax_of(c.size)
+        want = np.array([shf.eval_point(c, lmax, a, b) for a, b in zip(theta, phi)])
+        assert shf.evaluate(c, theta, phi).tobytes() == want.tobytes()
+        for a, k in ((0, 1), (3, 63), (5, 64), (7, 65), (11, 129), (1, 1000)):
+            assert shf.evaluate(c, theta[a:a + k], phi[a:a + k]).tobytes() == want[a:a + k].tobytes()

@@ -14,8 +14,10 @@ import numpy as np
 
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401
+from ..tissue.body import Tissue as _Tissue
 from .common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 
+_BODY_RADIUS = _Tissue.radius
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
 LAYERS = PLACES[1:4]
 
@@ -55,12 +57,82 @@ def _tip_depth(xyz, tissue):
     theta = np.arccos(np.clip(d[:, 2] / safe, -1.0, 1.0))
     phi = np.arctan2(d[:, 1], d[:, 0])
     depth = tissue.radius(0, theta, phi) - rho
+    _remember(xyz, tissue, depth)
+    return depth
+
+
+def _remember(xyz, tissue, depth) -> None:
     if xyz.shape[0] >= 256:  # a batch of rows (a frame's few are cheaper to evaluate than to compare)
         if xyz.shape[0] > RECENT_DEPTHS_ROWS:  # a whole session's rows: kept alone (memory as one batch)
             _RECENT_DEPTHS.clear()
         _RECENT_DEPTHS.append((tissue, xyz.copy(), depth.copy(), (xyz[0].tolist(), xyz[-1].tolist())))
         del _RECENT_DEPTHS[:-RECENT_DEPTHS]
-    return depth
+
+
+def remember_tip_depth(xyz: np.ndarray, tissue, depth: np.ndarray) -> None:
+    """Keep ``depth``, :func:`tip_depth_m` of the points ``xyz`` computed elsewhere (beside the
+    ticks: :func:`tip_depth_into`), as if :func:`tip_depth_m` had computed it: its next call on
+    these points answers with a copy."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    with _DEPTH_LOCK:
+        _remember(xyz, tissue, np.asarray(depth, dtype=np.float64))
+
+
+class TipDepthBuffers:
+    """Work arrays for :func:`tip_depth_into` of up to ``rows`` points, made once: the depths of a
+    block of rows are computed on the session's tick thread without allocating there (a thread
+    that allocates takes a malloc arena of its own, and the peak memory grows)."""
+
+    def __init__(self, rows: int):
+        self.rows = int(rows)
+        self.d = np.empty((self.rows, 3))
+        self.rho = np.empty(self.rows)
+        self.safe = np.empty(self.rows)
+        self.theta = np.empty(self.rows)
+        self.phi = np.empty(self.rows)
+        self.ok = np.empty(self.rows, dtype=bool)
+        from ..tissue import shf
+        self.sh = np.empty((shf.EVAL_WORK_ROWS, shf._CHUNK))
+
+
+def tip_depth_into(xyz: np.ndarray, tissue, out: np.ndarray, buf: TipDepthBuffers) -> bool:
+    """:func:`tip_depth_m` of ``xyz`` (k, 3; k <= ``buf.rows``) into ``out[:k]``, bit for bit (the
+    same operations in the same order, into ``buf``'s arrays), allocating nothing. False (``out``
+    unspecified) for a body it cannot evaluate so or a point whose direction is not finite: the
+    caller then asks :func:`tip_depth_m`, which says what is wrong."""
+    k = xyz.shape[0]
+    coeffs = getattr(tissue, "coeffs", None)
+    if k > buf.rows or type(tissue).radius is not _BODY_RADIUS or coeffs is None:
+        return False
+    c = coeffs[0]
+    if c.ndim != 1 or c.dtype != np.float64 or not c.flags.c_contiguous:
+        return False
+    d, rho, safe, theta, phi, ok = (buf.d[:k], buf.rho[:k], buf.safe[:k], buf.theta[:k], buf.phi[:k],
+                                    buf.ok[:k])
+    np.subtract(xyz, tissue.centre, out=d)
+    np.einsum("ij,ij->i", d, d, out=rho)
+    np.sqrt(rho, out=rho)
+    np.greater(rho, 0.0, out=ok)
+    safe.fill(1.0)
+    np.copyto(safe, rho, where=ok)
+    np.divide(d[:, 2], safe, out=theta)
+    np.clip(theta, -1.0, 1.0, out=theta)
+    np.arccos(theta, out=theta)
+    np.arctan2(d[:, 1], d[:, 0], out=phi)
+    np.isfinite(theta, out=ok)
+    if not ok.all():
+        return False
+    np.isfinite(phi, out=ok)
+    if not ok.all():
+        return False
+    from ..tissue import shf
+    lmax = shf.lmax_of(c.shape[0])
+    if lmax > shf.REC_LMAX:
+        return False
+    r = out[:k]
+    shf.eval_many_work(c, lmax, theta, phi, r, buf.sh)
+    np.subtract(r, rho, out=r)
+    return True
 
 
 def radial_force_n(rows: np.ndarray, tissue) -> np.ndarray:

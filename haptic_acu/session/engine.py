@@ -76,6 +76,7 @@ from ..servo.tick import (SLEEP_AFTER_NS, SPIN_NS, PythonTick, axis_block, call_
 from ..servo.samples import COL, NCOL, SampleRing
 
 _C_F = COL["fx_n"]
+_C_X = COL["x_m"]
 from .sink import FrameBlock, Sink
 from ..tissue.springback import Springback
 
@@ -566,22 +567,31 @@ class Session:
         # this thread hands the block before to the sinks; the ticks allocate nothing there (a
         # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
         # with the session)
+        # the sinks' tip depth of a block's rows, computed right after its ticks (on the tick
+        # thread: into arrays made here, two in turn, one per block in flight)
+        depth = None
+        if rows_only and any(getattr(s, "wants_tip_depth", False) for s in self.sinks):
+            from ..analysis.scan import TipDepthBuffers
+            depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(2)])
         pool = None
         if TICK_THREAD and rows_only and max_frames > 1:
             from concurrent.futures import ThreadPoolExecutor
             pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="haptic-acu-ticks")
         try:
-            self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb, pool)
+            self._sim_ahead_loop(dt, limit, dev, max_frames, events, sb, pool, depth)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
 
-    def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb, pool) -> None:
+    def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb, pool, depth=None) -> None:
         """:meth:`_run_sim_ahead`'s blocks: each block read from the device and run, and its frames
-        handed over; with a ``pool``, handed over while the next block's ticks run."""
+        handed over; with a ``pool``, handed over while the next block's ticks run. ``depth``
+        (buffers, [out, out]): each block's tip depths computed after its ticks
+        (:meth:`_run_block`)."""
         t0 = time.perf_counter()
         next_frame = self.frame_dt
-        pending = None  # (ends, T, rates) of the block run but not yet handed over
+        pending = None  # (ends, T, rates, depth) of the block run but not yet handed over
+        turn = 0
         try:
             while not self._stop.is_set():
                 k0 = self.tick
@@ -605,15 +615,17 @@ class Session:
                 A = axis_block(dev, T)
                 R = roll_block(dev, T)
                 args = (P, V, A, R, T, k0, ends[ends <= n_read], cuts, sb)
+                out = None if depth is None else (depth[0], depth[1][turn])
+                turn ^= 1
                 if pool is None:
-                    n, frames = self._run_frames_resetting(*args)
+                    n, frames, got = self._run_block(args, out)
                 else:
-                    job = pool.submit(self._run_frames_resetting, *args)
+                    job = pool.submit(self._run_block, args, out)
                     try:
                         if pending is not None:  # the block before's rows to the sinks, beside these ticks
                             block, pending = pending, None
                             self._hand_over(*block)
-                        n, frames = job.result()
+                        n, frames, got = job.result()
                     except BaseException:  # a sink failed, or a signal: the ticks running finish and count
                         self._count_ticks(job, T)  # (their rows stay in the ring for the final frame)
                         raise
@@ -624,7 +636,7 @@ class Session:
                 wall = time.perf_counter() - t0
                 if wall > 0:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self._frames_made + frames) / wall}
-                pending = (ends[:frames], T, dict(self.rates))
+                pending = (ends[:frames], T, dict(self.rates), got)
                 if faulted or cut or n < n_read or n_read < T_size or pool is None:
                     block, pending = pending, None
                     self._hand_over(*block)
@@ -643,12 +655,33 @@ class Session:
         thread): wait for them and count them, so the rows they wrote are the session's (the final
         frame hands them over)."""
         try:
-            n, _ = job.result()
+            n, _, _ = job.result()
         except Exception:  # noqa: BLE001 - the failure being raised is the one to report
             return
         self.tick += n
         if n:
             self._t_session = float(T[n - 1])
+
+    def _run_block(self, args, depth):
+        """A block's ticks (:meth:`_run_frames_resetting` on ``args``) and, given ``depth``
+        (buffers, out), the tip depth of the rows they wrote into ``out`` (allocating nothing:
+        this runs on the tick thread); (ticks, frames, (out, the ring's head before the rows,
+        rows) or None)."""
+        h0 = int(self.ring.ctr[0])
+        n, frames = self._run_frames_resetting(*args)
+        got = None
+        if depth is not None and n and int(self.ring.ctr[0]) == h0 + n and n <= self.ring.capacity:
+            from ..analysis.scan import tip_depth_into
+            buf, out = depth
+            cap = self.ring.capacity
+            a = h0 % cap
+            first = min(n, cap - a)  # the rows up to the ring's end, then from its start
+            tissue = self.model.tissue
+            ok = tip_depth_into(self.ring.buf[a:a + first, _C_X:_C_X + 3], tissue, out[:first], buf)
+            if ok and first < n:
+                ok = tip_depth_into(self.ring.buf[:n - first, _C_X:_C_X + 3], tissue, out[first:n], buf)
+            got = (out, h0, n) if ok else None
+        return n, frames, got
 
     def _run_frames_resetting(self, P, V, A, R, T, k0, ends, cuts, sb):
         """:func:`run_frames` on a block, resetting the model (fresh tissue, as the keyboard's
@@ -670,16 +703,22 @@ class Session:
                     break
         return n, frames
 
-    def _hand_over(self, ends, T, rates=None) -> None:
+    def _hand_over(self, ends, T, rates=None, depth=None) -> None:
         """The rows of the frames just run (``ends``: the index past each one's last tick in
         ``T``), each frame's to every sink (a live session's visual frame, its springback already
         run); the forces of the frames' last ticks reported to the device
         (:meth:`Device.record_forces`). The rows of a frame not completed stay in the ring (for the
-        final frame)."""
+        final frame). ``depth`` (out, the ring's head before the block's rows, rows): their tip
+        depths (:meth:`_run_block`), handed over with them if they are these rows."""
         frames = len(ends)
         if not frames:
             return
+        tail, dropped = self.ring.tail, self.ring.dropped
         rows = self.ring.drain(int(ends[-1]))
+        if depth is not None:
+            out, h0, n = depth
+            depth = (out[:len(rows)].copy() if tail == h0 and self.ring.dropped == dropped and len(rows) <= n
+                     else None)
         F = rows[ends - 1, _C_F:_C_F + 3]
         self.device.record_forces(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
         dents = self.want_dents and not all(s.rows_only for s in self.sinks)
@@ -696,7 +735,8 @@ class Session:
         k = self._frames_made
         model = self.model
         block = FrameBlock([Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
-                            enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))], rows[:int(ends[-1])], ends)
+                            enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))], rows[:int(ends[-1])], ends,
+                           depth)
         self._frames_made += frames
         self._deliver(block)
 

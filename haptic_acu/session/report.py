@@ -31,7 +31,7 @@ from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAME
 from .sink import RowBatches, Sink, block_rows
 from ..analysis.common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 from ..analysis.scan import (  # noqa: F401 (re-exported: the report's vocabulary)
-    LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, tip_depth_m)
+    LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, remember_tip_depth, tip_depth_m)
 
 class SummarySink(Sink):
     """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
@@ -55,6 +55,7 @@ class SummarySink(Sink):
     """
 
     rows_only = True  # the rows (and the frame's time) only
+    wants_tip_depth = True  # the scan and the figure read each row's tip depth
 
     BATCH_ROWS = 2048
 
@@ -97,16 +98,19 @@ class SummarySink(Sink):
             rows, _ = block_rows(frames)
             if len(rows):
                 self._blocks.append(rows)
-        for rows in self._batches.add(frames):
-            self._scan(rows)
+        for rows, depth in self._batches.add_with_depth(frames):
+            self._scan(rows, depth)
 
     def _scan_pending(self) -> None:
-        rows = self._batches.flush()
+        rows, depth = self._batches.flush_with_depth()
         if rows is not None:
-            self._scan(rows)
+            self._scan(rows, depth)
 
-    def _scan(self, rows) -> None:
-        depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+    def _scan(self, rows, depth=None) -> None:
+        if depth is None:
+            depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        elif self.metrics_scan is not None:  # its own tip_depth_m of these rows: answered from memory
+            remember_tip_depth(rows[:, C_X:C_X + 3], self.tissue, depth)
         self.scan.feed(rows, depth)
         if self.metrics_scan is not None:
             self.metrics_scan.feed(rows, depth)
@@ -782,6 +786,7 @@ class SamplesCsvSink(Sink):
     """
 
     rows_only = True  # the rows (and the frame's time) only
+    wants_tip_depth = True  # the tip_depth_mm column
 
     BATCH_ROWS = SummarySink.BATCH_ROWS  # the same batches: the tip depth is computed once for both
 
@@ -812,17 +817,17 @@ class SamplesCsvSink(Sink):
         # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
         # live session loses at most BATCH_ROWS rows of this file on a crash (the recording sink
         # is the one that flushes every frame).
-        for rows in self._batches.add(frames):
-            self._write_batch(rows)
+        for rows, depth in self._batches.add_with_depth(frames):
+            self._write_batch(rows, depth)
 
     def _write_pending(self) -> None:
-        rows = self._batches.flush()
+        rows, depth = self._batches.flush_with_depth()
         if rows is not None:
-            self._write_batch(rows)
+            self._write_batch(rows, depth)
 
-    def _write_batch(self, rows) -> None:
+    def _write_batch(self, rows, depth=None) -> None:
         try:
-            self.write_rows(rows)
+            self.write_rows(rows, depth)
             self._f.flush()
         except OSError as e:
             raise OSError(e.errno, f"{self.path}: cannot write: {e.strerror or e}") from None
@@ -835,7 +840,8 @@ class SamplesCsvSink(Sink):
                 self._f.close()
                 self._f = None
 
-    def write_rows(self, rows: np.ndarray) -> None:
+    def write_rows(self, rows: np.ndarray, depth: np.ndarray | None = None) -> None:
+        """Append ``rows`` (k, NCOL); ``depth``: their :func:`tip_depth_m`, if the caller has it."""
         k = len(rows)
         if k == 0:
             return
@@ -843,7 +849,7 @@ class SamplesCsvSink(Sink):
             self._fmt = _csv_layout()
         fmt, src, scale, offset = self._fmt
         extra = np.empty((k, 2))  # the computed columns, after the row's own: tip_depth_m, |F|
-        extra[:, 0] = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
+        extra[:, 0] = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue) if depth is None else depth
         extra[:, 1] = np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)
         fmt.write_gather(self._f, rows, extra, src, scale, offset)
         self.rows_written += k

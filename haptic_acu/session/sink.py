@@ -19,12 +19,14 @@ import numpy as np
 class FrameBlock(list):
     """Consecutive frames handed over at once (a list of frames) with their rows as one array:
     ``rows`` (every frame's samples, in order; each frame's ``samples`` is a view of it) and
-    ``ends`` (the index in ``rows`` past each frame's last row)."""
+    ``ends`` (the index in ``rows`` past each frame's last row); ``depth``: each row's tip depth
+    (:func:`haptic_acu.analysis.scan.tip_depth_m`, computed beside the ticks), or None."""
 
-    def __init__(self, frames, rows, ends):
+    def __init__(self, frames, rows, ends, depth=None):
         super().__init__(frames)
         self.rows = rows
         self.ends = ends
+        self.depth = depth
 
 
 def block_rows(frames):
@@ -47,11 +49,18 @@ class RowBatches:
     def __init__(self, size: int):
         self.size = int(size)
         self._pending: list[np.ndarray] = []
+        self._pending_depth: list = []  # each pending part's tip depths (a FrameBlock's), or None
         self._n = 0
 
     def add(self, frames) -> list[np.ndarray]:
         """The batches ``frames`` complete (usually none or one), oldest first."""
+        return [rows for rows, _ in self.add_with_depth(frames)]
+
+    def add_with_depth(self, frames) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """:meth:`add`'s batches, each with its rows' tip depths when every part of it came with
+        them (a :class:`FrameBlock`'s ``depth``), else None."""
         rows, ends = block_rows(frames)
+        depth = getattr(frames, "depth", None)
         out = []
         start = 0
         total = len(rows)
@@ -61,25 +70,38 @@ class RowBatches:
                 break
             e = int(ends[j])
             part = rows[start:e]
+            part_depth = None if depth is None else depth[start:e]
             if self._pending:
-                part = np.concatenate([*self._pending, part])
-                self._pending = []
-            out.append(part)
+                part, part_depth = self._joined(part, part_depth)
+            out.append((part, part_depth))
             self._n = 0
             start = e
         if start < total:
             self._pending.append(rows[start:])
+            self._pending_depth.append(None if depth is None else depth[start:])
             self._n += total - start
         return out
 
+    def _joined(self, part=None, part_depth=None):
+        rows = [*self._pending] + ([] if part is None else [part])
+        depths = [*self._pending_depth] + ([] if part is None else [part_depth])
+        self._pending, self._pending_depth = [], []
+        joined = rows[0] if len(rows) == 1 else np.concatenate(rows)
+        if any(d is None for d in depths):
+            return joined, None
+        return joined, (depths[0] if len(depths) == 1 else np.concatenate(depths))
+
     def flush(self) -> np.ndarray | None:
         """The rows not yet in a batch (None if there are none)."""
-        if not self._pending:
-            return None
-        rows = self._pending[0] if len(self._pending) == 1 else np.concatenate(self._pending)
-        self._pending = []
-        self._n = 0
+        rows, _ = self.flush_with_depth()
         return rows
+
+    def flush_with_depth(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """:meth:`flush`'s rows with their tip depths (as :meth:`add_with_depth`)."""
+        if not self._pending:
+            return None, None
+        self._n = 0
+        return self._joined()
 
     @property
     def pending(self) -> int:
@@ -91,6 +113,10 @@ class Sink:
     #: its dents or the rates at that frame): a headless replay whose sinks all say so runs many
     #: frames in one compiled call and hands each frame's rows over afterwards.
     rows_only = False
+    #: True for a sink that reads each row's tip depth (:func:`haptic_acu.analysis.scan.tip_depth_m`):
+    #: a headless replay then computes it beside the ticks and hands it over with the rows
+    #: (:attr:`FrameBlock.depth`).
+    wants_tip_depth = False
 
     def warm_up(self) -> None:
         """Prepare before any loop starts (nothing by default)."""
