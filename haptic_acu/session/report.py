@@ -31,7 +31,7 @@ from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAME
 from .sink import RowBatches, Sink, block_rows
 from ..analysis.common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 from ..analysis.scan import (  # noqa: F401 (re-exported: the report's vocabulary)
-    LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, remember_tip_depth, tip_depth_m)
+    LAYERS, PLACES, SessionScan, _r, place_name, puncture_records, radial_force_n, tip_depth_m)
 
 class SummarySink(Sink):
     """Accumulates the replay summary (and, by default, the rows for the figure and metrics).
@@ -109,9 +109,7 @@ class SummarySink(Sink):
     def _scan(self, rows, depth=None) -> None:
         if depth is None:
             depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
-        elif self.metrics_scan is not None:  # its own tip_depth_m of these rows: answered from memory
-            remember_tip_depth(rows[:, C_X:C_X + 3], self.tissue, depth)
-        self.scan.feed(rows, depth)
+        self.scan.feed(rows, depth)  # the scan, the metrics and the figure share the rows' tip depth
         if self.metrics_scan is not None:
             self.metrics_scan.feed(rows, depth)
         if self.figure is not None:
