@@ -69,15 +69,6 @@ def _remember(xyz, tissue, depth) -> None:
         del _RECENT_DEPTHS[:-RECENT_DEPTHS]
 
 
-def remember_tip_depth(xyz: np.ndarray, tissue, depth: np.ndarray) -> None:
-    """Keep ``depth``, :func:`tip_depth_m` of the points ``xyz`` computed elsewhere (beside the
-    ticks: :func:`tip_depth_into`), as if :func:`tip_depth_m` had computed it: its next call on
-    these points answers with a copy."""
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    with _DEPTH_LOCK:
-        _remember(xyz, tissue, np.asarray(depth, dtype=np.float64))
-
-
 class TipDepthBuffers:
     """Work arrays for :func:`tip_depth_into` of up to ``rows`` points, made once: the depths of a
     block of rows are computed on the session's tick thread without allocating there (a thread
