@@ -166,3 +166,18 @@ def test_gc_policy_of_a_command_process(tmp_path):
     assert frozen0 == 0
     assert setup == [before[0], before[1], 100] and after == before
     assert frozen1 > 1000 and frozen2 == frozen1
+
+
+def test_the_figure_preload_thread_is_waited_for_at_exit():
+    # A replay imports matplotlib on a thread while its session runs. An interrupted replay exits
+    # at once; the interpreter must wait for that import (a daemon thread killed inside matplotlib's
+    # C++ extensions aborts the process with "terminate called without an active exception").
+    # A fresh interpreter starts the preload and returns at once: it exits 0 with matplotlib loaded.
+    code = ("import atexit, sys\n"
+            "from haptic_acu.session.report import preload_figure_modules\n"
+            "t = preload_figure_modules()\n"
+            "assert not t.daemon\n"
+            "atexit.register(lambda: print('figure' in sys.modules.get('matplotlib.figure', object()).__name__))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "True" and "terminate" not in r.stderr

@@ -418,10 +418,13 @@ def withdrawal_start(depth_mm) -> int | None:
 
 
 def preload_figure_modules():
-    """Import matplotlib's figure and Agg canvas on a daemon thread and return it: a replay starts
-    this before its session, whose compiled ticks release the GIL, so the import (a good part of the
+    """Import matplotlib's figure and Agg canvas on a thread and return it: a replay starts this
+    before its session, whose compiled ticks release the GIL, so the import (a good part of the
     figure's cost) overlaps the simulation instead of following it. :func:`plot_force_depth`'s own
-    imports then find the modules loaded (or wait for the thread's import to finish)."""
+    imports then find the modules loaded (or wait for the thread's import to finish). The thread is
+    not a daemon: a replay interrupted early exits only once the import is done (an interpreter
+    that finalizes while a thread is inside matplotlib's C++ extensions aborts the process,
+    "terminate called without an active exception")."""
     import threading
 
     def load():
@@ -431,7 +434,7 @@ def preload_figure_modules():
         except Exception:  # noqa: BLE001 - the plot's own import reports any problem
             pass
 
-    t = threading.Thread(target=load, name="haptic-acu-preload-figure", daemon=True)
+    t = threading.Thread(target=load, name="haptic-acu-preload-figure", daemon=False)
     t.start()
     return t
 
