@@ -115,6 +115,7 @@ def test_rows_held_for_several_batches_are_the_rows_sent_batch_by_batch(replays,
         assert c[k] == each[k], k
 
 
+@pytest.mark.slow  # two more replays with their .rrd (~4 s): make test runs it, make test-fast does not
 def test_frames_drawn_a_batch_at_once_are_the_frames_drawn_one_by_one(replays, tmp_path, monkeypatch):
     """Every entity at every time as a live session's sink logs it, a frame per batch and a send per
     frame: the 3D needle, patches and nets, the trainee's section, gauge, dial and labels. Two

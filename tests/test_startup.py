@@ -10,6 +10,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 from haptic_acu.base.bundled import bundled_dir
 
 HEAVY = ("numba", "rerun", "matplotlib", "scipy")
@@ -122,6 +124,7 @@ def test_only_the_console_entry_freezes_the_heap(tmp_path):
     assert (tmp_path / "a" / "score.json").read_bytes() == (tmp_path / "b" / "score.json").read_bytes()
 
 
+@pytest.mark.slow  # a real command and an in-process replay (~2 s): make test runs it, make test-fast does not
 def test_replay_command_process_leaves_complete_outputs(tmp_path):
     """The command as a user runs it (its heap frozen after set-up and at exit): the same samples and
     summary as the replay run in-process, a whole PNG, and an .rrd that rerun's own check accepts."""
