@@ -247,14 +247,14 @@ def test_row_batches_are_the_same_for_frames_one_by_one_or_in_blocks():
             for a, e in zip(cuts[:-1], cuts[1:]):
                 if split == "one":
                     for f in frames[a:e]:
-                        got += b.add([f])
+                        got += [r for r, _ in b.add([f])]
                 elif split == "list":
-                    got += b.add(frames[a:e])
+                    got += [r for r, _ in b.add(frames[a:e])]
                 else:
                     r0 = int(ends[a - 1]) if a else 0
                     block_rows = rows[r0:int(ends[e - 1])]
-                    got += b.add(FrameBlock(frames[a:e], block_rows, ends[a:e] - r0))
-            last = b.flush()
+                    got += [r for r, _ in b.add(FrameBlock(frames[a:e], block_rows, ends[a:e] - r0))]
+            last, _ = b.flush()
             assert len(got) == len(want), (size, split)
             for g, w in zip(got, want):
                 assert g.tobytes() == w.tobytes()
@@ -302,7 +302,7 @@ def test_tip_depth_beside_the_ticks_is_tip_depth_m_of_each_blocks_rows(cfg, tiss
 
 
 def test_row_batches_carry_the_blocks_depths():
-    """RowBatches.add_with_depth: each batch's depths are its rows' (whatever the blocks), and None
+    """RowBatches.add: each batch's depths are its rows' (whatever the blocks), and None
     when a part of the batch came without them (a plain list of frames)."""
     from types import SimpleNamespace
 
@@ -319,11 +319,11 @@ def test_row_batches_carry_the_blocks_depths():
         for j, (a, e) in enumerate(zip(cuts[:-1], cuts[1:])):
             r0 = int(ends[a - 1]) if a else 0
             if j == plain:
-                got += b.add_with_depth(frames[a:e])
+                got += b.add(frames[a:e])
             else:
                 blk = rows[r0:int(ends[e - 1])]
-                got += b.add_with_depth(FrameBlock(frames[a:e], blk, ends[a:e] - r0, depth=-blk[:, 0]))
-        got.append(b.flush_with_depth())
+                got += b.add(FrameBlock(frames[a:e], blk, ends[a:e] - r0, depth=-blk[:, 0]))
+        got.append(b.flush())
         assert np.concatenate([r for r, _ in got]).tobytes() == rows.tobytes()
         nones = 0
         for r, d in got:

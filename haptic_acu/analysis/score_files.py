@@ -241,15 +241,13 @@ def write_json(path: Path, ratings, delphi_file, source, alpha, mu, dres, result
 
 def plot_scores(path: Path, results) -> None:
     from matplotlib import colormaps
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from ..base.figlayout import new_figure
 
     raters = all_raters(results)
     cmap = colormaps["tab20" if len(raters) <= 20 else "viridis"]
     colour = {name: cmap(k / max(1, len(raters) - 1) if len(raters) > 20 else k % 20)
               for k, name in enumerate(raters)}
-    fig = Figure(figsize=(max(6.0, 1.6 * len(results) + 2.5), 4.5))  # its own canvas: nothing global from pyplot
-    FigureCanvasAgg(fig)
+    fig = new_figure((max(6.0, 1.6 * len(results) + 2.5), 4.5))
     ax = fig.subplots()
     group = 0.8
     for g, r in enumerate(results):

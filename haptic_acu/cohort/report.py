@@ -175,13 +175,11 @@ def level_comparison(rows: list[dict]) -> dict | None:
 
 def _axes_grid(n: int):
     """A figure (its own Agg canvas, nothing global from pyplot) with ``n`` axes in a grid."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from ..base.figlayout import new_figure
 
     ncol = 4 if n > 6 else 3
     nrow = -(-n // ncol)
-    fig = Figure(figsize=(4.2 * ncol, 3.2 * nrow))
-    FigureCanvasAgg(fig)
+    fig = new_figure((4.2 * ncol, 3.2 * nrow))
     axes = fig.subplots(nrow, ncol, squeeze=False)
     for ax in axes.flat[n:]:
         ax.set_visible(False)

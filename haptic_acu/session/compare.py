@@ -163,8 +163,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     (``force_limit_n``). Below: the same force against time (every session), and, when any session
     rolls the needle, its roll against time. Each session has its colour and line style (widest
     first), and a session whose curve equals an earlier one's says so in the legend."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from ..base.figlayout import new_figure
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
@@ -176,8 +175,7 @@ def plot_curves(curves, labels, path, tissue, insertion: int | None = None, dpi:
     shown = [insertion - 1] if insertion is not None else list(range(min(n_ins, MAX_PANELS)))
     twirl = any(c[6].size and float(np.abs(c[6]).max()) > 0.0 for c in curves)
     ratios = [3.0, 1.6] + ([1.3] if twirl else [])
-    fig = Figure(figsize=(max(9.5, 3.4 * len(shown) + 3.6), 5.2 + 2.2 * (len(ratios) - 1)), dpi=dpi)
-    FigureCanvasAgg(fig)
+    fig = new_figure((max(9.5, 3.4 * len(shown) + 3.6), 5.2 + 2.2 * (len(ratios) - 1)), dpi=dpi)
     grid = first_layout(len(shown), ratios)  # where fit_rows starts; it places every axes before the save
     axes = [fig.add_axes(grid[0][0])]
     axes += [fig.add_axes(grid[0][j], sharex=axes[0], sharey=axes[0]) for j in range(1, len(shown))]

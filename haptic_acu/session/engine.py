@@ -243,7 +243,6 @@ class Session:
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
-        self._frames_made = 0  # frames handed over so far
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -562,7 +561,6 @@ class Session:
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
         sb = self.springback.args()
-        self._frames_made = self.frame_index
         # rows only: a block's ticks run on a thread of their own (compiled, without the GIL) while
         # this thread hands the block before to the sinks; the ticks allocate nothing there (a
         # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
@@ -635,7 +633,7 @@ class Session:
                 faulted = self.model.diag["fault"] != 0.0
                 wall = time.perf_counter() - t0
                 if wall > 0:
-                    self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self._frames_made + frames) / wall}
+                    self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
                 pending = (ends[:frames], T, dict(self.rates), got)
                 if faulted or cut or n < n_read or n_read < T_size or pool is None:
                     block, pending = pending, None
@@ -729,15 +727,13 @@ class Session:
                 self._deliver([Frame(float(T[e - 1]), self.frame_index, rows[a:e], self.model, rates,
                                      Dents(self.model, self.springback.settled))])
                 a = e
-            self._frames_made = self.frame_index
             return
         starts = [0, *ends[:-1].tolist()]
-        k = self._frames_made
+        k = self.frame_index
         model = self.model
         block = FrameBlock([Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
                             enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))], rows[:int(ends[-1])], ends,
                            depth)
-        self._frames_made += frames
         self._deliver(block)
 
     # real time: our timer drives the servo thread

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..base.figlayout import first_layout, fit_rows, gc_paused, save_png
+from ..base.figlayout import first_layout, fit_rows, gc_paused, new_figure, save_png
 from ..base.outputs import plain_text
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401 (re-exported)
@@ -98,11 +98,11 @@ class SummarySink(Sink):
             rows, _ = block_rows(frames)
             if len(rows):
                 self._blocks.append(rows)
-        for rows, depth in self._batches.add_with_depth(frames):
+        for rows, depth in self._batches.add(frames):
             self._scan(rows, depth)
 
     def _scan_pending(self) -> None:
-        rows, depth = self._batches.flush_with_depth()
+        rows, depth = self._batches.flush()
         if rows is not None:
             self._scan(rows, depth)
 
@@ -459,8 +459,6 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
     insertion index per row if the caller has it (rows thinned by :class:`FigureRows`), else
     :func:`insertion_index`.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     rows = np.asarray(rows, dtype=np.float64)
@@ -481,8 +479,7 @@ def plot_force_depth(rows, path, tissue=None, title: str | None = None, dpi: int
                                     or _lateral_travel_mm(idx, offset_mm, rows) > LATERAL_TRAVEL_MM)
 
     n_pan = min(max(n_ins, 1), MAX_PANELS)
-    fig = Figure(figsize=(max(9.5, 3.2 * n_pan + 2.5), 9.0 if show_lat else 7.5), dpi=dpi)
-    FigureCanvasAgg(fig)
+    fig = new_figure((max(9.5, 3.2 * n_pan + 2.5), 9.0 if show_lat else 7.5), dpi=dpi)
     ratios = [3, 1.5, 1.5] if show_lat else [3, 2]
     grid = first_layout(n_pan, ratios)  # where fit_rows starts; it places every axes before the save
     panels = [fig.add_axes(grid[0][0])]
@@ -818,11 +815,11 @@ class SamplesCsvSink(Sink):
         # Formatted in batches (a frame holds ~17 rows; formatting is cheaper per row in bulk); a
         # live session loses at most BATCH_ROWS rows of this file on a crash (the recording sink
         # is the one that flushes every frame).
-        for rows, depth in self._batches.add_with_depth(frames):
+        for rows, depth in self._batches.add(frames):
             self._write_batch(rows, depth)
 
     def _write_pending(self) -> None:
-        rows, depth = self._batches.flush_with_depth()
+        rows, depth = self._batches.flush()
         if rows is not None:
             self._write_batch(rows, depth)
 

@@ -52,13 +52,10 @@ class RowBatches:
         self._pending_depth: list = []  # each pending part's tip depths (a FrameBlock's), or None
         self._n = 0
 
-    def add(self, frames) -> list[np.ndarray]:
-        """The batches ``frames`` complete (usually none or one), oldest first."""
-        return [rows for rows, _ in self.add_with_depth(frames)]
-
-    def add_with_depth(self, frames) -> list[tuple[np.ndarray, np.ndarray | None]]:
-        """:meth:`add`'s batches, each with its rows' tip depths when every part of it came with
-        them (a :class:`FrameBlock`'s ``depth``), else None."""
+    def add(self, frames) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """The batches ``frames`` complete (usually none or one), oldest first, each as (rows, their
+        tip depths when every part of the batch came with them (a :class:`FrameBlock`'s
+        ``depth``), else None)."""
         rows, ends = block_rows(frames)
         depth = getattr(frames, "depth", None)
         out = []
@@ -91,13 +88,9 @@ class RowBatches:
             return joined, None
         return joined, (depths[0] if len(depths) == 1 else np.concatenate(depths))
 
-    def flush(self) -> np.ndarray | None:
-        """The rows not yet in a batch (None if there are none)."""
-        rows, _ = self.flush_with_depth()
-        return rows
-
-    def flush_with_depth(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """:meth:`flush`'s rows with their tip depths (as :meth:`add_with_depth`)."""
+    def flush(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The rows not yet in a batch and their tip depths, as :meth:`add` gives them ((None, None)
+        if there are none)."""
         if not self._pending:
             return None, None
         self._n = 0

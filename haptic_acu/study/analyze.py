@@ -218,11 +218,9 @@ def _write_csv(path: Path, header, rows) -> None:
 
 def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
     """(figure, axes) on its own Agg canvas (nothing global from pyplot); ``kw`` to Figure.subplots."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from ..base.figlayout import new_figure
 
-    fig = Figure(figsize=figsize)
-    FigureCanvasAgg(fig)
+    fig = new_figure(figsize)
     return fig, fig.subplots(nrows, ncols, **kw)
 
 
