@@ -45,28 +45,12 @@ def patch_dent(dent: np.ndarray, theta_axis: np.ndarray, phi_axis: np.ndarray, t
     phi = np.asarray(phi, dtype=np.float64)
     if dent.ndim == 3:  # a stack of dents (m, n_theta, n_phi), each at its own row of (theta, phi) (m, ...)
         return _patch_dents(dent, theta_axis, phi_axis, theta, phi)
-    n_th, n_ph = dent.shape
-    dphi = 2.0 * np.pi / n_ph
-    fj = np.mod(phi - phi_axis[0], 2.0 * np.pi) / dphi
-    j0 = np.floor(fj).astype(np.int64) % n_ph
-    j1 = (j0 + 1) % n_ph
-    b = fj - np.floor(fj)
-    fi = np.interp(theta, theta_axis, np.arange(n_th, dtype=np.float64))
-    i0 = np.clip(np.floor(fi).astype(np.int64), 0, n_th - 1)
-    i1 = np.minimum(i0 + 1, n_th - 1)
-    a = fi - i0
-    row = lambda i: dent[i, j0] * (1.0 - b) + dent[i, j1] * b  # noqa: E731
-    out = row(i0) * (1.0 - a) + row(i1) * a
-    pole = theta < theta_axis[0]
-    if np.any(pole):
-        m = float(dent[0].mean())
-        t = theta / theta_axis[0]
-        out = np.where(pole, m * (1.0 - t) + out * t, out)
-    return np.where(theta > theta_axis[-1], 0.0, out)
+    return _patch_dents(dent[None], theta_axis, phi_axis, theta[None], phi[None])[0]
 
 
 def _patch_dents(dent, theta_axis, phi_axis, theta, phi) -> np.ndarray:
-    """:func:`patch_dent` of a stack of dents (m, n_theta, n_phi) at directions (m, n) at once."""
+    """:func:`patch_dent` of a stack of dents (m, n_theta, n_phi), each at its own directions
+    (theta, phi: (m, ...))."""
     m, n_th, n_ph = dent.shape
     sel = np.arange(m).reshape((m,) + (1,) * (theta.ndim - 1))
     dphi = 2.0 * np.pi / n_ph
