@@ -284,7 +284,7 @@ def test_rows_added_at_once_are_the_rows_added_one_by_one():
     is the last kept one's is dropped, across calls too."""
     import rerun as rr
 
-    from haptic_acu.session.trainee import Columns, _keys
+    from haptic_acu.session.trainee import Columns, row_keys
 
     class Rec:
         def __init__(self):
@@ -307,7 +307,7 @@ def test_rows_added_at_once_are_the_rows_added_one_by_one():
          "v": Columns(rr.TextDocument)}
     b = {"p": Columns(rr.Points3D, partitioned=True), "s": Columns(rr.LineStrips3D, partitioned=True),
          "v": Columns(rr.TextDocument)}
-    keys = _keys(np.round(pos, 3))
+    keys = row_keys(np.round(pos, 3))
     texts = ["same" if i in (5, 6) else f"text {i // 2}" for i in range(9)]
     for i in range(9):
         a["p"].add(t[i], tick[i], key=keys[i], positions=pos[i:i + 1], labels=[labels[i]])

@@ -69,7 +69,7 @@ from .blueprints import DEFAULT_FILE, DEFAULT_LIVE
 from .blueprints import load as load_layout
 from .sink import Sink
 from .section import structures_from_anatomy, structures_from_danger
-from .trainee import Columns, TraineeScene, _keys
+from .trainee import Columns, TraineeScene, row_keys
 
 APP_ID = "haptic-acu"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -626,12 +626,12 @@ class RerunSink(Sink):
         roll = last[:, COL["roll_deg"]]
         c = self._cols
         pose = np.round(np.concatenate([tip, back], axis=1), 7)  # to 0.1 um
-        poses = _keys(pose)
+        poses = row_keys(pose)
         c["world/needle"].add_rows(t, tick, poses, strips=np.stack([tip, tip + NEEDLE_LENGTH_M * back], axis=1))
         c["world/twist"].add_rows(t, tick, list(zip(poses, [round(x, 1) for x in roll.tolist()])),
                                   strips=twist_bar(tip, back, roll))
         vec = last[:, _C_F:_C_F + 3] * FORCE_ARROW_M_PER_N
-        c["world/force"].add_rows(t, tick, _keys(pose, np.round(vec, 6)), origins=tip, vectors=vec)
+        c["world/force"].add_rows(t, tick, row_keys(pose, np.round(vec, 6)), origins=tip, vectors=vec)
         self.scene.frames(t, tick, last, tip_depth[ends] * 1e3, self._fr_dents)
         self._fr_t, self._fr_tick, self._fr_end, self._fr_axis, self._fr_dents = [], [], [], [], []
 

@@ -107,9 +107,9 @@ def strips_array(strips, arch):
     return pa.ListArray.from_arrays(pa.array(offsets), points, type=dtype)
 
 
-def _keys(*parts) -> list:
+def row_keys(*parts) -> list:
     """Per-row keys from parts, each a (k, m) array (rounded already), a (k,) list, or None (left
-    out): row i's key is the tuple of its parts, an array's row as a tuple (:func:`seen_key`'s form)."""
+    out): row i's key is the tuple of its parts, an array's row as a tuple; equal keys draw the same."""
     cols = [map(tuple, p.tolist()) if isinstance(p, np.ndarray) else p for p in parts if p is not None]
     return list(zip(*cols)) if len(cols) > 1 else list(cols[0])
 
@@ -322,9 +322,9 @@ class TraineeScene:
         depths = depth.tolist()
         seen = np.round(np.concatenate([uw_tip, uw_back], axis=1), 3)
         needle = np.stack([_p3(uw_tip, _Y_NEEDLE), _p3(uw_back, _Y_NEEDLE)], axis=1)
-        c["section/scene/needle"].add_rows(t, tick, _keys(seen), strips=needle)
+        c["section/scene/needle"].add_rows(t, tick, row_keys(seen), strips=needle)
         tip_labels = [f"tip {d:.1f} mm" if d >= 0.0 else "tip" for d in depths]
-        c["section/scene/tip"].add_rows(t, tick, _keys(seen, tip_labels), positions=_p3(uw_tip, _Y_LABEL),
+        c["section/scene/tip"].add_rows(t, tick, row_keys(seen, tip_labels), positions=_p3(uw_tip, _Y_LABEL),
                                         labels=tip_labels)
         ax, across = V.axial_forces(rows)
         back = _direction_uw(-axes, e_u)
@@ -335,19 +335,19 @@ class TraineeScene:
         vec = back * ax[:, None] * FORCE_MM_PER_N
         f_labels = ["" if abs(a) < V.FORCE_EPS_N else (f"{a:.2f} N back" if a > 0 else f"{-a:.2f} N in")
                     for a in ax.tolist()]
-        c["section/scene/force"].add_rows(t, tick, _keys(seen, np.round(vec, 3), f_labels),
+        c["section/scene/force"].add_rows(t, tick, row_keys(seen, np.round(vec, 3), f_labels),
                                           origins=_p3(uw_tip + side, _Y_LABEL),
                                           vectors=np.stack([vec[:, 0], np.zeros(k), vec[:, 1]], axis=1), labels=f_labels)
         # follow the needle: the camera looks at the entry's column, a little below the tip
         w_c = np.minimum(uw_tip[:, 1] + 12.0, -10.0)
-        c["section/scene"].add_rows(t, tick, _keys(np.round(np.stack([u0, w_c], axis=1), 3)),
+        c["section/scene"].add_rows(t, tick, row_keys(np.round(np.stack([u0, w_c], axis=1), 3)),
                                     translation=np.stack([-u0, np.zeros(k), -w_c], axis=1))
         # the gauge
         g = np.minimum(np.maximum(depth, -2.5), GAUGE_MAX_MM)
         words = [f"tip {d:.1f} mm" if d >= 0.0 else f"tip {-d:.1f} mm above" for d in depths]
         g_key = np.round(g[:, None], 3)
         x0, x1 = _G_POINTER
-        c["gauge/tip"].add_rows(t, tick, _keys(g_key, words), origins=np.stack([np.full(k, x0), np.full(k, _Y_LABEL), -g], 1),
+        c["gauge/tip"].add_rows(t, tick, row_keys(g_key, words), origins=np.stack([np.full(k, x0), np.full(k, _Y_LABEL), -g], 1),
                                 vectors=np.tile([x1 - x0, 0.0, 0.0], (k, 1)), labels=words)
         lo, hi = self.target  # the target's name at the end of its bar away from the tip's pointer
         z = np.where(g > 0.5 * (lo + hi), -lo + 2.5, -hi - 2.5)
@@ -357,7 +357,7 @@ class TraineeScene:
         line[:, 0, 0], line[:, 1, 0] = -0.5, x1
         line[:, :, 1] = _Y_LABEL
         line[:, :, 2] = -g[:, None]
-        c["gauge/tip_line"].add_rows(t, tick, _keys(g_key), strips=line)
+        c["gauge/tip_line"].add_rows(t, tick, row_keys(g_key), strips=line)
         # the dial
         roll = rows[:, _C_ROLL]
         rolls = roll.tolist()
@@ -613,12 +613,6 @@ def _to_uw(p: np.ndarray, origin: np.ndarray, e_u: np.ndarray) -> np.ndarray:
 def _direction_uw(v: np.ndarray, e_u: np.ndarray) -> np.ndarray:
     """:meth:`Section.direction_uw` of vectors (k, 3), each in its own section."""
     return np.stack([np.einsum("ij,ij->i", v, e_u), v[:, 2]], axis=-1)
-
-
-def seen_key(*arrays, decimals: int = 3) -> tuple:
-    """What a drawing shows, rounded (mm to the micrometre): equal keys draw the same."""
-    flat = np.ravel(arrays[0]) if len(arrays) == 1 else np.concatenate([np.ravel(a) for a in arrays])
-    return tuple(np.round(flat, decimals).tolist())
 
 
 def _slug(name: str) -> str:

@@ -57,13 +57,9 @@ def depth_words(row, depth_mm: float, target_mm) -> str:
     return f"past the target by {depth_mm - hi:.1f} mm"
 
 
-def needle_axis(row) -> np.ndarray:
-    """The needle's unit axis, handle to tip (straight down where the row gives none)."""
-    return needle_axes(np.asarray(row, dtype=np.float64)[None])[0]
-
-
 def needle_axes(rows: np.ndarray) -> np.ndarray:
-    """:func:`needle_axis` of each of ``rows`` (k, NCOL) at once: (k, 3)."""
+    """The needle's unit axis, handle to tip, of each of ``rows`` (k, NCOL): (k, 3); straight down
+    where a row gives none."""
     a = np.asarray(rows, dtype=np.float64)[:, _C_AXIS:_C_AXIS + 3]
     n = np.sqrt(np.einsum("ij,ij->i", a, a))
     n = np.where(np.isfinite(a).all(axis=1), n, 0.0)
