@@ -131,6 +131,10 @@ class Device(abc.ABC):
         only for a device with :attr:`reads_ahead`."""
         raise NotImplementedError(f"{self.info.name} cannot be read ahead")
 
+    #: Session time (s) of the last state :meth:`read_block` gives, when known ahead (a trajectory's
+    #: last sample): a headless replay shrinks its last blocks of ticks towards it. Default: unknown.
+    end_s: float = math.inf
+
     def pose_block(self, t_s: np.ndarray):
         """(needle axis (n, 3), unit, handle to tip, scene frame; roll (n,) in degrees) at the ticks
         ``t_s`` (just read by :meth:`read_block`), each None when the device gives none. Default:

@@ -195,6 +195,11 @@ class ScriptedDevice(Device):
         return self._reader.has_event
 
     @property
+    def end_s(self) -> float:
+        """The last sample's session time, as :attr:`duration_s` (after ``open``)."""
+        return self.duration_s
+
+    @property
     def duration_s(self) -> float:
         """Session time of the last sample (after ``open``)."""
         if self.trajectory_info is None:

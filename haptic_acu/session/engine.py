@@ -127,6 +127,27 @@ class SessionResult:
     stats: dict
 
 
+@dataclass
+class _Block:
+    """A headless replay's block of ticks as read from the device (:meth:`Session._read_ahead`):
+    times ``T``, positions ``P``, velocities ``V``, axes ``A`` and rolls ``R`` of the ``n_read``
+    ticks the device gave (of ``T_size`` asked), each frame's end in them (``ends``), the reset events'
+    ticks (``cuts``), whether the block ends at the session's limit without a frame (``cut``), and
+    the tick and frame time a following block starts at (``k_next``, ``next_frame``)."""
+    T: np.ndarray
+    P: np.ndarray
+    V: np.ndarray
+    A: np.ndarray
+    R: np.ndarray
+    ends: np.ndarray
+    cuts: list
+    n_read: int
+    T_size: int
+    cut: bool
+    k_next: int
+    next_frame: float
+
+
 def _devicemodel():
     """:mod:`haptic_acu.servo.devicemodel` (the modelled OMNI's stylus and rendering kernels), imported
     by the live sessions that use it: a replay models no device and does not load it."""
@@ -583,38 +604,32 @@ class Session:
 
     def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb, pool, depth=None) -> None:
         """:meth:`_run_sim_ahead`'s blocks: each block read from the device and run, and its frames
-        handed over; with a ``pool``, handed over while the next block's ticks run. ``depth``
-        (buffers, [out, out]): each block's tip depths computed after its ticks
-        (:meth:`_run_block`)."""
+        handed over; with a ``pool``, handed over while the next block's ticks run, and the block
+        after that read from the device meanwhile. ``depth`` (buffers, [out, out]): each block's tip
+        depths computed after its ticks (:meth:`_run_block`). The blocks grow from a few frames to
+        ``max_frames`` and shrink again towards the device's end (:meth:`_block_frames`): with a
+        pool, the first block's ticks and the last block's hand-over run beside nothing."""
         t0 = time.perf_counter()
-        next_frame = self.frame_dt
+        end_s = min(limit, dev.end_s)
+        grow = [min(max_frames, self.FIRST_BLOCK_FRAMES)]
+
+        def read(k0, next_frame):
+            frames = self._block_frames(grow[0], k0 * dt, end_s)
+            grow[0] = min(max_frames, 2 * grow[0])
+            return self._read_ahead(dev, dt, k0, next_frame, limit, frames, events)
+
         pending = None  # (ends, T, rates, depth) of the block run but not yet handed over
         turn = 0
+        nxt = read(self.tick, self.frame_dt)
         try:
-            while not self._stop.is_set():
+            while nxt is not None and not self._stop.is_set():
+                blk, nxt = nxt, None
+                T, ends, n_read, T_size, cut = blk.T, blk.ends, blk.n_read, blk.T_size, blk.cut
                 k0 = self.tick
-                lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, max_frames)
-                if not lasts:
-                    break
-                T = np.arange(k0, lasts[-1] + 1) * dt
-                P, V, done = dev.read_block(T)
-                n_read = int(np.argmax(done)) if done.any() else T.size
-                T_size = T.size
-                ends = np.array(lasts[:-1] if cut else lasts, dtype=np.int64) - (k0 - 1)
-                T, P, V = T[:n_read], P[:n_read], V[:n_read]
-                cuts = []
-                if events:  # per frame, as each frame's ticks were read
-                    a = 0
-                    for e in ends.tolist() + [T_size]:
-                        e = min(e, n_read)
-                        if e > a:
-                            cuts += [a + c for c in dev.reset_ticks(T[a:e])]
-                        a = e
-                A = axis_block(dev, T)
-                R = roll_block(dev, T)
-                args = (P, V, A, R, T, k0, ends[ends <= n_read], cuts, sb)
+                args = (blk.P, blk.V, blk.A, blk.R, T, k0, ends[ends <= n_read], blk.cuts, sb)
                 out = None if depth is None else (depth[0], depth[1][turn])
                 turn ^= 1
+                whole = not cut and n_read == T_size  # the device's next block follows this one's
                 if pool is None:
                     n, frames, got = self._run_block(args, out)
                 else:
@@ -623,6 +638,8 @@ class Session:
                         if pending is not None:  # the block before's rows to the sinks, beside these ticks
                             block, pending = pending, None
                             self._hand_over(*block)
+                        if whole:  # and the next block's positions
+                            nxt = read(blk.k_next, blk.next_frame)
                         n, frames, got = job.result()
                     except BaseException:  # a sink failed, or a signal: the ticks running finish and count
                         self._count_ticks(job, T)  # (their rows stay in the ring for the final frame)
@@ -635,18 +652,54 @@ class Session:
                 if wall > 0:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
                 pending = (ends[:frames], T, dict(self.rates), got)
-                if faulted or cut or n < n_read or n_read < T_size or pool is None:
+                if faulted or not whole or n < n_read or pool is None:
                     block, pending = pending, None
                     self._hand_over(*block)
                 if faulted:
                     self._state_fault(float(T[n - 1]), self.tick - 1)
                     return
-                if cut or n < n_read or n_read < T_size:  # the session's end, a fault or the device's end
+                if not whole or n < n_read:  # the session's end, a fault or the device's end
                     return
-                next_frame = next_after
+                if pool is None:
+                    nxt = read(blk.k_next, blk.next_frame)
         finally:
             if pending is not None:  # stopped (or failed) after a block was run: its rows still go out
                 self._hand_over(*pending)
+
+    #: a replay's first block of ticks (visual frames): the sinks wait for it; the blocks double from it
+    FIRST_BLOCK_FRAMES = 4
+
+    def _block_frames(self, most: int, t_s: float, end_s: float) -> int:
+        """Frames in the block that starts at session time ``t_s``: ``most``, or about half the
+        frames left before ``end_s`` (at least :attr:`FIRST_BLOCK_FRAMES`), so that the last block,
+        whose rows go to the sinks after every tick has run, is a small one."""
+        if not math.isfinite(end_s):
+            return most
+        left = (end_s - t_s) / self.frame_dt
+        return max(1, min(most, max(self.FIRST_BLOCK_FRAMES, math.ceil(left / 2))))
+
+    def _read_ahead(self, dev, dt, k0, next_frame, limit, max_frames, events):
+        """The next block's input from the device, from tick ``k0`` with the next frame at
+        ``next_frame``: a :class:`_Block`, or None when no frame is left before ``limit``."""
+        lasts, next_after, cut = self._frame_plan(k0, next_frame, limit, max_frames)
+        if not lasts:
+            return None
+        T = np.arange(k0, lasts[-1] + 1) * dt
+        P, V, done = dev.read_block(T)
+        n_read = int(np.argmax(done)) if done.any() else T.size
+        T_size = T.size
+        ends = np.array(lasts[:-1] if cut else lasts, dtype=np.int64) - (k0 - 1)
+        T, P, V = T[:n_read], P[:n_read], V[:n_read]
+        cuts = []
+        if events:  # per frame, as each frame's ticks were read
+            a = 0
+            for e in ends.tolist() + [T_size]:
+                e = min(e, n_read)
+                if e > a:
+                    cuts += [a + c for c in dev.reset_ticks(T[a:e])]
+                a = e
+        return _Block(T, P, V, axis_block(dev, T), roll_block(dev, T), ends, cuts, n_read, T_size, cut,
+                      lasts[-1] + 1, next_after)
 
     def _count_ticks(self, job, T) -> None:
         """After a failure or a signal beside a block's ticks (``job``, on the session's tick

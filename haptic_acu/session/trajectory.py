@@ -99,6 +99,7 @@ DEFAULT_MAX_HAND_SPEED_M_PER_S = 2.0
 SERVO_TICK_S = 1e-3  # the velocity finite-difference step: one 1 kHz servo tick
 BLOCK_BYTES = 1 << 18  # bytes parsed at a time when streaming a whole file (~7000 rows)
 CURSOR_BLOCK_BYTES = 1 << 13  # smaller blocks for playback (~230 rows)
+KEEP_ROWS = 20_000  # a validated file of at most this many samples (about 1 MB parsed) is kept for playback
 from ..base.csvin import MAX_LINE_BYTES  # noqa: E402 - the input layer's line limit (1 MB)
 
 _NUMBER = re.compile(
@@ -162,6 +163,7 @@ class TrajectoryReader:
         self.max_hand_speed_m_per_s = float(max_hand_speed_m_per_s)
         self.extra_columns = tuple(extra_columns)
         self.block_bytes = int(block_bytes)
+        self._kept: list | None = None  # the blocks of a small file, once validated
         with self._open() as f:
             self.columns, self.header_line = self._read_header(f)
         want = REQUIRED_COLUMNS + self.extra_columns
@@ -412,17 +414,27 @@ class TrajectoryReader:
             yield from zip(b.t_s.tolist(), b.pos_m)
 
     def validate(self) -> TrajectoryInfo:
-        """Read the whole file once, checking everything; nothing is kept but a summary."""
+        """Read the whole file once, checking everything; a summary is kept, and the blocks
+        themselves when the file holds at most :data:`KEEP_ROWS` samples (:meth:`cursor` then
+        plays them without reading the file again)."""
         check = self._checker()
         t_first = t_last = math.nan
+        kept: list | None = []
         for b in self._blocks(check, self.block_bytes):
             if math.isnan(t_first):
                 t_first = float(b.t_s[0])
             t_last = float(b.t_s[-1])
+            if kept is not None:
+                kept = kept + [b] if check.count <= KEEP_ROWS else None
+        self._kept = kept
         return TrajectoryInfo(str(self.path), check.count, t_first, t_last, check.max_speed)
 
     def cursor(self, velocity_step_s: float = SERVO_TICK_S) -> "TrajectoryCursor":
-        """A playback cursor over this file, streaming it in small blocks."""
+        """A playback cursor over this file: the blocks :meth:`validate` kept, else the file
+        streamed in small blocks."""
+        kept = self._kept
+        if kept is not None:
+            return TrajectoryCursor(lambda: iter(kept), velocity_step_s)
         size = min(self.block_bytes, CURSOR_BLOCK_BYTES)
         return TrajectoryCursor(lambda: self.blocks(size), velocity_step_s)
 
