@@ -25,7 +25,7 @@ class BuildPyWithKernels(build_py):
         # an earlier build's caches and tables left in the build folder never go into this wheel
         shutil.rmtree(tables, ignore_errors=True)
         for f in (lib / "haptic_acu").rglob("__pycache__/*"):
-            if f.suffix in (".nbi", ".nbc") or f.name == "haptic_acu-kernels.sha256":
+            if f.suffix in (".nbi", ".nbc") or f.name.startswith("haptic_acu-kernels."):  # the guard's record
                 f.unlink()
         if os.environ.get("HAPTIC_ACU_NO_PRECOMPILE"):
             return

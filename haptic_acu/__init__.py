@@ -36,8 +36,9 @@ __all__ = ["__version__", "UserError"]
 
 from .base.kernelcache import guard as _guard, package_dirs as _package_dirs  # noqa: E402
 
-# numba checks a cached kernel against its own file only: drop the package's kernel caches when any
-# of its sources changed, before a kernel can load an old callee (haptic_acu/base/kernelcache.py).
+# numba checks a cached kernel against its own file only: drop the caches of the package's kernel
+# modules whose imports reach a changed source, before a kernel can load an old callee
+# (haptic_acu/base/kernelcache.py).
 _guard(_package_dirs())
 
 from .base.moved import install as _install_moved  # noqa: E402
