@@ -128,3 +128,95 @@ def test_write_gather_writes_format_gathers_bytes_through_its_kept_buffer():
         assert n == len(block) and block.count(b"\n") == k
         want += block
     assert f.getvalue() == want
+
+
+# Property tests: whole blocks against an independent Python formatting, line by line.
+
+from decimal import ROUND_HALF_UP, Decimal  # noqa: E402
+
+from hypothesis import example, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_FLOATS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),  # every magnitude, subnormals, signed zeros
+    st.floats(-1e6, 1e6),
+    st.integers(-10 ** 6, 10 ** 6).flatmap(lambda k: st.sampled_from([float(k), k / 1e2, k / 1e4, k / 1e6])),
+    st.integers(-10 ** 9, 10 ** 9).map(lambda k: k / 2.0 ** 11),  # halves, quarters...: exact ties
+    st.integers(-10 ** 12, 10 ** 12).flatmap(lambda k: st.sampled_from([k / 1e4, k / 1e5, (k + 0.5) / 1e5])),
+    st.sampled_from([0.0, -0.0, 5e-324, -0.00004, 0.00005, -0.000005, 9.9999995, 1e16, 9.999999999999998e15,
+                     2.0 ** 53, 1e300, float("nan"), float("inf"), -float("inf")]),
+)
+_NAMES = st.lists(st.text("abcxyz_", min_size=0, max_size=19), min_size=1, max_size=5)
+
+
+def _cell(kind, spec, v) -> str:
+    """A cell by the formatter's rules in plain Python (:func:`_rule`'s numbers; a category's name,
+    empty for a negative or non-finite code)."""
+    if kind == "fixed":
+        return _rule(v, spec)
+    if not math.isfinite(v) or v < 0:
+        return ""
+    return spec[int(v)]
+
+
+@st.composite
+def _blocks(draw):
+    """Columns of random kinds, and rows whose cells often repeat the row above's (the copied runs:
+    single cells, neighbours, whole lines) or flip between 0.0 and -0.0."""
+    cols = draw(st.lists(st.one_of(st.tuples(st.just("fixed"), st.integers(0, 16)),
+                                   st.tuples(st.just("category"), _NAMES)), min_size=1, max_size=7))
+    n = draw(st.integers(1, 12))
+    rows = []
+    for i in range(n):
+        row = []
+        for c, (kind, spec) in enumerate(cols):
+            if i > 0 and draw(st.integers(0, 2)) == 0:
+                v = rows[-1][c]  # the value above
+                v = -v if v == 0.0 and draw(st.booleans()) else v
+            elif kind == "category":
+                v = draw(st.one_of(st.integers(-1, len(spec) - 1).map(float), st.just(float("nan"))))
+            else:
+                v = draw(_FLOATS)
+            row.append(v)
+        rows.append(row)
+    return cols, np.array(rows, dtype=np.float64).reshape(n, len(cols))
+
+
+@settings(max_examples=400, deadline=None)
+@given(_blocks())
+def test_blocks_are_the_python_formatting_of_each_cell(block):
+    """Every line of a random block (cells repeated from the row above or not, any magnitude, ties,
+    signed zeros, NaN and infinities, names of 0 to 19 bytes across the 8-byte words) is its cells
+    formatted one by one in Python; a block cut anywhere gives the same bytes part by part."""
+    cols, rows = block
+    fmt = RowFormatter(cols)
+    want = []
+    for row in rows:
+        cells = [_cell(kind, spec, v) for (kind, spec), v in zip(cols, row)]
+        if None in cells:
+            return  # an integer past int64 (the one-digit path's own range): not compared
+        want.append(",".join(cells) + "\n")
+    got = fmt.format(rows).decode("ascii")
+    assert got == "".join(want)
+    cut = len(rows) // 2
+    assert fmt.format(rows[:cut]).decode() + fmt.format(rows[cut:]).decode() == got if cut else True
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.floats(-1e11, 1e11), st.integers(-10 ** 6, 10 ** 6).map(lambda k: k / 1e4)), st.integers(0, 7))
+@example(0.125, 2)
+@example(-0.125, 2)
+@example(2.5, 0)
+@example(-0.00049999999999999996, 3)
+@example(99999999.99999999, 7)
+def test_fixed_cells_are_the_decimal_rounding_half_away_from_zero(v, d):
+    """Away from a tie (where the rule rounds the float product v * 10**d, not v itself), a fixed
+    cell is v's exact decimal value rounded half away from zero, without a negative zero."""
+    exact = Decimal(v).scaleb(d)
+    near_tie = abs(abs(exact) % 1 - Decimal("0.5")) <= max(1, abs(exact)) * Decimal(2) ** -50
+    if near_tie and Decimal(abs(v) * 10.0 ** d + 0.5) != abs(exact) + Decimal("0.5"):
+        return  # the float product or sum rounded (by about 2**-53 of it) next to a tie: the rule's own
+    q = Decimal(v).quantize(Decimal(1).scaleb(-d), rounding=ROUND_HALF_UP)  # HALF_UP: half away from zero
+    want = f"{q:f}".lstrip("-") if q == 0 else f"{q:f}"
+    fmt = RowFormatter([("fixed", d)])
+    assert fmt.format(np.array([[v], [v], [0.0]])).decode() == f"{want}\n{want}\n{'0' if d == 0 else '0.' + '0' * d}\n"

@@ -331,3 +331,23 @@ def test_streamed_summary_evaluates_no_surface_for_rows_handed_with_depths(sessi
         out[handed] = (summ.summary(), summ.metrics(summ.summary()["punctures"]))
     assert sum(evaluated) >= len(rows)  # computing them itself, it did evaluate them
     assert json.dumps(out[True], sort_keys=True) == json.dumps(out[False], sort_keys=True)
+
+
+def test_csv_force_magnitude_is_numpys_norm_bit_for_bit():
+    """samples.csv's |F| column (summed column by column) is numpy.linalg.norm's of the force
+    columns, bit for bit, for forces of every magnitude and sign (and NaN, inf)."""
+    from haptic_acu.session.report import _force_norm
+
+    rng = np.random.default_rng(5)
+    k = 50_000
+    rows = rng.normal(0, 1, (k, S.NCOL))
+    f = rng.normal(0, 1, (k, 3)) * 10.0 ** rng.uniform(-160, 160, (k, 3))
+    f[rng.random((k, 3)) < 0.05] = 0.0
+    f[:5] = [[np.nan, 1, 2], [np.inf, 0, 0], [-0.0, 0.0, -0.0], [1e300, 1e300, 0], [3, 4, 12]]
+    rows[:, C["fx_n"]:C["fx_n"] + 3] = f
+    out = np.empty(k)
+    with np.errstate(over="ignore", invalid="ignore"):
+        _force_norm(rows, out)
+        want = np.linalg.norm(rows[:, C["fx_n"]:C["fx_n"] + 3], axis=1)
+    assert np.array_equal(out[5:].view(np.int64), want[5:].view(np.int64))
+    np.testing.assert_array_equal(out[:5], want[:5])  # NaN, inf, 0, inf (overflow), 13

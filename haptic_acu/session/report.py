@@ -848,9 +848,19 @@ class SamplesCsvSink(Sink):
         fmt, src, scale, offset = self._fmt
         extra = np.empty((k, 2))  # the computed columns, after the row's own: tip_depth_m, |F|
         extra[:, 0] = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue) if depth is None else depth
-        extra[:, 1] = np.linalg.norm(rows[:, C_F:C_F + 3], axis=1)
+        _force_norm(rows, extra[:, 1])
         fmt.write_gather(self._f, rows, extra, src, scale, offset)
         self.rows_written += k
+
+
+def _force_norm(rows, out) -> np.ndarray:
+    """|F| of each row (k, NCOL) into ``out`` (k,): ``sqrt((fx * fx + fy * fy) + fz * fz)``, the sum
+    numpy.linalg.norm makes over a row (the same bits) in a few whole-column passes instead of its
+    per-row reduction (half the time for a batch)."""
+    sq = rows[:, C_F:C_F + 3] * rows[:, C_F:C_F + 3]
+    np.add(sq[:, 0], sq[:, 1], out=out)
+    out += sq[:, 2]
+    return np.sqrt(out, out=out)
 
 
 def _csv_layout():
