@@ -179,27 +179,48 @@ def _window_add(w, r, q, v):
         w[7] = 1.0 if v <= 0.0 else 0.0
 
 
-@nb.njit(cache=True, nogil=True)
-def _strokes_pass(rules, has_ref, i0, samples, speeds, carried, out_sgn, out_sums):
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _speeds(samples, k, grad):
+    """numpy.gradient's uniform and general formulas at sample ``k`` of ``samples`` (columns t, dc,
+    dcm): the speed of dcm, as :meth:`InsertionStream._process` states them (the same operations
+    in the same order; a missing neighbour is NaN). ``grad``: the samples to do (m), the sample
+    before the first (t, dcm; NaN if none) and the first tick interval (NaN if none)."""
+    m, left_t, left_f, dx0 = grad
+    m_t = samples[k, 0]
+    m_f = samples[k, 2]
+    l_t = samples[k - 1, 0] if k > 0 else left_t
+    l_f = samples[k - 1, 2] if k > 0 else left_f
+    r_t = samples[k + 1, 0] if k + 1 < samples.shape[0] else np.nan
+    r_f = samples[k + 1, 2] if k + 1 < samples.shape[0] else np.nan
+    dx1 = m_t - l_t
+    dx2 = r_t - m_t
+    ca = -(dx2) / (dx1 * (dx1 + dx2))
+    cb = (dx2 - dx1) / (dx1 * dx2)
+    cc = dx1 / (dx2 * (dx1 + dx2))
+    return (r_f - l_f) / (2. * dx0), ca * l_f + cb * m_f + cc * r_f
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _strokes_pass(rules, has_ref, i0, samples, grad, carried, out_sgn, out_sums):
     """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
-    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
-    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
-    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
-    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
-    # from sample i0, the first len(v_uni) rows of samples: columns t, dc, dcm, f (3), res, rres,
-    # and the two formulas' speeds v_uni, v_non; rules: the minimum swing and speed; carried (to the
-    # next block): zz, carry, cand, last, win_cand, win_conf
+    the per-sample contributions (for numpy.gradient's uniform and general formulas, :func:`_speeds`,
+    each sign: moving, speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's
+    sign and sums (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``,
+    and the withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+    # from sample i0, the first m (grad[0]) rows of samples: columns t, dc, dcm, f (3), res, rres;
+    # rules: the minimum swing and speed; carried (to the next block): zz, carry, cand, last,
+    # win_cand, win_conf
     ms, min_speed = rules
-    v_uni, v_non = speeds
     zz, carry, cand, last, win_cand, win_conf = carried
     n = 0
     q_row = np.empty(NS)
-    for k in range(v_uni.shape[0]):
+    for k in range(grad[0]):
         for c in range(NS):
             q_row[c] = carry[c]
+        v_uni, v_non = _speeds(samples, k, grad)
         col = 0
         for form in range(2):
-            vel = v_uni[k] if form == 0 else v_non[k]
+            vel = v_uni if form == 0 else v_non
             for sg in range(2):
                 sv = (1.0 if sg == 0 else -1.0) * vel
                 moving = sv > min_speed
@@ -438,18 +459,18 @@ class _Strokes:
         self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    def feed(self, i0, samples, v_uni, v_non) -> None:
-        """Samples from index ``i0``: the first ``len(v_uni)`` rows of ``samples`` (float64, columns t,
-        dc, dcm, f (3), res, rres) and their speeds by numpy.gradient's two formulas."""
-        k = len(v_uni)
+    def feed(self, i0, samples, grad) -> None:
+        """Samples from index ``i0``: the first ``grad[0]`` rows of ``samples`` (float64, columns t,
+        dc, dcm, f (3), res, rres; the row after them, if any, their right neighbour); ``grad`` as
+        :func:`_speeds` takes it."""
+        k = grad[0]
         if not k:
             return
         sgn = np.empty(k)
         sums = np.empty((k, NS))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
         n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0),
-                          np.ascontiguousarray(samples, dtype=np.float64), (np.ascontiguousarray(v_uni, dtype=np.float64),
-                           np.ascontiguousarray(v_non, dtype=np.float64)), carried, sgn, sums)
+                          np.ascontiguousarray(samples, dtype=np.float64), grad, carried, sgn, sums)
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
         self.last_dcm = float(samples[k - 1, 2])
 
@@ -779,20 +800,15 @@ class InsertionStream:
             self.pend = a
             return
         t, dcm = a[:, 0], a[:, 2]
-        left = self.left  # (t, dcm) of the sample before a[0], if any
-        te = np.concatenate(([np.nan if left is None else left[0]], t, [np.nan]))
-        fe = np.concatenate(([np.nan if left is None else left[1]], dcm, [np.nan]))
-        l_t, m_t, r_t = te[:m], te[1:m + 1], te[2:m + 2]
-        l_f, m_f, r_f = fe[:m], fe[1:m + 1], fe[2:m + 2]
-        dx1, dx2 = m_t - l_t, r_t - m_t
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ca = -(dx2) / (dx1 * (dx1 + dx2))
-            cb = (dx2 - dx1) / (dx1 * dx2)
-            cc = dx1 / (dx2 * (dx1 + dx2))
-            v_non = ca * l_f + cb * m_f + cc * r_f
-            v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
+        left = (np.nan, np.nan) if self.left is None else self.left  # (t, dcm) of the sample before a[0]
+        # the speeds by numpy.gradient's formulas, sample by sample in the strokes' pass (_speeds):
+        # with l, m, r a sample's left neighbour, itself and its right one (NaN where missing),
+        # dx1 = m_t - l_t, dx2 = r_t - m_t, the general formula ca * l + cb * m + cc * r (ca =
+        # -dx2 / (dx1 (dx1 + dx2)), cb = (dx2 - dx1) / (dx1 dx2), cc = dx1 / (dx2 (dx1 + dx2))), the
+        # uniform one (r - l) / (2 dx0)
         g0 = self.next_i
-        self.strokes.feed(g0, a, v_uni, v_non)
+        dx0 = self.dx0 if self.dx0 is not None else np.nan
+        self.strokes.feed(g0, a, (int(m), float(left[0]), float(left[1]), float(dx0)))
         self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))
