@@ -212,10 +212,8 @@ class FigureRows:
         self.cap = int(cap)
         self.bin = 1
         self.seen = 0
-        # the rows kept and their indices in the stream: the first _n of these (grown when full, and
-        # replaced, not overwritten, when thinned: an earlier result stays as it was)
-        self._rows = np.zeros((0, NCOL))
-        self._gidx = np.zeros(0, dtype=np.int64)
+        self._rows: list[np.ndarray] = []
+        self._gidx: list[np.ndarray] = []
         self._n = 0
         self._last: tuple[np.ndarray, int] | None = None
 
@@ -229,20 +227,11 @@ class FigureRows:
         if self.bin > 1:
             sel = self._select(rows, g, depth)
             rows, g = rows[sel], g[sel]
-        self._append(rows, g)  # a copy: the caller's block is not pinned
+        self._rows.append(np.array(rows, dtype=np.float64))  # a copy: the caller's block is not pinned
+        self._gidx.append(g)
+        self._n += len(g)
         if self._n > self.cap:
             self._shrink()
-
-    def _append(self, rows, g) -> None:
-        n, k = self._n, len(g)
-        if n + k > len(self._gidx):  # room for the cap's rows (pages are only taken as they are written)
-            keep_rows, keep_g = self._rows[:n], self._gidx[:n]
-            self._rows = np.empty((max(self.cap, n) + k, NCOL))
-            self._gidx = np.empty(len(self._rows), dtype=np.int64)
-            self._rows[:n], self._gidx[:n] = keep_rows, keep_g
-        self._rows[n:n + k] = rows
-        self._gidx[n:n + k] = g
-        self._n = n + k
 
     def _select(self, rows, g, depth=None) -> np.ndarray:
         """Indices of the rows kept with the current bin size (in order)."""
@@ -262,21 +251,25 @@ class FigureRows:
         return np.flatnonzero(keep)
 
     def _shrink(self) -> None:
-        rows, g = self._rows[:self._n], self._gidx[:self._n]
+        rows = np.concatenate(self._rows)
+        g = np.concatenate(self._gidx)
         while len(g) > self.cap // 2:
             self.bin *= 2
             sel = self._select(rows, g)
             rows, g = rows[sel], g[sel]
-        self._rows, self._gidx, self._n = rows, g, len(g)  # new arrays: the next row makes room again
+        self._rows, self._gidx, self._n = [rows], [g], len(g)
 
     def result(self, entries=None) -> tuple[np.ndarray, np.ndarray | None]:
         """(rows, insertion index per row): the index from ``entries`` (each insertion's entry row
         in the stream, :attr:`haptic_acu.analysis.metrics.SessionMetricsScan.entries`), else None."""
-        if not self._n:
+        if not self._rows:
             return np.zeros((0, NCOL)), (None if entries is None else np.zeros(0, np.int64))
-        if self._last is not None and self._gidx[self._n - 1] != self._last[1]:
-            self._append(self._last[0][None], np.array([self._last[1]]))
-        rows, g = self._rows[:self._n], self._gidx[:self._n]
+        rows = np.concatenate(self._rows)
+        g = np.concatenate(self._gidx)
+        if self._last is not None and g[-1] != self._last[1]:
+            rows = np.vstack([rows, self._last[0]])
+            g = np.append(g, self._last[1])
+        self._rows, self._gidx = [rows], [g]
         if entries is None:
             return rows, None
         return rows, np.searchsorted(np.asarray(entries, dtype=np.int64), g, side="right") - 1
