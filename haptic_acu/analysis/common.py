@@ -11,6 +11,7 @@ from ..servo.state import LAYER_NAMES as LAYERS  # noqa: F401 (re-exported)
 # the sample columns (:data:`haptic_acu.servo.samples.COL`) the analysis reads: a vector's first column
 C_X, C_F, C_T, C_TICK = COL["x_m"], COL["fx_n"], COL["t_s"], COL["tick"]
 C_LAYER, C_STATE, C_PUNCT, C_CLAMPED = COL["layer"], COL["state_skin"], COL["puncture"], COL["clamped"]
+C_FAULT = COL["fault"]
 C_DEPTH, C_LAT = COL["depth_skin_m"], COL["f_lateral_n"]
 C_LAYER_F = (COL["f_skin_n"], COL["f_fat_n"], COL["f_muscle_n"])
 C_ROLL, C_TORQUE = COL["roll_deg"], COL["torque_nmm"]

@@ -96,15 +96,55 @@ def _zz_step(zz, ms, v):
     return NONE
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _block_max(rows, c, absolute):
+    """numpy's ``max`` of column ``c`` of ``rows`` (of its absolute values with ``absolute``): NaN if
+    any value is NaN."""
+    m = -np.inf
+    for i in range(rows.shape[0]):
+        v = abs(rows[i, c]) if absolute else rows[i, c]
+        if v != v:
+            return v
+        if v > m:
+            m = v
+    return m
+
+
+# _Twirl's running values: the first and last roll, the total rotation (sum of |roll increments|),
+# the peak |torque|, and whether a block was seen
+TW_FIRST, TW_LAST, TW_TOTAL, TW_PEAK, TW_SEEN = 0, 1, 2, 3, 4
+
+
 @nb.njit(cache=True, nogil=True)
-def _twirl_pass(zz, ms, roll, t, cum, idx, cand, revs):
-    """:class:`_Twirl`'s reversals over the samples ``idx`` of a block: ``cand`` (roll, t, cumulative
-    rotation) the pending reversal, confirmed ones into ``revs`` (k, 3); returns their count."""
+def _twirl_pass(zz, acc, rows, cand, revs):
+    """:class:`_Twirl` over a block of rows (roll, t and torque from their columns): the running
+    values ``acc`` (TW_*), the reversals (state ``zz``, minimum swing ROLL_MIN_SWING_DEG) of the
+    samples where the roll moved (a repeated value never changes a zigzag) and the first one;
+    ``cand`` (roll, t, cumulative rotation) the pending reversal, confirmed ones into ``revs`` (k,
+    3). The cumulative rotation at a sample is the total before the block plus the block's running
+    sum (numpy's ``total + cumsum(steps)``). Returns the reversals' count."""
+    k = rows.shape[0]
+    peak = _block_max(rows, C_TORQUE, True)
+    if peak > acc[TW_PEAK]:  # Python's max(peak so far, the block's): a NaN block is passed over
+        acc[TW_PEAK] = peak
+    if acc[TW_SEEN] == 0.0:
+        acc[TW_FIRST] = rows[0, C_ROLL]
+        acc[TW_LAST] = rows[0, C_ROLL]
+        acc[TW_SEEN] = 1.0
+    prev = acc[TW_LAST]
+    total = acc[TW_TOTAL]
+    run = 0.0
+    cum = total
     n = 0
-    for q in range(idx.shape[0]):
-        j = idx[q]
-        v = roll[j]
-        ev = _zz_step(zz, ms, v)
+    for j in range(k):
+        v = rows[j, C_ROLL]
+        step = abs(v - prev)
+        prev = v
+        run += step
+        cum = total + run
+        if step == 0.0 and (j > 0 or zz[ZZ_STARTED] != 0.0):
+            continue
+        ev = _zz_step(zz, ROLL_MIN_SWING_DEG, v)
         if ev == REV:
             revs[n, 0] = cand[0]
             revs[n, 1] = cand[1]
@@ -112,8 +152,10 @@ def _twirl_pass(zz, ms, roll, t, cum, idx, cand, revs):
             n += 1
         if ev != NONE:
             cand[0] = v
-            cand[1] = t[j]
-            cand[2] = cum[j]
+            cand[1] = rows[j, C_T]
+            cand[2] = cum
+    acc[TW_TOTAL] = cum
+    acc[TW_LAST] = prev
     return n
 
 
@@ -137,27 +179,48 @@ def _window_add(w, r, q, v):
         w[7] = 1.0 if v <= 0.0 else 0.0
 
 
-@nb.njit(cache=True, nogil=True)
-def _strokes_pass(rules, has_ref, i0, samples, speeds, carried, out_sgn, out_sums):
+@nb.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _speeds(samples, k, grad):
+    """numpy.gradient's uniform and general formulas at sample ``k`` of ``samples`` (columns t, dc,
+    dcm): the speed of dcm, as :meth:`InsertionStream._process` states them (the same operations
+    in the same order; a missing neighbour is NaN). ``grad``: the samples to do (m), the sample
+    before the first (t, dcm; NaN if none) and the first tick interval (NaN if none)."""
+    m, left_t, left_f, dx0 = grad
+    m_t = samples[k, 0]
+    m_f = samples[k, 2]
+    l_t = samples[k - 1, 0] if k > 0 else left_t
+    l_f = samples[k - 1, 2] if k > 0 else left_f
+    r_t = samples[k + 1, 0] if k + 1 < samples.shape[0] else np.nan
+    r_f = samples[k + 1, 2] if k + 1 < samples.shape[0] else np.nan
+    dx1 = m_t - l_t
+    dx2 = r_t - m_t
+    ca = -(dx2) / (dx1 * (dx1 + dx2))
+    cb = (dx2 - dx1) / (dx1 * dx2)
+    cc = dx1 / (dx2 * (dx1 + dx2))
+    return (r_f - l_f) / (2. * dx0), ca * l_f + cb * m_f + cc * r_f
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _strokes_pass(rules, has_ref, i0, samples, grad, carried, out_sgn, out_sums):
     """:class:`_Strokes`' per-sample pass over a block: the running prefix sums (``carry``, NS) of
-    the per-sample contributions (for numpy.gradient's uniform and general formulas, each sign: moving,
-    speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's sign and sums
-    (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``, and the
-    withdrawal windows (with ``has_ref``). Returns the strokes' count."""
-    # from sample i0, the first len(v_uni) rows of samples: columns t, dc, dcm, f (3), res, rres,
-    # and the two formulas' speeds v_uni, v_non; rules: the minimum swing and speed; carried (to the
-    # next block): zz, carry, cand, last, win_cand, win_conf
+    the per-sample contributions (for numpy.gradient's uniform and general formulas, :func:`_speeds`,
+    each sign: moving, speed, force x, y, z), the depth's reversals (``zz``), each confirmed stroke's
+    sign and sums (the pending reversal's P minus the last one's Q) into ``out_sgn``, ``out_sums``,
+    and the withdrawal windows (with ``has_ref``). Returns the strokes' count."""
+    # from sample i0, the first m (grad[0]) rows of samples: columns t, dc, dcm, f (3), res, rres;
+    # rules: the minimum swing and speed; carried (to the next block): zz, carry, cand, last,
+    # win_cand, win_conf
     ms, min_speed = rules
-    v_uni, v_non = speeds
     zz, carry, cand, last, win_cand, win_conf = carried
     n = 0
     q_row = np.empty(NS)
-    for k in range(v_uni.shape[0]):
+    for k in range(grad[0]):
         for c in range(NS):
             q_row[c] = carry[c]
+        v_uni, v_non = _speeds(samples, k, grad)
         col = 0
         for form in range(2):
-            vel = v_uni[k] if form == 0 else v_non[k]
+            vel = v_uni if form == 0 else v_non
             for sg in range(2):
                 sv = (1.0 if sg == 0 else -1.0) * vel
                 moving = sv > min_speed
@@ -344,27 +407,12 @@ class _Twirl:
         self.zz = np.zeros(4)  # the reversal rule's state (_zz_step, ZZ_*), minimum swing ROLL_MIN_SWING_DEG
         self.revs: list[tuple[float, float, float]] = []
         self.cand = np.zeros(3)  # the pending reversal: roll, t, cumulative rotation
-        self.first = self.last = None
-        self.total = 0.0
-        self.peak = 0.0
+        self.acc = np.zeros(5)  # first and last roll, total rotation, peak torque, seen (TW_*)
 
-    def feed(self, t: np.ndarray, roll: np.ndarray, torque: np.ndarray) -> None:
-        self.peak = max(self.peak, float(np.abs(torque).max()))
-        prev = roll[0] if self.last is None else self.last
-        if self.first is None:
-            self.first = float(roll[0])
-        steps = np.abs(np.diff(np.concatenate(([prev], roll))))
-        cum = self.total + np.cumsum(steps)
-        self.total = float(cum[-1])
-        self.last = float(roll[-1])
-        moved = np.flatnonzero(steps != 0.0)  # a repeated value never changes a zigzag
-        if self.zz[ZZ_STARTED]:
-            idx = moved
-        else:
-            idx = np.concatenate(([0], moved[moved > 0]))
-        revs = np.empty((idx.size, 3))
-        n = _twirl_pass(self.zz, float(ROLL_MIN_SWING_DEG), np.ascontiguousarray(roll, dtype=np.float64),
-                        np.ascontiguousarray(t, dtype=np.float64), cum, idx.astype(np.int64), self.cand, revs)
+    def feed(self, rows: np.ndarray) -> None:
+        """Rows (k >= 1, NCOL; C-contiguous float64): their roll, t and torque."""
+        revs = np.empty((len(rows), 3))
+        n = _twirl_pass(self.zz, self.acc, rows, self.cand, revs)
         self.revs.extend(map(tuple, revs[:n].tolist()))
 
     def result(self) -> dict:
@@ -384,9 +432,9 @@ class _Twirl:
             "swing_deg": _r(swing, 2),
             "frequency_hz": _r(freq, 3),
             "mean_speed_deg_s": _r(speed, 1),
-            "net_rotation_deg": _r(self.last - self.first, 2),
-            "total_rotation_deg": _r(self.total, 2),
-            "peak_torque_nmm": _r(self.peak, 4),
+            "net_rotation_deg": _r(self.acc[TW_LAST] - self.acc[TW_FIRST], 2),
+            "total_rotation_deg": _r(self.acc[TW_TOTAL], 2),
+            "peak_torque_nmm": _r(self.acc[TW_PEAK], 4),
         }
 
 
@@ -411,18 +459,18 @@ class _Strokes:
         self.win_conf = np.zeros(8)
         self.last_dcm = None
 
-    def feed(self, i0, samples, v_uni, v_non) -> None:
-        """Samples from index ``i0``: the first ``len(v_uni)`` rows of ``samples`` (float64, columns t,
-        dc, dcm, f (3), res, rres) and their speeds by numpy.gradient's two formulas."""
-        k = len(v_uni)
+    def feed(self, i0, samples, grad) -> None:
+        """Samples from index ``i0``: the first ``grad[0]`` rows of ``samples`` (float64, columns t,
+        dc, dcm, f (3), res, rres; the row after them, if any, their right neighbour); ``grad`` as
+        :func:`_speeds` takes it."""
+        k = grad[0]
         if not k:
             return
         sgn = np.empty(k)
         sums = np.empty((k, NS))
         carried = (self.zz, self.carry, self.cand, self.last_rev, self.win_cand, self.win_conf)
         n = _strokes_pass((float(DEPTH_MIN_STROKE_MM), float(MIN_SPEED_MM_S)), self.has_ref, int(i0),
-                          np.ascontiguousarray(samples, dtype=np.float64), (np.ascontiguousarray(v_uni, dtype=np.float64),
-                           np.ascontiguousarray(v_non, dtype=np.float64)), carried, sgn, sums)
+                          np.ascontiguousarray(samples, dtype=np.float64), grad, carried, sgn, sums)
         self.strokes.extend(zip(sgn[:n].tolist(), sums[:n].copy()))
         self.last_dcm = float(samples[k - 1, 2])
 
@@ -455,6 +503,43 @@ class _Strokes:
         }
 
 
+# _Press's peaks: per layer (skin, fat, muscle) the largest |layer force|, then the largest |F| and tip depth
+P_LAYER, P_F, P_TIP = 0, 3, 4
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _vector_max(x):
+    """numpy's ``max`` of ``x`` (k >= 1): NaN if any value is NaN."""
+    m = -np.inf
+    for i in range(x.shape[0]):
+        if x[i] != x[i]:
+            return x[i]
+        if x[i] > m:
+            m = x[i]
+    return m
+
+
+@nb.njit(cache=True, nogil=True)
+def _press_pass(rows, f, tip, peaks):
+    """:class:`_Press` over a block of rows (C-contiguous), their |F| (``f``) and tip depths
+    (``tip``, or empty): each peak (P_*) raised to the block's numpy ``max`` where that is larger
+    (Python's ``max`` of the two: a block with a NaN leaves it)."""
+    for j in range(3):
+        m = _block_max(rows, C_LAYER_F[j], True)
+        if m > peaks[P_LAYER + j]:
+            peaks[P_LAYER + j] = m
+    m = _vector_max(f)
+    if m > peaks[P_F]:
+        peaks[P_F] = m
+    if tip.shape[0]:
+        m = _vector_max(tip)
+        if m > peaks[P_TIP]:
+            peaks[P_TIP] = m
+
+
+_NO_TIP = np.zeros(0)
+
+
 class _Press:
     """The skin's pressing run before a puncture: where it began and its window peaks so far."""
 
@@ -462,17 +547,78 @@ class _Press:
         self.index = index
         self.t = float(row[C_T])
         self.entry = row[C_X:C_X + 3].copy()
-        self.layer_peak = [0.0, 0.0, 0.0]
-        self.f_peak = 0.0
-        self.tip_max = -math.inf
+        self.peaks = np.array([0.0, 0.0, 0.0, 0.0, -math.inf])  # P_*
+
+    @property
+    def layer_peak(self) -> list[float]:
+        return self.peaks[P_LAYER:P_LAYER + 3].tolist()
+
+    @property
+    def f_peak(self) -> float:
+        return float(self.peaks[P_F])
+
+    @property
+    def tip_max(self) -> float:
+        return float(self.peaks[P_TIP])
 
     def feed(self, rows: np.ndarray, tip) -> None:
-        for j, c in enumerate(C_LAYER_F):
-            self.layer_peak[j] = max(self.layer_peak[j], float(np.abs(rows[:, c]).max()))
+        """Rows (k >= 1, NCOL; C-contiguous float64) and their tip depths or None."""
         f = rows[:, C_F:C_F + 3]
-        self.f_peak = max(self.f_peak, float(np.sqrt(np.einsum("ij,ij->i", f, f)).max()))
-        if tip is not None:
-            self.tip_max = max(self.tip_max, float(tip.max()))
+        _press_pass(rows, np.sqrt(np.einsum("ij,ij->i", f, f)),
+                    _NO_TIP if tip is None else np.ascontiguousarray(tip, dtype=np.float64), self.peaks)
+
+
+# InsertionStream's running values: lateral ticks over the comfort bound and the largest lateral
+# force, ticks in bone and clamped, the deepest depth so far, the first tick interval (and whether
+# it is set), whether every interval equals it, and the last t
+R_LAT_OVER, R_LAT_MAX, R_BONE, R_CLAMPED, R_MAX_DEPTH, R_DX0, R_HAS_DX0, R_UNIFORM, R_T_LAST = range(9)
+
+
+@nb.njit(cache=True, nogil=True)
+def _run_pass(rows, limits, run, rec):
+    """:class:`InsertionStream`'s running values ``run`` (R_*) over a block of rows (C-contiguous),
+    as numpy would count them on the block and Python's ``max`` would join them; ``limits``: the
+    lateral comfort bound (N), the target's lower bound (m) and the rows seen before the block.
+    The block's depth records (rows deeper than every earlier one, numpy's ``maximum.accumulate``:
+    none after a NaN) go into ``rec``. Returns (their count, the block's first row at the lower
+    bound or -1)."""
+    comfort, lo, seen = limits
+    k = rows.shape[0]
+    for i in range(k):
+        if rows[i, C_LAT] > comfort:
+            run[R_LAT_OVER] += 1.0
+        if rows[i, C_LAYER] == 3.0:
+            run[R_BONE] += 1.0
+        if rows[i, C_CLAMPED] != 0.0:
+            run[R_CLAMPED] += 1.0
+        if i > 0 or seen > 0:
+            d = rows[i, C_T] - (rows[i - 1, C_T] if i > 0 else run[R_T_LAST])
+            if run[R_HAS_DX0] == 0.0:
+                run[R_DX0] = d
+                run[R_HAS_DX0] = 1.0
+            if d != run[R_DX0]:
+                run[R_UNIFORM] = 0.0
+    run[R_T_LAST] = rows[k - 1, C_T]
+    m = _block_max(rows, C_LAT, False)
+    if m > run[R_LAT_MAX]:
+        run[R_LAT_MAX] = m
+    n = 0
+    hit = -1
+    deepest = run[R_MAX_DEPTH]
+    for i in range(k):
+        v = rows[i, C_DEPTH]
+        if hit < 0 and v >= lo:
+            hit = i
+        if v > deepest:
+            rec[n] = i
+            n += 1
+        if v != v or deepest != deepest:
+            deepest = np.nan
+        elif v > deepest:
+            deepest = v
+    if n:
+        run[R_MAX_DEPTH] = rows[rec[n - 1], C_DEPTH]
+    return n, hit
 
 
 class InsertionStream:
@@ -494,9 +640,9 @@ class InsertionStream:
         self.t0 = self.t_last = 0.0
         self.p0 = None
         self.skin_punctured = False
-        self.lat_over, self.lat_max = 0, -math.inf
-        self.bone_ticks = self.clamped_ticks = 0  # ticks with the tip in bone, with the force clamped
-        self.max_depth = -math.inf
+        self.run = np.zeros(9)  # the running values (R_*)
+        self.run[[R_LAT_MAX, R_MAX_DEPTH]] = -math.inf
+        self.run[R_UNIFORM] = 1.0
         self.p_deep = None
         self.records: list[np.ndarray] = []  # rows (index, depth, t, px, py, pz), depth-pruned
         self.k_lo = None  # (index, t) of the first tick at the target's lower bound
@@ -509,8 +655,6 @@ class InsertionStream:
         self.step_rows: list[np.ndarray] = []  # (p, prev p) at the step ticks, for the error bound
         self.s_carry = 0.0
         self.tail = None  # the last two processed samples: (t, depth, axial, dcm rows)
-        self.dx0 = None  # the run's first tick interval, and whether every interval equals it
-        self.uniform = True  # (numpy.gradient's uniform formula then)
         self.next_i = 0  # samples through the strokes and troughs so far
         self.step_dp = 0.0  # summed |one-tick tip motion| at the step ticks
         self.step_error_bound_m = 0.0
@@ -518,47 +662,50 @@ class InsertionStream:
         self.left = None  # (t, dcm) of the sample before it
 
     # -- direction -------------------------------------------------------------------------------
-    def direction(self):
-        """(u, angle in degrees or None) from the entry to the deepest point so far."""
+    def direction(self, angle: bool = True):
+        """(u, angle in degrees or None) from the entry to the deepest point so far; without
+        ``angle``, (u, None)."""
         from .common import angle_deg as _angle_deg
         direction = self.p_deep - self.entry
         length = float(np.linalg.norm(direction))
         if length > 1e-6:
             u = direction / length
-            return u, _angle_deg(u, self.inward)
+            return u, (_angle_deg(u, self.inward) if angle else None)
         return self.inward, None
+
+    # -- the running values (R_*) ------------------------------------------------------------------
+    lat_over = property(lambda self: int(self.run[R_LAT_OVER]))
+    lat_max = property(lambda self: float(self.run[R_LAT_MAX]))
+    bone_ticks = property(lambda self: int(self.run[R_BONE]))  # ticks with the tip in bone
+    clamped_ticks = property(lambda self: int(self.run[R_CLAMPED]))  # ticks with the force clamped
+    max_depth = property(lambda self: float(self.run[R_MAX_DEPTH]))
+    # the run's first tick interval (None before one), and whether every interval equals it
+    # (numpy.gradient's uniform formula then)
+    dx0 = property(lambda self: float(self.run[R_DX0]) if self.run[R_HAS_DX0] else None)
+    uniform = property(lambda self: bool(self.run[R_UNIFORM]))
 
     # -- feeding ---------------------------------------------------------------------------------
     def feed(self, rows: np.ndarray, tip) -> None:
-        """Rows of the run (skin punctured), oldest first; ``tip``: their tip depth or None."""
+        """Rows of the run (skin punctured; C-contiguous float64), oldest first; ``tip``: their tip
+        depth or None."""
         k = len(rows)
         if k == 0:
             return
         t = rows[:, C_T]
-        depth = rows[:, C_DEPTH]
         i0 = self.n
         if self.n == 0:
             self.t0, self.p0 = float(t[0]), rows[0, C_X:C_X + 3].copy()
             self.skin_punctured = bool(rows[0, C_PUNCT] == 0)
-        d = np.diff(t) if self.n == 0 else np.diff(np.concatenate(([self.t_last], t)))
-        if d.size:
-            if self.dx0 is None:
-                self.dx0 = float(d[0])
-            self.uniform = self.uniform and bool((d == self.dx0).all())
+        rec = np.empty(k, dtype=np.int64)
+        n_rec, hit = _run_pass(rows, (float(self.comfort), self.lo * 1e-3, i0), self.run, rec)
         self.n += k
         self.t_last = float(t[-1])
         self.press.feed(rows, tip)
-        lat = rows[:, C_LAT]
-        self.lat_over += int(np.count_nonzero(lat > self.comfort))
-        self.bone_ticks += int(np.count_nonzero(rows[:, C_LAYER] == 3))
-        self.clamped_ticks += int(np.count_nonzero(rows[:, C_CLAMPED]))
-        self.lat_max = max(self.lat_max, float(lat.max()))
-        self._records(i0, t, depth, rows[:, C_X:C_X + 3])
-        if self.k_lo is None:
-            hit = np.flatnonzero(depth >= self.lo * 1e-3)
-            if hit.size:
-                self.k_lo = (i0 + int(hit[0]), float(t[hit[0]]))
-        self.twirl.feed(t, rows[:, C_ROLL], rows[:, C_TORQUE])
+        if n_rec:
+            self._records(i0 + rec[:n_rec], rows[rec[:n_rec]])
+        if self.k_lo is None and hit >= 0:
+            self.k_lo = (i0 + hit, float(t[hit]))
+        self.twirl.feed(rows)
         if self.ref is not None:
             block = np.empty((k, len(_BLOCK_COLS) + 3))
             block[:, :len(_BLOCK_COLS)] = rows[:, _BLOCK_COLS]
@@ -573,14 +720,11 @@ class InsertionStream:
         else:
             self._dc_block(block)
 
-    def _records(self, i0, t, depth, p) -> None:
-        prior = np.maximum.accumulate(np.concatenate(([self.max_depth], depth)))[:-1]
-        rec = np.flatnonzero(depth > prior)
-        if rec.size == 0:
-            return
-        self.max_depth = float(depth[rec[-1]])
-        self.p_deep = p[rec[-1]].copy()
-        new = np.column_stack([i0 + rec, depth[rec], t[rec], p[rec]])
+    def _records(self, index: np.ndarray, rec: np.ndarray) -> None:
+        """A block's depth records (its rows deeper than every earlier one, :func:`_run_pass`; their
+        indices in the run), kept with the earlier ones not shallower than 90% of the deepest."""
+        self.p_deep = rec[-1, C_X:C_X + 3].copy()
+        new = np.column_stack([index, rec[:, C_DEPTH], rec[:, C_T], rec[:, C_X:C_X + 3]])
         keep = 0.9 * self.max_depth
         old = [r[r[:, 1] >= keep] for r in self.records]
         self.records = [r for r in old + [new[new[:, 1] >= keep]] if len(r)]
@@ -598,7 +742,7 @@ class InsertionStream:
         return ref_f[idx]
 
     def _fix_steps(self) -> None:
-        self.u_steps = self.direction()[0]
+        self.u_steps = self.direction(angle=False)[0]
         if len(self.buf) > 1:  # the buffered blocks in one pass, each block's step motion summed alone
             self._dc_block(np.concatenate(self.buf), [len(b) for b in self.buf])
         elif self.buf:
@@ -636,7 +780,7 @@ class InsertionStream:
         self.s_carry = float(s[-1])
         self.tail = (float(axial[-1]), float(depth[-1]), p[-1].copy())
         dc = depth + s
-        uc = self.direction()[0]
+        uc = self.direction(angle=False)[0]
         res = -(-dot3(b[:, 5:8], uc))  # a lift's resistance: minus the axial force -F . u
         rres = -(-dot3(b[:, 9:12], uc)) if self.ref is not None else np.zeros(len(b))
         new = np.empty((len(b), 8))
@@ -656,20 +800,15 @@ class InsertionStream:
             self.pend = a
             return
         t, dcm = a[:, 0], a[:, 2]
-        left = self.left  # (t, dcm) of the sample before a[0], if any
-        te = np.concatenate(([np.nan if left is None else left[0]], t, [np.nan]))
-        fe = np.concatenate(([np.nan if left is None else left[1]], dcm, [np.nan]))
-        l_t, m_t, r_t = te[:m], te[1:m + 1], te[2:m + 2]
-        l_f, m_f, r_f = fe[:m], fe[1:m + 1], fe[2:m + 2]
-        dx1, dx2 = m_t - l_t, r_t - m_t
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ca = -(dx2) / (dx1 * (dx1 + dx2))
-            cb = (dx2 - dx1) / (dx1 * dx2)
-            cc = dx1 / (dx2 * (dx1 + dx2))
-            v_non = ca * l_f + cb * m_f + cc * r_f
-            v_uni = (r_f - l_f) / (2. * (self.dx0 if self.dx0 is not None else np.nan))
+        left = (np.nan, np.nan) if self.left is None else self.left  # (t, dcm) of the sample before a[0]
+        # the speeds by numpy.gradient's formulas, sample by sample in the strokes' pass (_speeds):
+        # with l, m, r a sample's left neighbour, itself and its right one (NaN where missing),
+        # dx1 = m_t - l_t, dx2 = r_t - m_t, the general formula ca * l + cb * m + cc * r (ca =
+        # -dx2 / (dx1 (dx1 + dx2)), cb = (dx2 - dx1) / (dx1 dx2), cc = dx1 / (dx2 (dx1 + dx2))), the
+        # uniform one (r - l) / (2 dx0)
         g0 = self.next_i
-        self.strokes.feed(g0, a, v_uni, v_non)
+        dx0 = self.dx0 if self.dx0 is not None else np.nan
+        self.strokes.feed(g0, a, (int(m), float(left[0]), float(left[1]), float(dx0)))
         self.troughs.feed(g0, -a[:m, 1], t[:m])
         self.next_i += m
         self.left = (float(t[m - 1]), float(dcm[m - 1]))

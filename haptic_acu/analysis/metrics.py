@@ -377,6 +377,12 @@ class MedianCounter:
         self.n = 0
 
     def add(self, values: np.ndarray) -> None:
+        if values.size and self.values.size:  # usually every value has been seen: count them in place
+            at = np.searchsorted(self.values, values)
+            if at.max() < self.values.size and np.array_equal(self.values[at], values):
+                self.counts += np.bincount(at, minlength=self.values.size)
+                self.n += int(values.size)
+                return
         if values.size:
             v, c = np.unique(values, return_counts=True)
             if self.values.size:
@@ -436,7 +442,7 @@ class SessionMetricsScan:
     def feed(self, rows: np.ndarray, tip: np.ndarray | None = None) -> None:
         """Rows (k, NCOL) in order; ``tip``: their tip depth (:func:`~haptic_acu.analysis.scan.tip_depth_m`),
         if the caller has it already."""
-        rows = np.asarray(rows, dtype=np.float64)
+        rows = np.ascontiguousarray(rows, dtype=np.float64)  # the compiled passes read it by rows
         k = len(rows)
         if k == 0:
             return

@@ -15,7 +15,7 @@ import numpy as np
 from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401
 from ..tissue.body import Tissue as _Tissue
-from .common import C_F, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
+from .common import C_CLAMPED, C_F, C_FAULT, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
 
 _BODY_RADIUS = _Tissue.radius
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
@@ -179,7 +179,7 @@ class SessionScan:
     def feed(self, rows: np.ndarray, depth: np.ndarray | None = None) -> list[dict]:
         """Scan a block of rows (k, NCOL); returns the punctures found in it (also kept). ``depth``:
         the rows' :func:`tip_depth_m`, if the caller has it already."""
-        rows = np.asarray(rows)
+        rows = np.ascontiguousarray(rows, dtype=np.float64)  # the compiled pass reads it by rows
         k = rows.shape[0]
         if k == 0:
             return []
@@ -188,68 +188,85 @@ class SessionScan:
         f = np.sqrt(np.einsum("ij,ij->i", rows[:, C_F:C_F + 3], rows[:, C_F:C_F + 3]))
         if depth is None:
             depth = tip_depth_m(rows[:, C_X:C_X + 3], self.tissue)
-        t = np.ascontiguousarray(rows[:, C_T])
+        depth = np.ascontiguousarray(depth, dtype=np.float64)
         # time: interval to the next row counts for the place of the earlier row
         if self.t_last is not None:
-            self.time_in[self._prev_place] += t[0] - self.t_last
+            self.time_in[self._prev_place] += rows[0, C_T] - self.t_last
         else:
-            self.t_first = float(t[0])
+            self.t_first = float(rows[0, C_T])
         self._prev_place = int(rows[-1, C_LAYER]) + 1
-        self.t_last = float(t[-1])
+        self.t_last = float(rows[-1, C_T])
         self.ticks += k
-        self.max_force = max(self.max_force, float(f.max()))
-        self.max_depth = max(self.max_depth, float(depth.max()))
-        self.clamped_ticks += int(np.count_nonzero(rows[:, COL["clamped"]]))
-        self.fault_ticks += int(np.count_nonzero(rows[:, COL["fault"]]))
-        # pressing runs and punctures: one compiled pass over the block
-        punct = np.ascontiguousarray(rows[:, C_PUNCT])
-        ev = np.empty(int(np.count_nonzero(punct >= 0)), dtype=np.int64)
-        ev_peak = np.empty(ev.size)
-        ev_peak_depth = np.empty(ev.size)
-        _press_runs(np.ascontiguousarray(rows[:, C_STATE:C_STATE + N_LAYERS]).astype(np.int64), f,
-                    np.ascontiguousarray(depth, dtype=np.float64), punct,
-                    (self._prev_state, self._press_peak, self._press_peak_depth), (ev, ev_peak, ev_peak_depth),
-                    (t, np.ascontiguousarray(rows[:, C_LAYER]), self.time_in, self.ticks_in, self.peak_in))
-        found = [{"layer": LAYERS[int(punct[i])], "t_s": float(t[i]), "tick": int(rows[i, C_TICK]),
+        # pressing runs, punctures, places and the block's extremes and counts: one compiled pass
+        ev = np.empty(k, dtype=np.int64)
+        ev_peak = np.empty(k)
+        ev_peak_depth = np.empty(k)
+        n, f_max, depth_max, clamped, fault = _press_runs(
+            rows, f, depth, (self._prev_state, self._press_peak, self._press_peak_depth),
+            (ev, ev_peak, ev_peak_depth), (self.time_in, self.ticks_in, self.peak_in))
+        self.max_force = max(self.max_force, f_max)  # Python's max: a block's NaN maximum is passed over
+        self.max_depth = max(self.max_depth, depth_max)
+        self.clamped_ticks += clamped
+        self.fault_ticks += fault
+        found = [{"layer": LAYERS[int(rows[i, C_PUNCT])], "t_s": float(rows[i, C_T]), "tick": int(rows[i, C_TICK]),
                   "tip_depth_m": float(depth[i]), "peak_force_n": float(pk), "peak_depth_m": float(pd)}
-                 for i, pk, pd in zip(ev.tolist(), ev_peak.tolist(), ev_peak_depth.tolist())]
+                 for i, pk, pd in zip(ev[:n].tolist(), ev_peak[:n].tolist(), ev_peak_depth[:n].tolist())]
         self.punctures.extend(found)
         return found
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _max(x):
+    """numpy's ``max`` of ``x`` (k >= 1): NaN if any value is NaN."""
+    m = -np.inf
+    for i in range(x.shape[0]):
+        if x[i] != x[i]:
+            return x[i]
+        if x[i] > m:
+            m = x[i]
+    return m
+
+
 @nb.njit(cache=True, nogil=True)
-def _press_runs(states, f, depth, punct, runs, out, places):
-    """:meth:`SessionScan.feed`'s pressing runs over a block: per layer, the largest ``f`` (and the
-    ``depth`` there) over the uninterrupted run of PRESSING ``states`` (k, N_LAYERS), carried in
-    ``runs`` (prev_state, peak, peak_depth) across blocks; for each row with a puncture
-    (``punct >= 0``, in order), its row index and that layer's run peak and depth into ``out``
-    (ev, ev_peak, ev_peak_depth: sized to the punctures). ``places``: (t, layer code, time_in,
-    ticks_in, peak_in): per place (code + 1), the rows' intervals to their next row in the block,
-    their count and their largest ``f`` (numpy.maximum's: a NaN stays), added in row order."""
+def _press_runs(rows, f, depth, runs, out, places):
+    """:meth:`SessionScan.feed`'s pass over a block of ``rows`` (C-contiguous), their |F| ``f`` and
+    tip depths ``depth``. Pressing runs: per layer, the largest ``f`` (and the ``depth`` there) over
+    the uninterrupted run of PRESSING states, carried in ``runs`` (prev_state, peak, peak_depth)
+    across blocks; for each row with a puncture (in order), its row index and that layer's run peak
+    and depth into ``out`` (ev, ev_peak, ev_peak_depth: k long). ``places``: (time_in, ticks_in,
+    peak_in): per place (layer code + 1), the rows' intervals to their next row in the block, their
+    count and their largest ``f`` (numpy.maximum's: a NaN stays), added in row order. Returns the
+    punctures' count, numpy's max of ``f`` and of ``depth``, and the rows clamped and faulted."""
     prev_state, peak, peak_depth = runs
     ev, ev_peak, ev_peak_depth = out
-    t, layer, time_in, ticks_in, peak_in = places
-    k = states.shape[0]
+    time_in, ticks_in, peak_in = places
+    k = rows.shape[0]
+    clamped = 0
+    fault = 0
     for i in range(k):
-        pl = int(layer[i]) + 1
+        pl = int(rows[i, C_LAYER]) + 1
         if i + 1 < k:
-            time_in[pl] += t[i + 1] - t[i]
+            time_in[pl] += rows[i + 1, C_T] - rows[i, C_T]
         ticks_in[pl] += 1
         if f[i] > peak_in[pl] or f[i] != f[i]:
             peak_in[pl] = f[i]
+        if rows[i, C_CLAMPED] != 0.0:
+            clamped += 1
+        if rows[i, C_FAULT] != 0.0:
+            fault += 1
     n = 0
-    for i in range(states.shape[0]):
-        for j in range(states.shape[1]):
-            s = states[i, j]
+    for i in range(k):
+        for j in range(N_LAYERS):
+            s = np.int64(rows[i, C_STATE + j])
             if s == PRESSING:
                 if prev_state[j] != PRESSING or f[i] > peak[j]:
                     peak[j] = f[i]
                     peak_depth[j] = depth[i]
             prev_state[j] = s
-        if punct[i] >= 0:
-            j = int(punct[i])
+        if rows[i, C_PUNCT] >= 0:
+            j = int(rows[i, C_PUNCT])
             ev[n] = i
             ev_peak[n] = peak[j]
             ev_peak_depth[n] = peak_depth[j]
             n += 1
-    return n
+    return n, _max(f), _max(depth), clamped, fault
