@@ -264,6 +264,7 @@ class Session:
         self._force = self.model.out.diag["force"][0]  # the force the last tick commanded (a view)
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
+        self._depth_buf = None  # this thread's work arrays for the tip depths it computes (a replay)
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -586,11 +587,13 @@ class Session:
         # this thread hands the block before to the sinks; the ticks allocate nothing there (a
         # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
         # with the session)
-        # the sinks' tip depth of a block's rows, computed right after its ticks (on the tick
-        # thread: into arrays made here, two in turn, one per block in flight)
+        # the sinks' tip depth of a block's rows: the first DEPTH_ON_TICKS of them computed right
+        # after its ticks (on the tick thread: into arrays made here, two in turn, one per block in
+        # flight), the rest by this thread as it hands the block over (its own work arrays)
         depth = None
         if rows_only and any(getattr(s, "wants_tip_depth", False) for s in self.sinks):
             from ..analysis.scan import TipDepthBuffers
+            self._depth_buf = TipDepthBuffers(self.ring.capacity)
             depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(2)])
         pool = None
         if TICK_THREAD and rows_only and max_frames > 1:
@@ -713,25 +716,31 @@ class Session:
         if n:
             self._t_session = float(T[n - 1])
 
+    #: the share of a block's rows whose tip depth the tick thread computes after the block's ticks
+    #: (the session's thread computes the rest as it hands the block over): the two threads' work
+    #: about even in a headless replay
+    DEPTH_ON_TICKS = 0.5
+
     def _run_block(self, args, depth):
         """A block's ticks (:meth:`_run_frames_resetting` on ``args``) and, given ``depth``
-        (buffers, out), the tip depth of the rows they wrote into ``out`` (allocating nothing:
-        this runs on the tick thread); (ticks, frames, (out, the ring's head before the rows,
-        rows) or None)."""
+        (buffers, out), the tip depth of the first :attr:`DEPTH_ON_TICKS` of the rows they wrote
+        into ``out`` (allocating nothing: this runs on the tick thread); (ticks, frames, (out, the
+        ring's head before the rows, rows, rows with a depth) or None)."""
         h0 = int(self.ring.ctr[0])
         n, frames = self._run_frames_resetting(*args)
         got = None
         if depth is not None and n and int(self.ring.ctr[0]) == h0 + n and n <= self.ring.capacity:
             from ..analysis.scan import tip_depth_into
             buf, out = depth
+            m = int(n * self.DEPTH_ON_TICKS)
             cap = self.ring.capacity
             a = h0 % cap
-            first = min(n, cap - a)  # the rows up to the ring's end, then from its start
+            first = min(m, cap - a)  # the rows up to the ring's end, then from its start
             tissue = self.model.tissue
             ok = tip_depth_into(self.ring.buf[a:a + first, _C_X:_C_X + 3], tissue, out[:first], buf)
-            if ok and first < n:
-                ok = tip_depth_into(self.ring.buf[:n - first, _C_X:_C_X + 3], tissue, out[first:n], buf)
-            got = (out, h0, n) if ok else None
+            if ok and first < m:
+                ok = tip_depth_into(self.ring.buf[:m - first, _C_X:_C_X + 3], tissue, out[first:m], buf)
+            got = (out, h0, n, m) if ok else None
         return n, frames, got
 
     def _run_frames_resetting(self, P, V, A, R, T, k0, ends, cuts, sb):
@@ -759,17 +768,22 @@ class Session:
         ``T``), each frame's to every sink (a live session's visual frame, its springback already
         run); the forces of the frames' last ticks reported to the device
         (:meth:`Device.record_forces`). The rows of a frame not completed stay in the ring (for the
-        final frame). ``depth`` (out, the ring's head before the block's rows, rows): their tip
-        depths (:meth:`_run_block`), handed over with them if they are these rows."""
+        final frame). ``depth`` (out, the ring's head before the block's rows, rows, rows with a
+        depth): their tip depths (:meth:`_run_block`; the rest computed here), handed over with
+        them if they are these rows."""
         frames = len(ends)
         if not frames:
             return
         tail, dropped = self.ring.tail, self.ring.dropped
         rows = self.ring.drain(int(ends[-1]))
         if depth is not None:
-            out, h0, n = depth
-            depth = (out[:len(rows)].copy() if tail == h0 and self.ring.dropped == dropped and len(rows) <= n
-                     else None)
+            out, h0, n, m = depth
+            k = len(rows)
+            depth = None
+            if tail == h0 and self.ring.dropped == dropped and k <= n:
+                from ..analysis.scan import tip_depth_into
+                if m >= k or tip_depth_into(rows[m:k, _C_X:_C_X + 3], self.model.tissue, out[m:k], self._depth_buf):
+                    depth = out[:k].copy()
         F = rows[ends - 1, _C_F:_C_F + 3]
         self.device.record_forces(frames, float(np.sqrt((F * F).sum(axis=1)).max()), F[-1])
         dents = self.want_dents and not all(s.rows_only for s in self.sinks)
