@@ -336,3 +336,36 @@ def test_row_batches_carry_the_blocks_depths():
             else:
                 assert d.tobytes() == (-r[:, 0]).tobytes()
         assert nones == 0 if plain is None else nones >= 1
+
+
+def test_a_fault_mid_replay_ends_it_at_that_tick_with_the_ticks_queued_ahead_or_not(cfg, tissue, monkeypatch):
+    """A non-finite position at tick 5000 of a replay whose blocks of ticks are queued two ahead on
+    the tick thread (engine.TICK_THREAD) ends it as the blocks run one after the other do: the fault
+    at that tick, no tick run after it (the block queued behind it runs none), the same rows handed
+    over and the same model state."""
+    bad = 5000
+    runs = {}
+    for threaded in (True, False):
+        monkeypatch.setattr(engine, "TICK_THREAD", threaded)
+        sink = Frames(rows_only=True)
+        dev = ScriptedDevice(DEFAULT_TRAJ, force_limit_n=cfg.safety.force_limit_n)
+        dev.open()
+        read_block = dev.read_block
+
+        def poisoned(T, read_block=read_block):
+            P, V, done = read_block(T)
+            k = np.flatnonzero(np.isclose(T, bad * 1e-3, rtol=0.0, atol=1e-9))
+            P[k] = np.nan
+            return P, V, done
+
+        dev.read_block = poisoned
+        model = NeedleModel(cfg, tissue)
+        result = Session(cfg, dev, [sink], clock="sim", model=model, duration_s=12.0).run()
+        dev.close()
+        rows = np.concatenate([r for _, _, r in sink.seen])
+        runs[threaded] = (result, rows, model.state.pos.copy())
+    (r1, rows1, pos1), (r2, rows2, pos2) = runs[True], runs[False]
+    assert r1.fault is not None and f"tick {bad}" in r1.fault and r1.fault == r2.fault
+    assert r1.ticks == r2.ticks == bad + 1
+    assert rows1.tobytes() == rows2.tobytes() and len(rows1) == bad + 1
+    assert pos1.tobytes() == pos2.tobytes()

@@ -59,6 +59,7 @@ import signal
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -130,10 +131,11 @@ class SessionResult:
 @dataclass
 class _Block:
     """A headless replay's block of ticks as read from the device (:meth:`Session._read_ahead`):
-    times ``T``, positions ``P``, velocities ``V``, axes ``A`` and rolls ``R`` of the ``n_read``
+    its first tick's index ``k0``, times ``T``, positions ``P``, velocities ``V``, axes ``A`` and rolls ``R`` of the ``n_read``
     ticks the device gave (of ``T_size`` asked), each frame's end in them (``ends``), the reset events'
     ticks (``cuts``), whether the block ends at the session's limit without a frame (``cut``), and
     the tick and frame time a following block starts at (``k_next``, ``next_frame``)."""
+    k0: int
     T: np.ndarray
     P: np.ndarray
     V: np.ndarray
@@ -146,6 +148,24 @@ class _Block:
     cut: bool
     k_next: int
     next_frame: float
+
+    @property
+    def whole(self) -> bool:
+        """The device's states go on past this block: a following block may be read."""
+        return not self.cut and self.n_read == self.T_size
+
+
+class _Done:
+    """A block run on the session's own thread, in the shape of a pool's future."""
+
+    def __init__(self, result):
+        self._result = result
+
+    def result(self):
+        return self._result
+
+    def cancel(self) -> bool:
+        return False
 
 
 def _devicemodel():
@@ -265,6 +285,7 @@ class Session:
         self._tick = None  # the Python drivers' servo tick (PythonTick), bound in warm_up
         self._sim_table = None  # run_frames' table (simulated time, a device read ahead)
         self._depth_buf = None  # this thread's work arrays for the tip depths it computes (a replay)
+        self._halted = False  # a replay's block ended early: the blocks queued after it do not run
         self._warm = False
         self._t_session = 0.0
         self.sched_fifo = False
@@ -577,8 +598,9 @@ class Session:
         limit = self.duration_s if self.duration_s is not None else math.inf
         dev = self.device
         rows_only = all(s.rows_only for s in self.sinks)
-        # a call's rows stay in the ring until they are handed over: at most half of it
-        max_frames = max(1, int(self.ring.capacity // 2 * dt / self.frame_dt) - 1) if rows_only else 1
+        # a call's rows stay in the ring until they are handed over: the block handed over and the
+        # two queued on the tick thread fit in it together
+        max_frames = max(1, int(self.ring.capacity // 3 * dt / self.frame_dt) - 1) if rows_only else 1
         events = dev.has_events
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
@@ -588,13 +610,13 @@ class Session:
         # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
         # with the session)
         # the sinks' tip depth of a block's rows: the first DEPTH_ON_TICKS of them computed right
-        # after its ticks (on the tick thread: into arrays made here, two in turn, one per block in
+        # after its ticks (on the tick thread: into arrays made here, three in turn, one per block in
         # flight), the rest by this thread as it hands the block over (its own work arrays)
         depth = None
         if rows_only and any(getattr(s, "wants_tip_depth", False) for s in self.sinks):
             from ..analysis.scan import TipDepthBuffers
             self._depth_buf = TipDepthBuffers(self.ring.capacity)
-            depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(2)])
+            depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(3)])
         pool = None
         if TICK_THREAD and rows_only and max_frames > 1:
             from concurrent.futures import ThreadPoolExecutor
@@ -607,67 +629,92 @@ class Session:
 
     def _sim_ahead_loop(self, dt, limit, dev, max_frames, events, sb, pool, depth=None) -> None:
         """:meth:`_run_sim_ahead`'s blocks: each block read from the device and run, and its frames
-        handed over; with a ``pool``, handed over while the next block's ticks run, and the block
-        after that read from the device meanwhile. ``depth`` (buffers, [out, out]): each block's tip
-        depths computed after its ticks (:meth:`_run_block`). The blocks grow from a few frames to
-        ``max_frames`` and shrink again towards the device's end (:meth:`_block_frames`): with a
-        pool, the first block's ticks and the last block's hand-over run beside nothing."""
+        handed over. With a ``pool`` (one thread), two blocks' ticks are queued there, so that the
+        next block's ticks follow the last one's at once, while this thread hands the block before
+        over and reads the one after from the device. ``depth`` (buffers, [out, out, out]): each
+        block's tip depths computed after its ticks (:meth:`_run_block`). The blocks grow from a few
+        frames to ``max_frames`` and shrink again towards the device's end (:meth:`_block_frames`):
+        with a pool, the first block's ticks and the last block's hand-over run beside nothing."""
         t0 = time.perf_counter()
         end_s = min(limit, dev.end_s)
         grow = [min(max_frames, self.FIRST_BLOCK_FRAMES)]
+        queued = deque()  # (block, its job) run or running, in order
+        self._halted = False
+        turn = [0]
 
         def read(k0, next_frame):
             frames = self._block_frames(grow[0], k0 * dt, end_s)
             grow[0] = min(max_frames, 2 * grow[0])
             return self._read_ahead(dev, dt, k0, next_frame, limit, frames, events)
 
+        def launch(blk):
+            out = None if depth is None else (depth[0], depth[1][turn[0]])
+            turn[0] = (turn[0] + 1) % len(depth[1]) if depth is not None else 0
+            args = (blk.P, blk.V, blk.A, blk.R, blk.T, blk.k0, blk.ends[blk.ends <= blk.n_read], blk.cuts, sb)
+            queued.append((blk, _Done(self._run_block(args, out)) if pool is None
+                           else pool.submit(self._run_block, args, out)))
+
         pending = None  # (ends, T, rates, depth) of the block run but not yet handed over
-        turn = 0
         nxt = read(self.tick, self.frame_dt)
         try:
-            while nxt is not None and not self._stop.is_set():
-                blk, nxt = nxt, None
-                T, ends, n_read, T_size, cut = blk.T, blk.ends, blk.n_read, blk.T_size, blk.cut
-                k0 = self.tick
-                args = (blk.P, blk.V, blk.A, blk.R, T, k0, ends[ends <= n_read], blk.cuts, sb)
-                out = None if depth is None else (depth[0], depth[1][turn])
-                turn ^= 1
-                whole = not cut and n_read == T_size  # the device's next block follows this one's
-                if pool is None:
-                    n, frames, got = self._run_block(args, out)
-                else:
-                    job = pool.submit(self._run_block, args, out)
-                    try:
-                        if pending is not None:  # the block before's rows to the sinks, beside these ticks
-                            block, pending = pending, None
-                            self._hand_over(*block)
-                        if whole:  # and the next block's positions
-                            nxt = read(blk.k_next, blk.next_frame)
-                        n, frames, got = job.result()
-                    except BaseException:  # a sink failed, or a signal: the ticks running finish and count
-                        self._count_ticks(job, T)  # (their rows stay in the ring for the final frame)
-                        raise
+            while (queued or nxt is not None) and not self._stop.is_set():
+                if nxt is not None:
+                    launch(nxt)
+                    nxt = None
+                blk, job = queued[0]
+                try:
+                    if pending is not None:  # the block before's rows to the sinks, beside the ticks
+                        done, pending = pending, None
+                        self._hand_over(*done)
+                    last = queued[-1][0]
+                    if pool is not None and len(queued) < 2 and last.whole:  # the next block queued
+                        after = read(last.k_next, last.next_frame)
+                        if after is not None:
+                            launch(after)
+                    n, frames, got, faulted = job.result()
+                except BaseException:  # a sink failed, or a signal: the ticks running finish and count
+                    self._count_ticks(queued)  # (their rows stay in the ring for the final frame)
+                    raise
+                queued.popleft()
                 self.tick += n
                 if n:
-                    self._t_session = float(T[n - 1])
-                faulted = self.model.diag["fault"] != 0.0
+                    self._t_session = float(blk.T[n - 1])
                 wall = time.perf_counter() - t0
                 if wall > 0:
                     self.rates = {"servo_hz": self.tick / wall, "visual_hz": (self.frame_index + frames) / wall}
-                pending = (ends[:frames], T, dict(self.rates), got)
-                if faulted or not whole or n < n_read or pool is None:
-                    block, pending = pending, None
-                    self._hand_over(*block)
-                if faulted:
-                    self._state_fault(float(T[n - 1]), self.tick - 1)
-                    return
-                if not whole or n < n_read:  # the session's end, a fault or the device's end
+                pending = (blk.ends[:frames], blk.T, dict(self.rates), got)
+                ended = faulted or not blk.whole or n < blk.n_read  # a fault, the session's or the device's end
+                if ended or pool is None:
+                    done, pending = pending, None
+                    self._hand_over(*done)
+                if ended:
+                    self._count_ticks(queued)  # none run after this block's last (_run_block)
+                    if faulted:
+                        self._state_fault(float(blk.T[n - 1]), self.tick - 1)
                     return
                 if pool is None:
                     nxt = read(blk.k_next, blk.next_frame)
         finally:
+            self._count_ticks(queued)  # stopped with blocks queued
             if pending is not None:  # stopped (or failed) after a block was run: its rows still go out
                 self._hand_over(*pending)
+
+    def _count_ticks(self, queued) -> None:
+        """After a block that ended the session, a failure or a signal: the blocks still ``queued``
+        ((block, job), on the session's tick thread) waited for (or cancelled before they start)
+        and their ticks counted, so the rows they wrote are the session's (the final frame hands
+        them over)."""
+        while queued:
+            blk, job = queued.popleft()
+            if job.cancel():
+                continue
+            try:
+                n = job.result()[0]
+            except Exception:  # noqa: BLE001 - the failure being raised is the one to report
+                continue
+            self.tick += n
+            if n:
+                self._t_session = float(blk.T[n - 1])
 
     #: a replay's first block of ticks (visual frames): the sinks wait for it; the blocks double from it
     FIRST_BLOCK_FRAMES = 4
@@ -701,20 +748,8 @@ class Session:
                 if e > a:
                     cuts += [a + c for c in dev.reset_ticks(T[a:e])]
                 a = e
-        return _Block(T, P, V, axis_block(dev, T), roll_block(dev, T), ends, cuts, n_read, T_size, cut,
+        return _Block(k0, T, P, V, axis_block(dev, T), roll_block(dev, T), ends, cuts, n_read, T_size, cut,
                       lasts[-1] + 1, next_after)
-
-    def _count_ticks(self, job, T) -> None:
-        """After a failure or a signal beside a block's ticks (``job``, on the session's tick
-        thread): wait for them and count them, so the rows they wrote are the session's (the final
-        frame hands them over)."""
-        try:
-            n, _, _ = job.result()
-        except Exception:  # noqa: BLE001 - the failure being raised is the one to report
-            return
-        self.tick += n
-        if n:
-            self._t_session = float(T[n - 1])
 
     #: the share of a block's rows whose tip depth the tick thread computes after the block's ticks
     #: (the session's thread computes the rest as it hands the block over): the two threads' work
@@ -725,9 +760,14 @@ class Session:
         """A block's ticks (:meth:`_run_frames_resetting` on ``args``) and, given ``depth``
         (buffers, out), the tip depth of the first :attr:`DEPTH_ON_TICKS` of the rows they wrote
         into ``out`` (allocating nothing: this runs on the tick thread); (ticks, frames, (out, the
-        ring's head before the rows, rows, rows with a depth) or None)."""
+        ring's head before the rows, rows, rows with a depth) or None, whether a tick faulted).
+        Nothing runs after a block that faulted or stopped short (the blocks are queued ahead)."""
+        if self._halted:  # the block before ended the session early (a fault): nothing runs after it
+            return 0, 0, None, False
         h0 = int(self.ring.ctr[0])
         n, frames = self._run_frames_resetting(*args)
+        faulted = self.model.diag["fault"] != 0.0
+        self._halted = faulted or n < args[4].size
         got = None
         if depth is not None and n and int(self.ring.ctr[0]) == h0 + n and n <= self.ring.capacity:
             from ..analysis.scan import tip_depth_into
@@ -741,7 +781,7 @@ class Session:
             if ok and first < m:
                 ok = tip_depth_into(self.ring.buf[:m - first, _C_X:_C_X + 3], tissue, out[first:m], buf)
             got = (out, h0, n, m) if ok else None
-        return n, frames, got
+        return n, frames, got, faulted
 
     def _run_frames_resetting(self, P, V, A, R, T, k0, ends, cuts, sb):
         """:func:`run_frames` on a block, resetting the model (fresh tissue, as the keyboard's
