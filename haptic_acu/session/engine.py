@@ -835,13 +835,13 @@ class Session:
                                      Dents(self.model, self.springback.settled))])
                 a = e
             return
-        starts = [0, *ends[:-1].tolist()]
         k = self.frame_index
         model = self.model
-        block = FrameBlock([Frame(t, k + j, rows[a:e], model, rates) for j, (a, e, t) in
-                            enumerate(zip(starts, ends.tolist(), T[ends - 1].tolist()))], rows[:int(ends[-1])], ends,
-                           depth)
-        self._deliver(block)
+
+        def frame(j):  # built when a sink asks for it
+            return Frame(float(T[ends[j] - 1]), k + j, rows[ends[j - 1] if j else 0:ends[j]], model, rates)
+
+        self._deliver(FrameBlock((), rows[:int(ends[-1])], ends, depth, make=frame))
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..base.errors import UserError
-from .sink import Sink
+from .sink import Sink, block_rows
 
 # the grading, the atlas, the patient and the servo model are imported where a point session
 # uses them: a command's parser (add_point_args) needs none of them
@@ -94,10 +94,13 @@ class GradeSink(Sink):
         self.ps = ps
         self.grader = PointGrader(ps.anatomy, ps.cfg.needle.bone_stiffness_n_per_mm)
 
-    def on_frame(self, frame) -> None:
-        rows = frame.samples
+    def on_frames(self, frames) -> None:
+        rows, _ = block_rows(frames)
         if len(rows):
             self.grader.feed(rows)
+
+    def on_frame(self, frame) -> None:
+        self.on_frames((frame,))
 
     def result(self) -> list[dict]:
         return self.grader.result()

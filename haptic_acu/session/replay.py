@@ -31,7 +31,7 @@ from pathlib import Path
 from ..base.bundled import bundled_dir
 from ..base.config import load_config
 from ..base.errors import UserError
-from .sink import Sink
+from .sink import Sink, block_rows
 
 BUNDLED_DIR = bundled_dir("trajectories")
 DEFAULT_TRAJECTORY = BUNDLED_DIR / "default.csv"
@@ -182,6 +182,10 @@ class Progress(Sink):
         self.duration_s = duration_s
         self._last = -1
         self._wall0 = time.perf_counter()
+
+    def on_frames(self, frames) -> None:
+        if len(frames):  # the percentage reached
+            self.on_frame(frames[-1])
 
     def on_frame(self, frame) -> None:
         if not self.enabled:
@@ -407,9 +411,13 @@ class _Forces(Sink):
         self.cols = [COL["tick"], COL["fx_n"], COL["fx_n"] + 1, COL["fx_n"] + 2]
         self.blocks: list = []
 
+    def on_frames(self, frames) -> None:
+        rows, _ = block_rows(frames)
+        if len(rows):
+            self.blocks.append(rows[:, self.cols])
+
     def on_frame(self, frame) -> None:
-        if len(frame.samples):
-            self.blocks.append(frame.samples[:, self.cols])
+        self.on_frames((frame,))
 
 
 def reference_forces(trajectory, cfg):

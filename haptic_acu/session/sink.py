@@ -13,20 +13,36 @@ of :class:`Sink` and calls these methods on each, in this order; a sink override
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 
-class FrameBlock(list):
-    """Consecutive frames handed over at once (a list of frames) with their rows as one array:
+class FrameBlock(Sequence):
+    """Consecutive frames handed over at once (a sequence of frames) with their rows as one array:
     ``rows`` (every frame's samples, in order; each frame's ``samples`` is a view of it) and
     ``ends`` (the index in ``rows`` past each frame's last row); ``depth``: each row's tip depth
-    (:func:`haptic_acu.analysis.scan.tip_depth_m`, computed beside the ticks), or None."""
+    (:func:`haptic_acu.analysis.scan.tip_depth_m`, computed beside the ticks), or None.
+    ``frames``: a list, or ``make`` (``make(j)`` gives frame ``j``) builds each frame when a sink
+    asks for it (a sink that reads only ``rows`` never does)."""
 
-    def __init__(self, frames, rows, ends, depth=None):
-        super().__init__(frames)
+    def __init__(self, frames, rows, ends, depth=None, make=None):
+        self._frames = list(frames) if make is None else [None] * len(ends)
+        self._make = make
         self.rows = rows
         self.ends = ends
         self.depth = depth
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, j):
+        if isinstance(j, slice):
+            return [self[i] for i in range(*j.indices(len(self)))]
+        f = self._frames[j]
+        if f is None:
+            f = self._frames[j] = self._make(j % len(self._frames))
+        return f
 
 
 def block_rows(frames):
