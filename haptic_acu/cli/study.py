@@ -211,11 +211,12 @@ def cmd_trial(args) -> int:
 
 
 def _ask_and_record(study, trial, redo: bool, previous=None) -> int:
+    from ..base.prompt import read_line
     from ..study.ratings import RatingsAbandoned, ask
 
     later = (f"haptic-acu study rate {study.folder} --participant {trial.participant} --trial {trial.trial}")
     try:
-        values = ask(trial.system, study.scale, read=input, write=print, previous=previous)
+        values = ask(trial.system, study.scale, read=read_line, write=print, previous=previous)
     except KeyboardInterrupt:
         print(f"\nno ratings recorded for {trial.participant} trial {trial.trial}; enter them with: {later}",
               file=sys.stderr)

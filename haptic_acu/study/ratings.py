@@ -12,6 +12,7 @@ import math
 import re
 
 from ..analysis.scoring import INDICES
+from ..base.prompt import read_line
 
 #: What a participant reads for each index (the paper's wording, section 4.2).
 LABELS = {
@@ -75,9 +76,11 @@ def check_row(values, scale: dict) -> list[float]:
     return out
 
 
-def ask(code: str, scale: dict, read=input, write=print, previous=None) -> list[float]:
+def ask(code: str, scale: dict, read=read_line, write=print, previous=None) -> list[float]:
     """Ask the seven ratings of system ``code``; returns them once all are given and confirmed.
-    ``read(prompt)`` returns a line (EOFError at the end of the input), ``write(text)`` shows one.
+    ``read(prompt)`` returns a line (EOFError at the end of the input; by default
+    :func:`~haptic_acu.base.prompt.read_line`, which a Ctrl-C ends however early it comes),
+    ``write(text)`` shows one.
     ``previous``: ratings already recorded (shown, for a correction)."""
     write(f"Please rate {code} on each of {len(INDICES)} points ({scale_text(scale)}; "
           f"{scale['max']:g} is best).")
