@@ -598,9 +598,9 @@ class Session:
         limit = self.duration_s if self.duration_s is not None else math.inf
         dev = self.device
         rows_only = all(s.rows_only for s in self.sinks)
-        # a call's rows stay in the ring until they are handed over: the block handed over and the
-        # two queued on the tick thread fit in it together
-        max_frames = max(1, int(self.ring.capacity // 3 * dt / self.frame_dt) - 1) if rows_only else 1
+        # a call's rows stay in the ring until they are handed over: at most half of it (a block is
+        # queued on the tick thread once the block before the one running there is handed over)
+        max_frames = max(1, int(self.ring.capacity // 2 * dt / self.frame_dt) - 1) if rows_only else 1
         events = dev.has_events
         if self._sim_table is None:  # the ring's and the model's arrays outlive it
             self._sim_table = tick_table(self.model.servo, Ring(self.ring.buf, self.ring.ctr), self._timing)
@@ -610,13 +610,13 @@ class Session:
         # thread that did the sinks' work took a malloc arena of its own, and the peak memory grew
         # with the session)
         # the sinks' tip depth of a block's rows: the first DEPTH_ON_TICKS of them computed right
-        # after its ticks (on the tick thread: into arrays made here, three in turn, one per block in
+        # after its ticks (on the tick thread: into arrays made here, two in turn, one per block in
         # flight), the rest by this thread as it hands the block over (its own work arrays)
         depth = None
         if rows_only and any(getattr(s, "wants_tip_depth", False) for s in self.sinks):
             from ..analysis.scan import TipDepthBuffers
             self._depth_buf = TipDepthBuffers(self.ring.capacity)
-            depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(3)])
+            depth = (TipDepthBuffers(self.ring.capacity), [np.empty(self.ring.capacity) for _ in range(2)])
         pool = None
         if TICK_THREAD and rows_only and max_frames > 1:
             from concurrent.futures import ThreadPoolExecutor
@@ -631,7 +631,7 @@ class Session:
         """:meth:`_run_sim_ahead`'s blocks: each block read from the device and run, and its frames
         handed over. With a ``pool`` (one thread), two blocks' ticks are queued there, so that the
         next block's ticks follow the last one's at once, while this thread hands the block before
-        over and reads the one after from the device. ``depth`` (buffers, [out, out, out]): each
+        over and reads the one after from the device. ``depth`` (buffers, [out, out]): each
         block's tip depths computed after its ticks (:meth:`_run_block`). The blocks grow from a few
         frames to ``max_frames`` and shrink again towards the device's end (:meth:`_block_frames`):
         with a pool, the first block's ticks and the last block's hand-over run beside nothing."""
