@@ -141,3 +141,16 @@ def cohort_sessions_here(monkeypatch) -> list[str]:
     monkeypatch.setattr(run, "run_local", run_local)
     return replayed
 
+
+
+def interrupt_now(sig: str):
+    """What ``sig`` does to this process's main thread at this point of a command, without the
+    signal: Ctrl-C's KeyboardInterrupt (Python's SIGINT handler), or a call of the SIGTERM handler
+    installed now. If none is (SIGTERM's default action: the process ends at once, no ``finally``
+    runs), that is the test's failure, not this process's end."""
+    if sig == "SIGINT":
+        raise KeyboardInterrupt
+    handler = signal.getsignal(signal.SIGTERM)
+    assert callable(handler), "SIGTERM here would end the process at once (no handler installed)"
+    handler(signal.SIGTERM, None)
+    raise AssertionError("the SIGTERM handler returned: the command would go on")

@@ -2,7 +2,8 @@
 
 A second replay to the same ``--out`` is refused while the first runs; a ``DIR.partial`` holding a
 user's files is never deleted; a stale one left by a killed replay is replaced; an interrupted
-replay exits 130/143 and leaves its files in ``DIR.partial`` (never published as complete); bad
+replay exits 130/143 and leaves its files in ``DIR.partial`` (never published as complete), one
+stopped before its session starts leaves nothing (nor does `run`); bad
 ``--out`` places and ``--jobs`` values are one line, exit 2. A replay that is signalled or holds a
 folder while another tries it runs as a child; every other command runs in this process.
 """
@@ -242,3 +243,22 @@ def test_second_batch_to_the_same_folder_refused(tmp_path):
     finally:
         os.killpg(a.pid, signal.SIGINT)
         a.communicate(timeout=120)
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("command", ["run", "replay"])
+def test_interrupt_while_the_simulator_is_prepared_leaves_no_output(tmp_path, monkeypatch, command, sig):
+    """Ctrl-C or SIGTERM during the warm-up (before the session's own signal handling): one line, exit
+    130 or 143, and neither the output folder nor a DIR.partial is left."""
+    from cli_helpers import interrupt_now
+    from haptic_acu.session.engine import Session
+
+    monkeypatch.setattr(Session, "warm_up", lambda self: interrupt_now(sig))
+    traj, out = short_csv(tmp_path / "s.csv"), tmp_path / "out"
+    if command == "run":
+        r = cli("run", "--device", "scripted", "--trajectory", traj, "--speed", "4", "--no-status", "--out", out)
+    else:
+        r = cli("replay", "--no-rrd", "--out", out, traj)
+    line = one_line(r, 128 + signal.Signals[sig], command)
+    assert ("interrupted" if sig == "SIGINT" else "terminated (SIGTERM)") in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv"]

@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from ..base.errors import DeviceFault, UserError
+from ..base.signals import Terminated
 
 # name -> module providing register(subparsers); imported only when needed.
 COMMANDS = {
@@ -115,6 +116,9 @@ def _dispatch(args) -> int:
     except KeyboardInterrupt:
         print(f"haptic-acu {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Terminated as e:  # SIGTERM where a command asked for it to unwind (base/signals.py)
+        print(f"haptic-acu {args.command}: terminated (SIGTERM)", file=sys.stderr)
+        return int(e.code)
     except BrokenPipeError:
         return 0
     except OSError as e:  # a full disk, a read-only or vanished folder while writing outputs

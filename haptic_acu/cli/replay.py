@@ -9,6 +9,7 @@ from ..base.bundled import bundled_names
 from ..base.errors import UserError
 from ..base.outputs import Outputs, claim_folder
 from ..base.outputs import fresh_folder as fresh_path
+from ..base.signals import sigterm_unwinds
 
 BATCH_FILES = ("summaries.csv", "insertions.csv", "punctures.csv")
 
@@ -107,8 +108,9 @@ def run(args) -> int:
     if len(paths) == 1:
         traj = paths[0]
         out = Path(args.out) if args.out else fresh_path(Path("runs") / f"{traj.stem}-{_stamp()}")
-        summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
-                             spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
+        with sigterm_unwinds():  # SIGTERM outside the session's loops: DIR.partial removed, exit 143
+            summary = replay_one(traj, out, args.config, realtime=args.realtime, rrd=not args.no_rrd,
+                                 spawn=args.spawn, connect=args.connect, cfg=cfg, point=ps, layout=args.layout)
         print_summary(summary, out, quiet=args.quiet, verbose=args.verbose)
         return 0
     if args.spawn or args.connect or args.realtime:

@@ -27,6 +27,7 @@ from ..base.errors import UserError
 from ..base.outputs import Outputs, claim_folder, fresh_folder
 from .options import add_config_args, check_layout_arg, check_speed_arg, config_from_args
 from ..base.progress import step
+from ..base.signals import sigterm_unwinds
 
 
 def register(sub) -> None:
@@ -168,9 +169,10 @@ def run(args) -> int:
     device = make_device(args, cfg)
     lock = claim_folder(out)  # held alone until the session's report is written
     try:
-        return _run(args, cfg, device, out, rec, ps)
-    except UserError:
-        lock.discard_if_empty()  # the session could not start: nothing left behind
+        with sigterm_unwinds():  # SIGTERM outside the session's loops: unwinds like Ctrl-C (exit 143)
+            return _run(args, cfg, device, out, rec, ps)
+    except BaseException:
+        lock.discard_if_empty()  # the session could not start (bad input, Ctrl-C): nothing left behind
         raise
     finally:
         lock.release()

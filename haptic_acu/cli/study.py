@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from ..base.errors import UserError
+from ..base.signals import Terminated, sigterm_unwinds
 
 
 def register(sub) -> None:
@@ -170,11 +171,9 @@ def cmd_plan(args) -> int:
 
 
 def cmd_trial(args) -> int:
-    import signal
-
     from ..base.bundled import not_found_hint, resolve_trajectory
     from ..study import overview
-    from ..study.trial import blind_config, run_session
+    from ..study.trial import blind_config, ended_here, run_session
     from .run import make_device
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
@@ -192,35 +191,30 @@ def cmd_trial(args) -> int:
             raise UserError(f"{traj}: trajectory file not found{not_found_hint()}")
         args.trajectory = str(traj)
     device = make_device(args, cfg)
-    res = run_session(study, trial, cfg, device, device_name=args.device, duration_s=args.duration, rrd=args.rrd,
-                      status=not args.no_status, compiled=not args.python_servo, pin_cores=args.pin_cores,
-                      speed=args.speed)
-    name = res.folder.name
-    if res.status == "fault":
-        print(f"haptic-acu study: stopped: {res.fault}; trial not done (its files: {res.folder})", file=sys.stderr)
-        return 3
-    if res.status == "interrupted":
-        print(f"haptic-acu study: {name} interrupted (SIGTERM); the recording is complete up to the signal; "
-              f"the trial is not done: run it again", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    if args.ratings_later:
-        print(f"{name}: session recorded; ratings later: haptic-acu study rate {study.folder} --participant "
-              f"{trial.participant} --trial {trial.trial}")
-        return 0
-    return _ask_and_record(study, trial, redo=state.state in (overview.RATED, overview.TO_RATE))
+    with sigterm_unwinds():  # SIGTERM before or after the session's loops: trial.json says how it ended
+        res = run_session(study, trial, cfg, device, device_name=args.device, duration_s=args.duration,
+                          rrd=args.rrd, status=not args.no_status, compiled=not args.python_servo,
+                          pin_cores=args.pin_cores, speed=args.speed)
+        stopped = ended_here(study, trial, res)  # a fault or a signal: its one line, the exit status
+        if stopped is not None:
+            return stopped
+        if args.ratings_later:
+            print(f"{res.folder.name}: session recorded; ratings later: haptic-acu study rate {study.folder} "
+                  f"--participant {trial.participant} --trial {trial.trial}")
+            return 0
+        return _ask_and_record(study, trial, redo=state.state in (overview.RATED, overview.TO_RATE))
 
 
 def _ask_and_record(study, trial, redo: bool, previous=None) -> int:
     from ..base.prompt import read_line
     from ..study.ratings import RatingsAbandoned, ask
+    from ..study.trial import no_ratings, signal_name
 
     later = (f"haptic-acu study rate {study.folder} --participant {trial.participant} --trial {trial.trial}")
     try:
         values = ask(trial.system, study.scale, read=read_line, write=print, previous=previous)
-    except KeyboardInterrupt:
-        print(f"\nno ratings recorded for {trial.participant} trial {trial.trial}; enter them with: {later}",
-              file=sys.stderr)
-        return 130
+    except (KeyboardInterrupt, Terminated) as e:
+        return no_ratings(study, trial, signal_name(e))
     except RatingsAbandoned as e:
         raise UserError(f"ratings: {e}; nothing recorded; enter them with: {later}") from None
     old = study.record_ratings(trial, values, "redo of the trial" if redo else "corrected by study rate")

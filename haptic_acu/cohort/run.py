@@ -27,6 +27,7 @@ from typing import Callable, Iterable
 
 from .sessions import Job, replay_session
 from ..base.errors import UserError
+from ..base.signals import Terminated
 
 
 class ProgressLine:
@@ -101,13 +102,10 @@ def _worker_init(parent: int) -> None:
         os._exit(1)
 
 
-class Terminated(SystemExit):
+def _on_sigterm(signum, frame):
     """SIGTERM while the pool runs: unwinds like Ctrl-C (the pool's workers are ended, every finished
     session is already saved) and exits 143."""
-
-
-def _on_sigterm(signum, frame):
-    raise Terminated(128 + signum)
+    raise Terminated(signum)
 
 
 def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) -> None:

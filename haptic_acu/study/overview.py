@@ -5,8 +5,9 @@ A trial is
 
 * ``rated`` (done): its seven ratings are in ratings.csv;
 * ``to rate``: a session completed, no ratings yet (``--ratings-later``, or Ctrl-C at the prompts);
-* ``interrupted``: every session of it was stopped by SIGTERM, ended by a fault, or never
-  finished (a folder whose trial.json still says ``running``); it may simply be run again;
+* ``interrupted``: every session of it was stopped by SIGTERM, ended by a fault, stopped by Ctrl-C
+  or SIGTERM before it started, or never finished (a folder whose trial.json still says
+  ``running``: its process was killed outright); it may simply be run again;
 * ``to run``: no session yet.
 """
 from __future__ import annotations

@@ -10,8 +10,10 @@ End of a session: the device's own end (the scripted path's end, the keyboard's 
 ``--duration``, or Ctrl-C (SIGINT: the usual way to end an OMNI session) complete the trial. A
 SIGTERM (the process is being shut down) interrupts it: the recording is flushed and complete up
 to that tick, the trial is marked ``interrupted`` and not done, no ratings are asked. A fault
-(exit 3) is marked ``fault``. Ratings are then asked on the terminal (:func:`ratings.ask`), and
-recorded in ratings.csv only once all seven are given; Ctrl-C there records nothing.
+(exit 3) is marked ``fault``. Ctrl-C or SIGTERM before the session starts (while the simulator is
+prepared) marks the trial ``interrupted`` too, with nothing recorded. Ratings are then asked on the
+terminal (:func:`ratings.ask`), and recorded in ratings.csv only once all seven are given; Ctrl-C
+there records nothing.
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from pathlib import Path
 from .. import __version__
 from ..base.errors import UserError
 from ..base.progress import step
+from ..base.signals import Terminated
 from .store import Study, Trial, now, write_trial_json
 
 
@@ -34,6 +37,8 @@ class TrialResult:
     status: str  # complete | interrupted | fault
     fault: str | None
     summary: dict | None
+    signal: str | None = None  # what interrupted the trial, or (complete) its files after the session
+    started: bool = True  # False: stopped before its session started (nothing recorded)
 
 
 def session_name(trial: Trial) -> str:
@@ -41,24 +46,17 @@ def session_name(trial: Trial) -> str:
     return f"{trial.participant} trial {trial.trial}: {trial.system}"
 
 
-def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, duration_s=None, rrd=False,
-                status=True, compiled=True, pin_cores=False, speed=1.0, err=None, out=None) -> TrialResult:
-    """Run the trial's session on ``device`` (made by the caller, not opened) with the model's
-    ``cfg`` into a new session folder; returns how it ended. Never reveals the model. ``speed``: a
-    paced session of the scripted device (:class:`~haptic_acu.session.engine.Session`), recorded in
-    trial.json when it is not 1."""
+def signal_name(e: BaseException) -> str:
+    """The signal behind an interrupt: Ctrl-C's KeyboardInterrupt, or SIGTERM's Terminated."""
+    return "SIGTERM" if isinstance(e, Terminated) else "SIGINT"
+
+
+def _session(folder: Path, cfg, device, *, rrd, status, err, **kw):
+    """The trial's session and its recorder and summary sinks (nothing opened, nothing written)."""
     from ..session.engine import Session
     from ..session.recorder import RecorderSink
-    from ..session.report import SamplesCsvSink, SummarySink, plot_force_depth, print_results
+    from ..session.report import SamplesCsvSink, SummarySink
 
-    err = sys.stderr if err is None else err
-    out = sys.stdout if out is None else out
-    folder, attempt = study.new_session_folder(trial)
-    doc = {"participant": trial.participant, "trial": trial.trial, "system": trial.system, "attempt": attempt,
-           "status": "running", "device": device_name, "started": now(), "tool_version": __version__}
-    if speed != 1.0:
-        doc["speed"] = speed
-    write_trial_json(folder, doc)
     summary_sink = SummarySink(cfg, keep_rows=False)
     recorder = RecorderSink(folder / "recording.csv", device=device)
     sinks = [recorder, SamplesCsvSink(folder / "samples.csv"), summary_sink]
@@ -69,26 +67,66 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
         from ..session.status import StatusLine
         sinks.append(StatusLine(stream=err, target_mm=cfg.scene.target_depth_mm,
                                 force_limit_n=cfg.safety.force_limit_n, device=device))
-    session = Session(cfg, device, sinks, clock="realtime", duration_s=duration_s, compiled_loop=compiled,
-                      pin_cores=pin_cores, speed=speed)
-    with step("preparing the simulator"):
-        session.warm_up()
-    print(f"{trial.participant}, trial {trial.trial} of {study.n_trials}: {trial.system}. "
-          "End the session with Ctrl-C" + (" (or q)" if device_name == "keyboard" else "") + ".", file=err)
+    return Session(cfg, device, sinks, clock="realtime", **kw), recorder, summary_sink
+
+
+def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, duration_s=None, rrd=False,
+                status=True, compiled=True, pin_cores=False, speed=1.0, err=None, out=None) -> TrialResult:
+    """Run the trial's session on ``device`` (made by the caller, not opened) with the model's
+    ``cfg`` into a new session folder; returns how it ended. Never reveals the model. ``speed``: a
+    paced session of the scripted device (:class:`~haptic_acu.session.engine.Session`), recorded in
+    trial.json when it is not 1.
+
+    trial.json says ``running`` from the folder's creation; whatever ends the trial rewrites it. An
+    interrupt (Ctrl-C, or SIGTERM under :func:`~haptic_acu.base.signals.sigterm_unwinds`) before
+    the session's loops handle signals (while the simulator is prepared, the device opens) marks it
+    ``interrupted`` with the signal and returns (``started`` False: nothing recorded); one while the
+    session's files are written after it leaves its status (the session is recorded) and returns
+    the signal: no ratings are asked."""
+    from ..session.report import plot_force_depth, print_results
+
+    err = sys.stderr if err is None else err
+    out = sys.stdout if out is None else out
+    folder, attempt = study.new_session_folder(trial)
+    doc = {"participant": trial.participant, "trial": trial.trial, "system": trial.system, "attempt": attempt,
+           "status": "running", "device": device_name, "started": now(), "tool_version": __version__}
+    if speed != 1.0:
+        doc["speed"] = speed
+    recorder, ran = None, False
     try:
-        device.open()
-    except BaseException as e:  # no device (a missing library, an OMNI not connected): no session
-        doc.update(status="fault", ended=now(), fault=f"the device did not open: {e}")
+        write_trial_json(folder, doc)
+        session, recorder, summary_sink = _session(folder, cfg, device, rrd=rrd, status=status, err=err,
+                                                   duration_s=duration_s, compiled_loop=compiled,
+                                                   pin_cores=pin_cores, speed=speed)
+        with step("preparing the simulator"):
+            session.warm_up()
+        print(f"{trial.participant}, trial {trial.trial} of {study.n_trials}: {trial.system}. "
+              "End the session with Ctrl-C" + (" (or q)" if device_name == "keyboard" else "") + ".", file=err)
+        try:
+            device.open()
+        except Exception as e:  # no device (a missing library, an OMNI not connected): no session
+            doc.update(status="fault", ended=now(), fault=f"the device did not open: {e}")
+            raise
+        try:
+            recorder.open()
+            ran = True
+            result = session.run()
+        finally:
+            device.close()
+    except (KeyboardInterrupt, Terminated) as e:
+        doc.update(status="interrupted", ended=now(), signal=signal_name(e))
+        if ran:
+            doc["recording_rows"] = recorder.rows
+        write_trial_json(folder, doc)
+        return TrialResult(folder, attempt, "interrupted", None, None, signal=signal_name(e), started=ran)
+    except Exception as e:
+        if doc["status"] == "running":
+            doc.update(status="fault", ended=now(), fault=f"the session did not start: {e}")
         write_trial_json(folder, doc)
         raise
-    try:
-        recorder.open()
-        result = session.run()
-    finally:
-        device.close()
     sig = getattr(session, "signal_received", None)
     state = "fault" if result.fault else ("interrupted" if sig == signal.SIGTERM else "complete")
-    summary = None
+    summary, stopped = None, None
     try:
         summary = summary_sink.summary()
         summary["trajectory"] = session_name(trial)
@@ -100,6 +138,8 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
         print(f"session: {result.duration_s:.1f} s, {result.ticks} ticks, {result.stats['missed_ticks']} missed",
               file=err)
         print_results(summary, folder, file=out, quiet=True)
+    except (KeyboardInterrupt, Terminated) as e:  # the session is recorded; its ratings are not asked
+        stopped = signal_name(e)
     finally:
         doc.update(status=state, ended=now(), duration_s=round(result.duration_s, 3), ticks=result.ticks,
                    missed_ticks=result.stats.get("missed_ticks"), recording_rows=recorder.rows)
@@ -108,7 +148,37 @@ def run_session(study: Study, trial: Trial, cfg, device, *, device_name: str, du
         if sig is not None:
             doc["signal"] = signal.Signals(sig).name
         write_trial_json(folder, doc)
-    return TrialResult(folder, attempt, state, result.fault, summary)
+    return TrialResult(folder, attempt, state, result.fault, summary,
+                       signal=doc["signal"] if state == "interrupted" else stopped)
+
+
+def ended_here(study: Study, trial: Trial, res: TrialResult) -> int | None:
+    """A trial that stops without its ratings: its one line on stderr and the exit status (3 a
+    fault; 130 or 143 a signal: before the session, during it (SIGTERM), or after it); None when
+    the ratings are to be asked."""
+    name = res.folder.name
+    if res.status == "fault":
+        print(f"haptic-acu study: stopped: {res.fault}; trial not done (its files: {res.folder})", file=sys.stderr)
+        return 3
+    if res.status == "interrupted":
+        sig = res.signal or "SIGTERM"
+        what = (" before the session started; nothing recorded" if not res.started else
+                "; the recording is complete up to the signal")
+        print(f"haptic-acu study: {name} interrupted ({sig}){what}; the trial is not done: run it again",
+              file=sys.stderr)
+        return 128 + signal.Signals[sig]
+    if res.signal is not None:  # while the session's files were written
+        return no_ratings(study, trial, res.signal, f"haptic-acu study: the session of {name} is saved; ")
+    return None
+
+
+def no_ratings(study: Study, trial: Trial, sig: str, what: str = "\n") -> int:
+    """An interrupt (``sig``) before the ratings were saved: one line saying how to enter them
+    (after ``what``; at a prompt, a line end); the exit status, 130 (Ctrl-C) or 143 (SIGTERM)."""
+    print(f"{what}no ratings recorded for {trial.participant} trial {trial.trial} ({sig}); enter them with: "
+          f"haptic-acu study rate {study.folder} --participant {trial.participant} --trial {trial.trial}",
+          file=sys.stderr)
+    return 128 + signal.Signals[sig]
 
 
 def blind_config(study, key, model, trial):
