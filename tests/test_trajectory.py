@@ -481,3 +481,28 @@ def test_million_rows_stream_in_bounded_memory(million_rows):
     assert cur.rewinds == 0
     expect_z = (5.0 - 40.0 * (1 - math.cos(2 * math.pi * 999.75 / 20.0)) / 2) / 1000
     assert last[0][2] == pytest.approx(expect_z, abs=1e-7)
+
+
+def test_a_small_file_plays_from_the_samples_checked_at_validation(tmp_path):
+    """A validated file of at most KEEP_ROWS samples is played from the blocks validate() kept: the
+    cursor gives what a reader streaming the file gives, and the file is not read again (it may
+    vanish after validation); a longer file is streamed."""
+    src = Path(__file__).resolve().parents[1] / "trajectories" / "default.csv"
+    path = tmp_path / "small.csv"
+    path.write_bytes(src.read_bytes())
+    t = np.linspace(0.0, 16.0, 4001)
+    want = T.TrajectoryReader(src).cursor().sample_block(t)  # streamed, never validated
+    reader = T.TrajectoryReader(path)
+    reader.validate()
+    path.unlink()  # a second read would fail
+    got = reader.cursor().sample_block(t)
+    for a, b in zip(got, want):
+        assert np.array_equal(a, b)
+    rows = T.KEEP_ROWS + 1  # one sample too many to keep
+    big = tmp_path / "big.csv"
+    big.write_text("t_s,x_mm,y_mm,z_mm\n" + "".join(f"{i * 1e-3:.6f},0,0,5\n" for i in range(rows)))
+    reader = T.TrajectoryReader(big)
+    assert reader.validate().samples == rows
+    big.unlink()
+    with pytest.raises(UserError, match="not found"):  # streamed: read again
+        reader.cursor().sample_block(np.array([0.0, 1.0]))

@@ -841,7 +841,7 @@ class Session:
         def frame(j):  # built when a sink asks for it
             return Frame(float(T[ends[j] - 1]), k + j, rows[ends[j - 1] if j else 0:ends[j]], model, rates)
 
-        self._deliver(FrameBlock((), rows[:int(ends[-1])], ends, depth, make=frame))
+        self._deliver(FrameBlock.lazy(frame, rows[:int(ends[-1])], ends, depth))
 
     # real time: our timer drives the servo thread
     def _rt_setup(self):

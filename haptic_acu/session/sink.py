@@ -23,15 +23,23 @@ class FrameBlock(Sequence):
     ``rows`` (every frame's samples, in order; each frame's ``samples`` is a view of it) and
     ``ends`` (the index in ``rows`` past each frame's last row); ``depth``: each row's tip depth
     (:func:`haptic_acu.analysis.scan.tip_depth_m`, computed beside the ticks), or None.
-    ``frames``: a list, or ``make`` (``make(j)`` gives frame ``j``) builds each frame when a sink
-    asks for it (a sink that reads only ``rows`` never does)."""
+    :meth:`lazy` builds each frame only when a sink asks for it (a sink that reads only ``rows``
+    never does)."""
 
-    def __init__(self, frames, rows, ends, depth=None, make=None):
-        self._frames = list(frames) if make is None else [None] * len(ends)
-        self._make = make
+    def __init__(self, frames, rows, ends, depth=None):
+        self._frames = list(frames)
+        self._make = None
         self.rows = rows
         self.ends = ends
         self.depth = depth
+
+    @classmethod
+    def lazy(cls, make, rows, ends, depth=None) -> "FrameBlock":
+        """A block whose frame ``j`` is ``make(j)``, made on first access."""
+        block = cls((), rows, ends, depth)
+        block._frames = [None] * len(ends)
+        block._make = make
+        return block
 
     def __len__(self) -> int:
         return len(self._frames)

@@ -424,8 +424,10 @@ class TrajectoryReader:
             if math.isnan(t_first):
                 t_first = float(b.t_s[0])
             t_last = float(b.t_s[-1])
-            if kept is not None:
-                kept = kept + [b] if check.count <= KEEP_ROWS else None
+            if kept is not None and check.count <= KEEP_ROWS:
+                kept.append(b)
+            else:
+                kept = None
         self._kept = kept
         return TrajectoryInfo(str(self.path), check.count, t_first, t_last, check.max_speed)
 
