@@ -508,7 +508,7 @@ P_LAYER, P_F, P_TIP = 0, 3, 4
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _vector_max(x):
+def nan_max(x):
     """numpy's ``max`` of ``x`` (k >= 1): NaN if any value is NaN."""
     m = -np.inf
     for i in range(x.shape[0]):
@@ -528,11 +528,11 @@ def _press_pass(rows, f, tip, peaks):
         m = _block_max(rows, C_LAYER_F[j], True)
         if m > peaks[P_LAYER + j]:
             peaks[P_LAYER + j] = m
-    m = _vector_max(f)
+    m = nan_max(f)
     if m > peaks[P_F]:
         peaks[P_F] = m
     if tip.shape[0]:
-        m = _vector_max(tip)
+        m = nan_max(tip)
         if m > peaks[P_TIP]:
             peaks[P_TIP] = m
 

@@ -16,6 +16,7 @@ from ..servo.samples import COL, NCOL
 from ..servo.state import N_LAYERS, PLACE_NAMES, PRESSING, PUNCTURED, STATE_NAMES  # noqa: F401
 from ..tissue.body import Tissue as _Tissue
 from .common import C_CLAMPED, C_F, C_FAULT, C_LAYER, C_PUNCT, C_STATE, C_T, C_TICK, C_X
+from .insertion_stream import nan_max
 
 _BODY_RADIUS = _Tissue.radius
 PLACES = PLACE_NAMES  # sample ``layer`` codes -1..3
@@ -215,18 +216,6 @@ class SessionScan:
         return found
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _max(x):
-    """numpy's ``max`` of ``x`` (k >= 1): NaN if any value is NaN."""
-    m = -np.inf
-    for i in range(x.shape[0]):
-        if x[i] != x[i]:
-            return x[i]
-        if x[i] > m:
-            m = x[i]
-    return m
-
-
 @nb.njit(cache=True, nogil=True)
 def _press_runs(rows, f, depth, runs, out, places):
     """:meth:`SessionScan.feed`'s pass over a block of ``rows`` (C-contiguous), their |F| ``f`` and
@@ -269,4 +258,4 @@ def _press_runs(rows, f, depth, runs, out, places):
             ev_peak[n] = peak[j]
             ev_peak_depth[n] = peak_depth[j]
             n += 1
-    return n, _max(f), _max(depth), clamped, fault
+    return n, nan_max(f), nan_max(depth), clamped, fault

@@ -206,13 +206,12 @@ def cmd_trial(args) -> int:
 
 
 def _ask_and_record(study, trial, redo: bool, previous=None) -> int:
-    from ..base.prompt import read_line
     from ..study.ratings import RatingsAbandoned, ask
     from ..study.trial import no_ratings, signal_name
 
     later = (f"haptic-acu study rate {study.folder} --participant {trial.participant} --trial {trial.trial}")
     try:
-        values = ask(trial.system, study.scale, read=read_line, write=print, previous=previous)
+        values = ask(trial.system, study.scale, write=print, previous=previous)
     except (KeyboardInterrupt, Terminated) as e:
         return no_ratings(study, trial, signal_name(e))
     except RatingsAbandoned as e:

@@ -27,7 +27,7 @@ from typing import Callable, Iterable
 
 from .sessions import Job, replay_session
 from ..base.errors import UserError
-from ..base.signals import Terminated
+from ..base.signals import sigterm_unwinds
 
 
 class ProgressLine:
@@ -102,40 +102,29 @@ def _worker_init(parent: int) -> None:
         os._exit(1)
 
 
-def _on_sigterm(signum, frame):
-    """SIGTERM while the pool runs: unwinds like Ctrl-C (the pool's workers are ended, every finished
-    session is already saved) and exits 143."""
-    raise Terminated(signum)
-
-
 def run_local(jobs: list[Job], workers: int, on_result: Callable[[dict], None]) -> None:
     if not jobs:
         return
-    import signal
-    import threading
-
     workers = max(1, min(workers, len(jobs)))
     pending = iter(jobs)
-    main = threading.current_thread() is threading.main_thread()
-    old = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init,
-                             initargs=(os.getpid(),))
-    try:
-        inflight = set()
-        _fill(ex.submit, pending, inflight, 2 * workers)
-        while inflight:
-            done, inflight = wait(inflight, return_when=FIRST_COMPLETED)
-            for f in done:
-                on_result(f.result())
+    # SIGTERM while the pool runs unwinds like Ctrl-C: the pool's workers are ended, every finished
+    # session is already saved, and the command exits 143
+    with sigterm_unwinds():
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init,
+                                 initargs=(os.getpid(),))
+        try:
+            inflight = set()
             _fill(ex.submit, pending, inflight, 2 * workers)
-    except BaseException:
-        for p in list(getattr(ex, "_processes", {}).values()):  # stop running replays now
-            p.terminate()
-        ex.shutdown(wait=True, cancel_futures=True)
-        raise
-    finally:
-        if main:
-            signal.signal(signal.SIGTERM, old)
+            while inflight:
+                done, inflight = wait(inflight, return_when=FIRST_COMPLETED)
+                for f in done:
+                    on_result(f.result())
+                _fill(ex.submit, pending, inflight, 2 * workers)
+        except BaseException:
+            for p in list(getattr(ex, "_processes", {}).values()):  # stop running replays now
+                p.terminate()
+            ex.shutdown(wait=True, cancel_futures=True)
+            raise
     ex.shutdown(wait=True)
 
 

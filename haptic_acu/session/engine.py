@@ -687,15 +687,14 @@ class Session:
                 if ended or pool is None:
                     done, pending = pending, None
                     self._hand_over(*done)
-                if ended:
-                    self._count_ticks(queued)  # none run after this block's last (_run_block)
+                if ended:  # (the block queued behind it runs no tick, _run_block; waited for below)
                     if faulted:
                         self._state_fault(float(blk.T[n - 1]), self.tick - 1)
                     return
                 if pool is None:
                     nxt = read(blk.k_next, blk.next_frame)
         finally:
-            self._count_ticks(queued)  # stopped with blocks queued
+            self._count_ticks(queued)  # ended or stopped with a block queued
             if pending is not None:  # stopped (or failed) after a block was run: its rows still go out
                 self._hand_over(*pending)
 
